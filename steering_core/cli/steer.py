@@ -1,0 +1,3 @@
+"""CLI commands of one pipeline phase."""
+
+from steering_core.cli.app import app  # noqa: F401

@@ -1,0 +1,18 @@
+"""Path templates of the on-disk layout (the seed's, kept). Build paths only through these."""
+
+from __future__ import annotations
+
+LAYER_DIR = "layer{layer:02d}"                      # data/residuals/<pair>_slices/layer12/
+FILTERED_DIR = "libero_filtered/{suite}"            # selected .hdf5 links + selection.json
+SELECTION_FILE = "selection.json"
+LEROBOT_DIR = "libero_lerobot/{repo_id}"
+MANIFEST_FILE = "manifests/{pair}.json"
+CONCEPT_MAP_FILE = "manifests/{pair}_concept_map.json"
+RESIDUALS_RUN_DIR = "residuals/{run}"
+SLICES_DIR = "residuals/{pair}_slices"
+STEERING_ROOT = "latent_steering"
+
+
+def layer_dir(layer: int) -> str:
+    """Return the folder name of one layer, e.g. `layer12`."""
+    return LAYER_DIR.format(layer=layer)
