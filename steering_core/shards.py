@@ -1,0 +1,436 @@
+"""The residual run format: shards written atomically, read memory-mapped, checked by sha256.
+
+A run folder holds
+
+    <run>/run.json                                   the run's spec (written before any shard)
+    <run>/<token_type>/layerNN/shard-<key>.safetensors   residual rows of one episode group
+    <run>/<token_type>/layerNN/shard-<key>.json          its sidecar record (rows, sha256, inputs)
+    <run>/metadata.json                              spec + every shard record (`write_run_metadata`)
+
+A shard holds `residuals` (rows, width) in the run's storage dtype and, per row, int64
+`index` (global dataset index), `episode_index`, `frame_index`, `token_position` (prefix
+position) and `token_id`, sorted by (index, token_position). Shards are keyed by episode
+group, so adding demos never touches existing shards; each shard has its own sidecar, so
+several workers can write one run without sharing a file. `metadata.json` is rebuilt from
+`run.json` and the sidecars whenever a worker finishes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import ValidationError
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from steering_core.fileio import atomic_path, read_json, sha256_file, sha256_json, write_json
+from steering_core.layout import layer_dir
+from steering_core.schema import StrictModel
+
+logger = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+RUN_FILE = "run.json"
+METADATA_FILE = "metadata.json"
+SHARD_FILE = "shard-{key}.safetensors"
+SIDECAR_FILE = "shard-{key}.json"
+SHARD_KEY = "{group:05d}"  # group = episode_index // episodes_per_shard
+
+TokenType = Literal["instructions", "prompt", "last"]
+StorageDtype = Literal["float32", "bfloat16", "float16"]
+TOKEN_TYPES: tuple[str, ...] = ("instructions", "prompt", "last")
+STORAGE_DTYPES: dict[str, torch.dtype] = {
+    "float32": torch.float32,
+    "bfloat16": torch.bfloat16,
+    "float16": torch.float16,
+}
+_DTYPE_NAMES = {"F32": "float32", "BF16": "bfloat16", "F16": "float16"}  # safetensors header names
+RESIDUALS = "residuals"
+HEADER_KEY = "latent_steering"  # safetensors metadata entry: JSON of format_version, layer, key, token_type
+ROW_COLUMNS: tuple[str, ...] = ("index", "episode_index", "frame_index", "token_position", "token_id")
+
+
+class RunSpec(StrictModel):
+    """What a run's shards hold (`run.json`); `identity()` is what every shard depends on."""
+
+    format_version: int = FORMAT_VERSION
+    token_type: TokenType
+    layers: tuple[int, ...]
+    width: int
+    storage_dtype: StorageDtype = "float32"
+    episodes_per_shard: int = 1
+    inputs: dict[str, Any]  # fingerprints the rows depend on: checkpoint, arch, tokenizer, prompt format
+    sources: dict[str, Any] = {}  # where inputs were read from (paths): recorded, never compared
+
+    def identity(self) -> str:
+        """Return the sha256 of everything but `sources`: equal identities give equal shards."""
+        return sha256_json(self.model_dump(mode="json", exclude={"sources"}))
+
+
+class ShardRecord(StrictModel):
+    """The sidecar of one shard: enough to trust it without opening it."""
+
+    format_version: int = FORMAT_VERSION
+    file: str  # relative to the run folder, POSIX separators
+    layer: int
+    key: str
+    episodes: tuple[int, ...]
+    rows: int
+    width: int
+    dtype: StorageDtype
+    sha256: str
+    inputs: str  # fingerprint of the run identity + episode contents; resume compares it
+    tasks: dict[str, dict[str, Any]] = {}  # task text -> token selection record (see capture)
+
+
+class RunMetadata(StrictModel):
+    """`metadata.json`: the run spec, its identity and every shard record."""
+
+    format_version: int = FORMAT_VERSION
+    run: RunSpec
+    run_fingerprint: str  # RunSpec.identity() plus every shard's sha256
+    episodes: tuple[int, ...]  # episodes present in every layer
+    shards: tuple[ShardRecord, ...]
+    tasks: dict[str, dict[str, Any]]  # merged from the sidecars
+
+    def layer_shards(self, layer: int) -> tuple[ShardRecord, ...]:
+        """Return the shard records of one layer, in episode order."""
+        return tuple(record for record in self.shards if record.layer == layer)
+
+
+@dataclass(frozen=True)
+class ShardRows:
+    """Rows of one shard in memory: `residuals` (rows, width) float, the rest (rows,) int64."""
+
+    residuals: torch.Tensor
+    index: torch.Tensor
+    episode_index: torch.Tensor
+    frame_index: torch.Tensor
+    token_position: torch.Tensor
+    token_id: torch.Tensor
+
+    def columns(self) -> dict[str, torch.Tensor]:
+        """Return the per-row int64 columns by name."""
+        return {name: getattr(self, name) for name in ROW_COLUMNS}
+
+
+def shard_key(group: int) -> str:
+    """Return the key of an episode group, e.g. `00003`."""
+    return SHARD_KEY.format(group=group)
+
+
+def group_episodes(episodes: Iterable[int], episodes_per_shard: int) -> dict[str, tuple[int, ...]]:
+    """Return shard key -> sorted episode indices, grouping episode e into e // episodes_per_shard."""
+    if episodes_per_shard < 1:
+        raise ValueError(f"episodes_per_shard is {episodes_per_shard}, expected a positive integer")
+    groups: dict[int, list[int]] = {}
+    for episode in sorted(set(int(e) for e in episodes)):
+        groups.setdefault(episode // episodes_per_shard, []).append(episode)
+    return {shard_key(group): tuple(members) for group, members in sorted(groups.items())}
+
+
+def layer_path(run_dir: str | os.PathLike, token_type: str, layer: int) -> Path:
+    """Return `<run>/<token_type>/layerNN`."""
+    return Path(run_dir) / token_type / layer_dir(layer)
+
+
+def shard_path(run_dir: str | os.PathLike, token_type: str, layer: int, key: str) -> Path:
+    """Return the path of one shard file."""
+    return layer_path(run_dir, token_type, layer) / SHARD_FILE.format(key=key)
+
+
+def sidecar_path(run_dir: str | os.PathLike, token_type: str, layer: int, key: str) -> Path:
+    """Return the path of one shard's sidecar record."""
+    return layer_path(run_dir, token_type, layer) / SIDECAR_FILE.format(key=key)
+
+
+def write_run_spec(run_dir: str | os.PathLike, spec: RunSpec) -> Path:
+    """Write `run.json`; refuse if the folder already holds a run of another identity."""
+    path = Path(run_dir) / RUN_FILE
+    if path.exists():
+        existing = read_run_spec(run_dir)
+        if existing.identity() != spec.identity():
+            old, new = existing.model_dump(mode="json"), spec.model_dump(mode="json")
+            changed = sorted(k for k in new if k != "sources" and old.get(k) != new.get(k))
+            raise ValueError(
+                f"{path}: the run folder holds a capture with other settings (differs in {', '.join(changed)}); "
+                "choose a new output folder or remove this one"
+            )
+    return write_json(path, spec.model_dump(mode="json"))
+
+
+def read_run_spec(run_dir: str | os.PathLike) -> RunSpec:
+    """Return the validated `run.json` of a run folder."""
+    path = Path(run_dir) / RUN_FILE
+    payload = read_json(path)
+    _check_format_version(path, payload)
+    try:
+        return RunSpec.model_validate(payload)
+    except ValidationError as err:
+        raise ValueError(f"{path}: not a valid run spec: {err}") from None
+
+
+def write_shard(
+    run_dir: str | os.PathLike,
+    spec: RunSpec,
+    layer: int,
+    key: str,
+    rows: ShardRows,
+    *,
+    episodes: Sequence[int],
+    inputs: str,
+    tasks: dict[str, dict[str, Any]] | None = None,
+) -> ShardRecord:
+    """Write one shard and then its sidecar, each atomically; return the sidecar record.
+
+    Residuals are cast to the run's storage dtype. The bytes depend only on the rows,
+    the layer and the key, so recomputing a shard reproduces it exactly.
+    """
+    _validate_rows(rows, spec, layer, key)
+    path = shard_path(run_dir, spec.token_type, layer, key)
+    order = np.lexsort((rows.token_position.numpy(), rows.index.numpy()))  # sort by index, then position
+    order_t = torch.from_numpy(order)
+    tensors = {RESIDUALS: rows.residuals.detach().to("cpu", STORAGE_DTYPES[spec.storage_dtype])[order_t].contiguous()}
+    tensors.update({name: column.to(torch.int64)[order_t].contiguous() for name, column in rows.columns().items()})
+    header = {"format_version": FORMAT_VERSION, "layer": layer, "key": key, "token_type": spec.token_type}
+    with atomic_path(path) as tmp:
+        # one metadata entry holding canonical JSON: safetensors orders several entries at random
+        save_file(tensors, str(tmp), metadata={HEADER_KEY: json.dumps(header, sort_keys=True)})
+        digest = sha256_file(tmp)
+    record = ShardRecord(
+        file=path.relative_to(run_dir).as_posix(),
+        layer=layer,
+        key=key,
+        episodes=tuple(sorted(int(e) for e in episodes)),
+        rows=int(rows.residuals.shape[0]),
+        width=spec.width,
+        dtype=spec.storage_dtype,
+        sha256=digest,
+        inputs=inputs,
+        tasks=tasks or {},
+    )
+    write_json(sidecar_path(run_dir, spec.token_type, layer, key), record.model_dump(mode="json"))
+    return record
+
+
+def read_shard_record(path: str | os.PathLike) -> ShardRecord:
+    """Return a validated sidecar record."""
+    path = Path(path)
+    payload = read_json(path)
+    _check_format_version(path, payload)
+    try:
+        return ShardRecord.model_validate(payload)
+    except ValidationError as err:
+        raise ValueError(f"{path}: not a valid shard record: {err}") from None
+
+
+def find_complete_shard(
+    run_dir: str | os.PathLike, spec: RunSpec, layer: int, key: str, inputs: str
+) -> ShardRecord | None:
+    """Return the record of a complete, checksum-valid shard computed from `inputs`, else None.
+
+    A missing or unreadable sidecar, a missing file, other inputs or a sha256 mismatch all
+    mean the shard must be (re)computed; the reason is logged.
+    """
+    sidecar = sidecar_path(run_dir, spec.token_type, layer, key)
+    path = shard_path(run_dir, spec.token_type, layer, key)
+    if not sidecar.exists():
+        return None
+    try:
+        record = read_shard_record(sidecar)
+    except ValueError as err:
+        logger.info("redoing %s: %s", path.name, err)
+        return None
+    if record.inputs != inputs or record.dtype != spec.storage_dtype or record.width != spec.width:
+        logger.info("redoing %s (layer %d): computed from other inputs", path.name, layer)
+        return None
+    if not path.exists() or sha256_file(path) != record.sha256:
+        logger.info("redoing %s (layer %d): file missing or sha256 mismatch", path.name, layer)
+        return None
+    return record
+
+
+class ShardReader:
+    """An open, validated shard: row columns as numpy, residual rows read from the memory map."""
+
+    def __init__(self, path: Path, handle: Any, rows: int, width: int, dtype: str):
+        self.path, self._handle = path, handle
+        self.rows, self.width, self.dtype = rows, width, dtype
+
+    def columns(self, names: Sequence[str] = ROW_COLUMNS) -> dict[str, np.ndarray]:
+        """Return the requested per-row columns, each (rows,) int64."""
+        return {name: self._handle.get_tensor(name).numpy() for name in names}
+
+    def residuals(self, start: int = 0, stop: int | None = None) -> torch.Tensor:
+        """Return residual rows [start, stop) as (stop - start, width) in the storage dtype."""
+        return self._handle.get_slice(RESIDUALS)[start : self.rows if stop is None else stop]
+
+
+@contextlib.contextmanager
+def open_shard(
+    path: str | os.PathLike,
+    *,
+    width: int | None = None,
+    dtype: str | None = None,
+    rows: int | None = None,
+    sha256: str | None = None,
+) -> Iterator[ShardReader]:
+    """Yield a memory-mapped shard after checking its keys, shapes and dtypes (and sha256 if given).
+
+    Every problem is collected and raised once as a ValueError naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: shard not found; re-run capture to write it")
+    if sha256 is not None and (found := sha256_file(path)) != sha256:
+        raise ValueError(
+            f"{path}: sha256 is {found}, expected {sha256} from its record; the file changed after capture, "
+            "re-run capture to rewrite it"
+        )
+    try:
+        handle_cm = safe_open(str(path), framework="pt")
+    except Exception as err:  # safetensors raises its own error types for damaged headers
+        raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
+    with handle_cm as handle:
+        header = _header(handle)
+        found_rows, found_width, found_dtype = _validate_shard(path, handle, width, dtype, rows, header)
+        yield ShardReader(path, handle, found_rows, found_width, found_dtype)
+
+
+def write_run_metadata(run_dir: str | os.PathLike) -> Path:
+    """(Re)build `metadata.json` from `run.json` and every sidecar; return its path.
+
+    Safe to call from any worker at any time: it reads only finished sidecars.
+    """
+    run_dir = Path(run_dir)
+    spec = read_run_spec(run_dir)
+    records: list[ShardRecord] = []
+    problems: list[str] = []
+    for layer in spec.layers:
+        for sidecar in sorted(layer_path(run_dir, spec.token_type, layer).glob(SIDECAR_FILE.format(key="*"))):
+            record = read_shard_record(sidecar)
+            if not (run_dir / record.file).is_file():
+                problems.append(f"{sidecar}: its shard {record.file} is missing; re-run capture")
+            elif record.layer != layer:
+                problems.append(f"{sidecar}: `layer` is {record.layer}, expected {layer} from its folder")
+            else:
+                records.append(record)
+    if problems:
+        raise ValueError("\n".join(problems))
+    records.sort(key=lambda r: (r.layer, r.episodes))
+    per_layer = [{e for r in records if r.layer == layer for e in r.episodes} for layer in spec.layers]
+    episodes = sorted(set.intersection(*per_layer)) if per_layer else []
+    tasks: dict[str, dict[str, Any]] = {}
+    for record in records:
+        tasks.update(record.tasks)
+    metadata = RunMetadata(
+        run=spec,
+        run_fingerprint=sha256_json({"run": spec.identity(), "shards": [(r.file, r.sha256) for r in records]}),
+        episodes=tuple(episodes),
+        shards=tuple(records),
+        tasks=dict(sorted(tasks.items())),
+    )
+    return write_json(run_dir / METADATA_FILE, metadata.model_dump(mode="json"))
+
+
+def read_run_metadata(run_dir: str | os.PathLike) -> RunMetadata:
+    """Return the validated `metadata.json` of a run folder."""
+    path = Path(run_dir) / METADATA_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: run metadata not found; run capture into {Path(run_dir)} first")
+    payload = read_json(path)
+    _check_format_version(path, payload)
+    try:
+        return RunMetadata.model_validate(payload)
+    except ValidationError as err:
+        raise ValueError(f"{path}: not valid run metadata: {err}") from None
+
+
+def _header(handle: Any) -> dict[str, Any]:
+    """Return the shard's own header entry, or {} when absent or unreadable."""
+    try:
+        header = json.loads((handle.metadata() or {}).get(HEADER_KEY, "{}"))
+    except json.JSONDecodeError:
+        return {}
+    return header if isinstance(header, dict) else {}
+
+
+def _check_format_version(path: Path, payload: Any) -> None:
+    """Raise unless `payload` is a JSON object with this module's format_version."""
+    found = payload.get("format_version") if isinstance(payload, dict) else None
+    if found != FORMAT_VERSION:
+        raise ValueError(
+            f"{path}: `format_version` is {found!r}, expected {FORMAT_VERSION}; "
+            "it was written by another version of latent-steering, re-run capture"
+        )
+
+
+def _validate_rows(rows: ShardRows, spec: RunSpec, layer: int, key: str) -> None:
+    """Raise once listing every shape/dtype problem of rows about to be written."""
+    name = SHARD_FILE.format(key=key)
+    problems = []
+    if layer not in spec.layers:
+        problems.append(f"layer {layer} is not one of the run's layers {list(spec.layers)}")
+    residuals = rows.residuals
+    if residuals.ndim != 2 or residuals.shape[1] != spec.width or not residuals.is_floating_point():
+        problems.append(
+            f"`{RESIDUALS}` is {tuple(residuals.shape)} {residuals.dtype}, expected (*, {spec.width}) floating point"
+        )
+    n_rows = residuals.shape[0] if residuals.ndim else -1
+    for column, values in rows.columns().items():
+        if values.ndim != 1 or values.shape[0] != n_rows or values.is_floating_point():
+            problems.append(f"`{column}` is {tuple(values.shape)} {values.dtype}, expected ({n_rows},) integer")
+    if problems:
+        raise ValueError(f"{name} (layer {layer}): " + "; ".join(problems))
+
+
+def _validate_shard(
+    path: Path, handle: Any, width: int | None, dtype: str | None, rows: int | None, header: dict[str, Any]
+) -> tuple[int, int, str]:
+    """Return (rows, width, dtype) of an open shard; raise once listing every problem."""
+    fix = f"re-run capture for layer {header.get('layer', '?')}"
+    keys = set(handle.keys())
+    expected_keys = {RESIDUALS, *ROW_COLUMNS}
+    problems = []
+    if header.get("format_version") != FORMAT_VERSION:
+        problems.append(f"header `format_version` is {header.get('format_version')!r}, expected {FORMAT_VERSION}")
+    if keys != expected_keys:
+        missing, unexpected = sorted(expected_keys - keys), sorted(keys - expected_keys)
+        problems.append(f"tensors missing {missing}, unexpected {unexpected}")
+    found_rows, found_width, found_dtype = -1, -1, "?"
+    if RESIDUALS in keys:
+        view = handle.get_slice(RESIDUALS)
+        shape = tuple(view.get_shape())
+        found_dtype = _DTYPE_NAMES.get(view.get_dtype(), view.get_dtype())
+        if (
+            len(shape) != 2
+            or found_dtype not in STORAGE_DTYPES
+            or (width is not None and shape[1] != width)
+            or (rows is not None and shape[0] != rows)
+            or (dtype is not None and found_dtype != dtype)
+        ):
+            problems.append(
+                f"`{RESIDUALS}` is {shape} {found_dtype}, expected ({'*' if rows is None else rows}, "
+                f"{'*' if width is None else width}) {dtype or ' or '.join(STORAGE_DTYPES)}"
+            )
+        else:
+            found_rows, found_width = shape
+    for column in ROW_COLUMNS:
+        if column in keys:
+            view = handle.get_slice(column)
+            shape, stored = view.get_shape(), view.get_dtype()
+            if stored != "I64" or len(shape) != 1 or (found_rows >= 0 and shape[0] != found_rows):
+                n = "*" if found_rows < 0 else found_rows
+                problems.append(f"`{column}` is {tuple(shape)} {stored}, expected ({n},) I64")
+    if problems:
+        raise ValueError(f"{path}: " + "; ".join(problems) + f"; {fix}")
+    return found_rows, found_width, found_dtype
