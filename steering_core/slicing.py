@@ -1,0 +1,384 @@
+"""Slice captured residuals by concept: shards + concept map -> one tensor per concept and layer.
+
+Rows are matched by (episode_index, frame_index) against the concept map's segments, never
+by their position in a stream, so slices stay right when a dataset grows. Two passes over
+each layer's shards: the first reads only the small int64 row columns (to validate the
+concept map against the run and to choose rows), the second reads each shard's selected
+residual rows once from the memory map. Peak memory is about one shard plus the outputs.
+
+Outputs, per layer (the seed's layout):
+
+    <output-dir>/layerNN/<concept>.pt            (rows, width) float32, torch.load(weights_only=True)
+    <output-dir>/layerNN/<concept>.safetensors   `residuals` + per-row int64 columns
+    <output-dir>/layerNN/index.json              concept -> files, rows, segments, token selection, run
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import unicodedata
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from safetensors.torch import save_file
+from tqdm import tqdm
+
+from steering_core.concept_map import ConceptMap, ConceptRow, read_concept_map
+from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
+from steering_core.layout import layer_dir
+from steering_core.schema import StrictModel
+from steering_core.shards import (
+    RunMetadata,
+    ShardRecord,
+    TokenType,
+    open_shard,
+    read_run_metadata,
+)
+
+logger = logging.getLogger(__name__)
+
+INDEX_FILE = "index.json"
+SLICE_PT = "{name}.pt"
+SLICE_SAFETENSORS = "{name}.safetensors"
+SLICE_FORMAT_VERSION = 1
+_MAX_NAME_BYTES = 200  # file systems cap names at 255 bytes; leave room for suffixes and a hash
+_UNSAFE = {"/", "\\", "\0", ":"}  # path separators (and ':' for Windows/macOS shares)
+
+
+class SliceSettings(StrictModel):
+    """How concept slices are cut from a run."""
+
+    layers: tuple[int, ...] = (12,)  # the seed's SAE layer
+    token_type: TokenType = "instructions"
+    reduce: Literal["token", "frame"] = "token"  # one row per captured token, or their mean per frame
+    max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
+    verify_checksums: bool = False  # re-hash every shard against metadata.json before reading it
+    device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
+
+
+@dataclass
+class _Selection:
+    """Rows of one concept found in the first pass: per shard, row numbers and sort keys."""
+
+    rows: dict[int, np.ndarray] = field(default_factory=dict)   # shard position -> (n,) row numbers
+    keys: dict[int, np.ndarray] = field(default_factory=dict)   # shard position -> (n, 2) (index, token_position)
+
+
+def safe_file_name(concept: str) -> str:
+    """Return a readable file stem for a concept: no path separators, control characters or leading dots."""
+    cleaned = "".join(
+        "_" if ch in _UNSAFE or unicodedata.category(ch).startswith("C") else ch
+        for ch in unicodedata.normalize("NFC", concept)
+    ).strip().lstrip(".")
+    encoded = cleaned.encode("utf-8")
+    if len(encoded) > _MAX_NAME_BYTES:
+        cleaned = encoded[:_MAX_NAME_BYTES].decode("utf-8", errors="ignore").rstrip()
+    return cleaned or "concept"
+
+
+def slice_file_names(concepts: Sequence[str]) -> dict[str, str]:
+    """Return concept -> unique file stem; clashes (also case-insensitive ones) get a short hash suffix."""
+    stems = {concept: safe_file_name(concept) for concept in concepts}
+    counts: dict[str, int] = {}
+    for stem in stems.values():
+        counts[stem.casefold()] = counts.get(stem.casefold(), 0) + 1
+    return {
+        concept: stem if counts[stem.casefold()] == 1 else f"{stem} [{sha256_json(concept)[:8]}]"
+        for concept, stem in stems.items()
+    }
+
+
+def slice_concepts(
+    run_dir: str | os.PathLike,
+    concept_map_path: str | os.PathLike,
+    output_dir: str | os.PathLike,
+    settings: SliceSettings = SliceSettings(),
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[int, Path]:
+    """Write per-concept residual tensors for every requested layer; return layer -> index.json path.
+
+    Raises ValueError when the run lacks a layer or the token type, when the concept map names
+    frames the run never captured (a map of another dataset), or when a concept is empty.
+    """
+    run_dir, output_dir = Path(run_dir), Path(output_dir)
+    metadata = read_run_metadata(run_dir)
+    concept_map = read_concept_map(concept_map_path)
+    _check_request(run_dir, metadata, concept_map, concept_map_path, settings)
+    layers = list(settings.layers)
+    total = sum(len(metadata.layer_shards(layer)) for layer in layers)
+    done = 0
+    written: dict[int, Path] = {}
+    with tqdm(total=total, desc="slice", unit="shard", disable=None) as bar:
+
+        def advance() -> None:
+            nonlocal done
+            done += 1
+            bar.update(1)
+            if progress is not None:
+                progress(done, total)
+
+        for layer in layers:
+            written[layer] = _slice_layer(
+                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, advance
+            )
+    return written
+
+
+def _check_request(
+    run_dir: Path, metadata: RunMetadata, concept_map: ConceptMap, map_path: str | os.PathLike, settings: SliceSettings
+) -> None:
+    """Raise once listing every mismatch between the request, the run and the concept map."""
+    problems = []
+    run = metadata.run
+    if settings.token_type != run.token_type:
+        problems.append(
+            f"{run_dir}: the run captured `{run.token_type}` tokens, not `{settings.token_type}`; "
+            f"pass --token-type {run.token_type} or capture with --token-type {settings.token_type}"
+        )
+    missing_layers = [layer for layer in settings.layers if layer not in run.layers]
+    if missing_layers:
+        problems.append(
+            f"{run_dir}: the run has layers {list(run.layers)}, not {missing_layers}; "
+            f"re-run capture with --layers {','.join(str(layer) for layer in missing_layers)}"
+        )
+    captured = set(metadata.episodes)
+    for concept, segments in concept_map.concepts.items():
+        if not segments:
+            problems.append(f"{map_path}: concept {concept!r} has no segments; remove it or rebuild the concept map")
+        for number, segment in enumerate(segments):
+            if segment.episode_index not in captured:
+                problems.append(
+                    f"{map_path}: concept {concept!r} segment {number} needs episode {segment.episode_index} "
+                    f"(frames {segment.frame_start}-{segment.frame_end}), which run {run_dir} never captured "
+                    f"(it holds episodes {_describe(sorted(captured))}); the concept map belongs to another "
+                    "dataset or the capture is incomplete"
+                )
+    if problems:
+        raise ValueError("\n".join(problems))
+
+
+def _slice_layer(
+    run_dir: Path,
+    metadata: RunMetadata,
+    concept_map: ConceptMap,
+    map_path: Path,
+    output_dir: Path,
+    layer: int,
+    settings: SliceSettings,
+    advance: Callable[[], None],
+) -> Path:
+    """Select, read and write the slices of one layer; return its index.json path."""
+    records = metadata.layer_shards(layer)
+    selections = _select_rows(run_dir, records, concept_map, map_path, settings)
+    outputs = _read_selected(run_dir, records, selections, settings, advance)
+    names = slice_file_names(list(concept_map.concepts))
+    index_entries: dict[str, Any] = {}
+    with atomic_dir(output_dir / layer_dir(layer), overwrite=True) as staging:
+        staging.mkdir(parents=True)
+        for concept, (residuals, columns) in outputs.items():
+            stem = names[concept]
+            torch.save(residuals, staging / SLICE_PT.format(name=stem))
+            save_file({"residuals": residuals, **columns}, str(staging / SLICE_SAFETENSORS.format(name=stem)))
+            index_entries[concept] = {
+                "pt": SLICE_PT.format(name=stem),
+                "safetensors": SLICE_SAFETENSORS.format(name=stem),
+                "rows": int(residuals.shape[0]),
+                "frames": int(np.unique(columns["index"].numpy()).size),
+                "segments": [segment.model_dump(mode="json") for segment in concept_map.concepts[concept]],
+            }
+        write_json(
+            staging / INDEX_FILE,
+            {
+                "format_version": SLICE_FORMAT_VERSION,
+                "layer": layer,
+                "width": metadata.run.width,
+                "settings": settings.model_dump(mode="json", exclude={"layers", "device"}),
+                "run_dir": str(run_dir),
+                "run_fingerprint": metadata.run_fingerprint,
+                "concept_map": str(map_path),
+                "concept_map_sha256": sha256_file(map_path),
+                "token_selection": {"token_type": metadata.run.token_type, "tasks": metadata.tasks},
+                "concepts": index_entries,
+            },
+        )
+    logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), output_dir / layer_dir(layer))
+    return output_dir / layer_dir(layer) / INDEX_FILE
+
+
+def _select_rows(
+    run_dir: Path, records: Sequence[ShardRecord], concept_map: ConceptMap, map_path: Path, settings: SliceSettings
+) -> dict[str, _Selection]:
+    """First pass over the row columns: return each concept's rows, checking every segment is fully captured."""
+    by_episode: dict[int, list[tuple[str, int, ConceptRow]]] = {}
+    for concept, segments in concept_map.concepts.items():
+        for number, segment in enumerate(segments):
+            by_episode.setdefault(segment.episode_index, []).append((concept, number, segment))
+    selections = {concept: _Selection() for concept in concept_map.concepts}
+    frames_found: dict[tuple[str, int], set[int]] = {}
+    problems: list[str] = []
+    for position, record in enumerate(records):
+        wanted = [item for episode in record.episodes for item in by_episode.get(episode, [])]
+        if not wanted:
+            continue
+        with open_shard(run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows) as reader:
+            cols = reader.columns()
+        per_concept: dict[str, np.ndarray] = {}
+        for concept, number, segment in wanted:
+            hit = (
+                (cols["episode_index"] == segment.episode_index)
+                & (cols["frame_index"] >= segment.frame_start)
+                & (cols["frame_index"] <= segment.frame_end)
+            )
+            frames = cols["frame_index"][hit]
+            expected_index = segment.start_index + frames - segment.frame_start
+            wrong = cols["index"][hit] != expected_index
+            if wrong.any():
+                at = int(np.argmax(wrong))
+                problems.append(
+                    f"{map_path}: concept {concept!r} segment {number} puts episode {segment.episode_index} frame "
+                    f"{int(frames[at])} at index {int(expected_index[at])}, but run {run_dir} captured it at index "
+                    f"{int(cols['index'][hit][at])}; the concept map belongs to another dataset"
+                )
+            frames_found.setdefault((concept, number), set()).update(frames.tolist())
+            per_concept[concept] = per_concept.get(concept, np.zeros_like(hit)) | hit
+        for concept, hit in per_concept.items():
+            rows = np.flatnonzero(hit)
+            selections[concept].rows[position] = rows
+            selections[concept].keys[position] = np.stack([cols["index"][rows], cols["token_position"][rows]], axis=1)
+    for concept, segments in concept_map.concepts.items():
+        for number, segment in enumerate(segments):
+            expected = set(range(segment.frame_start, segment.frame_end + 1))
+            missing = sorted(expected - frames_found.get((concept, number), set()))
+            if missing:
+                problems.append(
+                    f"{map_path}: concept {concept!r} segment {number} needs episode {segment.episode_index} frames "
+                    f"{_describe(missing)}, which run {run_dir} never captured; the concept map belongs to another "
+                    "dataset or the capture is incomplete"
+                )
+    problems += [
+        f"{map_path}: concept {concept!r} selects no {run_dir} rows (its frames have no "
+        f"`{settings.token_type}` tokens); check the concept map and the capture's token type"
+        for concept, selection in selections.items()
+        if not any(len(rows) for rows in selection.rows.values())
+    ]
+    if problems:
+        raise ValueError("\n".join(problems))
+    if settings.max_samples_per_concept is not None:
+        for concept, selection in selections.items():
+            _subsample(selection, settings.max_samples_per_concept, by_frame=settings.reduce == "frame")
+    return selections
+
+
+def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
+    """Keep `limit` evenly spaced units (rows, or frames with all their rows) in dataset order.
+
+    Unit i of n is kept when it is floor(j * n / limit) for some j < limit: deterministic, no
+    random seed, and spread over every segment rather than the first ones.
+    """
+    positions = sorted(selection.rows)
+    keys = np.concatenate([selection.keys[p] for p in positions]) if positions else np.zeros((0, 2), np.int64)
+    owner = np.concatenate([np.full(len(selection.rows[p]), p) for p in positions]) if positions else np.zeros(0)
+    local = np.concatenate([selection.rows[p] for p in positions]) if positions else np.zeros(0, np.int64)
+    order = np.lexsort((keys[:, 1], keys[:, 0]))
+    units = keys[order, 0] if by_frame else np.arange(len(order))
+    unique_units, unit_of_row = np.unique(units, return_inverse=True)
+    if unique_units.size <= limit:
+        return
+    chosen = np.zeros(unique_units.size, dtype=bool)
+    chosen[(np.arange(limit) * unique_units.size) // limit] = True
+    keep = order[chosen[unit_of_row]]
+    for p in positions:
+        mine = keep[owner[keep] == p]
+        mine.sort()
+        if mine.size:
+            selection.rows[p] = local[mine]
+            selection.keys[p] = keys[mine]
+        else:
+            del selection.rows[p], selection.keys[p]
+
+
+def _read_selected(
+    run_dir: Path,
+    records: Sequence[ShardRecord],
+    selections: dict[str, _Selection],
+    settings: SliceSettings,
+    advance: Callable[[], None],
+) -> dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]]:
+    """Second pass: read each shard's selected rows once; return concept -> (residuals, row columns)."""
+    chunks: dict[str, list[tuple[torch.Tensor, dict[str, np.ndarray]]]] = {c: [] for c in selections}
+    for position, record in enumerate(records):
+        needed = {c: s.rows[position] for c, s in selections.items() if position in s.rows}
+        if needed:
+            sha = record.sha256 if settings.verify_checksums else None
+            with open_shard(
+                run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows, sha256=sha
+            ) as reader:
+                union = np.unique(np.concatenate(list(needed.values())))
+                block = _read_rows(reader, union)  # (len(union), width) float32, each run read once
+                cols = reader.columns()
+            for concept, rows in needed.items():
+                where = np.searchsorted(union, rows)
+                residuals = block[torch.from_numpy(where)]
+                columns = {name: values[rows] for name, values in cols.items()}
+                if settings.reduce == "frame":
+                    residuals, columns = _frame_means(residuals, columns, settings.device)
+                chunks[concept].append((residuals, columns))
+        advance()
+    return {concept: _concatenate(parts, settings.reduce) for concept, parts in chunks.items()}
+
+
+def _read_rows(reader: Any, rows: np.ndarray) -> torch.Tensor:
+    """Return the given sorted rows of a shard as (len(rows), width) float32, reading contiguous runs."""
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    runs = np.split(rows, breaks)
+    return torch.cat([reader.residuals(int(run[0]), int(run[-1]) + 1).to(torch.float32) for run in runs])
+
+
+def _frame_means(
+    residuals: torch.Tensor, columns: dict[str, np.ndarray], device: str
+) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
+    """Return one mean row per frame (rows grouped by global index) and that frame's columns."""
+    frames, first, inverse = np.unique(columns["index"], return_index=True, return_inverse=True)
+    inverse_t = torch.from_numpy(inverse).to(device)
+    sums = torch.zeros(len(frames), residuals.shape[1], dtype=torch.float64, device=device)
+    sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
+    counts = torch.bincount(inverse_t, minlength=len(frames)).to(torch.float64)
+    means = (sums / counts[:, None]).to("cpu", torch.float32)
+    kept = {name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
+    kept["tokens"] = counts.to("cpu", torch.int64).numpy()
+    return means, kept
+
+
+def _concatenate(
+    parts: list[tuple[torch.Tensor, dict[str, np.ndarray]]], reduce: str
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Return one concept's rows in dataset order (index, then token position) with their columns."""
+    residuals = torch.cat([p[0] for p in parts])
+    names = parts[0][1].keys()
+    columns = {name: np.concatenate([p[1][name] for p in parts]) for name in names}
+    secondary = columns["token_position"] if reduce == "token" else np.zeros_like(columns["index"])
+    order = np.lexsort((secondary, columns["index"]))
+    return residuals[torch.from_numpy(order)].contiguous(), {
+        name: torch.from_numpy(np.ascontiguousarray(values[order])) for name, values in columns.items()
+    }
+
+
+def _describe(values: Sequence[int]) -> str:
+    """Return sorted integers as compact ranges, e.g. `0-3, 7, 9-10`."""
+    if not values:
+        return "none"
+    spans, start, prev = [], values[0], values[0]
+    for value in list(values[1:]) + [None]:
+        if value is not None and value == prev + 1:
+            prev = value
+            continue
+        spans.append(f"{start}" if start == prev else f"{start}-{prev}")
+        if value is not None:
+            start = prev = value
+    return ", ".join(spans)
+

@@ -1,0 +1,208 @@
+"""Slicing: per-concept tensors equal a brute-force selection; options and errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from steering_core import shards
+from steering_core.slicing import SliceSettings, safe_file_name, slice_concepts, slice_file_names
+
+WIDTH = 6
+LAYERS = (2, 5)
+# episode -> (frames, task); the two tasks have instruction spans of different lengths
+EPISODES = {0: (7, "open the drawer"), 1: (5, "close the drawer"), 2: (6, "open the drawer"), 3: (4, "close it")}
+SPAN = {"open the drawer": (769, 770, 771), "close the drawer": (769, 770), "close it": (769,)}
+OPEN, CLOSE = "open the top/drawer", "close the drawer"
+
+
+def first_index(episode: int) -> int:
+    return sum(EPISODES.get(e, (0,))[0] for e in range(episode))
+
+
+def build_run(run_dir, episodes_per_shard=2, token_type="instructions") -> None:
+    """Write a run of every episode and layer with rows that encode where they come from."""
+    spec = shards.RunSpec(token_type=token_type, layers=LAYERS, width=WIDTH, episodes_per_shard=episodes_per_shard,
+                          inputs={"checkpoint": "tiny"})
+    shards.write_run_spec(run_dir, spec)
+    generator = torch.Generator().manual_seed(0)
+    for key, members in shards.group_episodes(EPISODES, episodes_per_shard).items():
+        for layer in LAYERS:
+            columns = {name: [] for name in shards.ROW_COLUMNS}
+            for episode in members:
+                frames, task = EPISODES[episode]
+                for frame in range(frames):
+                    for token, position in enumerate(SPAN[task]):
+                        columns["index"].append(first_index(episode) + frame)
+                        columns["episode_index"].append(episode)
+                        columns["frame_index"].append(frame)
+                        columns["token_position"].append(position)
+                        columns["token_id"].append(100 + token)
+            n = len(columns["index"])
+            rows = shards.ShardRows(residuals=torch.randn(n, WIDTH, generator=generator),
+                                    **{k: torch.tensor(v) for k, v in columns.items()})
+            shards.write_shard(run_dir, spec, layer, key, rows, episodes=members, inputs="x")
+    shards.write_run_metadata(run_dir)
+
+
+def segment(episode: int, start: int, end: int, **overrides) -> dict:
+    fields = dict(segment_id=episode, episode_index=episode, frame_start=start, frame_end=end,
+                  observed_frame_start=start, observed_frame_end=end, start_index=first_index(episode) + start,
+                  end_index=first_index(episode) + end, length=end - start + 1)
+    return fields | overrides
+
+
+def write_concept_map(path, concepts: dict[str, list[dict]]):
+    payload = {
+        "manifest": "manifests/test.json", "lerobot_root": "libero_lerobot/test", "repo_id": "test",
+        "concept_count": {name: len(segments) for name, segments in concepts.items()},
+        "sample_count": 1000,  # frames of the dataset the map claims to describe
+        "concepts": concepts,
+    }
+    path.write_text(json.dumps(payload))
+    return path
+
+
+@pytest.fixture()
+def run_dir(tmp_path):
+    build_run(tmp_path / "run")
+    return tmp_path / "run"
+
+
+@pytest.fixture()
+def concept_map(tmp_path):
+    return write_concept_map(tmp_path / "map.json", {
+        OPEN: [segment(0, 1, 4), segment(2, 0, 5), segment(0, 3, 6)],  # overlapping segments count once
+        CLOSE: [segment(1, 2, 4), segment(3, 0, 1)],
+    })
+
+
+def brute_force(run_dir, concept_map_path, layer):
+    """Load every shard whole and pick rows with python loops: concept -> (rows, [(index, position)])."""
+    concepts = json.loads(concept_map_path.read_text())["concepts"]
+    found = {name: [] for name in concepts}
+    for path in sorted((run_dir / "instructions" / f"layer{layer:02d}").glob("*.safetensors")):
+        data = load_file(path)
+        for row in range(data["residuals"].shape[0]):
+            episode, frame = int(data["episode_index"][row]), int(data["frame_index"][row])
+            for name, segments in concepts.items():
+                if any(s["episode_index"] == episode and s["frame_start"] <= frame <= s["frame_end"]
+                       for s in segments):
+                    key = (int(data["index"][row]), int(data["token_position"][row]))
+                    found[name].append((key, data["residuals"][row]))
+    result = {}
+    for name, items in found.items():
+        items.sort(key=lambda item: item[0])
+        result[name] = (torch.stack([r for _, r in items]), [k for k, _ in items])
+    return result
+
+
+def test_token_slices_equal_brute_force(tmp_path, run_dir, concept_map):
+    out = tmp_path / "slices"
+    written = slice_concepts(run_dir, concept_map, out, SliceSettings(layers=LAYERS))
+    assert written == {layer: out / f"layer{layer:02d}" / "index.json" for layer in LAYERS}
+    for layer in LAYERS:
+        expected = brute_force(run_dir, concept_map, layer)
+        index = json.loads(written[layer].read_text())
+        assert index["concepts"][OPEN]["pt"] == "open the top_drawer.pt"
+        assert index["run_fingerprint"] == shards.read_run_metadata(run_dir).run_fingerprint
+        for name, (rows, keys) in expected.items():
+            entry = index["concepts"][name]
+            tensor = torch.load(out / f"layer{layer:02d}" / entry["pt"], weights_only=True)
+            assert tensor.dtype == torch.float32 and tensor.shape == (len(keys), WIDTH)
+            assert torch.equal(tensor, rows)
+            copy = load_file(out / f"layer{layer:02d}" / entry["safetensors"])
+            assert torch.equal(copy["residuals"], rows)
+            assert list(zip(copy["index"].tolist(), copy["token_position"].tolist())) == keys
+            assert entry["rows"] == len(keys)
+            assert [s["episode_index"] for s in entry["segments"]] == \
+                [s["episode_index"] for s in json.loads(concept_map.read_text())["concepts"][name]]
+    # OPEN: episode 0 frames 1-6 and episode 2 frames 0-5, three instruction tokens each
+    assert json.loads(written[2].read_text())["concepts"][OPEN]["rows"] == (6 + 6) * 3
+
+
+def test_frame_means_and_max_samples(tmp_path, run_dir, concept_map):
+    expected = brute_force(run_dir, concept_map, 5)
+    slice_concepts(run_dir, concept_map, tmp_path / "frames", SliceSettings(layers=(5,), reduce="frame"))
+    for name, (rows, keys) in expected.items():
+        frames = sorted({index for index, _ in keys})
+        means = torch.stack([rows[[i for i, k in enumerate(keys) if k[0] == f]].mean(0) for f in frames])
+        stored = load_file(tmp_path / "frames" / "layer05" / f"{safe_file_name(name)}.safetensors")
+        torch.testing.assert_close(stored["residuals"], means, rtol=0, atol=1e-6)
+        assert stored["index"].tolist() == frames
+
+    slice_concepts(run_dir, concept_map, tmp_path / "few", SliceSettings(layers=(5,), max_samples_per_concept=5))
+    rows, keys = expected[OPEN]
+    keep = [(j * len(keys)) // 5 for j in range(5)]  # documented rule: evenly spaced in dataset order
+    stored = load_file(tmp_path / "few" / "layer05" / f"{safe_file_name(OPEN)}.safetensors")
+    assert torch.equal(stored["residuals"], rows[keep])
+
+    settings = SliceSettings(layers=(5,), reduce="frame", max_samples_per_concept=3)
+    slice_concepts(run_dir, concept_map, tmp_path / "few_frames", settings)
+    frames = sorted({index for index, _ in expected[CLOSE][1]})  # 5 frames -> keep 0, 1, 3
+    stored = load_file(tmp_path / "few_frames" / "layer05" / f"{CLOSE}.safetensors")
+    assert stored["index"].tolist() == [frames[0], frames[1], frames[3]]
+    assert stored["tokens"].tolist() == [2, 2, 1]  # episode 3 ("close it") has a one-token span
+
+
+def test_slicing_is_independent_of_shard_grouping(tmp_path, concept_map):
+    for per_shard in (1, 3):
+        build_run(tmp_path / f"run{per_shard}", episodes_per_shard=per_shard)
+    slice_concepts(tmp_path / "run1", concept_map, tmp_path / "a", SliceSettings(layers=(2,)))
+    slice_concepts(tmp_path / "run3", concept_map, tmp_path / "b", SliceSettings(layers=(2,)))
+    a = load_file(tmp_path / "a" / "layer02" / f"{CLOSE}.safetensors")
+    b = load_file(tmp_path / "b" / "layer02" / f"{CLOSE}.safetensors")
+    assert a["index"].tolist() == b["index"].tolist()
+
+
+def test_errors(tmp_path, run_dir, concept_map):
+    out = tmp_path / "out"
+    with pytest.raises(ValueError) as err:
+        slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2, 12), token_type="prompt"))
+    message = str(err.value)
+    assert "the run captured `instructions` tokens, not `prompt`; pass --token-type instructions" in message
+    assert "the run has layers [2, 5], not [12]; re-run capture with --layers 12" in message
+
+    other = write_concept_map(tmp_path / "other.json", {OPEN: [segment(7, 0, 3)], CLOSE: [segment(1, 0, 9)]})
+    with pytest.raises(ValueError) as err:
+        slice_concepts(run_dir, other, out, SliceSettings(layers=(2,)))
+    message = str(err.value)
+    assert f"concept '{OPEN}' segment 0 needs episode 7 (frames 0-3), which run {run_dir} never captured " \
+           "(it holds episodes 0-3); the concept map belongs to another dataset" in message
+
+    beyond = write_concept_map(tmp_path / "beyond.json", {CLOSE: [segment(1, 0, 9)]})
+    with pytest.raises(ValueError, match=f"concept '{CLOSE}' segment 0 needs episode 1 frames 5-9, which run"):
+        slice_concepts(run_dir, beyond, out, SliceSettings(layers=(2,)))
+
+    shifted = write_concept_map(tmp_path / "shifted.json", {CLOSE: [segment(1, 0, 2, start_index=40, end_index=42)]})
+    with pytest.raises(ValueError, match=f"puts episode 1 frame 0 at index 40, but run {run_dir} captured it at index 7"):
+        slice_concepts(run_dir, shifted, out, SliceSettings(layers=(2,)))
+
+    empty = write_concept_map(tmp_path / "empty.json", {OPEN: [segment(0, 0, 1)], CLOSE: []})
+    with pytest.raises(ValueError, match=f"concept '{CLOSE}' has no segments; remove it or rebuild the concept map"):
+        slice_concepts(run_dir, empty, out, SliceSettings(layers=(2,)))
+    assert not out.exists()
+
+
+def test_safe_file_names():
+    assert safe_file_name("open the top drawer of the cabinet") == "open the top drawer of the cabinet"
+    assert safe_file_name("../a/b\\c\nd") == "_a_b_c_d"
+    assert safe_file_name("...") == "concept"
+    assert len(safe_file_name("é" * 300).encode()) <= 200
+    names = slice_file_names(["a/b", "a_b", "Up", "up", "x"])
+    assert names["x"] == "x"
+    assert len({n.casefold() for n in names.values()}) == 5
+    assert names["a/b"].startswith("a_b [") and names["Up"].startswith("Up [")
+
+
+def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map):
+    shard = run_dir / "instructions" / "layer02" / "shard-00000.safetensors"
+    data = bytearray(shard.read_bytes())
+    data[-1] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,)))
+    with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
+        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,), verify_checksums=True))
