@@ -1,0 +1,207 @@
+"""Concept maps: every manifest segment as a range of global dataset indices, grouped by concept.
+
+A segment (episode, frames start_step..end_step) becomes the inclusive `index` range of
+those frames in the LeRobot dataset, found from the index columns alone (no frame is
+decoded). Concepts are the segments' task texts, optionally renamed. The JSON keeps the
+fields of the seed's `map_concept_samples.py`, whose order it also keeps: concepts in order
+of first appearance in the dataset, and each concept's rows by dataset position.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, ValidationError, model_validator
+
+from steering_core.contrast import ContrastManifest, read_manifest
+from steering_core.dataset import DatasetMeta, IndexColumns, dataset_fingerprint, read_index_columns, read_meta
+from steering_core.fileio import read_json, write_json
+from steering_core.schema import StrictModel
+
+logger = logging.getLogger(__name__)
+
+
+class ConceptRow(StrictModel):
+    """One segment's frames and their global dataset indices (both ranges inclusive)."""
+
+    segment_id: int = Field(ge=0)    # position in the manifest's `segments`
+    episode_index: int = Field(ge=0)
+    frame_start: int                 # as requested by the manifest
+    frame_end: int
+    observed_frame_start: int        # as found in the dataset
+    observed_frame_end: int
+    start_index: int = Field(ge=0)   # global `index` of the first frame
+    end_index: int = Field(ge=0)     # global `index` of the last frame (inclusive)
+    length: int = Field(gt=0)        # end_index - start_index + 1
+
+
+class ConceptMap(StrictModel):
+    """Concept -> dataset index ranges for one manifest and one dataset."""
+
+    manifest: str
+    lerobot_root: str
+    repo_id: str
+    concept_count: dict[str, int]
+    sample_count: int = Field(ge=0)  # frames in the whole dataset
+    concepts: dict[str, tuple[ConceptRow, ...]]
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ConceptMap:
+        problems = []
+        if list(self.concept_count) != list(self.concepts):
+            problems.append(f"concept_count has concepts {list(self.concept_count)}, concepts has {list(self.concepts)}")
+        for concept, rows in self.concepts.items():
+            if self.concept_count.get(concept, len(rows)) != len(rows):
+                problems.append(f"concept_count[{concept!r}] is {self.concept_count[concept]}, but it has {len(rows)} rows")
+            for row in rows:
+                where = f"concepts[{concept!r}] segment {row.segment_id}"
+                if row.length != row.end_index - row.start_index + 1:
+                    problems.append(f"{where}: length {row.length}, expected end_index - start_index + 1")
+                if row.end_index >= self.sample_count:
+                    problems.append(f"{where}: end_index {row.end_index} >= sample_count {self.sample_count}")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+
+def build_concept_map(
+    manifest_path: str | os.PathLike,
+    lerobot_root: str | os.PathLike,
+    *,
+    repo_id: str | None = None,
+    rename: Mapping[str, str] | None = None,
+) -> ConceptMap:
+    """Return the concept map of the manifest at `manifest_path` on the dataset at `lerobot_root`.
+
+    `rename` maps task texts to concept names (unlisted tasks keep their text); `repo_id`
+    defaults to the dataset folder's name. Every problem (missing episode, segment outside
+    its episode, task or fingerprint of another dataset) is collected, then raised at once.
+    """
+    manifest = read_manifest(manifest_path)
+    if not manifest.segments:
+        raise ValueError(f"{manifest_path}: the manifest has no segments; rebuild it with `latent-steering manifest`")
+    meta = read_meta(lerobot_root)
+    problems = _dataset_problems(manifest, meta)
+    if problems:
+        raise ValueError(
+            f"{manifest_path} does not match the dataset {lerobot_root}: " + "; ".join(problems)
+            + ". Rebuild the manifest from this dataset with `latent-steering manifest`."
+        )
+    columns = read_index_columns(meta.root)
+    rows, problems = _locate_segments(manifest, columns)
+    if problems:
+        raise ValueError(f"{lerobot_root}: the frames of some segments of {manifest_path} are not in the dataset: "
+                         + "; ".join(problems))
+    rename = dict(rename or {})
+    unused = sorted(set(rename) - {seg.task for seg in manifest.segments})
+    if unused:
+        logger.warning("concept map: rename entries for tasks not in the manifest: %s", unused)
+    concepts: dict[str, list[ConceptRow]] = {}
+    for row in sorted(rows, key=lambda r: (r.start_index, r.segment_id)):
+        task = manifest.segments[row.segment_id].task
+        concepts.setdefault(rename.get(task, task), []).append(row)
+    for concept, entries in concepts.items():
+        logger.info("concept %r: %d segment(s), %d sample(s)", concept, len(entries), sum(r.length for r in entries))
+    return ConceptMap(
+        manifest=str(manifest_path),
+        lerobot_root=str(lerobot_root),
+        repo_id=repo_id or meta.root.name,
+        concept_count={concept: len(entries) for concept, entries in concepts.items()},
+        sample_count=len(columns),
+        concepts={concept: tuple(entries) for concept, entries in concepts.items()},
+    )
+
+
+def _dataset_problems(manifest: ContrastManifest, meta: DatasetMeta) -> list[str]:
+    """Return why the manifest cannot belong to this dataset (fingerprint, episodes, tasks, frame ranges)."""
+    problems = []
+    if manifest.dataset is not None:
+        found = dataset_fingerprint(meta.root)
+        if manifest.dataset.fingerprint != found:
+            problems.append(
+                f"the manifest was built from a dataset with fingerprint {manifest.dataset.fingerprint[:12]}..., "
+                f"this one has {found[:12]}... (another dataset, or this one changed since)"
+            )
+    episodes = {e.episode_index: e for e in meta.episodes}
+    for i, seg in enumerate(manifest.segments):
+        where = f"segments[{i}] ({seg.demo})"
+        episode = episodes.get(seg.episode_index)
+        if seg.episode_index is None:
+            problems.append(f"{where}: no episode_index (a manifest built from hdf5 files)")
+        elif episode is None:
+            problems.append(f"{where}: episode {seg.episode_index} is not in the dataset ({len(episodes)} episodes)")
+        elif seg.task not in episode.tasks:
+            problems.append(f"{where}: task {seg.task!r}, but episode {seg.episode_index} shows {episode.task!r}")
+        elif seg.end_step >= episode.length:
+            problems.append(
+                f"{where}: frames {seg.start_step}..{seg.end_step} outside episode {seg.episode_index}'s "
+                f"frames 0..{episode.length - 1}"
+            )
+    return problems
+
+
+def _locate_segments(manifest: ContrastManifest, columns: IndexColumns) -> tuple[list[ConceptRow], list[str]]:
+    """Return one ConceptRow per segment, found by binary search over (episode, frame), and the problems met."""
+    # One sortable int64 key per frame; frame_index < stride for every frame.
+    stride = int(columns.frame_index.max()) + 1
+    keys = columns.episode_index * stride + columns.frame_index
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    frames, indices = columns.frame_index[order], columns.index[order]
+    rows, problems = [], []
+    if not np.array_equal(columns.index, np.arange(len(columns))):
+        problems.append("the global `index` column is not 0..frames-1, so indices cannot address frames")
+    for i, seg in enumerate(manifest.segments):
+        first = np.searchsorted(keys, seg.episode_index * stride + seg.start_step, side="left")
+        stop = np.searchsorted(keys, seg.episode_index * stride + seg.end_step, side="right")
+        wanted = seg.end_step - seg.start_step + 1
+        span = indices[first:stop]
+        if stop - first != wanted or (span.size and span[-1] - span[0] + 1 != wanted):
+            problems.append(
+                f"segments[{i}] ({seg.demo}): {stop - first} frame(s) of episode {seg.episode_index} in "
+                f"{seg.start_step}..{seg.end_step} found at contiguous indices, expected {wanted}"
+            )
+            continue
+        rows.append(
+            ConceptRow(
+                segment_id=i,
+                episode_index=seg.episode_index,
+                frame_start=seg.start_step,
+                frame_end=seg.end_step,
+                observed_frame_start=int(frames[first]),
+                observed_frame_end=int(frames[stop - 1]),
+                start_index=int(span[0]),
+                end_index=int(span[-1]),
+                length=int(span[-1] - span[0] + 1),
+            )
+        )
+    return rows, problems
+
+
+def read_rename_map(path: str | os.PathLike) -> dict[str, str]:
+    """Return the task -> concept renames of a JSON object file."""
+    payload = read_json(path)
+    if not isinstance(payload, dict):
+        raise ValueError(f"{path}: expected a JSON object of task text -> concept name, found {type(payload).__name__}")
+    bad = sorted(k for k, v in payload.items() if not isinstance(v, str) or not v)
+    if bad:
+        raise ValueError(f"{path}: concept names must be non-empty strings; check the entries for {bad}")
+    return dict(payload)
+
+
+def write_concept_map(concept_map: ConceptMap, path: str | os.PathLike) -> Path:
+    """Write `concept_map` as indented JSON atomically; return the path."""
+    return write_json(path, concept_map.model_dump(mode="json"))
+
+
+def read_concept_map(path: str | os.PathLike) -> ConceptMap:
+    """Return the validated concept map at `path` (ours or the seed's)."""
+    payload = read_json(path)
+    try:
+        return ConceptMap.model_validate(payload)
+    except ValidationError as err:
+        raise ValueError(f"{path}: not a valid concept map: {err}") from None

@@ -1,0 +1,387 @@
+"""Reading a LeRobot v3.0 dataset without decoding a single frame.
+
+Metadata comes from `meta/` (info, tasks, episodes); frame-level values come from the
+data parquet files through pyarrow, one requested column at a time, so image columns
+(PNG bytes) are never read. Contrast manifests, concept maps, capture and slicing all
+read datasets through this module.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from steering_core.fileio import read_json, sha256_file, sha256_json
+
+logger = logging.getLogger(__name__)
+
+CODEBASE_VERSION = "v3.0"
+INFO_FILE = "meta/info.json"
+TASKS_FILE = "meta/tasks.parquet"
+EPISODES_DIR = "meta/episodes"
+# lerobot's converter works in place on <root>/<repo_id>, so the parent folder is its --root.
+V21_CONVERTER_COMMAND = (
+    "python -m lerobot.datasets.v30.convert_dataset_v21_to_v30 "
+    "--repo-id={name} --root={parent} --push-to-hub=false"
+)
+INDEX_COLUMNS = ("episode_index", "frame_index", "index", "task_index")
+_EPISODE_COLUMNS = (
+    "episode_index",
+    "tasks",
+    "length",
+    "dataset_from_index",
+    "dataset_to_index",
+    "data/chunk_index",
+    "data/file_index",
+)
+_FRAME_DTYPES = ("image", "video")  # features stored as encoded frames, never read here
+_CLOSEST_TASKS = 5
+
+
+@dataclass(frozen=True)
+class EpisodeInfo:
+    """One row of `meta/episodes`: where an episode's frames live and what task it shows."""
+
+    episode_index: int
+    tasks: tuple[str, ...]
+    length: int       # frames in the episode
+    from_index: int   # global `index` of its first frame
+    to_index: int     # global `index` one past its last frame (exclusive, as in lerobot)
+    data_file: str    # data parquet holding its frames, relative to the dataset root (posix)
+
+    @property
+    def task(self) -> str:
+        """Return the episode's language instruction (the first task; LIBERO has one per episode)."""
+        return self.tasks[0]
+
+
+@dataclass(frozen=True)
+class DatasetMeta:
+    """A dataset's `meta/` folder, validated: info.json, task texts and episode rows."""
+
+    root: Path
+    info: dict[str, Any]
+    tasks: dict[int, str]               # task_index -> task text
+    episodes: tuple[EpisodeInfo, ...]   # sorted by episode_index
+
+    @property
+    def total_frames(self) -> int:
+        """Return the number of frames declared by info.json."""
+        return int(self.info["total_frames"])
+
+    def episode(self, episode_index: int) -> EpisodeInfo:
+        """Return the episode with this index; ValueError if the dataset has none."""
+        for episode in self.episodes:
+            if episode.episode_index == episode_index:
+                return episode
+        raise ValueError(
+            f"{self.root}: no episode {episode_index}; the dataset has episodes "
+            f"{_describe_ints([e.episode_index for e in self.episodes])}"
+        )
+
+    def episodes_for_task(self, task: str) -> list[EpisodeInfo]:
+        """Return the episodes whose task list contains `task`, by episode index."""
+        return [episode for episode in self.episodes if task in episode.tasks]
+
+
+@dataclass(frozen=True)
+class IndexColumns:
+    """The integer bookkeeping columns of every frame, ordered by global `index`: each (frames,) int64."""
+
+    episode_index: np.ndarray
+    frame_index: np.ndarray
+    index: np.ndarray
+    task_index: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
+
+
+def read_meta(root: str | os.PathLike) -> DatasetMeta:
+    """Return the validated metadata of the LeRobot v3.0 dataset at `root`."""
+    root = Path(root)
+    info = read_info(root)
+    return DatasetMeta(root=root, info=info, tasks=read_tasks(root), episodes=tuple(read_episodes(root)))
+
+
+def read_info(root: str | os.PathLike) -> dict[str, Any]:
+    """Return `meta/info.json` after checking it describes a v3.0 dataset."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: LeRobot dataset folder not found")
+    info_path = root / INFO_FILE
+    if not info_path.is_file():
+        raise FileNotFoundError(
+            f"{info_path}: not found; {root} is not a LeRobot dataset (expected {INFO_FILE}, "
+            f"{TASKS_FILE}, {EPISODES_DIR}/ and data/)"
+        )
+    info = read_json(info_path)
+    if not isinstance(info, dict):
+        raise ValueError(f"{info_path}: expected a JSON object, found {type(info).__name__}")
+    version = info.get("codebase_version")
+    if version != CODEBASE_VERSION:
+        raise ValueError(_version_message(root, info_path, version))
+    missing = [key for key in ("data_path", "features", "total_frames") if key not in info]
+    if missing:
+        raise ValueError(f"{info_path}: missing field(s) {missing}; the dataset is incomplete, re-create it")
+    return info
+
+
+def _version_message(root: Path, info_path: Path, version: Any) -> str:
+    """Return the error text for a dataset of another codebase version, with the way out."""
+    found = f"`codebase_version` is {version!r}, expected {CODEBASE_VERSION!r}"
+    if isinstance(version, str) and version.startswith("v2"):
+        command = V21_CONVERTER_COMMAND.format(name=root.name, parent=root.resolve().parent)
+        advice = (
+            f"convert it with lerobot's converter (in place, the old copy is kept as {root.name}_old): {command}"
+        )
+        if version != "v2.1":
+            advice += " (the converter reads v2.1 only: it needs meta/episodes_stats.jsonl, which v2.0 lacks)"
+        return f"{info_path}: {found}; this LeRobot {version} dataset must be converted to v3.0: {advice}"
+    return f"{info_path}: {found}; write the dataset with lerobot 0.4.x (LeRobotDataset.create)"
+
+
+def read_tasks(root: str | os.PathLike) -> dict[int, str]:
+    """Return task_index -> task text from `meta/tasks.parquet`."""
+    path = Path(root) / TASKS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: not found; the dataset is incomplete (was finalize() called?)")
+    # lerobot stores the task text as the pandas index; to_pandas() restores it.
+    frame = pq.read_table(path).to_pandas()
+    if "task_index" not in frame.columns:
+        raise ValueError(f"{path}: no `task_index` column (found {list(frame.columns)}); not a v3.0 tasks table")
+    tasks = {int(i): str(text) for text, i in zip(frame.index, frame["task_index"], strict=True)}
+    if len(tasks) != len(frame):
+        raise ValueError(f"{path}: `task_index` has duplicates; the tasks table is corrupt, re-create the dataset")
+    return tasks
+
+
+def read_episodes(root: str | os.PathLike) -> list[EpisodeInfo]:
+    """Return every episode of `meta/episodes/**.parquet`, sorted by episode index."""
+    root = Path(root)
+    info = read_info(root)
+    files = sorted((root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
+    if not files:
+        raise FileNotFoundError(
+            f"{root / EPISODES_DIR}: no episode metadata files; the dataset was not finalized "
+            "(call LeRobotDataset.finalize() after the last save_episode)"
+        )
+    tables = []
+    for path in files:
+        names = pq.read_schema(path).names
+        missing = [c for c in _EPISODE_COLUMNS if c not in names]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}; not v3.0 episode metadata")
+        tables.append(pq.read_table(path, columns=list(_EPISODE_COLUMNS)))
+    rows = pa.concat_tables(tables).to_pylist()
+    episodes = [
+        EpisodeInfo(
+            episode_index=int(row["episode_index"]),
+            tasks=tuple(str(t) for t in row["tasks"] or ()),
+            length=int(row["length"]),
+            from_index=int(row["dataset_from_index"]),
+            to_index=int(row["dataset_to_index"]),
+            data_file=info["data_path"].format(
+                chunk_index=int(row["data/chunk_index"]), file_index=int(row["data/file_index"])
+            ),
+        )
+        for row in rows
+    ]
+    episodes.sort(key=lambda e: e.episode_index)
+    _check_episodes(root / EPISODES_DIR, episodes)
+    return episodes
+
+
+def _check_episodes(where: Path, episodes: Sequence[EpisodeInfo]) -> None:
+    """Raise one ValueError listing every inconsistent episode row."""
+    problems = []
+    indices = [e.episode_index for e in episodes]
+    if len(set(indices)) != len(indices):
+        duplicated = sorted({i for i in indices if indices.count(i) > 1})
+        problems.append(f"episode index(es) {duplicated} appear more than once")
+    for e in episodes:
+        if not e.tasks:
+            problems.append(f"episode {e.episode_index}: `tasks` is empty")
+        if e.to_index - e.from_index != e.length:
+            problems.append(
+                f"episode {e.episode_index}: dataset_to_index - dataset_from_index = "
+                f"{e.to_index - e.from_index}, but `length` is {e.length}"
+            )
+    if problems:
+        raise ValueError(f"{where}: inconsistent episode metadata: " + "; ".join(problems))
+
+
+def data_files(meta: DatasetMeta) -> list[Path]:
+    """Return the absolute paths of the data parquet files the episodes point to, sorted."""
+    paths = sorted({meta.root / e.data_file for e in meta.episodes})
+    missing = [str(p.relative_to(meta.root)) for p in paths if not p.is_file()]
+    if missing:
+        raise FileNotFoundError(f"{meta.root}: data file(s) {missing} listed in {EPISODES_DIR} are missing")
+    return paths
+
+
+def _read_data_table(path: Path, columns: Sequence[str], filters: list | None = None) -> pa.Table:
+    """Return the named columns of one data file; the single place frame data is read."""
+    return pq.read_table(path, columns=list(columns), filters=filters)
+
+
+def read_index_columns(root: str | os.PathLike) -> IndexColumns:
+    """Return `episode_index`, `frame_index`, `index`, `task_index` of every frame, ordered by `index`."""
+    meta = read_meta(root)
+    tables = []
+    for path in data_files(meta):
+        names = pq.read_schema(path).names
+        missing = [c for c in INDEX_COLUMNS if c not in names]
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {missing}; not a LeRobot data file")
+        tables.append(_read_data_table(path, INDEX_COLUMNS))
+    table = pa.concat_tables(tables)
+    columns = {name: table.column(name).to_numpy().astype(np.int64, copy=False) for name in INDEX_COLUMNS}
+    order = np.argsort(columns["index"], kind="stable")
+    index = columns["index"][order]
+    if index.size and np.any(index[1:] == index[:-1]):
+        duplicated = np.unique(index[1:][index[1:] == index[:-1]])
+        raise ValueError(
+            f"{meta.root}: global `index` value(s) {_describe_ints(duplicated.tolist())} occur in more than one "
+            "frame; the data files overlap, re-create the dataset"
+        )
+    return IndexColumns(**{name: values[order] for name, values in columns.items()})
+
+
+def read_episode_columns(
+    root: str | os.PathLike, episode_indices: Iterable[int], column: str
+) -> dict[int, np.ndarray]:
+    """Return episode index -> that episode's `column`, (frames, dim) float64 in frame order.
+
+    Only `episode_index`, `frame_index` and `column` are read, one data file at a time,
+    with a row filter so other episodes' row groups are skipped.
+    """
+    meta = read_meta(root)
+    feature = _numeric_feature(meta, column)
+    dim = int(np.prod(feature.get("shape") or [1]))
+    wanted = [meta.episode(int(i)) for i in dict.fromkeys(episode_indices)]
+    by_file: dict[str, list[EpisodeInfo]] = {}
+    for episode in wanted:
+        by_file.setdefault(episode.data_file, []).append(episode)
+    result: dict[int, np.ndarray] = {}
+    for rel, episodes in by_file.items():
+        path = meta.root / rel
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: data file of episode(s) {[e.episode_index for e in episodes]} is missing")
+        table = _read_data_table(
+            path,
+            ("episode_index", "frame_index", column),
+            filters=[("episode_index", "in", [e.episode_index for e in episodes])],
+        )
+        values = _column_as_matrix(table.column(column), dim, path, column)
+        episode_ids = table.column("episode_index").to_numpy()
+        frames = table.column("frame_index").to_numpy()
+        for episode in episodes:
+            rows = np.flatnonzero(episode_ids == episode.episode_index)
+            rows = rows[np.argsort(frames[rows], kind="stable")]
+            if not np.array_equal(frames[rows], np.arange(episode.length)):
+                raise ValueError(
+                    f"{path}: episode {episode.episode_index} has frame_index "
+                    f"{_describe_ints(frames[rows].tolist())}, expected 0..{episode.length - 1} "
+                    f"(length {episode.length} in {EPISODES_DIR}); the dataset is corrupt, re-create it"
+                )
+            result[episode.episode_index] = values[rows]
+    return {e.episode_index: result[e.episode_index] for e in wanted}
+
+
+def read_episode_column(root: str | os.PathLike, episode_index: int, column: str) -> np.ndarray:
+    """Return one episode's `column` as (frames, dim) float64, in frame order."""
+    return read_episode_columns(root, [episode_index], column)[episode_index]
+
+
+def _numeric_feature(meta: DatasetMeta, column: str) -> dict[str, Any]:
+    """Return the info.json feature entry of a numeric column; ValueError for frames or unknown names."""
+    features = meta.info["features"]
+    if column not in features:
+        numeric = sorted(k for k, v in features.items() if v.get("dtype") not in _FRAME_DTYPES)
+        raise ValueError(f"{meta.root / INFO_FILE}: no feature {column!r}; numeric features are {numeric}")
+    feature = features[column]
+    if feature.get("dtype") in _FRAME_DTYPES:
+        raise ValueError(
+            f"{meta.root / INFO_FILE}: feature {column!r} has dtype {feature.get('dtype')!r}; this reader "
+            "returns numeric columns only and never decodes frames (use lerobot's LeRobotDataset for images)"
+        )
+    return feature
+
+
+def _column_as_matrix(column: pa.ChunkedArray, dim: int, path: Path, name: str) -> np.ndarray:
+    """Return a parquet column of scalars or fixed-length lists as (rows, dim) float64."""
+    array = column.combine_chunks()
+    if pa.types.is_fixed_size_list(array.type) or pa.types.is_list(array.type):
+        flat = array.flatten().to_numpy(zero_copy_only=False)
+    else:
+        flat = array.to_numpy(zero_copy_only=False)
+    if flat.size != len(array) * dim:
+        raise ValueError(
+            f"{path}: column {name!r} holds {flat.size} values for {len(array)} rows, expected {dim} per row "
+            f"(shape in {INFO_FILE}); the dataset is corrupt, re-create it"
+        )
+    return flat.astype(np.float64).reshape(len(array), dim)
+
+
+def dataset_fingerprint(root: str | os.PathLike) -> str:
+    """Return a sha256 identifying the dataset's content: cheap (no frame data is hashed) and stable.
+
+    Covers the bytes of info.json, tasks.parquet and every episode metadata file, plus the
+    name and size of each data file. Frame values are not hashed, but the episode metadata
+    holds each episode's per-feature statistics, which move with them in practice.
+    """
+    meta = read_meta(root)
+    episode_files = sorted((meta.root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
+    record = {
+        "info": sha256_file(meta.root / INFO_FILE),
+        "tasks": sha256_file(meta.root / TASKS_FILE),
+        "episodes": {p.relative_to(meta.root).as_posix(): sha256_file(p) for p in episode_files},
+        "data": {p.relative_to(meta.root).as_posix(): p.stat().st_size for p in data_files(meta)},
+    }
+    return sha256_json(record)
+
+
+def resolve_task(meta: DatasetMeta, text: str) -> str:
+    """Return the dataset's task text matching `text` exactly, else ignoring case and spacing.
+
+    Raises ValueError naming the closest task texts when nothing (or more than one) matches.
+    """
+    known = list(dict.fromkeys(meta.tasks.values()))
+    if text in known:
+        return text
+    folded = [t for t in known if _fold(t) == _fold(text)]
+    if len(folded) == 1:
+        return folded[0]
+    if len(folded) > 1:
+        raise ValueError(f"{meta.root / TASKS_FILE}: task {text!r} matches {folded} ignoring case; pass the exact text")
+    by_folded = {_fold(t): t for t in known}
+    closest = [by_folded[f] for f in difflib.get_close_matches(_fold(text), list(by_folded), n=_CLOSEST_TASKS, cutoff=0)]
+    raise ValueError(
+        f"{meta.root / TASKS_FILE}: task {text!r} is not in the dataset ({len(known)} tasks); "
+        f"closest task texts: {closest}"
+    )
+
+
+def _fold(text: str) -> str:
+    """Return `text` lower-cased with runs of whitespace collapsed, for forgiving task lookup."""
+    return " ".join(text.lower().split())
+
+
+def _describe_ints(values: Sequence[int]) -> str:
+    """Return a short description of an integer list, eliding the middle of long ones."""
+    values = list(values)
+    if len(values) <= 12:
+        return str(values)
+    head = ", ".join(str(v) for v in values[:5])
+    tail = ", ".join(str(v) for v in values[-3:])
+    return f"[{head}, ... {tail}] ({len(values)} values)"
