@@ -29,7 +29,7 @@ import json
 import logging
 import re
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -181,18 +181,19 @@ def list_demos(path: str | Path) -> list[str]:
 
 def read_demo(path: str | Path, key: str) -> LiberoDemo:
     """Return one demo of a validated file with all its arrays loaded."""
-    path = _existing(path)
-    with _open_validated(path) as (handle, info):
-        if key not in info.demo_lengths:
-            raise ValueError(f"{path.name}: no demo {key!r}; available: {_preview(info.demo_keys)}")
-        return _load_demo(handle[DATA_GROUP][key], key)
+    (demo,) = iter_demos(path, [key])  # consuming the generator closes the file
+    return demo
 
 
-def iter_demos(path: str | Path) -> Iterator[LiberoDemo]:
-    """Yield every demo of a validated file in numeric key order, opening the file once."""
+def iter_demos(path: str | Path, keys: Sequence[str] | None = None) -> Iterator[LiberoDemo]:
+    """Yield the demos `keys` (default: all, in numeric order) of a validated file, opening it once."""
     path = _existing(path)
     with _open_validated(path) as (handle, info):
-        for key in info.demo_keys:
+        wanted = info.demo_keys if keys is None else list(keys)
+        missing = [key for key in wanted if key not in info.demo_lengths]
+        if missing:
+            raise ValueError(f"{path.name}: no demo(s) {missing}; available: {_preview(info.demo_keys)}")
+        for key in wanted:
             yield _load_demo(handle[DATA_GROUP][key], key)
 
 

@@ -1,3 +1,91 @@
-"""CLI commands of one pipeline phase."""
+"""CLI commands of phase 1 (preparing data): `filter`, `convert`, and `make-demos` for synthetic inputs."""
 
-from steering_core.cli.app import app  # noqa: F401
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from enum import Enum
+from pathlib import Path
+
+import typer
+
+from steering_core.cli.app import app
+from steering_core.convert import ConvertSettings, convert_libero
+from steering_core.filtering import FilterSettings, filter_demos
+from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
+
+
+class OrientationChoice(str, Enum):
+    """Typer choices mirroring `steering_core.convert.Orientation`."""
+
+    rotate180 = "rotate180"
+    as_stored = "as_stored"
+
+
+@contextlib.contextmanager
+def _user_errors() -> Iterator[None]:
+    """Turn bad-input errors into a one-message exit (code 2) instead of a traceback."""
+    try:
+        yield
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2) from None
+
+
+@app.command("filter")
+def filter_command(
+    input_dir: list[Path] = typer.Option(..., "--input-dir", help="Folder of LIBERO *_demo.hdf5 files (repeatable)."),
+    output_dir: Path = typer.Option(..., "--output-dir", help="Filtered folder to (re)write, e.g. data/libero_filtered/open_close."),
+    task: list[str] = typer.Option([], "--task", help="Select files whose instruction is this text (repeatable)."),
+    glob: list[str] = typer.Option([], "--glob", help="Select files whose name matches this glob (repeatable)."),
+    copy: bool = typer.Option(False, "--copy", help="Copy the files instead of symlinking them."),
+    exact: bool = typer.Option(False, "--exact", help="Match task text exactly (default: ignore case and spacing)."),
+) -> None:
+    """Select demo files by task text or file-name glob into a folder with selection.json."""
+    settings = FilterSettings(
+        tasks=tuple(task), globs=tuple(glob), match="exact" if exact else "ignore_case", mode="copy" if copy else "symlink"
+    )
+    with _user_errors():
+        selection = filter_demos(input_dir, output_dir, settings)
+    for entry in selection.files:
+        typer.echo(f"{entry.name}\t{entry.num_demos} demos\t{entry.instruction}")
+    typer.echo(f"{len(selection.files)} file(s) in {output_dir}")
+
+
+@app.command("convert")
+def convert_command(
+    input_dir: list[Path] = typer.Option(..., "--input-dir", help="Folder of LIBERO *.hdf5 files (repeatable)."),
+    repo_id: str = typer.Option(..., "--repo-id", help="LeRobot repo id recorded in the dataset, e.g. libero_open_close_lerobot."),
+    output_dir: Path = typer.Option(..., "--output-dir", help="Dataset folder, e.g. data/libero_lerobot/<repo_id>."),
+    image_size: int = typer.Option(256, "--image-size", help="Square frame size (physical-intelligence/libero: 256)."),
+    orientation: OrientationChoice = typer.Option(
+        OrientationChoice.rotate180, "--orientation", help="rotate180 (what pi05_libero was trained on) or as_stored (raw renders)."
+    ),
+    append: bool = typer.Option(
+        True, "--append/--rebuild", help="Append only new demos to an existing dataset when possible, or rebuild it."
+    ),
+) -> None:
+    """Convert LIBERO demos into a LeRobot v3.0 dataset (openpi's physical-intelligence/libero schema)."""
+    with _user_errors():
+        settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation.value)
+        result = convert_libero(input_dir, output_dir, settings, rebuild=not append)
+    typer.echo(
+        f"{result.action}: {result.root} holds {result.episodes_total} episodes ({result.frames_total} frames), "
+        f"{result.episodes_added} added"
+    )
+
+
+@app.command("make-demos")
+def make_demos_command(
+    output_dir: Path = typer.Option(..., "--output-dir", help="Folder to write the synthetic LIBERO files into."),
+    image_size: int = typer.Option(128, "--image-size", help="Square render size (LIBERO: 128)."),
+    demos_per_task: int = typer.Option(4, "--demos-per-task", help="Demos per task file."),
+    num_steps: int = typer.Option(60, "--num-steps", help="Steps per demo (real LIBERO demos: 100-300)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the small deterministic noise."),
+) -> None:
+    """Write synthetic LIBERO demos for two concept pairs (drawer open/close, stove on/off)."""
+    with _user_errors():
+        settings = SyntheticSettings(image_size=image_size, num_steps=num_steps, length_jitter=num_steps // 10, seed=seed)
+        files = write_demo_suite(output_dir, demos_per_task=demos_per_task, settings=settings)
+    for written in files:
+        typer.echo(f"{written.path}\t{len(written.demos)} demos\t{written.instruction}")

@@ -1,0 +1,389 @@
+"""LIBERO hdf5 demos -> LeRobot v3.0 dataset, written with lerobot's own `LeRobotDataset`.
+
+The schema is that of openpi's `physical-intelligence/libero`, which pi05_libero was
+trained on: `image` and `wrist_image` (PNG, image_size^2 x 3 uint8), `state` float32 (8) =
+ee_pos (3) + ee_ori axis-angle (3) + gripper finger qpos (2), `actions` float32 (7), the
+instruction as the task, robot_type "panda", fps 10.
+
+Orientation: raw LIBERO renders are upside down (OpenGL convention). The frames of
+physical-intelligence/libero were flipped along both H and W by OpenVLA's regeneration,
+and openpi's eval client flips live frames the same way, so `rotate180` (default) is what
+the checkpoint saw in training. `as_stored` keeps the raw orientation, for datasets meant
+for models trained on raw renders.
+
+Resizing: LIBERO stores 128x128 frames; they are resized to `image_size` with bilinear
+interpolation, antialiased, half-pixel centres (torch `interpolate(antialias=True)`, which
+matches openpi's JAX resize), rounded and clipped to uint8.
+
+Every episode's source (file name, demo key, file sha256, task, length) goes to
+`meta/libero_sources.json`; when that record lists a prefix of the current sources, a
+re-run appends only the new episodes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from itertools import groupby
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+from pydantic import Field
+from tqdm import tqdm
+
+from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.libero import LiberoDemo, iter_demos, validate_file
+from steering_core.schema import StrictModel
+
+if TYPE_CHECKING:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+log = logging.getLogger(__name__)
+
+SOURCES_FILE = "meta/libero_sources.json"
+SOURCES_FORMAT_VERSION = 1
+DEMO_FILE_GLOB = "*.hdf5"
+# Files a finalized v3.0 dataset must have; without them lerobot would try the hub.
+REQUIRED_DATASET_FILES = ("meta/info.json", "meta/tasks.parquet", "meta/episodes", "data")
+_RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for long demos
+
+Orientation = Literal["rotate180", "as_stored"]
+Action = Literal["created", "appended", "rebuilt", "unchanged"]
+ProgressCallback = Callable[[int, int], None]
+
+
+class ConvertSettings(StrictModel):
+    """How LIBERO demos become a LeRobot dataset (defaults: openpi's physical-intelligence/libero)."""
+
+    repo_id: str = Field(min_length=1)
+    image_size: int = Field(default=256, ge=8)      # physical-intelligence/libero frames are 256x256
+    orientation: Orientation = "rotate180"           # what pi05_libero saw in training (module docstring)
+    fps: int = Field(default=10, gt=0)               # openpi declares 10 although LIBERO controls at 20 Hz
+    robot_type: str = "panda"
+
+
+class EpisodeSource(StrictModel):
+    """Where one dataset episode came from."""
+
+    episode_index: int = Field(ge=0)
+    file: str          # file name (inputs are sorted by it)
+    demo: str          # demo_<k>
+    sha256: str        # of the whole source file
+    task: str          # the instruction, = the dataset task
+    length: int = Field(ge=1)
+
+    def key(self) -> tuple[str, str, str]:
+        """Return what identifies the source content: (file, demo, sha256)."""
+        return (self.file, self.demo, self.sha256)
+
+
+class SourcesRecord(StrictModel):
+    """The content of `meta/libero_sources.json`."""
+
+    format_version: int = SOURCES_FORMAT_VERSION
+    repo_id: str
+    orientation: Orientation
+    image_size: int
+    fps: int
+    robot_type: str
+    episodes: tuple[EpisodeSource, ...]
+
+
+@dataclass(frozen=True)
+class ConvertResult:
+    """What a conversion did."""
+
+    root: Path
+    repo_id: str
+    action: Action
+    episodes_total: int
+    episodes_added: int
+    frames_total: int
+
+
+def lerobot_features(image_size: int) -> dict[str, dict]:
+    """Return the LeRobot feature spec of physical-intelligence/libero at `image_size`."""
+    camera = {"dtype": "image", "shape": (image_size, image_size, 3), "names": ["height", "width", "channel"]}
+    return {
+        "image": camera,
+        "wrist_image": dict(camera),
+        "state": {"dtype": "float32", "shape": (8,), "names": ["state"]},
+        "actions": {"dtype": "float32", "shape": (7,), "names": ["actions"]},
+    }
+
+
+def prepare_frames(frames: np.ndarray, orientation: Orientation, image_size: int) -> np.ndarray:
+    """Return (T, image_size, image_size, 3) uint8 frames, oriented then resized (see module docstring).
+
+    `frames` is (T, H, W, 3) uint8 as stored in LIBERO files.
+    """
+    if orientation == "rotate180":
+        frames = frames[:, ::-1, ::-1]
+    if frames.shape[1:3] == (image_size, image_size):
+        return np.ascontiguousarray(frames)
+    import torch  # deferred: torch is heavy and only conversion needs it
+    import torch.nn.functional as F
+
+    out = np.empty((frames.shape[0], image_size, image_size, 3), dtype=np.uint8)
+    for start in range(0, frames.shape[0], _RESIZE_CHUNK):
+        chunk = torch.from_numpy(np.ascontiguousarray(frames[start : start + _RESIZE_CHUNK]))
+        x = chunk.permute(0, 3, 1, 2).to(torch.float32)  # (t, 3, H, W)
+        x = F.interpolate(x, size=(image_size, image_size), mode="bilinear", align_corners=False, antialias=True)
+        out[start : start + len(chunk)] = x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+    return out
+
+
+def plan_sources(input_dirs: Sequence[str | Path]) -> list[tuple[Path, EpisodeSource]]:
+    """Return every episode to convert, in dataset order: files by name, demos by number.
+
+    Every file is validated on the way; problems in several files are reported together.
+    """
+    files = _input_files(input_dirs)
+    planned: list[tuple[Path, EpisodeSource]] = []
+    problems: list[str] = []
+    for path in files:
+        try:
+            info = validate_file(path)
+        except ValueError as err:
+            problems.append(str(err))
+            continue
+        digest = sha256_file(path)
+        for key, length in info.demo_lengths.items():
+            source = EpisodeSource(
+                episode_index=len(planned), file=path.name, demo=key, sha256=digest, task=info.instruction, length=length
+            )
+            planned.append((path, source))
+    if problems:
+        raise ValueError("\n".join(problems))
+    return planned
+
+
+def read_sources(root: str | Path) -> SourcesRecord:
+    """Return the validated `meta/libero_sources.json` of a converted dataset."""
+    path = Path(root) / SOURCES_FILE
+    payload = read_json(path)
+    version = payload.get("format_version") if isinstance(payload, dict) else None
+    if version != SOURCES_FORMAT_VERSION:
+        raise ValueError(
+            f"{path}: format_version is {version!r}, expected {SOURCES_FORMAT_VERSION}; "
+            "re-run `latent-steering convert --rebuild`"
+        )
+    try:
+        record = SourcesRecord.model_validate(payload)
+    except ValueError as err:
+        raise ValueError(f"{path}: not a valid sources record ({err}); re-run `latent-steering convert --rebuild`") from None
+    indices = [e.episode_index for e in record.episodes]
+    if indices != list(range(len(indices))):
+        raise ValueError(f"{path}: episode_index values are {indices[:10]}..., expected 0, 1, 2, ... in order")
+    return record
+
+
+def convert_libero(
+    input_dirs: Sequence[str | Path],
+    output_dir: str | Path,
+    settings: ConvertSettings,
+    *,
+    rebuild: bool = False,
+    progress: ProgressCallback | None = None,
+) -> ConvertResult:
+    """Return what was done after converting every demo under `input_dirs` into `output_dir`.
+
+    Without `rebuild`, an existing dataset written by this function with the same settings
+    whose sources are a prefix of the current ones gets only the new episodes appended; any
+    other existing dataset is rebuilt from scratch. Output is staged in a temporary sibling
+    and moved into place only when complete.
+    """
+    output_dir = Path(output_dir)
+    planned = plan_sources(input_dirs)
+    if not planned:
+        raise ValueError(f"no demos found in {', '.join(map(str, input_dirs))}")
+    new_sources = [source for _, source in planned]
+
+    existing = _existing_record(output_dir)
+    reason = "rebuild requested" if rebuild else _rebuild_reason(output_dir, existing, settings, new_sources)
+    if existing is not None and reason is None:
+        done = len(existing.episodes)
+        if done == len(new_sources):
+            log.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
+            return _result(output_dir, settings, "unchanged", new_sources, added=0)
+        log.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
+        with atomic_dir(output_dir, overwrite=True) as tmp:
+            shutil.copytree(output_dir, tmp, symlinks=True)
+            dataset = _lerobot_class()(settings.repo_id, root=tmp)
+            _write_episodes(dataset, planned[done:], settings, progress)
+            write_json(tmp / SOURCES_FILE, _record(settings, new_sources).model_dump(mode="json"))
+        return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
+
+    action: Action = "created" if existing is None else "rebuilt"
+    if existing is not None:
+        log.info("%s: rebuilding from scratch (%s)", output_dir, reason)
+    with atomic_dir(output_dir, overwrite=True) as tmp:
+        dataset = _lerobot_class().create(
+            repo_id=settings.repo_id,
+            root=tmp,
+            fps=settings.fps,
+            robot_type=settings.robot_type,
+            features=lerobot_features(settings.image_size),
+            use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
+        )
+        _write_episodes(dataset, planned, settings, progress)
+        write_json(tmp / SOURCES_FILE, _record(settings, new_sources).model_dump(mode="json"))
+    return _result(output_dir, settings, action, new_sources, added=len(new_sources))
+
+
+# ----------------------------------------------------------------------------- internals
+
+
+def _lerobot_class() -> type[LeRobotDataset]:
+    """Return lerobot's LeRobotDataset, imported lazily (about 15 s) with hub access off."""
+    # lerobot falls back to the hub when local files look incomplete; this tool only works locally.
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset
+
+
+def _input_files(input_dirs: Sequence[str | Path]) -> list[Path]:
+    """Return the `*.hdf5` files directly inside `input_dirs`, sorted by name (names must be unique)."""
+    if not input_dirs:
+        raise ValueError("no input folder given: pass --input-dir at least once")
+    by_name: dict[str, Path] = {}
+    for folder in map(Path, input_dirs):
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{folder}: input folder not found")
+        for path in folder.glob(DEMO_FILE_GLOB):
+            if path.name in by_name and by_name[path.name].resolve() != path.resolve():
+                raise ValueError(
+                    f"{path.name}: found in both {by_name[path.name].parent} and {folder}; "
+                    "episode order follows file names, so names must be unique"
+                )
+            by_name[path.name] = path
+    return [by_name[name] for name in sorted(by_name)]
+
+
+def _existing_record(output_dir: Path) -> SourcesRecord | None:
+    """Return the sources record of an existing output, None if there is no output; refuse foreign folders."""
+    if not output_dir.exists():
+        return None
+    if not (output_dir / SOURCES_FILE).is_file():
+        if output_dir.is_dir() and not any(output_dir.iterdir()):
+            return None
+        raise ValueError(
+            f"{output_dir}: exists but has no {SOURCES_FILE}, so it was not written by `latent-steering convert`; "
+            "remove it or choose another --output-dir"
+        )
+    try:
+        return read_sources(output_dir)
+    except ValueError as err:
+        log.warning("%s", err)
+        return _unreadable_record()
+
+
+def _unreadable_record() -> SourcesRecord:
+    """Return an empty record that matches no settings, forcing a rebuild of an unreadable output."""
+    return SourcesRecord(repo_id="", orientation="as_stored", image_size=0, fps=0, robot_type="", episodes=())
+
+
+def _rebuild_reason(
+    output_dir: Path, existing: SourcesRecord | None, settings: ConvertSettings, new_sources: list[EpisodeSource]
+) -> str | None:
+    """Return why an existing output cannot be appended to, or None if it can (or does not exist)."""
+    if existing is None:
+        return None
+    wanted = _record(settings, []).model_dump(exclude={"episodes"})
+    found = existing.model_dump(exclude={"episodes"})
+    changed = [f"{k} {found[k]!r} -> {wanted[k]!r}" for k in wanted if found[k] != wanted[k]]
+    if changed:
+        return "settings changed: " + ", ".join(changed)
+    missing = [name for name in REQUIRED_DATASET_FILES if not (output_dir / name).exists()]
+    if missing:
+        return f"dataset files missing: {', '.join(missing)}"
+    info = read_json(output_dir / "meta/info.json")
+    if info.get("total_episodes") != len(existing.episodes):
+        return f"meta/info.json has {info.get('total_episodes')} episodes but {SOURCES_FILE} lists {len(existing.episodes)}"
+    new_keys = [s.key() for s in new_sources]
+    for old in existing.episodes:
+        if old.episode_index >= len(new_keys) or new_keys[old.episode_index] != old.key():
+            now = new_keys[old.episode_index] if old.episode_index < len(new_keys) else None
+            what = "disappeared" if now is None or now[:2] != old.key()[:2] else "changed (sha256 differs)"
+            return f"source {old.file}:{old.demo} of episode {old.episode_index} {what}"
+    return None
+
+
+def _record(settings: ConvertSettings, sources: list[EpisodeSource]) -> SourcesRecord:
+    return SourcesRecord(
+        repo_id=settings.repo_id,
+        orientation=settings.orientation,
+        image_size=settings.image_size,
+        fps=settings.fps,
+        robot_type=settings.robot_type,
+        episodes=tuple(sources),
+    )
+
+
+def _write_episodes(
+    dataset: LeRobotDataset,
+    planned: list[tuple[Path, EpisodeSource]],
+    settings: ConvertSettings,
+    progress: ProgressCallback | None,
+) -> None:
+    """Add every planned episode to `dataset` in order, then finalize it (mandatory in lerobot 0.4)."""
+    from lerobot.utils.utils import SuppressProgressBars  # lerobot is imported by now
+
+    total = len(planned)
+    done = 0
+    try:
+        # our bar counts episodes; the per-episode `datasets` bars lerobot triggers are noise
+        with SuppressProgressBars(), tqdm(total=total, desc="convert", unit="episode", file=sys.stderr) as bar:
+            for path, group in groupby(planned, key=lambda item: item[0]):
+                sources = [source for _, source in group]
+                for demo, source in zip(iter_demos(path, [s.demo for s in sources]), sources, strict=True):
+                    _add_episode(dataset, demo, source, settings)
+                    done += 1
+                    bar.update(1)
+                    if progress is not None:
+                        progress(done, total)
+    except BaseException:
+        with contextlib.suppress(Exception):
+            dataset.finalize()  # close the parquet writers; the staging folder is discarded anyway
+        raise
+    dataset.finalize()
+    # lerobot stages PNGs under images/ before embedding them in the parquet files; only empty folders remain
+    shutil.rmtree(Path(dataset.root) / "images", ignore_errors=True)
+
+
+def _add_episode(dataset: LeRobotDataset, demo: LiberoDemo, source: EpisodeSource, settings: ConvertSettings) -> None:
+    """Add one demo's frames and save it as the next episode."""
+    if dataset.meta.total_episodes != source.episode_index:
+        raise ValueError(
+            f"{source.file}:{source.demo}: would become episode {dataset.meta.total_episodes}, "
+            f"expected {source.episode_index}; re-run with --rebuild"
+        )
+    image = prepare_frames(demo.agentview_rgb, settings.orientation, settings.image_size)
+    wrist = prepare_frames(demo.eye_in_hand_rgb, settings.orientation, settings.image_size)
+    state = demo.state8()
+    actions = demo.actions.astype(np.float32)
+    for t in range(demo.num_steps):
+        dataset.add_frame(
+            {"image": image[t], "wrist_image": wrist[t], "state": state[t], "actions": actions[t], "task": source.task}
+        )
+    dataset.save_episode()
+
+
+def _result(
+    root: Path, settings: ConvertSettings, action: Action, sources: list[EpisodeSource], *, added: int
+) -> ConvertResult:
+    return ConvertResult(
+        root=root,
+        repo_id=settings.repo_id,
+        action=action,
+        episodes_total=len(sources),
+        episodes_added=added,
+        frames_total=sum(s.length for s in sources),
+    )
