@@ -206,3 +206,24 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
     slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,)))
     with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
         slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,), verify_checksums=True))
+
+
+def test_slice_command(tmp_path, run_dir, concept_map):
+    from typer.testing import CliRunner
+
+    from steering_core.cli.capture import app
+
+    args = ["slice", "--run-dir", str(run_dir), "--concept-map-path", str(concept_map),
+            "--output-dir", str(tmp_path / "cli"), "--token-type", "instructions", "--layers", "2,5",
+            "--device", "cpu", "--reduce", "frame", "--max-samples-per-concept", "4"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    slice_concepts(run_dir, concept_map, tmp_path / "lib",
+                   SliceSettings(layers=(2, 5), reduce="frame", max_samples_per_concept=4))
+    for layer in ("layer02", "layer05"):
+        cli = torch.load(tmp_path / "cli" / layer / f"{CLOSE}.pt", weights_only=True)
+        assert torch.equal(cli, torch.load(tmp_path / "lib" / layer / f"{CLOSE}.pt", weights_only=True))
+
+    result = CliRunner().invoke(app, [*args[:-6], "--layers", "12"])
+    assert result.exit_code == 1
+    assert "re-run capture with --layers 12" in result.output
