@@ -1,0 +1,75 @@
+"""LIBERO frames -> pi0.5's three camera slots, exactly as openpi's inference transforms (spec 3.1).
+
+physical-intelligence/libero style datasets are already in training orientation: nothing here rotates.
+Raw LIBERO hdf5 renders must be flipped along H and W before they reach this module.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+# openpi's camera slots in prefix order; LIBERO fills the first two, the right wrist is absent (mask False)
+CAMERA_SLOTS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+LIBERO_IMAGE_KEYS = ("image", "wrist_image")  # dataset features feeding the base and left-wrist slots
+IMAGE_SIZE = 224
+
+
+def to_uint8(frames: torch.Tensor) -> torch.Tensor:
+    """Return uint8 (B, 3, H, W) from float (B, 3, H, W) in [0, 1]: x255 truncated, as LiberoInputs does.
+
+    Values outside [0, 1] are clamped first (inside the range this is openpi's `(255 * x).astype(uint8)`).
+    """
+    scaled = frames.to(torch.float32) * 255.0
+    return scaled.clamp(0.0, 255.0).to(torch.uint8)  # float -> uint8 casts truncate toward zero
+
+
+def resize_with_pad(images: torch.Tensor, size: int = IMAGE_SIZE) -> torch.Tensor:
+    """Return uint8 (B, 3, size, size): aspect-preserving antialiased bilinear resize, then zero padding.
+
+    ratio = max(W, H) / size, new (int(H / ratio), int(W / ratio)), rounded and clipped to uint8; padding
+    puts floor(diff / 2) rows/columns top/left and the rest bottom/right (openpi's resize_with_pad).
+    """
+    _, _, height, width = images.shape
+    ratio = max(width / size, height / size)
+    new_height, new_width = int(height / ratio), int(width / ratio)
+    if (new_height, new_width) != (height, width):
+        resized = F.interpolate(
+            images.to(torch.float32), size=(new_height, new_width), mode="bilinear", align_corners=False, antialias=True
+        )
+        images = resized.round().clamp(0, 255).to(torch.uint8)  # round half to even, like jnp.round
+    pad_top, pad_left = (size - new_height) // 2, (size - new_width) // 2
+    # F.pad takes (left, right, top, bottom) for the last two dims
+    padding = (pad_left, size - new_width - pad_left, pad_top, size - new_height - pad_top)
+    return F.pad(images, padding, value=0)
+
+
+def to_model_range(images: torch.Tensor) -> torch.Tensor:
+    """Return float32 in [-1, 1] from uint8: x / 255 * 2 - 1."""
+    return images.to(torch.float32) / 255.0 * 2.0 - 1.0
+
+
+def libero_camera_slots(
+    image: torch.Tensor,
+    wrist_image: torch.Tensor,
+    image_size: int = IMAGE_SIZE,
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Return ([base, left wrist, right wrist] float32 (B, 3, size, size) in [-1, 1], [masks (B,) bool]).
+
+    `image` (agentview) and `wrist_image` are float32 (B, 3, H, W) in [0, 1] as LeRobotDataset returns
+    them. The right wrist is an all-zero image (all -1 after scaling) with mask False, as pi0.5 expects.
+    """
+    problems = []
+    for name, frames in zip(LIBERO_IMAGE_KEYS, (image, wrist_image)):
+        if frames.ndim != 4 or frames.shape[1] != 3 or not frames.dtype.is_floating_point:
+            problems.append(f"`{name}` is {tuple(frames.shape)} {frames.dtype}, expected (B, 3, H, W) float in [0, 1]")
+    if not problems and image.shape[0] != wrist_image.shape[0]:
+        problems.append(f"batch sizes differ: image {image.shape[0]}, wrist_image {wrist_image.shape[0]}")
+    if problems:
+        raise ValueError("libero_camera_slots: " + "; ".join(problems))
+    batch = image.shape[0]
+    base = to_model_range(resize_with_pad(to_uint8(image), image_size))
+    wrist = to_model_range(resize_with_pad(to_uint8(wrist_image), image_size))
+    absent = torch.full_like(base, -1.0)  # to_model_range of an all-zero uint8 image
+    present = torch.ones(batch, dtype=torch.bool)
+    return [base, wrist, absent], [present, present.clone(), torch.zeros(batch, dtype=torch.bool)]
