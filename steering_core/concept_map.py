@@ -53,10 +53,13 @@ class ConceptMap(StrictModel):
     def _consistent(self) -> ConceptMap:
         problems = []
         if list(self.concept_count) != list(self.concepts):
-            problems.append(f"concept_count has concepts {list(self.concept_count)}, concepts has {list(self.concepts)}")
+            problems.append(
+                f"concept_count has concepts {list(self.concept_count)}, concepts has {list(self.concepts)}"
+            )
         for concept, rows in self.concepts.items():
             if self.concept_count.get(concept, len(rows)) != len(rows):
-                problems.append(f"concept_count[{concept!r}] is {self.concept_count[concept]}, but it has {len(rows)} rows")
+                count = self.concept_count[concept]
+                problems.append(f"concept_count[{concept!r}] is {count}, but it has {len(rows)} rows")
             for row in rows:
                 where = f"concepts[{concept!r}] segment {row.segment_id}"
                 if row.length != row.end_index - row.start_index + 1:
@@ -94,8 +97,10 @@ def build_concept_map(
     columns = read_index_columns(meta.root)
     rows, problems = _locate_segments(manifest, columns)
     if problems:
-        raise ValueError(f"{lerobot_root}: the frames of some segments of {manifest_path} are not in the dataset: "
-                         + "; ".join(problems))
+        raise ValueError(
+            f"{lerobot_root}: frames of {manifest_path} are missing or misplaced: " + "; ".join(problems)
+            + ". The dataset's data files do not match its metadata; re-create the dataset."
+        )
     rename = dict(rename or {})
     unused = sorted(set(rename) - {seg.task for seg in manifest.segments})
     if unused:
@@ -160,11 +165,12 @@ def _locate_segments(manifest: ContrastManifest, columns: IndexColumns) -> tuple
         stop = np.searchsorted(keys, seg.episode_index * stride + seg.end_step, side="right")
         wanted = seg.end_step - seg.start_step + 1
         span = indices[first:stop]
-        if stop - first != wanted or (span.size and span[-1] - span[0] + 1 != wanted):
-            problems.append(
-                f"segments[{i}] ({seg.demo}): {stop - first} frame(s) of episode {seg.episode_index} in "
-                f"{seg.start_step}..{seg.end_step} found at contiguous indices, expected {wanted}"
-            )
+        where = f"segments[{i}] ({seg.demo}): frames {seg.start_step}..{seg.end_step} of episode {seg.episode_index}"
+        if stop - first != wanted:
+            problems.append(f"{where}: the data files hold {stop - first} of these {wanted} frames")
+            continue
+        if span[-1] - span[0] + 1 != wanted:
+            problems.append(f"{where}: at indices {span[0]}..{span[-1]}, which are not consecutive")
             continue
         rows.append(
             ConceptRow(

@@ -113,7 +113,9 @@ class ContrastManifest(StrictModel):
             if seg.task not in tasks:
                 problems.append(f"{where}: task {seg.task!r} is not in axis.mean_delta_per_task {list(tasks)}")
             if not 0 <= seg.start_step <= seg.end_step:
-                problems.append(f"{where}: start_step {seg.start_step}, end_step {seg.end_step}; expected 0 <= start <= end")
+                problems.append(
+                    f"{where}: start_step {seg.start_step}, end_step {seg.end_step}; expected 0 <= start <= end"
+                )
             elif len(seg.axis_values) != seg.end_step - seg.start_step + 1:
                 problems.append(
                     f"{where}: axis_values has {len(seg.axis_values)} values, expected "
@@ -208,21 +210,24 @@ def build_manifest(
     root: str | os.PathLike,
     task_a: str,
     task_b: str,
-    settings: ContrastSettings = ContrastSettings(),
+    settings: ContrastSettings | None = None,
     *,
     repo_id: str | None = None,
 ) -> ContrastManifest:
     """Return the contrast manifest of two tasks of the LeRobot dataset at `root`.
 
-    Task texts match exactly, else ignoring case and spacing. `repo_id` is recorded in the
-    manifest's `dataset` record (default: the dataset folder's name).
+    Task texts match exactly, else ignoring case and spacing. `settings` default to the
+    seed's; `repo_id` is recorded in the manifest's `dataset` record (default: the dataset
+    folder's name).
     """
+    settings = settings or ContrastSettings()
     meta = read_meta(root)
     text_a, text_b = resolve_task(meta, task_a), resolve_task(meta, task_b)
     if text_a == text_b:
         raise ValueError(f"task A and task B are both {text_a!r}; a contrast needs two different tasks")
-    episodes_a = _select_episodes(meta, text_a, settings.task_a_episodes, settings.max_demos_per_task, "--task-a-episodes")
-    episodes_b = _select_episodes(meta, text_b, settings.task_b_episodes, settings.max_demos_per_task, "--task-b-episodes")
+    cap = settings.max_demos_per_task
+    episodes_a = _select_episodes(meta, text_a, settings.task_a_episodes, cap, "--task-a-episodes")
+    episodes_b = _select_episodes(meta, text_b, settings.task_b_episodes, cap, "--task-b-episodes")
     states = read_episode_columns(meta.root, [e.episode_index for e in episodes_a + episodes_b], STATE_COLUMN)
     axis = select_axis(
         terminal_displacements([states[e.episode_index] for e in episodes_a]),
@@ -291,7 +296,8 @@ def _keep_furthest(segments: list[Segment], task_mean: float, count: int | None)
     """Return the `count` segments progressing furthest in the task's direction, in episode order."""
     if count is None or count >= len(segments):
         if count is not None and count > len(segments):
-            logger.warning("segments_per_class %d > %d demo(s) of %r: keeping all", count, len(segments), segments[0].task)
+            task = segments[0].task
+            logger.warning("segments_per_class %d > %d demo(s) of %r: keeping all", count, len(segments), task)
         return segments
     direction = np.sign(task_mean)
     ranked = sorted(range(len(segments)), key=lambda i: -direction * segments[i].axis_delta)

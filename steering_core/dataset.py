@@ -245,6 +245,7 @@ def read_index_columns(root: str | os.PathLike) -> IndexColumns:
             raise ValueError(f"{path}: missing column(s) {missing}; not a LeRobot data file")
         tables.append(_read_data_table(path, INDEX_COLUMNS))
     table = pa.concat_tables(tables)
+    logger.debug("%s: %d frames in %d data file(s)", meta.root, table.num_rows, len(tables))
     columns = {name: table.column(name).to_numpy().astype(np.int64, copy=False) for name in INDEX_COLUMNS}
     order = np.argsort(columns["index"], kind="stable")
     index = columns["index"][order]
@@ -365,7 +366,8 @@ def resolve_task(meta: DatasetMeta, text: str) -> str:
     if len(folded) > 1:
         raise ValueError(f"{meta.root / TASKS_FILE}: task {text!r} matches {folded} ignoring case; pass the exact text")
     by_folded = {_fold(t): t for t in known}
-    closest = [by_folded[f] for f in difflib.get_close_matches(_fold(text), list(by_folded), n=_CLOSEST_TASKS, cutoff=0)]
+    matches = difflib.get_close_matches(_fold(text), list(by_folded), n=_CLOSEST_TASKS, cutoff=0)
+    closest = [by_folded[m] for m in matches]
     raise ValueError(
         f"{meta.root / TASKS_FILE}: task {text!r} is not in the dataset ({len(known)} tasks); "
         f"closest task texts: {closest}"

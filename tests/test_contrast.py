@@ -17,7 +17,6 @@ from typer.testing import CliRunner
 
 from steering_core.cli import app
 from steering_core.contrast import (
-    ContrastManifest,
     ContrastSettings,
     build_manifest,
     interaction_window,
@@ -210,7 +209,8 @@ def test_settings_are_validated():
         ContrastSettings(pad=-1)
     with pytest.raises(ValidationError, match="Extra inputs are not permitted"):
         ContrastSettings(padding=3)
-    assert ContrastSettings().fingerprint() == ContrastSettings(pad=8).fingerprint() != ContrastSettings(pad=9).fingerprint()
+    assert ContrastSettings().fingerprint() == ContrastSettings(pad=8).fingerprint()
+    assert ContrastSettings().fingerprint() != ContrastSettings(pad=9).fingerprint()
 
 
 def test_invalid_manifest_files(tmp_path):

@@ -6,13 +6,20 @@ import json
 import shutil
 
 import numpy as np
-import PIL
 import pandas as pd
+import PIL
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
-from helpers_dataset import CLOSE, OPEN, STOVE, brute_force_rows, contrast_episodes, write_contrast_dataset
+from helpers_dataset import (
+    CLOSE,
+    OPEN,
+    STOVE,
+    brute_force_rows,
+    contrast_episodes,
+    write_contrast_dataset,
+)
 
 from steering_core import dataset
 from steering_core.dataset import (
@@ -69,7 +76,8 @@ def test_episodes_match_lerobot_metadata(root):
     # reopen_after=4 put episodes 4.. into a second data file
     assert [e.data_file for e in episodes] == [FILE_0] * 4 + [FILE_1] * 3
     meta = read_meta(root)
-    assert meta.tasks == {int(i): t for t, i in zip(lerobot_meta.tasks.index, lerobot_meta.tasks["task_index"])}
+    tasks = lerobot_meta.tasks
+    assert meta.tasks == {int(i): t for t, i in zip(tasks.index, tasks["task_index"], strict=True)}
     assert [e.episode_index for e in meta.episodes_for_task(OPEN)] == [0, 3, 5]
     assert meta.total_frames == sum(len(s) for _, s in designed)
 
@@ -159,7 +167,7 @@ def test_resolve_task(root):
 
 
 def test_bad_column_and_episode_requests(root):
-    with pytest.raises(ValueError, match=r"feature 'image' has dtype 'image'; this reader returns numeric columns only"):
+    with pytest.raises(ValueError, match=r"feature 'image' has dtype 'image'; this reader returns numeric columns"):
         read_episode_column(root, 0, "image")
     with pytest.raises(ValueError, match=r"no feature 'joints'; numeric features are \['actions', 'episode_index'"):
         read_episode_column(root, 0, "joints")
@@ -179,7 +187,7 @@ def test_missing_pieces_are_named(copy, tmp_path):
         read_episode_column(copy, 5, "state")
 
     shutil.rmtree(copy / "meta/episodes")
-    with pytest.raises(FileNotFoundError, match=r"meta/episodes: no episode metadata files; the dataset was not finalized"):
+    with pytest.raises(FileNotFoundError, match=r"meta/episodes: no episode metadata files; the dataset was not fin"):
         read_meta(copy)
     (copy / "meta/tasks.parquet").unlink()
     with pytest.raises(FileNotFoundError, match=r"meta/tasks.parquet: not found"):

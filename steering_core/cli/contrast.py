@@ -50,7 +50,7 @@ def manifest_command(
     lerobot_root: Path = typer.Option(..., "--lerobot-root", help="LeRobot v3.0 dataset folder."),
     task_a_text: str = typer.Option(..., "--task-a-text", help="Task A's instruction (e.g. the 'open' task)."),
     task_b_text: str = typer.Option(..., "--task-b-text", help="Task B's instruction (e.g. the 'close' task)."),
-    output: Path = typer.Option(..., "--output", help="Manifest JSON to write, e.g. data/manifests/open_vs_close.json."),
+    output: Path = typer.Option(..., "--output", help="Manifest JSON to write (data/manifests/<pair>.json)."),
     repo_id: str | None = typer.Option(None, "--repo-id", help="Recorded repo id (default: the dataset folder name)."),
     min_abs_delta: float = typer.Option(
         _DEFAULTS.min_abs_delta, "--min-abs-delta", help="Least |mean terminal displacement| per task on the axis."
