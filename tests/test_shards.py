@@ -78,7 +78,8 @@ def test_bfloat16_storage_and_deterministic_bytes(tmp_path):
 def test_bad_shards_give_one_message_each(tmp_path):
     path = tmp_path / "shard-00003.safetensors"
     columns = {name: torch.zeros(4, dtype=torch.int64) for name in shards.ROW_COLUMNS}
-    save_file({"residuals": torch.zeros(4, 6), **columns}, str(path), metadata={"latent_steering": json.dumps({"layer": 12, "format_version": 1})})
+    header = {"latent_steering": json.dumps({"layer": 12, "format_version": 1})}
+    save_file({"residuals": torch.zeros(4, 6), **columns}, str(path), metadata=header)
     with pytest.raises(ValueError) as err:
         with shards.open_shard(path, width=WIDTH, dtype="bfloat16"):
             pass

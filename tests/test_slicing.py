@@ -178,7 +178,8 @@ def test_errors(tmp_path, run_dir, concept_map):
         slice_concepts(run_dir, beyond, out, SliceSettings(layers=(2,)))
 
     shifted = write_concept_map(tmp_path / "shifted.json", {CLOSE: [segment(1, 0, 2, start_index=40, end_index=42)]})
-    with pytest.raises(ValueError, match=f"puts episode 1 frame 0 at index 40, but run {run_dir} captured it at index 7"):
+    shifted_message = f"puts episode 1 frame 0 at index 40, but run {run_dir} captured it at index 7"
+    with pytest.raises(ValueError, match=shifted_message):
         slice_concepts(run_dir, shifted, out, SliceSettings(layers=(2,)))
 
     empty = write_concept_map(tmp_path / "empty.json", {OPEN: [segment(0, 0, 1)], CLOSE: []})

@@ -9,8 +9,13 @@ from pathlib import Path
 
 import typer
 
+from steering_core.capture import CaptureSettings, capture
 from steering_core.cli.app import app
+from steering_core.fileio import read_json
+from steering_core.pi05 import Pi05Arch, PromptFormat
 from steering_core.slicing import SliceSettings, slice_concepts
+
+_CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
 
 
 class ReduceChoice(str, Enum):
@@ -18,6 +23,14 @@ class ReduceChoice(str, Enum):
 
     token = "token"
     frame = "frame"
+
+
+class StorageDtypeChoice(str, Enum):
+    """Dtype of stored residual rows."""
+
+    float32 = "float32"
+    bfloat16 = "bfloat16"
+    float16 = "float16"
 
 
 class TokenTypeChoice(str, Enum):
@@ -49,11 +62,97 @@ def _layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
     return layers
 
 
+@app.command("capture")
+def capture_command(
+    checkpoint_path: Path = typer.Option(
+        ..., "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
+    ),
+    output_dir: Path = typer.Option(..., "--output-dir", help="Run folder, e.g. data/residuals/open_close_run."),
+    lerobot_root: Path = typer.Option(..., "--lerobot-root", help="LeRobot v3.0 dataset folder."),
+    tokenizer_path: Path = typer.Option(
+        ..., "--tokenizer-path", help="PaliGemma SentencePiece model (paligemma_tokenizer.model)."
+    ),
+    repo_id: str | None = typer.Option(None, "--repo-id", help="Dataset repo id (default: the dataset folder name)."),
+    layers: str = typer.Option("12", "--layers", help="Decoder layers to capture in one pass, e.g. 12 or 6,12."),
+    batch_size: int = typer.Option(
+        _CAPTURE_FIELDS["batch_size"].default, "--batch-size", min=1, help="Frames per forward pass."
+    ),
+    capture_instructions: bool = typer.Option(
+        False, "--capture-instructions", help="Keep the task-instruction tokens (the seed's flag)."
+    ),
+    token_type: TokenTypeChoice | None = typer.Option(
+        None, "--token-type", help="instructions (default), prompt (every valid token) or last (last prompt token)."
+    ),
+    prompt_format: PromptFormat = typer.Option(
+        _CAPTURE_FIELDS["prompt_format"].default,
+        "--prompt-format",
+        help="libero (pi05_libero: no state) or discrete_state (other pi0.5 checkpoints).",
+    ),
+    norm_stats: Path | None = typer.Option(
+        None, "--norm-stats", help="norm_stats.json for discrete_state (default: the checkpoint's assets)."
+    ),
+    asset_id: str = typer.Option(
+        _CAPTURE_FIELDS["norm_stats_asset_id"].default, "--asset-id", help="Asset folder of the checkpoint norm stats."
+    ),
+    skip_norm_stats: bool = typer.Option(
+        False, "--skip-norm-stats", help="Never read norm stats (the libero format needs none)."
+    ),
+    device: str | None = typer.Option(None, "--device", help="cuda, cuda:1 or cpu (default: CUDA when available)."),
+    dtype: str | None = typer.Option(
+        None, "--dtype", help="Compute dtype (default: openpi's bfloat16 policy on CUDA, float32 on CPU)."
+    ),
+    storage_dtype: StorageDtypeChoice = typer.Option(
+        StorageDtypeChoice.float32, "--storage-dtype", help="Dtype of stored rows (bfloat16/float16 halve the disk)."
+    ),
+    episodes_per_shard: int = typer.Option(
+        _CAPTURE_FIELDS["episodes_per_shard"].default, "--episodes-per-shard", min=1, help="Episodes per shard file."
+    ),
+    num_workers: int = typer.Option(
+        _CAPTURE_FIELDS["num_workers"].default, "--num-workers", min=0, help="DataLoader processes decoding frames."
+    ),
+    arch_file: Path | None = typer.Option(
+        None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
+    ),
+) -> None:
+    """Capture pi0.5 residuals of every dataset frame at the given layers into resumable shards."""
+    if capture_instructions and token_type not in (None, TokenTypeChoice.instructions):
+        raise typer.BadParameter(
+            f"--capture-instructions contradicts --token-type {token_type.value}; pass one of them",
+            param_hint="--capture-instructions",
+        )
+    with _input_errors():
+        arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
+        settings = CaptureSettings(
+            checkpoint_path=checkpoint_path,
+            tokenizer_path=tokenizer_path,
+            layers=_layer_list(layers),
+            token_type=(token_type or TokenTypeChoice.instructions).value,
+            prompt_format=prompt_format,
+            norm_stats_path=norm_stats,
+            norm_stats_asset_id=asset_id,
+            skip_norm_stats=skip_norm_stats,
+            arch=arch,
+            batch_size=batch_size,
+            device=device,
+            dtype=dtype,
+            storage_dtype=storage_dtype.value,
+            episodes_per_shard=episodes_per_shard,
+            num_workers=num_workers,
+        )
+        result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings)
+    typer.echo(
+        f"{output_dir}: {len(result.written)} shard group(s) written, {len(result.skipped)} already complete, "
+        f"{result.frames} frame(s) captured"
+    )
+
+
 @app.command("slice")
 def slice_command(
     run_dir: Path = typer.Option(..., "--run-dir", help="Capture run folder (holds metadata.json)."),
     concept_map_path: Path = typer.Option(..., "--concept-map-path", help="Concept map JSON of the same dataset."),
-    output_dir: Path = typer.Option(..., "--output-dir", help="Slices folder, e.g. data/residuals/open_vs_close_slices."),
+    output_dir: Path = typer.Option(
+        ..., "--output-dir", help="Slices folder, e.g. data/residuals/open_vs_close_slices."
+    ),
     token_type: TokenTypeChoice = typer.Option(
         TokenTypeChoice.instructions, "--token-type", help="Token type the run captured."
     ),

@@ -1,0 +1,252 @@
+"""Capture: stored rows equal direct model calls, token selection, resume, split runs, errors, CLI."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from helpers_capture import EPISODES, make_lerobot_dataset
+from safetensors.torch import load_file
+
+from steering_core import shards
+from steering_core.capture import CaptureSettings, capture, select_tokens
+from steering_core.pi05 import PromptFormat, PromptTokenizer, libero_camera_slots, quantile_normalize, read_norm_stats
+from steering_core.pi05.model import Pi05Prefix
+from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.tokenizer import write_tokenizer
+
+ARCH = tiny_arch()
+LANGUAGE_START = 3 * ARCH.tokens_per_image  # three camera slots precede the language tokens
+REPO_ID = "local/capture"
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    """A tiny checkpoint, tokenizer and dataset shared by every test: (checkpoint, tokenizer, dataset)."""
+    root = tmp_path_factory.mktemp("inputs")
+    checkpoint = write_pi05_checkpoint(root / "checkpoint", ARCH)
+    tokenizer = write_tokenizer(root / "tokenizer.model")
+    dataset = make_lerobot_dataset(root / "dataset")
+    return checkpoint, tokenizer, dataset
+
+
+def settings_for(inputs, **overrides) -> CaptureSettings:
+    checkpoint, tokenizer, _ = inputs
+    fields = dict(checkpoint_path=checkpoint, tokenizer_path=tokenizer, layers=(1, 3), arch=ARCH, batch_size=2,
+                  device="cpu", num_workers=0)
+    return CaptureSettings(**(fields | overrides))
+
+
+@pytest.fixture(scope="module")
+def full_run(inputs, tmp_path_factory):
+    """An uninterrupted instruction-token capture every other test compares with."""
+    run_dir = tmp_path_factory.mktemp("full") / "run"
+    capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, num_workers=1))
+    return run_dir
+
+
+def load_layer(run_dir, layer, token_type="instructions"):
+    """Return every shard of a layer concatenated: residuals and columns, ordered by (index, position)."""
+    parts = [load_file(p) for p in sorted((run_dir / token_type / f"layer{layer:02d}").glob("*.safetensors"))]
+    return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+
+
+def direct_frames(dataset_root):
+    """Every frame read straight from lerobot, in index order, preprocessed for the model."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    frames = LeRobotDataset(REPO_ID, root=dataset_root)
+    items = [frames[i] for i in range(len(frames))]
+    image = torch.stack([item["image"] for item in items])
+    wrist = torch.stack([item["wrist_image"] for item in items])
+    images, masks = libero_camera_slots(image, wrist, ARCH.image_size)
+    return items, images, masks
+
+
+def test_rows_equal_direct_model_call(inputs, full_run):
+    checkpoint, tokenizer_path, dataset = inputs
+    items, images, masks = direct_frames(dataset)
+    tokenizer = PromptTokenizer(tokenizer_path)
+    prompts = [tokenizer.tokenize(item["task"]) for item in items]
+    tokens = torch.stack([torch.from_numpy(p.ids) for p in prompts])
+    token_mask = torch.stack([torch.from_numpy(p.mask) for p in prompts])
+    model = Pi05Prefix.from_checkpoint(checkpoint, ARCH, device="cpu")
+    # the full computation (every camera, no trimming), all frames in one batch
+    direct = model.residuals(images, masks, tokens, token_mask, [1, 3], skip_masked_images=False, trim_padding=False)
+
+    expected_rows = {1: [], 3: []}
+    expected_columns = []
+    for frame, (item, prompt) in enumerate(zip(items, prompts)):
+        start, end = prompt.instruction
+        assert end - start == len(tokenizer._processor.encode(item["task"])) > 0
+        for language_index in range(start, end):
+            position = LANGUAGE_START + language_index
+            expected_columns.append((int(item["index"]), int(item["episode_index"]), int(item["frame_index"]),
+                                     position, int(prompt.ids[language_index])))
+            for layer in (1, 3):
+                expected_rows[layer].append(direct[layer][frame, position])
+    for layer in (1, 3):
+        stored = load_layer(full_run, layer)
+        columns = list(zip(*(stored[name].tolist() for name in shards.ROW_COLUMNS)))
+        assert columns == expected_columns
+        torch.testing.assert_close(stored["residuals"], torch.stack(expected_rows[layer]), rtol=1e-5, atol=1e-5)
+
+    metadata = shards.read_run_metadata(full_run)
+    assert metadata.episodes == (0, 1, 2, 3)
+    assert [r.key for r in metadata.layer_shards(3)] == ["00000", "00001", "00002", "00003"]
+    open_task = metadata.tasks["open the top drawer"]
+    prompt = tokenizer.tokenize("open the top drawer")
+    assert open_task["token_ids"] == prompt.ids[slice(*prompt.instruction)].tolist()
+    assert open_task["token_positions"] == [LANGUAGE_START + i for i in range(*prompt.instruction)]
+    assert open_task["varies_per_frame"] is False
+    assert metadata.run.sources["dataset_root"] == str(dataset)
+    assert metadata.run.inputs["compute_dtype"] == "float32"
+
+
+@pytest.mark.parametrize("token_type", ["prompt", "last"])
+def test_token_types_select_their_positions(inputs, full_run, tmp_path, token_type):
+    run_dir = tmp_path / token_type
+    capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, token_type=token_type))
+    stored, instructions = load_layer(run_dir, 3, token_type), load_layer(full_run, 3)
+    tokenizer = PromptTokenizer(inputs[1])
+    expected = []
+    for frame, (frames, task) in enumerate(t for t in EPISODES for _ in range(t[0])):
+        prompt = tokenizer.tokenize(task)
+        chosen = range(prompt.n_valid) if token_type == "prompt" else [prompt.n_valid - 1]
+        expected += [(frame, LANGUAGE_START + i, int(prompt.ids[i])) for i in chosen]
+    assert list(zip(stored["index"].tolist(), stored["token_position"].tolist(), stored["token_id"].tolist())) \
+        == expected
+    if token_type == "prompt":  # same batches, same model: instruction rows are bit-identical
+        keys = list(zip(stored["index"].tolist(), stored["token_position"].tolist()))
+        wanted = list(zip(instructions["index"].tolist(), instructions["token_position"].tolist()))
+        assert torch.equal(stored["residuals"][[keys.index(k) for k in wanted]], instructions["residuals"])
+    else:
+        newline = tokenizer._processor.piece_to_id("\n")
+        assert set(stored["token_id"].tolist()) == {newline}  # the libero prompt ends with "\n"
+
+
+def test_select_tokens(inputs):
+    prompt = PromptTokenizer(inputs[1]).tokenize("close the top drawer")
+    assert select_tokens(prompt, "instructions").tolist() == list(range(*prompt.instruction))
+    assert select_tokens(prompt, "prompt").tolist() == list(range(prompt.n_valid))
+    assert select_tokens(prompt, "last").tolist() == [prompt.n_valid - 1]
+    assert prompt.instruction[0] == 1 and prompt.instruction[1] == prompt.n_valid - 1  # BOS, words, "\n"
+
+
+def test_kill_and_resume_is_byte_identical(inputs, full_run, tmp_path):
+    run_dir = tmp_path / "run"
+    calls = []
+
+    def stop_after_three_batches(done, total):
+        calls.append((done, total))
+        if len(calls) == 3:  # episode 0 (3 frames: 2 batches) and episode 1 (1 batch) are written
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        capture(inputs[2], REPO_ID, run_dir, settings_for(inputs), progress=stop_after_three_batches)
+    assert calls == [(2, 11), (3, 11), (5, 11)]
+    assert not (run_dir / "metadata.json").exists()
+    assert sorted(p.name for p in (run_dir / "instructions" / "layer01").iterdir()) == [
+        "shard-00000.json", "shard-00000.safetensors", "shard-00001.json", "shard-00001.safetensors"]
+
+    # a damaged shard is redone, complete ones are skipped
+    damaged = run_dir / "instructions" / "layer03" / "shard-00001.safetensors"
+    damaged.write_bytes(damaged.read_bytes()[:-4])
+    result = capture(inputs[2], REPO_ID, run_dir, settings_for(inputs))
+    assert result.skipped == ("00000",) and result.written == ("00001", "00002", "00003")
+    assert result.frames == 8
+    for layer in (1, 3):
+        for name in ("00000", "00001", "00002", "00003"):
+            relative = f"instructions/layer{layer:02d}/shard-{name}.safetensors"
+            assert (run_dir / relative).read_bytes() == (full_run / relative).read_bytes()
+    assert shards.read_run_metadata(run_dir).run_fingerprint == shards.read_run_metadata(full_run).run_fingerprint
+
+    again = capture(inputs[2], REPO_ID, run_dir, settings_for(inputs))
+    assert again.written == () and again.frames == 0
+
+    with pytest.raises(ValueError, match=r"other settings \(differs in layers\); choose a new output folder"):
+        capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, layers=(2,)))
+
+
+def test_split_run_equals_full_run(inputs, full_run, tmp_path):
+    run_dir = tmp_path / "split"
+    first = capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, episodes_per_shard=2), episodes=[2, 3])
+    assert first.metadata is None and first.written == ("00001",)
+    capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, episodes_per_shard=2), episodes=[0, 1])
+    shards.write_run_metadata(run_dir)
+    metadata = shards.read_run_metadata(run_dir)
+    assert [r.episodes for r in metadata.layer_shards(1)] == [(0, 1), (2, 3)]
+    split, full = load_layer(run_dir, 1), load_layer(full_run, 1)
+    assert split.keys() == full.keys()
+    for name in split:
+        assert torch.equal(split[name], full[name]), name
+
+    with pytest.raises(ValueError, match=r"episodes \[1\] split shard group 00000 \(episodes \[0, 1\]\); pass whole"):
+        capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, episodes_per_shard=2), episodes=[1])
+    with pytest.raises(ValueError, match=r"episodes \[9\] are not in the dataset"):
+        capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, episodes_per_shard=2), episodes=[9])
+
+
+def test_discrete_state_prompt(inputs, tmp_path):
+    checkpoint, tokenizer_path, dataset = inputs
+    settings = settings_for(inputs, token_type="prompt", prompt_format="discrete_state", layers=(0,))
+    result = capture(dataset, REPO_ID, tmp_path / "run", settings, episodes=[1])
+    assert result.written == ("00001",)
+    stored = load_layer(tmp_path / "run", 0, "prompt")
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    frames = LeRobotDataset(REPO_ID, root=dataset, episodes=[1])
+    tokenizer = PromptTokenizer(tokenizer_path, prompt_format=PromptFormat.DISCRETE_STATE)
+    stats = read_norm_stats(checkpoint)["state"]
+    expected = []
+    for item in (frames[i] for i in range(len(frames))):
+        prompt = tokenizer.tokenize(item["task"], quantile_normalize(item["state"].numpy(), stats))
+        expected += prompt.ids[: prompt.n_valid].tolist()
+    assert stored["token_id"].tolist() == expected
+    record = shards.read_shard_record(tmp_path / "run" / "prompt" / "layer00" / "shard-00001.json")
+    assert record.tasks["close the top drawer"]["varies_per_frame"] is True  # the state tokens differ
+
+
+def test_capture_errors(inputs, tmp_path):
+    checkpoint, tokenizer, dataset = inputs
+    run_dir = tmp_path / "run"
+    with pytest.raises(FileNotFoundError, match="SentencePiece tokenizer not found"):
+        capture(dataset, REPO_ID, run_dir, settings_for(inputs, tokenizer_path=tmp_path / "none.model"))
+    with pytest.raises(FileNotFoundError, match="pi0.5 checkpoint not found"):
+        capture(dataset, REPO_ID, run_dir, settings_for(inputs, checkpoint_path=tmp_path / "none"))
+    out_of_range = r"layers \[4, 7\] out of range: the language model has 4 decoder layers \(0..3\)"
+    with pytest.raises(ValueError, match=out_of_range):
+        capture(dataset, REPO_ID, run_dir, settings_for(inputs, layers=(1, 4, 7)))
+    with pytest.raises(ValueError, match="needs the quantile-normalised state: drop --skip-norm-stats"):
+        capture(dataset, REPO_ID, run_dir,
+                settings_for(inputs, prompt_format="discrete_state", skip_norm_stats=True))
+    with pytest.raises(FileNotFoundError, match="LeRobot dataset folder not found"):
+        capture(tmp_path / "no_dataset", REPO_ID, run_dir, settings_for(inputs))
+    one_camera = make_lerobot_dataset(tmp_path / "one_camera", episodes=[(1, "open the top drawer")],
+                                      cameras=("image",))
+    with pytest.raises(ValueError, match=r"feature `wrist_image` is missing, expected a camera \(image or video\)"):
+        capture(one_camera, REPO_ID, run_dir, settings_for(inputs))
+    assert not run_dir.exists()
+
+
+def test_capture_command(inputs, tmp_path):
+    from typer.testing import CliRunner
+
+    from steering_core.cli.capture import app
+
+    checkpoint, tokenizer, dataset = inputs
+    arch_file = tmp_path / "arch.json"
+    arch_file.write_text(ARCH.model_dump_json())
+    args = ["capture", "--checkpoint-path", str(checkpoint), "--output-dir", str(tmp_path / "run"),
+            "--layers", "0,2", "--batch-size", "4", "--capture-instructions", "--skip-norm-stats", "--device", "cpu",
+            "--lerobot-root", str(dataset), "--repo-id", REPO_ID, "--tokenizer-path", str(tokenizer),
+            "--storage-dtype", "bfloat16", "--num-workers", "0", "--arch-file", str(arch_file)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    metadata = shards.read_run_metadata(tmp_path / "run")
+    assert metadata.run.layers == (0, 2) and metadata.run.storage_dtype == "bfloat16"
+    assert metadata.run.token_type == "instructions"
+
+    result = CliRunner().invoke(app, [*args, "--layers", "9", "--output-dir", str(tmp_path / "other")])
+    assert result.exit_code == 1
+    assert "layers [9] out of range" in result.output
