@@ -159,7 +159,10 @@ def read_prefix_tensors(
     with safe_open(str(model_file), framework="pt", device="cpu") as handle:
         problems = _problems(handle, expected)
         if problems:
-            lines = "\n".join(f"  {name}: found {found}, expected {want}" for name, found, want in problems)
+            lines = "\n".join(
+                f"  {name}: {'' if found == 'missing' else 'found '}{found}, expected {want}"
+                for name, found, want in problems
+            )
             raise ValueError(
                 f"{model_file}: {len(problems)} of {len(expected)} prefix tensors (up to decoder layer "
                 f"{max_layer}) are missing or do not match {arch!r}:\n{lines}\n"
