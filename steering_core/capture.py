@@ -382,9 +382,6 @@ def _capture_groups(
 
     from steering_core.pi05.model import Pi05Prefix
 
-    model = Pi05Prefix.from_checkpoint(
-        settings.checkpoint_path, settings.arch, max(settings.layers), settings.device, settings.dtype
-    )
     episodes = sorted(e for members in groups.values() for e in members)
     frames = LeRobotDataset(repo_id, root=meta.root, episodes=episodes, video_backend=settings.video_backend)
     plan = _batch_plan(frames, groups, settings.batch_size)
@@ -396,14 +393,20 @@ def _capture_groups(
         batch_sampler=[positions for _, positions in plan],
         num_workers=settings.num_workers,
         collate_fn=functools.partial(_collate, image_size=settings.arch.image_size),
-        pin_memory=model.device.type == "cuda",
+        pin_memory=resolve_device(settings.device).type == "cuda",
+    )
+    # Start the workers first: they decode the first batches while the checkpoint loads, and they fork
+    # before CUDA is initialised.
+    batches = iter(loader)
+    model = Pi05Prefix.from_checkpoint(
+        settings.checkpoint_path, settings.arch, max(settings.layers), settings.device, settings.dtype
     )
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in groups}
-    prompts: dict[Any, TokenizedPrompt] = {}
+    prompts: dict[str, TokenizedPrompt] = {}
     done = 0
     buffers: dict[str, _GroupRows] = {}
     with tqdm(total=total, desc="capture", unit="frame", disable=None) as bar:
-        for (key, _), batch in zip(plan, loader, strict=True):
+        for (key, _), batch in zip(plan, batches, strict=True):
             buffer = buffers.setdefault(key, _GroupRows(per_layer={layer: [] for layer in settings.layers}))
             _capture_batch(model, batch, settings, tokenizer, norm_stats, prompts, buffer)
             remaining[key] -= 1
@@ -421,18 +424,17 @@ def _prompt(
     norm_stats: NormStats | None,
     task: str,
     state: torch.Tensor | None,
-    cache: dict[Any, TokenizedPrompt],
+    cache: dict[str, TokenizedPrompt],
 ) -> TokenizedPrompt:
-    """Return the tokenised prompt of one frame, cached per task (and per state bins when they enter it)."""
-    if norm_stats is None:
-        key: Any = task
-        normalized = None
-    else:
-        normalized = quantile_normalize(state.numpy(), norm_stats)
-        key = (task, normalized.tobytes())
-    if key not in cache:
-        cache[key] = tokenizer.tokenize(task, normalized)
-    return cache[key]
+    """Return the tokenised prompt of one frame, cached per task when the state stays out of the prompt.
+
+    Discrete-state prompts are not cached: nearly every frame has its own state bins.
+    """
+    if norm_stats is not None:
+        return tokenizer.tokenize(task, quantile_normalize(state.numpy(), norm_stats))
+    if task not in cache:
+        cache[task] = tokenizer.tokenize(task)
+    return cache[task]
 
 
 def _capture_batch(
@@ -441,7 +443,7 @@ def _capture_batch(
     settings: CaptureSettings,
     tokenizer: PromptTokenizer,
     norm_stats: NormStats | None,
-    cache: dict[Any, TokenizedPrompt],
+    cache: dict[str, TokenizedPrompt],
     buffer: _GroupRows,
 ) -> None:
     """Run one batch and append its selected rows (all layers) and their columns to `buffer`."""

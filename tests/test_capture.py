@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+import sentencepiece
 import torch
 from helpers_capture import EPISODES, make_lerobot_dataset
 from safetensors.torch import load_file
@@ -66,6 +67,7 @@ def test_rows_equal_direct_model_call(inputs, full_run):
     checkpoint, tokenizer_path, dataset = inputs
     items, images, masks = direct_frames(dataset)
     tokenizer = PromptTokenizer(tokenizer_path)
+    pieces = sentencepiece.SentencePieceProcessor(model_file=str(tokenizer_path))
     prompts = [tokenizer.tokenize(item["task"]) for item in items]
     tokens = torch.stack([torch.from_numpy(p.ids) for p in prompts])
     token_mask = torch.stack([torch.from_numpy(p.mask) for p in prompts])
@@ -77,7 +79,7 @@ def test_rows_equal_direct_model_call(inputs, full_run):
     expected_columns = []
     for frame, (item, prompt) in enumerate(zip(items, prompts)):
         start, end = prompt.instruction
-        assert end - start == len(tokenizer._processor.encode(item["task"])) > 0
+        assert end - start == len(pieces.encode(item["task"])) > 0
         for language_index in range(start, end):
             position = LANGUAGE_START + language_index
             expected_columns.append((int(item["index"]), int(item["episode_index"]), int(item["frame_index"]),
@@ -120,7 +122,7 @@ def test_token_types_select_their_positions(inputs, full_run, tmp_path, token_ty
         wanted = list(zip(instructions["index"].tolist(), instructions["token_position"].tolist()))
         assert torch.equal(stored["residuals"][[keys.index(k) for k in wanted]], instructions["residuals"])
     else:
-        newline = tokenizer._processor.piece_to_id("\n")
+        newline = sentencepiece.SentencePieceProcessor(model_file=str(inputs[1])).piece_to_id("\n")
         assert set(stored["token_id"].tolist()) == {newline}  # the libero prompt ends with "\n"
 
 
@@ -165,6 +167,21 @@ def test_kill_and_resume_is_byte_identical(inputs, full_run, tmp_path):
 
     with pytest.raises(ValueError, match=r"other settings \(differs in layers\); choose a new output folder"):
         capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, layers=(2,)))
+
+
+def test_a_grown_dataset_keeps_existing_shards(inputs, full_run, tmp_path):
+    # the same generator writes the first three episodes identically, then stops
+    smaller = make_lerobot_dataset(tmp_path / "smaller", episodes=EPISODES[:3])
+    run_dir = tmp_path / "run"
+    first = capture(smaller, REPO_ID, run_dir, settings_for(inputs))
+    assert first.written == ("00000", "00001", "00002")
+    stamps = {p: p.stat().st_mtime_ns for p in run_dir.rglob("*.safetensors")}
+    grown = capture(inputs[2], REPO_ID, run_dir, settings_for(inputs))
+    assert grown.skipped == ("00000", "00001", "00002") and grown.written == ("00003",)
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+    metadata = shards.read_run_metadata(run_dir)
+    assert metadata.run_fingerprint == shards.read_run_metadata(full_run).run_fingerprint
+    assert metadata.run.sources["dataset_root"] == str(inputs[2])
 
 
 def test_split_run_equals_full_run(inputs, full_run, tmp_path):

@@ -110,6 +110,9 @@ def capture_command(
     num_workers: int = typer.Option(
         _CAPTURE_FIELDS["num_workers"].default, "--num-workers", min=0, help="DataLoader processes decoding frames."
     ),
+    video_backend: str | None = typer.Option(
+        None, "--video-backend", help="lerobot video decoder for video datasets, e.g. pyav (default: lerobot's)."
+    ),
     arch_file: Path | None = typer.Option(
         None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
     ),
@@ -138,6 +141,7 @@ def capture_command(
             storage_dtype=storage_dtype.value,
             episodes_per_shard=episodes_per_shard,
             num_workers=num_workers,
+            video_backend=video_backend,
         )
         result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings)
     typer.echo(
