@@ -51,6 +51,7 @@ class ConceptMap(StrictModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> ConceptMap:
+        """Return self after checking counts, lengths and index bounds; one ValueError lists every problem."""
         problems = []
         if list(self.concept_count) != list(self.concepts):
             problems.append(

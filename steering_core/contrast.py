@@ -104,6 +104,7 @@ class ContrastManifest(StrictModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> ContrastManifest:
+        """Return self after checking segments against the axis record; one ValueError lists every problem."""
         problems = []
         tasks = self.axis.mean_delta_per_task
         if len(tasks) != 2:

@@ -13,6 +13,7 @@ import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -78,11 +79,15 @@ class DatasetMeta:
         """Return the number of frames declared by info.json."""
         return int(self.info["total_frames"])
 
+    @cached_property
+    def _by_index(self) -> dict[int, EpisodeInfo]:
+        """Return episode index -> episode, built once."""
+        return {e.episode_index: e for e in self.episodes}
+
     def episode(self, episode_index: int) -> EpisodeInfo:
         """Return the episode with this index; ValueError if the dataset has none."""
-        for episode in self.episodes:
-            if episode.episode_index == episode_index:
-                return episode
+        if episode_index in self._by_index:
+            return self._by_index[episode_index]
         raise ValueError(
             f"{self.root}: no episode {episode_index}; the dataset has episodes "
             f"{_describe_ints([e.episode_index for e in self.episodes])}"
@@ -110,7 +115,7 @@ def read_meta(root: str | os.PathLike) -> DatasetMeta:
     """Return the validated metadata of the LeRobot v3.0 dataset at `root`."""
     root = Path(root)
     info = read_info(root)
-    return DatasetMeta(root=root, info=info, tasks=read_tasks(root), episodes=tuple(read_episodes(root)))
+    return DatasetMeta(root=root, info=info, tasks=read_tasks(root), episodes=tuple(_read_episodes(root, info)))
 
 
 def read_info(root: str | os.PathLike) -> dict[str, Any]:
@@ -167,8 +172,11 @@ def read_tasks(root: str | os.PathLike) -> dict[int, str]:
 
 def read_episodes(root: str | os.PathLike) -> list[EpisodeInfo]:
     """Return every episode of `meta/episodes/**.parquet`, sorted by episode index."""
-    root = Path(root)
-    info = read_info(root)
+    return _read_episodes(Path(root), read_info(root))
+
+
+def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
+    """Return the episode rows, with data file paths from info.json's `data_path` template."""
     files = sorted((root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
     if not files:
         raise FileNotFoundError(
