@@ -52,6 +52,7 @@ from steering_core.shards import (
     ShardRows,
     StorageDtype,
     TokenType,
+    check_run_spec,
     find_complete_shard,
     group_episodes,
     read_run_metadata,
@@ -175,7 +176,7 @@ def capture(
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
     device = resolve_device(settings.device)
     spec = _run_spec(meta, repo_id, model_file, tokenizer, norm_stats, settings, device)
-    write_run_spec(run_dir, spec)
+    check_run_spec(run_dir, spec)
 
     records = _episode_records(meta, [e for members in groups.values() for e in members])
     inputs = {key: sha256_json({"run": spec.identity(), "episodes": [records[e] for e in members]})
@@ -189,6 +190,8 @@ def capture(
     frames = sum(lengths[e] for members in todo.values() for e in members)
     if todo:
         _capture_groups(meta, repo_id, run_dir, spec, settings, todo, inputs, tokenizer, norm_stats, frames, progress)
+    else:
+        write_run_spec(run_dir, spec)  # records this call's sources
     metadata = None
     if episodes is None:
         write_run_metadata(run_dir)
@@ -401,6 +404,7 @@ def _capture_groups(
     model = Pi05Prefix.from_checkpoint(
         settings.checkpoint_path, settings.arch, max(settings.layers), settings.device, settings.dtype
     )
+    write_run_spec(run_dir, spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in groups}
     prompts: dict[str, TokenizedPrompt] = {}
     done = 0

@@ -153,19 +153,25 @@ def sidecar_path(run_dir: str | os.PathLike, token_type: str, layer: int, key: s
     return layer_path(run_dir, token_type, layer) / SIDECAR_FILE.format(key=key)
 
 
-def write_run_spec(run_dir: str | os.PathLike, spec: RunSpec) -> Path:
-    """Write `run.json`; refuse if the folder already holds a run of another identity."""
+def check_run_spec(run_dir: str | os.PathLike, spec: RunSpec) -> None:
+    """Raise if the folder already holds a run of another identity (a new folder passes)."""
     path = Path(run_dir) / RUN_FILE
-    if path.exists():
-        existing = read_run_spec(run_dir)
-        if existing.identity() != spec.identity():
-            old, new = existing.model_dump(mode="json"), spec.model_dump(mode="json")
-            changed = sorted(k for k in new if k != "sources" and old.get(k) != new.get(k))
-            raise ValueError(
-                f"{path}: the run folder holds a capture with other settings (differs in {', '.join(changed)}); "
-                "choose a new output folder or remove this one"
-            )
-    return write_json(path, spec.model_dump(mode="json"))
+    if not path.exists():
+        return
+    existing = read_run_spec(run_dir)
+    if existing.identity() != spec.identity():
+        old, new = existing.model_dump(mode="json"), spec.model_dump(mode="json")
+        changed = sorted(k for k in new if k != "sources" and old.get(k) != new.get(k))
+        raise ValueError(
+            f"{path}: the run folder holds a capture with other settings (differs in {', '.join(changed)}); "
+            "choose a new output folder or remove this one"
+        )
+
+
+def write_run_spec(run_dir: str | os.PathLike, spec: RunSpec) -> Path:
+    """Write `run.json` (sources updated); refuse if the folder already holds a run of another identity."""
+    check_run_spec(run_dir, spec)
+    return write_json(Path(run_dir) / RUN_FILE, spec.model_dump(mode="json"))
 
 
 def read_run_spec(run_dir: str | os.PathLike) -> RunSpec:

@@ -243,6 +243,9 @@ def test_capture_errors(inputs, tmp_path):
                                       cameras=("image",))
     with pytest.raises(ValueError, match=r"feature `wrist_image` is missing, expected a camera \(image or video\)"):
         capture(one_camera, REPO_ID, run_dir, settings_for(inputs))
+    wider = ARCH.model_copy(update={"width": 32})
+    with pytest.raises(ValueError, match=r"prefix tensors .* are missing or do not match"):
+        capture(dataset, REPO_ID, run_dir, settings_for(inputs, arch=wider))
     assert not run_dir.exists()
 
 
