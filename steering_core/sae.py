@@ -281,7 +281,7 @@ def load_sae(
         cfg_from: for a state dict, a folder or release whose cfg.json supplies the settings
             (the seed loaded `gemma-2b-it-res-jb` and then overwrote its weights); default SAELens's.
     """
-    path = Path(source).expanduser()
+    path = Path(source).expanduser().absolute()
     log_sparsity = None
     if path.is_file():
         if path.suffix not in STATE_DICT_SUFFIXES:

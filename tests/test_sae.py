@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from reference_sae import ReferenceSae
 from safetensors.torch import load_file, save_file
 
-from reference_sae import ReferenceSae
 from steering_core.sae import Sae, StandardSae, load_sae, register_architecture, sae_class
 from steering_core.sae_formats import CFG_FILE, WEIGHTS_FILE, is_legacy_cfg, parse_cfg, upgrade_legacy_cfg
 from steering_core.sae_registry import hub_cache_dir, resolve_release

@@ -1,0 +1,235 @@
+"""Per-layer report of the steering outputs: summary.md, summary.json and PNG plots.
+
+Reads only what the steering steps wrote (pairwise_stats.json, each pair's directions.json and
+the safetensors files they name), so it can run on its own over an existing output folder.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from safetensors.torch import load_file
+
+from steering_core.fileio import atomic_path, read_json, write_json
+from steering_core.sae_registry import NEURONPEDIA_FEATURE_URL
+
+logger = logging.getLogger(__name__)
+
+REPORT_FORMAT_VERSION = 1
+SUMMARY_MD = "summary.md"
+SUMMARY_JSON = "summary.json"
+COSINE_PLOT = "pairwise_cosine.png"
+TOP_LATENTS_PLOT = "top_latents_{pair}.png"
+PAIRWISE_JSON = "pairwise_stats.json"
+PAIR_JSON = "directions.json"
+_DPI = 120
+
+
+def write_report(layer_path: Path, *, top_k: int = 20) -> Path:
+    """Write summary.md, summary.json and plots for one layer folder; return the summary.md path."""
+    pairwise = read_json(layer_path / PAIRWISE_JSON)
+    pairs = [_pair_summary(layer_path / name, top_k) for name in pairwise["pairs"]]
+    sae = next((pair["sae"] for pair in pairs if pair["sae"] is not None), None)
+    plots = {}
+    if len(pairs) > 1:
+        plots["pairwise_cosine"] = _plot_cosines(layer_path / COSINE_PLOT, pairwise)
+    for pair in pairs:
+        if pair["top_latents"]:
+            plots[f"top_latents/{pair['pair']}"] = _plot_top_latents(
+                layer_path / TOP_LATENTS_PLOT.format(pair=pair["pair"]), pair
+            )
+    summary = {
+        "format_version": REPORT_FORMAT_VERSION,
+        "layer": layer_path.name,
+        "sae_used": pairwise["sae_used"],
+        "sae": sae,
+        "pairs": pairs,
+        "pairwise": pairwise["entries"],
+        "plots": plots,
+    }
+    write_json(layer_path / SUMMARY_JSON, summary)
+    md_path = layer_path / SUMMARY_MD
+    with atomic_path(md_path) as tmp:
+        tmp.write_text(_markdown(summary), encoding="utf-8")
+    logger.info("report written to %s", md_path)
+    return md_path
+
+
+def top_latents(
+    direction: torch.Tensor,
+    firing: dict[str, torch.Tensor],
+    means: dict[str, torch.Tensor],
+    k: int,
+    neuronpedia_id: str | None,
+) -> list[dict[str, Any]]:
+    """Return the k latents with the largest |direction| value: index, value, firing rates, means and link."""
+    order = torch.argsort(direction.abs(), descending=True, stable=True)[:k]
+    return [
+        {
+            "index": int(index),
+            "value": float(direction[index]),
+            "firing_rate_positive": float(firing["positive"][index]),
+            "firing_rate_negative": float(firing["negative"][index]),
+            "mean_positive": float(means["positive"][index]),
+            "mean_negative": float(means["negative"][index]),
+            "neuronpedia": NEURONPEDIA_FEATURE_URL.format(neuronpedia_id=neuronpedia_id, index=int(index))
+            if neuronpedia_id
+            else None,
+        }
+        for index in order
+    ]
+
+
+def _pair_summary(pair_path: Path, top_k: int) -> dict[str, Any]:
+    """Return one pair's report entry from its directions.json and tensors."""
+    info = read_json(pair_path / PAIR_JSON)
+    entry = {key: info.get(key) for key in (
+        "pair", "positive_concept", "negative_concept", "counts", "method", "include_decoder_bias",
+        "direction_space", "latent_norm", "residual_norm", "mean_difference_norm",
+        "decoded_vs_mean_difference_cosine", "sae",
+    )}
+    entry["fidelity"] = {side: {"fvu": c["fvu"], "mean_l0": c["mean_l0"]} for side, c in info["concepts"].items()}
+    entry["top_latents"] = []
+    if info["sae"] is None:
+        entry["residual_norm"] = info["mean_difference_norm"]
+        return entry
+    latent_file = pair_path / info["files"]["latent_direction"]["safetensors"]
+    direction = load_file(latent_file)["latent_direction"]
+    firing, means = {}, {}
+    for side, concept in info["concepts"].items():
+        stats_json = (pair_path / concept["stats"]).resolve()
+        tensors = load_file(stats_json.with_name(read_json(stats_json)["tensors"]))
+        firing[side], means[side] = tensors["firing_rate"], tensors["latent_mean"]
+    entry["top_latents"] = top_latents(direction, firing, means, top_k, info["sae"].get("neuronpedia_id"))
+    return entry
+
+
+def _cosine_matrix(pairwise: dict[str, Any], key: str) -> np.ndarray:
+    """Return the symmetric (pairs, pairs) matrix of one cosine entry, ones on the diagonal."""
+    names = pairwise["pairs"]
+    matrix = np.eye(len(names))
+    for i, a in enumerate(names):
+        for j in range(i + 1, len(names)):
+            matrix[i, j] = matrix[j, i] = pairwise["entries"][f"{a}__{names[j]}"][key]
+    return matrix
+
+
+def _plot_cosines(path: Path, pairwise: dict[str, Any]) -> str:
+    """Draw the pairwise cosine heatmaps (residual, and latent when an SAE was used); return the file name."""
+    keys = ["residual_cosine"] + (["latent_cosine"] if pairwise["sae_used"] else [])
+    names = pairwise["pairs"]
+    side = 1.2 + 0.75 * len(names)
+    fig = Figure(figsize=(side * len(keys) + 2.5, side + 1.2), layout="constrained")
+    axes = fig.subplots(1, len(keys), squeeze=False)
+    for column, (ax, key) in enumerate(zip(axes[0], keys)):
+        matrix = _cosine_matrix(pairwise, key)
+        image = ax.imshow(matrix, vmin=-1, vmax=1, cmap="RdBu_r")
+        ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
+        ax.set_yticks(range(len(names)), names if column == 0 else [])  # rows are the same pairs in every panel
+        ax.set_title(key.replace("_", " "))
+        for (i, j), value in np.ndenumerate(matrix):
+            ax.text(j, i, f"{value:.2f}", ha="center", va="center", color="white" if abs(value) > 0.6 else "black")
+    fig.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="cosine of the two pairs' directions")
+    _save(fig, path)
+    return path.name
+
+
+def _plot_top_latents(path: Path, pair: dict[str, Any]) -> str:
+    """Draw one pair's top latents as horizontal bars (value of the latent direction); return the file name."""
+    latents = pair["top_latents"]
+    labels = [
+        f"#{item['index']}  ({item['firing_rate_positive']:.0%} | {item['firing_rate_negative']:.0%})" for item in latents
+    ]
+    values = [item["value"] for item in latents]
+    fig = Figure(figsize=(8, 1.4 + 0.32 * len(latents)), layout="constrained")
+    ax = fig.subplots()
+    ax.barh(range(len(values)), values, color=["#c0392b" if v > 0 else "#2471a3" for v in values])
+    ax.set_yticks(range(len(values)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.axvline(0, color="black", linewidth=0.8)
+    ax.set_xlabel("latent direction value (mean positive - mean negative)")
+    ax.set_title(
+        f"{pair['pair']}: top {len(latents)} latents\n"
+        f"red: more active in '{pair['positive_concept']}', blue: in '{pair['negative_concept']}'\n"
+        "label: latent index (firing rate on positive | negative rows)",
+        fontsize=9,
+    )
+    _save(fig, path)
+    return path.name
+
+
+def _save(fig: Figure, path: Path) -> None:
+    """Save a figure atomically as PNG with the Agg canvas (no pyplot state, no display)."""
+    FigureCanvasAgg(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=_DPI, bbox_inches="tight")
+
+
+def _number(value: float | None, spec: str = ".3f") -> str:
+    """Return a formatted number, or an en dash for a missing one."""
+    return "–" if value is None else format(value, spec)
+
+
+def _markdown(summary: dict[str, Any]) -> str:
+    """Return the summary.md text."""
+    sae = summary["sae"]
+    lines = [f"# Steering vectors, {summary['layer']}", ""]
+    if sae is None:
+        lines += ["**No SAE was used**: every direction is the residual-space difference of concept means.", ""]
+    else:
+        name = f"{sae['release']} / {sae['sae_id']}" if sae.get("release") else sae["source"]
+        lines += [
+            f"SAE: `{name}` ({sae['architecture']}, d_in {sae['d_in']}, d_sae {sae['d_sae']}, "
+            f"normalisation {sae['normalize_activations']}, hook `{sae['hook_name']}`"
+            + (f", Neuronpedia `{sae['neuronpedia_id']}`" if sae.get("neuronpedia_id") else "") + ").",
+            "",
+            "`residual_direction` = latent direction @ W_dec"
+            + (" + b_dec (seed-compatible option)" if summary["pairs"][0]["include_decoder_bias"] else " (no b_dec)")
+            + ". The SAE was trained on Gemma text, not on pi0.5's fine-tuned LM: check the fidelity below "
+            "(FVU = fraction of variance unexplained by the reconstruction; L0 = active latents per row).",
+            "",
+        ]
+    lines += [
+        "## Pairs",
+        "",
+        "| pair | positive (rows) | negative (rows) | residual norm | latent norm | mean-diff norm "
+        "| cos(decoded, mean diff) | FVU +/- | L0 +/- |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for pair in summary["pairs"]:
+        fid = pair["fidelity"]
+        lines.append(
+            f"| {pair['pair']} | {pair['positive_concept']} ({pair['counts']['positive']}) | "
+            f"{pair['negative_concept']} ({pair['counts']['negative']}) | {_number(pair['residual_norm'])} | "
+            f"{_number(pair['latent_norm'])} | {_number(pair['mean_difference_norm'])} | "
+            f"{_number(pair['decoded_vs_mean_difference_cosine'])} | "
+            f"{_number(fid['positive']['fvu'])} / {_number(fid['negative']['fvu'])} | "
+            f"{_number(fid['positive']['mean_l0'], '.1f')} / {_number(fid['negative']['mean_l0'], '.1f')} |"
+        )
+    if summary["pairwise"]:
+        lines += ["", "## Pairwise cosines", "", "| pairs | residual cosine | latent cosine | mean-diff cosine |",
+                  "|---|---|---|---|"]
+        for key, entry in summary["pairwise"].items():
+            lines.append(f"| {key.replace('__', ' vs ')} | {_number(entry['residual_cosine'])} | "
+                         f"{_number(entry.get('latent_cosine'))} | {_number(entry.get('mean_difference_cosine'))} |")
+        lines += ["", f"![pairwise cosines]({summary['plots']['pairwise_cosine']})"]
+    for pair in summary["pairs"]:
+        if not pair["top_latents"]:
+            continue
+        lines += ["", f"## {pair['pair']}: top latents", "",
+                  "| latent | value | fires + | fires - | mean + | mean - |", "|---|---|---|---|---|---|"]
+        for item in pair["top_latents"]:
+            index = f"[{item['index']}]({item['neuronpedia']})" if item["neuronpedia"] else str(item["index"])
+            lines.append(
+                f"| {index} | {item['value']:+.4f} | {item['firing_rate_positive']:.1%} | "
+                f"{item['firing_rate_negative']:.1%} | {item['mean_positive']:.4f} | {item['mean_negative']:.4f} |"
+            )
+        plot = summary["plots"][f"top_latents/{pair['pair']}"]
+        lines += ["", f"![top latents of {pair['pair']}]({plot})"]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,566 @@
+"""Steering vectors: concept residuals -> streaming SAE latent statistics -> per-pair directions.
+
+Per concept, rows are encoded in batches and only sums are kept (latent sum, firing counts,
+residual sum, reconstruction error), so memory stays at one batch of latents whatever the row
+count. Per pair, `latent_direction = mean_pos - mean_neg` and `residual_direction` is its image
+under the decoder's linear map, `latent_direction @ W_dec`: b_dec cancels in a difference of
+decodes, so it is not part of a direction. The seed's script returned `decode(delta)`, which adds
+b_dec; `include_decoder_bias=True` reproduces it. The plain residual-space difference of means is
+written beside it, with its cosine to the decoded direction. Without an SAE only that difference
+is computed (written as `residual_direction.pt`).
+
+Outputs (the seed's layout and keys, plus safetensors/JSON copies):
+
+    <output-root>/layerNN/concepts/<concept>-<hash>.safetensors|.json   streaming statistics per concept file
+    <output-root>/layerNN/<pair>/positive_latent_mean.pt, negative_latent_mean.pt, latent_direction.pt,
+        residual_direction.pt, mean_difference_direction.pt (each also .safetensors), directions.json
+    <output-root>/layerNN/pairwise_stats.pt, pairwise_stats.json
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import logging
+import math
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from pydantic import Field, ValidationError, field_validator, model_validator
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from steering_core.fileio import atomic_dir, atomic_path, read_json, sha256_json, write_json
+from steering_core.layout import STEERING_ROOT, layer_dir
+from steering_core.report import write_report
+from steering_core.sae import Sae, load_sae
+from steering_core.sae_formats import HOOK_NAME
+from steering_core.schema import StrictModel
+from steering_core.slicing import safe_file_name
+
+logger = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+SIDES = ("positive", "negative")
+CONCEPTS_DIR = "concepts"
+CONCEPT_STATS = "{stem}-{digest}"  # + .safetensors / .json; digest tells apart concepts sharing a label
+LATENT_MEAN_FILE = "{side}_latent_mean"  # + .pt / .safetensors
+LATENT_DIRECTION_FILE = "latent_direction"
+RESIDUAL_DIRECTION_FILE = "residual_direction"
+MEAN_DIFFERENCE_FILE = "mean_difference_direction"
+PAIR_SUMMARY_FILE = "directions.json"
+PAIRWISE_STATS_FILE = "pairwise_stats"  # + .pt / .json
+PAIR_KEY = "{a}__{b}"  # the seed's key of two pairs in pairwise_stats.pt
+RESIDUALS_KEY = "residuals"  # tensor name in the slicer's safetensors copies
+_SAFETENSORS_DTYPES = {"F16": torch.float16, "BF16": torch.bfloat16, "F32": torch.float32, "F64": torch.float64}
+
+Progress = Callable[[int, int], None]
+
+
+class PairSpec(StrictModel):
+    """One concept pair of the seed's pairs config (`layer12_pairs.json`)."""
+
+    name: str
+    positive_label: str = Field(min_length=1)
+    positive_path: str = Field(min_length=1)
+    negative_label: str = Field(min_length=1)
+    negative_path: str = Field(min_length=1)
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder_name(cls, name: str) -> str:
+        if not name or name in (".", "..") or any(ch in name for ch in "/\\\0"):
+            raise ValueError(f"pair name {name!r} must be usable as a folder name (no '/', '\\\\', '.' or '..')")
+        return name
+
+
+class PairsConfig(StrictModel):
+    """The seed's pairs config: `{"pairs": [...]}` with unique pair names."""
+
+    pairs: list[PairSpec] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> PairsConfig:
+        names = [pair.name for pair in self.pairs]
+        duplicates = sorted({name for name in names if names.count(name) > 1})
+        if duplicates:
+            raise ValueError(f"pair names must be unique; repeated: {duplicates}")
+        return self
+
+
+class SteeringSettings(StrictModel):
+    """Everything `compute_steering` needs; defaults are the seed's."""
+
+    pairs_config: Path
+    output_root: Path = Path("data") / STEERING_ROOT
+    layer: int = 12
+    sae: str | None = "gemma-2b-it-res-jb"  # folder, state-dict file or release; None: residual space only
+    sae_id: str | None = None  # default blocks.{layer}.hook_resid_post
+    sae_dir: Path | None = None  # folder holding release folders, searched before the HF cache
+    sae_cfg_from: str | None = None  # for a state-dict SAE: folder or release whose cfg.json applies
+    device: str = "auto"  # cuda when available, else cpu
+    batch_size: int = Field(512, gt=0)
+    include_decoder_bias: bool = False  # seed compatibility: residual_direction = decode(delta), with b_dec
+    top_k: int = Field(20, gt=0)  # latents listed per direction in the report
+    paths_relative_to: Literal["cwd", "config"] = "cwd"  # base of relative concept paths; the seed used cwd
+
+
+@dataclass(frozen=True)
+class ConceptSource:
+    """A concept tensor file and the label it is reported under."""
+
+    label: str
+    path: Path
+
+
+@dataclass(frozen=True)
+class ConceptStats:
+    """Streaming statistics of one concept file; latent fields are None without an SAE."""
+
+    label: str
+    path: Path
+    count: int
+    residual_mean: torch.Tensor  # (d_in,) float64
+    latent_mean: torch.Tensor | None  # (d_sae,) float64
+    firing_rate: torch.Tensor | None  # (d_sae,) float64, fraction of rows with f > 0
+    fvu: float | None  # fraction of variance unexplained by the SAE reconstruction
+    mean_l0: float | None  # mean number of active latents per row
+
+
+def read_pairs_config(path: str | os.PathLike) -> PairsConfig:
+    """Return the pairs config at `path` (the seed's format, read unchanged)."""
+    raw = read_json(path)
+    try:
+        return PairsConfig.model_validate(raw)
+    except ValidationError as err:
+        problems = "\n  ".join(f"{'.'.join(map(str, e['loc'])) or '(top level)'}: {e['msg']}" for e in err.errors())
+        raise ValueError(f"{path}: not a valid pairs config:\n  {problems}") from None
+
+
+def concept_sources(
+    config: PairsConfig, base_dir: Path
+) -> tuple[dict[Path, ConceptSource], dict[str, tuple[Path, Path]]]:
+    """Return (unique concept files, pair -> (positive file, negative file)), relative paths under `base_dir`."""
+    sources: dict[Path, ConceptSource] = {}
+    pairs: dict[str, tuple[Path, Path]] = {}
+    for pair in config.pairs:
+        files = []
+        for side in SIDES:
+            path = Path(getattr(pair, f"{side}_path")).expanduser()
+            path = path if path.is_absolute() else base_dir / path
+            sources.setdefault(path, ConceptSource(getattr(pair, f"{side}_label"), path))
+            files.append(path)
+        pairs[pair.name] = (files[0], files[1])
+    return sources, pairs
+
+
+class ConceptReader:
+    """Memory-mapped rows of one concept file: `.pt` (rows, d_in) tensor or `.safetensors` `residuals`."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        if path.suffix == ".safetensors":
+            with safe_open(path, framework="pt", device="cpu") as handle:
+                keys = list(handle.keys())
+                self._key = RESIDUALS_KEY if RESIDUALS_KEY in keys else keys[0] if len(keys) == 1 else None
+                if self._key is None:
+                    raise ValueError(f"{path}: no tensor `{RESIDUALS_KEY}` and not a single tensor; found {keys}")
+                rows = handle.get_slice(self._key)
+                self.shape, self.dtype = tuple(rows.get_shape()), _SAFETENSORS_DTYPES.get(rows.get_dtype())
+            self._tensor = None
+        else:
+            tensor = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+            if not isinstance(tensor, torch.Tensor):
+                raise ValueError(f"{path}: expected a (rows, d_in) tensor, found {type(tensor).__name__}")
+            self._tensor, self.shape, self.dtype = tensor, tuple(tensor.shape), tensor.dtype
+
+    @property
+    def rows(self) -> int:
+        """Return the row count (0 for a malformed shape)."""
+        return self.shape[0] if self.valid_shape else 0
+
+    @property
+    def width(self) -> int:
+        """Return the residual width, the last dimension."""
+        return self.shape[-1]
+
+    @property
+    def valid_shape(self) -> bool:
+        """Return whether the tensor is (rows, d_in), or (rows, 1, d_in) as the seed also accepted."""
+        return len(self.shape) == 2 or (len(self.shape) == 3 and self.shape[1] == 1)
+
+    def batches(self, batch_size: int) -> Iterator[torch.Tensor]:
+        """Yield (<= batch_size, d_in) row blocks in file order, read from the memory map."""
+        with contextlib.ExitStack() as stack:
+            rows: Any = self._tensor
+            if rows is None:
+                rows = stack.enter_context(safe_open(self.path, framework="pt", device="cpu")).get_slice(self._key)
+            for start in range(0, self.rows, batch_size):
+                stop = min(start + batch_size, self.rows)
+                yield rows[start:stop].reshape(stop - start, self.width)
+
+
+def check_concepts(
+    sources: dict[Path, ConceptSource], pairs: dict[str, tuple[Path, Path]], sae: Sae | None
+) -> dict[Path, ConceptReader]:
+    """Return an open reader per concept file; raise once listing every missing or unusable file."""
+    users = {path: [f"{name}.{side}_path" for name, files in pairs.items() for side, f in zip(SIDES, files) if f == path]
+             for path in sources}
+    readers, missing, problems = {}, [], []
+    for path in sources:
+        where = f"{path} ({', '.join(users[path])})"
+        if not path.is_file():
+            missing.append(f"{where}: file not found")
+            continue
+        try:
+            reader = ConceptReader(path)
+        except ValueError as err:
+            problems.append(f"{where}: {err}")
+            continue
+        expected = f"(rows, {sae.cfg.d_in})" if sae is not None else "(rows, d_in)"
+        if not reader.valid_shape:
+            problems.append(f"{where}: tensor is {reader.shape}, expected {expected}")
+        elif reader.dtype is None or not reader.dtype.is_floating_point:
+            problems.append(f"{where}: dtype is {reader.dtype or 'not a float'}, expected a floating-point tensor")
+        elif reader.rows == 0:
+            problems.append(f"{where}: no rows; the concept is empty, re-run slicing or drop the pair")
+        elif sae is not None and reader.width != sae.cfg.d_in:
+            problems.append(
+                f"{where}: residuals are {reader.shape} but SAE {sae.name} expects (*, {sae.cfg.d_in}); "
+                f"use residuals of the layer and model the SAE was trained on, or another --sae"
+            )
+        readers[path] = reader
+    widths = {reader.width for reader in readers.values() if reader.valid_shape}
+    if sae is None and len(widths) > 1:
+        problems.append(f"concept files have different widths {sorted(widths)}; all must come from one layer")
+    if missing or problems:
+        kind = FileNotFoundError if missing else ValueError
+        hint = "; relative paths are resolved against the base directory (see --paths-relative-to)" if missing else ""
+        raise kind("unusable concept files" + hint + ":\n  " + "\n  ".join(missing + problems))
+    return readers
+
+
+def concept_stats_path(layer_path: Path, source: ConceptSource) -> Path:
+    """Return the statistics file stem of one concept file (suffix-less; .safetensors and .json are added)."""
+    digest = sha256_json(str(source.path.resolve()))[:10]
+    return layer_path / CONCEPTS_DIR / CONCEPT_STATS.format(stem=safe_file_name(source.label), digest=digest)
+
+
+def encode_concept(
+    source: ConceptSource,
+    layer_path: Path,
+    sae: Sae | None,
+    *,
+    batch_size: int = 512,
+    reader: ConceptReader | None = None,
+    progress: Progress | None = None,
+) -> Path:
+    """Stream one concept file through the SAE; write its statistics and return their `.json` path.
+
+    A statistics file whose recorded source (size, mtime) and SAE fingerprint match is reused.
+    """
+    reader = reader or ConceptReader(source.path)
+    stem = concept_stats_path(layer_path, source)
+    identity = _concept_identity(source, sae)
+    json_path = stem.with_suffix(".json")
+    if json_path.is_file() and read_json(json_path).get("identity") == identity:
+        logger.info("%s: statistics are current, reusing %s", source.path, json_path)
+        return json_path
+    total = math.ceil(reader.rows / batch_size)
+    sums = _Sums()
+    with tqdm(total=total, desc=source.label[:40], unit="batch", disable=None) as bar:
+        for done, batch in enumerate(reader.batches(batch_size), start=1):
+            sums.add(batch, sae, source.path, start=(done - 1) * batch_size)
+            bar.update()
+            if progress is not None:
+                progress(done, total)
+    stats = sums.finish(source)
+    tensors = {"residual_mean": stats.residual_mean}
+    if sae is not None:
+        tensors |= {"latent_mean": stats.latent_mean, "firing_rate": stats.firing_rate}
+    with atomic_path(stem.with_suffix(".safetensors")) as tmp:
+        save_file({name: tensor.contiguous() for name, tensor in tensors.items()}, tmp)
+    write_json(json_path, {
+        "format_version": FORMAT_VERSION,
+        "label": source.label,
+        "identity": identity,
+        "count": stats.count,
+        "fvu": stats.fvu,
+        "mean_l0": stats.mean_l0,
+        "batch_size": batch_size,
+        "tensors": stem.with_suffix(".safetensors").name,
+    })
+    logger.info("%s: %d rows, fvu %s, mean L0 %s", source.label, stats.count, stats.fvu, stats.mean_l0)
+    return json_path
+
+
+def read_concept_stats(json_path: Path) -> ConceptStats:
+    """Return the statistics written by `encode_concept`."""
+    meta = read_json(json_path)
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ValueError(f"{json_path}: format_version {meta.get('format_version')!r}, expected {FORMAT_VERSION}")
+    tensors = load_file(json_path.with_name(meta["tensors"]))
+    return ConceptStats(
+        label=meta["label"],
+        path=Path(meta["identity"]["path"]),
+        count=meta["count"],
+        residual_mean=tensors["residual_mean"],
+        latent_mean=tensors.get("latent_mean"),
+        firing_rate=tensors.get("firing_rate"),
+        fvu=meta["fvu"],
+        mean_l0=meta["mean_l0"],
+    )
+
+
+class _Sums:
+    """Running float64 sums over batches: the only state kept while a concept streams."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.residual_sum: torch.Tensor | float = 0.0
+        self.residual_sq = 0.0  # sum of squared norms, for the total variance
+        self.latent_sum: torch.Tensor | float = 0.0
+        self.firing: torch.Tensor | float = 0.0
+        self.active = 0.0
+        self.squared_error = 0.0
+
+    def add(self, batch: torch.Tensor, sae: Sae | None, path: Path, *, start: int) -> None:
+        """Accumulate one (n, d_in) batch; raise if it holds NaN or inf."""
+        if sae is not None:
+            batch = batch.to(sae.device)
+        if not torch.isfinite(batch).all():
+            raise ValueError(f"{path}: rows {start}..{start + len(batch) - 1} hold NaN or inf; re-run capture")
+        x = batch.double()
+        self.count += len(x)
+        self.residual_sum = self.residual_sum + x.sum(dim=0)
+        self.residual_sq += float((x * x).sum())
+        if sae is None:
+            return
+        reconstruction, latents = sae.reconstruct(batch)
+        fired = latents > 0
+        self.latent_sum = self.latent_sum + latents.sum(dim=0, dtype=torch.float64)
+        self.firing = self.firing + fired.sum(dim=0, dtype=torch.float64)
+        self.active += float(fired.sum())
+        self.squared_error += float(((x - reconstruction.double()) ** 2).sum())
+
+    def finish(self, source: ConceptSource) -> ConceptStats:
+        """Return means and fidelity from the sums (all on CPU)."""
+        mean = self.residual_sum.cpu() / self.count
+        total_variance = self.residual_sq - self.count * float(mean @ mean)
+        has_latents = isinstance(self.latent_sum, torch.Tensor)
+        return ConceptStats(
+            label=source.label,
+            path=source.path,
+            count=self.count,
+            residual_mean=mean,
+            latent_mean=self.latent_sum.cpu() / self.count if has_latents else None,
+            firing_rate=self.firing.cpu() / self.count if has_latents else None,
+            fvu=self.squared_error / total_variance if has_latents and total_variance > 0 else None,
+            mean_l0=self.active / self.count if has_latents else None,
+        )
+
+
+def _concept_identity(source: ConceptSource, sae: Sae | None) -> dict[str, Any]:
+    """Return what a concept's statistics depend on: the file (path, size, mtime) and the SAE."""
+    stat = source.path.stat()
+    return {
+        "path": str(source.path.resolve()),
+        "bytes": stat.st_size,
+        "mtime_ns": stat.st_mtime_ns,
+        "sae": sae.fingerprint() if sae is not None else None,
+    }
+
+
+def compute_pair(
+    pair: PairSpec,
+    positive_stats: Path,
+    negative_stats: Path,
+    layer_path: Path,
+    sae: Sae | None,
+    *,
+    include_decoder_bias: bool = False,
+) -> Path:
+    """Write one pair's direction files from its two concept statistics; return the pair folder."""
+    stats = dict(zip(SIDES, (read_concept_stats(positive_stats), read_concept_stats(negative_stats))))
+    head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label}
+    counts = {side: stats[side].count for side in SIDES}
+    mean_difference = (stats["positive"].residual_mean - stats["negative"].residual_mean).float()
+    summary: dict[str, Any] = {
+        "format_version": FORMAT_VERSION,
+        **head,
+        "counts": counts,
+        "sae": sae.describe() if sae is not None else None,
+        "method": "sae_decoder" if sae is not None else "mean_difference",
+        "include_decoder_bias": include_decoder_bias and sae is not None,
+        "direction_space": _direction_space(sae),
+        "mean_difference_norm": float(mean_difference.norm()),
+        "concepts": {
+            side: {"label": stats[side].label, "stats": os.path.relpath(path, layer_path / pair.name),
+                   "fvu": stats[side].fvu, "mean_l0": stats[side].mean_l0}
+            for side, path in zip(SIDES, (positive_stats, negative_stats))
+        },
+        "files": {},
+    }
+    with contextlib.ExitStack() as stack:
+        staging = stack.enter_context(atomic_dir(layer_path / pair.name, overwrite=True))
+        staging.mkdir(parents=True)
+        write = functools.partial(_write_tensor_dict, staging, summary["files"])
+        if sae is None:
+            write(RESIDUAL_DIRECTION_FILE, "residual_direction",
+                  {**head, "residual_direction": mean_difference, "residual_norm": float(mean_difference.norm()),
+                   "counts": counts})
+        else:
+            for side in SIDES:
+                write(LATENT_MEAN_FILE.format(side=side), "mean",
+                      {"concept": getattr(pair, f"{side}_label"), "count": counts[side],
+                       "mean": stats[side].latent_mean.float()})
+            latent = (stats["positive"].latent_mean - stats["negative"].latent_mean).float()
+            residual = sae.decode_direction(latent).cpu()
+            if include_decoder_bias:
+                residual = residual + sae.b_dec.cpu()
+            residual = residual.float()
+            write(LATENT_DIRECTION_FILE, "latent_direction",
+                  {**head, "latent_direction": latent, "latent_norm": float(latent.norm()), "counts": counts})
+            write(RESIDUAL_DIRECTION_FILE, "residual_direction",
+                  {**head, "residual_direction": residual, "residual_norm": float(residual.norm()), "counts": counts})
+            write(MEAN_DIFFERENCE_FILE, "residual_direction",
+                  {**head, "residual_direction": mean_difference, "residual_norm": float(mean_difference.norm()),
+                   "counts": counts})
+            summary |= {
+                "latent_norm": float(latent.norm()),
+                "residual_norm": float(residual.norm()),
+                "decoded_vs_mean_difference_cosine": cosine(residual, mean_difference),
+            }
+        write_json(staging / PAIR_SUMMARY_FILE, summary)
+    logger.info("%s: wrote %s", pair.name, ", ".join(sorted(summary["files"])))
+    return layer_path / pair.name
+
+
+def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
+    """Write cosines and norms of every two pairs' directions (the seed's pairwise_stats.pt); return the .pt path."""
+    vectors = {name: _pair_vectors(layer_path / name) for name in pair_names}
+    sae_used = all("latent" in vectors[name] for name in pair_names)
+    entries, extras = {}, {}
+    for i, a in enumerate(pair_names):
+        for b in pair_names[i + 1:]:
+            va, vb = vectors[a], vectors[b]
+            entry = {}
+            if sae_used:
+                entry["latent_cosine"] = cosine(va["latent"], vb["latent"])
+            entry["residual_cosine"] = cosine(va["residual"], vb["residual"])
+            if sae_used:
+                entry |= {"latent_norm_a": float(va["latent"].norm()), "latent_norm_b": float(vb["latent"].norm())}
+                extras[PAIR_KEY.format(a=a, b=b)] = {"mean_difference_cosine": cosine(va["mean"], vb["mean"])}
+            entry |= {"residual_norm_a": float(va["residual"].norm()), "residual_norm_b": float(vb["residual"].norm())}
+            entries[PAIR_KEY.format(a=a, b=b)] = entry
+    pt_path = layer_path / f"{PAIRWISE_STATS_FILE}.pt"
+    with atomic_path(pt_path) as tmp:
+        torch.save(entries, tmp)
+    write_json(pt_path.with_suffix(".json"), {
+        "format_version": FORMAT_VERSION,
+        "pairs": pair_names,
+        "sae_used": sae_used,
+        "entries": {key: entry | extras.get(key, {}) for key, entry in entries.items()},
+    })
+    return pt_path
+
+
+def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Return the cosine of two vectors in float64 (0 when one is zero, as torch's cosine_similarity)."""
+    return float(torch.nn.functional.cosine_similarity(a.double().flatten(), b.double().flatten(), dim=0))
+
+
+def load_steering_sae(settings: SteeringSettings) -> Sae | None:
+    """Return the SAE named by the settings on the chosen device, checked against the layer (None: no SAE)."""
+    if settings.sae is None:
+        return None
+    sae = load_sae(
+        settings.sae,
+        settings.sae_id or HOOK_NAME.format(layer=settings.layer),
+        resolve_device(settings.device),
+        local_dir=settings.sae_dir,
+        cfg_from=settings.sae_cfg_from,
+    )
+    if sae.cfg.hook_layer is not None and sae.cfg.hook_layer != settings.layer:
+        raise ValueError(
+            f"SAE {sae.name} reads {sae.cfg.hook_name} (layer {sae.cfg.hook_layer}) but layer {settings.layer} "
+            f"was requested; pass the SAE of layer {settings.layer}, or no SAE for residual-space directions"
+        )
+    return sae
+
+
+def resolve_device(device: str) -> torch.device:
+    """Return the torch device for "auto" (cuda when available) or a name; cuda falls back to cpu like the seed."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        logger.warning("device %s requested but CUDA is not available; using cpu", device)
+        return torch.device("cpu")
+    return torch.device(device)
+
+
+def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: Progress | None = None) -> Path:
+    """Run every step for one layer (concept statistics, pair directions, pairwise stats, report); return the layer folder.
+
+    Relative concept paths resolve against the current directory (the seed's behaviour) or, with
+    `paths_relative_to="config"`, against the pairs config's folder. A preloaded `sae` overrides `settings.sae`.
+    """
+    config = read_pairs_config(settings.pairs_config)
+    base_dir = Path.cwd() if settings.paths_relative_to == "cwd" else settings.pairs_config.parent
+    sources, pairs = concept_sources(config, base_dir)
+    sae = sae if sae is not None else load_steering_sae(settings)
+    readers = check_concepts(sources, pairs, sae)
+    layer_path = settings.output_root / layer_dir(settings.layer)
+    batches = {path: math.ceil(reader.rows / settings.batch_size) for path, reader in readers.items()}
+    total, done = sum(batches.values()), 0
+    stats_files = {}
+    for path, source in sources.items():
+        def advance(step: int, _: int, before: int = done) -> None:
+            if progress is not None:
+                progress(before + step, total)
+
+        stats_files[path] = encode_concept(
+            source, layer_path, sae, batch_size=settings.batch_size, reader=readers[path], progress=advance
+        )
+        done += batches[path]
+        advance(0, total, before=done)
+    for pair in config.pairs:
+        positive, negative = pairs[pair.name]
+        compute_pair(pair, stats_files[positive], stats_files[negative], layer_path, sae,
+                     include_decoder_bias=settings.include_decoder_bias)
+    compute_pairwise_stats(layer_path, [pair.name for pair in config.pairs])
+    write_report(layer_path, top_k=settings.top_k)
+    return layer_path
+
+
+def _direction_space(sae: Sae | None) -> str:
+    """Return where the residual direction lives: raw residuals, or the SAE's normalised input space."""
+    if sae is None or sae.cfg.normalize_activations in ("none", "expected_average_only_in"):
+        return "residual"
+    if sae.cfg.normalize_activations == "constant_norm_rescale":
+        return "normalised inputs: x * sqrt(d_in) / ||x|| per row; divide by that factor for a given row"
+    return "normalised inputs: (x - mean) / (std + 1e-5) per row; multiply by that row's std"
+
+
+def _write_tensor_dict(folder: Path, files: dict[str, str], stem: str, tensor_key: str, payload: dict) -> None:
+    """Write `payload` as `<stem>.pt` (the seed's dict) and its tensor as `<stem>.safetensors` with JSON metadata."""
+    torch.save(payload, folder / f"{stem}.pt")
+    metadata = {key: json.dumps(value) for key, value in payload.items() if key != tensor_key}
+    save_file({tensor_key: payload[tensor_key].contiguous()}, folder / f"{stem}.safetensors", metadata=metadata)
+    files[stem] = {"pt": f"{stem}.pt", "safetensors": f"{stem}.safetensors", "tensor": tensor_key}
+
+
+def _pair_vectors(pair_path: Path) -> dict[str, torch.Tensor]:
+    """Return a pair's directions from its safetensors copies: residual, and latent + mean when an SAE was used."""
+    files = read_json(pair_path / PAIR_SUMMARY_FILE)["files"]
+    vectors = {"residual": load_file(pair_path / files[RESIDUAL_DIRECTION_FILE]["safetensors"])["residual_direction"]}
+    if LATENT_DIRECTION_FILE in files:
+        vectors["latent"] = load_file(pair_path / files[LATENT_DIRECTION_FILE]["safetensors"])["latent_direction"]
+        vectors["mean"] = load_file(pair_path / files[MEAN_DIFFERENCE_FILE]["safetensors"])["residual_direction"]
+    return vectors
