@@ -147,7 +147,8 @@ def test_missing_and_mismatched_tensors_are_one_sorted_error(folder, tmp_path):
     with pytest.raises(ValueError) as err:
         Pi05Prefix.from_checkpoint(broken, ARCH, device="cpu")
     lines = str(err.value).splitlines()
-    assert lines[0].startswith(f"{broken}: 4 of {len(prefix_tensor_shapes(ARCH, 3))} prefix tensors (up to decoder layer 3)")
+    n_needed = len(prefix_tensor_shapes(ARCH, 3))
+    assert lines[0].startswith(f"{broken}: 4 of {n_needed} prefix tensors (up to decoder layer 3) are missing")
     assert lines[1:5] == [
         f"  {EMBEDDING_KEY}: missing, expected (512, 64)",
         f"  {LM_PREFIX}layers.1.self_attn.q_proj.weight: found (128, 32) F32, expected (128, 64) floating point",

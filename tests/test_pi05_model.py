@@ -138,7 +138,8 @@ def test_bfloat16_policy_keeps_openpi_float32_parameters(checkpoint, model, batc
         "vision_model.embeddings.patch_embedding.weight",
         "vision_model.embeddings.patch_embedding.bias",
         "vision_model.embeddings.position_embedding.weight",
-        *(f"layers.{i}.{norm}.weight" for i in range(ARCH.depth) for norm in ("input_layernorm", "post_attention_layernorm")),
+        *(f"layers.{i}.input_layernorm.weight" for i in range(ARCH.depth)),
+        *(f"layers.{i}.post_attention_layernorm.weight" for i in range(ARCH.depth)),
     }
     assert set(dtypes.values()) == {torch.float32, torch.bfloat16}
     out = half.residuals(*batch.args(), [3])[3]
@@ -170,7 +171,8 @@ def test_bad_inputs_raise_one_error_naming_each(model, batch):
 
 
 def test_layer_out_of_range_is_one_clear_error(checkpoint):
-    with pytest.raises(ValueError, match=r"max_layer 4 is out of range: the language model has 4 decoder layers \(0\.\.3\)"):
+    expected = r"max_layer 4 is out of range: the language model has 4 decoder layers \(0\.\.3\)"
+    with pytest.raises(ValueError, match=expected):
         Pi05Prefix.from_checkpoint(checkpoint, ARCH, max_layer=4, device="cpu")
     shallow = Pi05Prefix.from_checkpoint(checkpoint, ARCH, max_layer=1, device="cpu")
     with pytest.raises(ValueError, match=r"layers \[0, 2\] invalid: .*loaded with max_layer=1.*bad: \[2\]"):

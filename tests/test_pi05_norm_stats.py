@@ -27,7 +27,8 @@ def test_reads_checkpoint_assets_and_plain_files(checkpoint, tmp_path):
     assert sorted(stats) == ["actions", "state"]
     assert stats["state"].q01.tolist() == expected["state"]["q01"]
     assert stats["actions"].std.tolist() == expected["actions"]["std"]
-    assert norm_stats_path(checkpoint / "model.safetensors") == checkpoint / "assets/physical-intelligence/libero/norm_stats.json"
+    libero = checkpoint / "assets/physical-intelligence/libero/norm_stats.json"
+    assert norm_stats_path(checkpoint / "model.safetensors") == libero
     plain = write_stats(tmp_path / "stats.json", {"norm_stats": {"state": {"mean": [1.0], "std": [2.0]}}})
     only_moments = read_norm_stats(plain)["state"]
     assert only_moments.mean.tolist() == [1.0] and only_moments.q01 is None

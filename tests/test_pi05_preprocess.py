@@ -51,7 +51,8 @@ def test_libero_slots_hand_computed_and_not_rotated():
     assert (images[2] == -1.0).all()
     assert [m.tolist() for m in masks] == [[True, True], [True, True], [False, False]]
     small, _ = libero_camera_slots(image, wrist, image_size=2)
-    assert small[1][0, 0, 1].tolist() == pytest.approx([29 / 255 * 2 - 1, 91 / 255 * 2 - 1])  # hand values of the downscale test
+    # the hand values of test_downscale_is_antialiased_bilinear_rounded
+    assert small[1][0, 0, 1].tolist() == pytest.approx([29 / 255 * 2 - 1, 91 / 255 * 2 - 1])
 
 
 def test_real_size_frames_are_a_pure_resize():

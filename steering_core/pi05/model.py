@@ -371,7 +371,7 @@ class Pi05Prefix(nn.Module):
         image_masks = [mask.to(self.device) for mask in image_masks]
         batch, n_tokens = tokens.shape
         total = self.arch.prefix_length(len(images), n_tokens)
-        with torch.inference_mode():
+        with torch.no_grad():
             hidden, pad, columns = self.embed_prefix(
                 images,
                 image_masks,
@@ -380,9 +380,8 @@ class Pi05Prefix(nn.Module):
                 skip_masked_images=skip_masked_images,
                 trim_padding=trim_padding,
             )
-            if hidden.shape[1] == 0:  # nothing valid to compute: every camera and token is masked
-                return {layer: hidden.new_zeros((batch, total, self.arch.width), dtype=torch.float32) for layer in wanted}
-            captured = self.decode(hidden, pad, wanted, attention)
+            # an empty prefix (every camera and token masked) has nothing to run through the layers
+            captured = self.decode(hidden, pad, wanted, attention) if hidden.shape[1] else dict.fromkeys(wanted, hidden)
             if len(columns) == total:
                 return {layer: captured[layer].float() for layer in wanted}
             out = {}
@@ -435,7 +434,9 @@ class Pi05Prefix(nn.Module):
                     "float in [-1, 1] (see steering_core.pi05.preprocess)"
                 )
             if mask.shape != (batch,) or mask.dtype != torch.bool:
-                problems.append(f"image_masks[{slot}]: found {tuple(mask.shape)} {mask.dtype}, expected ({batch},) bool")
+                problems.append(
+                    f"image_masks[{slot}]: found {tuple(mask.shape)} {mask.dtype}, expected ({batch},) bool"
+                )
         if problems:
             raise ValueError("Pi05Prefix.residuals: " + "; ".join(problems))
 
