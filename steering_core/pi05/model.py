@@ -223,6 +223,7 @@ class Pi05Prefix(nn.Module):
         max_layer = check_max_layer(arch, max_layer)
         device = resolve_device(device)
         dtype = resolve_dtype(dtype, device)
+        checkpoint_config = read_checkpoint_config(model_file)  # a broken config.json fails before the weights
         model = cls(arch, max_layer + 1)
         local_names = {checkpoint_key(name): name for name, _ in model.named_parameters()}
         tensors = read_prefix_tensors(
@@ -235,7 +236,7 @@ class Pi05Prefix(nn.Module):
         model.rotary_emb.to(device)
         model.requires_grad_(False).eval()
         model.model_file = model_file
-        model.checkpoint_config = read_checkpoint_config(model_file)
+        model.checkpoint_config = checkpoint_config
         logger.info("pi0.5 prefix from %s: layers 0..%d on %s in %s", model_file, max_layer, device, dtype)
         return model
 
