@@ -41,7 +41,6 @@ from steering_core.pi05 import (
     read_norm_stats,
 )
 from steering_core.pi05.checkpoint import resolve_model_file
-from steering_core.pi05.model import resolve_device, resolve_dtype
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID, norm_stats_path
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 from steering_core.pi05.tokenizer import MAX_TOKEN_LEN
@@ -174,8 +173,7 @@ def capture(
     meta = read_meta(dataset_root)
     model_file, tokenizer, norm_stats = _check_inputs(meta, settings)
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
-    device = resolve_device(settings.device)
-    spec = _run_spec(meta, repo_id, model_file, tokenizer, norm_stats, settings, device)
+    spec = _run_spec(meta, repo_id, model_file, tokenizer, norm_stats, settings)
     check_run_spec(run_dir, spec)
 
     records = _episode_records(meta, [e for members in groups.values() for e in members])
@@ -276,16 +274,17 @@ def _run_spec(
     tokenizer: PromptTokenizer,
     norm_stats: NormStats | None,
     settings: CaptureSettings,
-    device: torch.device,
 ) -> RunSpec:
     """Return the run spec: what the rows depend on (`inputs`) and where it was read from (`sources`)."""
+    from steering_core.pi05.model import resolve_device, resolve_dtype  # imports transformers: only when capturing
+
     stats_file = None
     if norm_stats is not None:
         stats_file = norm_stats_path(settings.norm_stats_path or settings.checkpoint_path, settings.norm_stats_asset_id)
     inputs = {
         "checkpoint_fingerprint": checkpoint_fingerprint(model_file),
         "arch": settings.arch.model_dump(mode="json"),
-        "compute_dtype": str(resolve_dtype(settings.dtype, device)).removeprefix("torch."),
+        "compute_dtype": str(resolve_dtype(settings.dtype, resolve_device(settings.device))).removeprefix("torch."),
         "prompt_format": settings.prompt_format.value,
         "max_token_len": settings.max_token_len,
         "tokenizer_sha256": sha256_file(tokenizer.path),
@@ -383,7 +382,7 @@ def _capture_groups(
     """Run the model over the groups' frames and write each group's shards as soon as it is complete."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset  # slow import (torchvision, datasets)
 
-    from steering_core.pi05.model import Pi05Prefix
+    from steering_core.pi05.model import Pi05Prefix, resolve_device
 
     episodes = sorted(e for members in groups.values() for e in members)
     frames = LeRobotDataset(repo_id, root=meta.root, episodes=episodes, video_backend=settings.video_backend)
