@@ -195,6 +195,8 @@ def _markdown(summary: dict[str, Any]) -> str:
             "(FVU = fraction of variance unexplained by the reconstruction; L0 = active latents per row).",
             "",
         ]
+        if summary["pairs"][0]["direction_space"] != "residual":
+            lines += [f"Directions live in the SAE's {summary['pairs'][0]['direction_space']}.", ""]
     lines += [
         "## Pairs",
         "",

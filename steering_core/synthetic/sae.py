@@ -40,17 +40,17 @@ def make_sae_weights(
     Decoder rows have unit norm; the encoder is their transpose plus noise, and a negative
     b_enc makes about a third of the latents fire on standard-normal inputs.
     """
-    gen = torch.Generator().manual_seed(seed)
-    W_dec = torch.randn(d_sae, d_in, generator=gen, dtype=torch.float64)
-    W_dec = W_dec / W_dec.norm(dim=-1, keepdim=True) * (0.5 + torch.rand(d_sae, 1, generator=gen, dtype=torch.float64))
+    gen = torch.Generator().manual_seed(seed)  # float32 draws: real sizes stay at 2 x 128 MiB
+    W_dec = torch.randn(d_sae, d_in, generator=gen)
+    W_dec = W_dec / W_dec.norm(dim=-1, keepdim=True) * (0.5 + torch.rand(d_sae, 1, generator=gen))
     weights = {
-        "W_enc": W_dec.T / W_dec.norm(dim=-1) + 0.1 * torch.randn(d_in, d_sae, generator=gen, dtype=torch.float64),
-        "b_enc": -0.5 * torch.rand(d_sae, generator=gen, dtype=torch.float64),
+        "W_enc": W_dec.T / W_dec.norm(dim=-1) + 0.1 * torch.randn(d_in, d_sae, generator=gen),
+        "b_enc": -0.5 * torch.rand(d_sae, generator=gen),
         "W_dec": W_dec,
-        "b_dec": 0.1 * torch.randn(d_in, generator=gen, dtype=torch.float64),
+        "b_dec": 0.1 * torch.randn(d_in, generator=gen),
     }
     if architecture == "jumprelu":
-        weights["threshold"] = 0.3 * torch.rand(d_sae, generator=gen, dtype=torch.float64)
+        weights["threshold"] = 0.3 * torch.rand(d_sae, generator=gen)
     return {name: tensor.to(dtype).contiguous() for name, tensor in weights.items()}
 
 
