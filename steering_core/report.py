@@ -8,16 +8,17 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 from safetensors.torch import load_file
 
 from steering_core.fileio import atomic_path, read_json, write_json
 from steering_core.sae_registry import NEURONPEDIA_FEATURE_URL
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 logger = logging.getLogger(__name__)
 
@@ -125,7 +126,7 @@ def _plot_cosines(path: Path, pairwise: dict[str, Any]) -> str:
     keys = ["residual_cosine"] + (["latent_cosine"] if pairwise["sae_used"] else [])
     names = pairwise["pairs"]
     side = 1.2 + 0.75 * len(names)
-    fig = Figure(figsize=(side * len(keys) + 2.5, side + 1.2), layout="constrained")
+    fig = _figure(figsize=(side * len(keys) + 2.5, side + 1.2))
     axes = fig.subplots(1, len(keys), squeeze=False)
     for column, (ax, key) in enumerate(zip(axes[0], keys)):
         matrix = _cosine_matrix(pairwise, key)
@@ -147,7 +148,7 @@ def _plot_top_latents(path: Path, pair: dict[str, Any]) -> str:
         f"#{item['index']}  ({item['firing_rate_positive']:.0%} | {item['firing_rate_negative']:.0%})" for item in latents
     ]
     values = [item["value"] for item in latents]
-    fig = Figure(figsize=(8, 1.4 + 0.32 * len(latents)), layout="constrained")
+    fig = _figure(figsize=(8, 1.4 + 0.32 * len(latents)))
     ax = fig.subplots()
     ax.barh(range(len(values)), values, color=["#c0392b" if v > 0 else "#2471a3" for v in values])
     ax.set_yticks(range(len(values)), labels, fontsize=8)
@@ -164,9 +165,19 @@ def _plot_top_latents(path: Path, pair: dict[str, Any]) -> str:
     return path.name
 
 
-def _save(fig: Figure, path: Path) -> None:
-    """Save a figure atomically as PNG with the Agg canvas (no pyplot state, no display)."""
+def _figure(figsize: tuple[float, float]) -> Figure:
+    """Return a new figure on the Agg canvas: files only, no pyplot state, no display."""
+    # imported here: matplotlib costs most of a second, which every CLI start would pay
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: Path) -> None:
+    """Save a figure atomically as PNG."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=_DPI, bbox_inches="tight")
 
