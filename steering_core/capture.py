@@ -290,11 +290,11 @@ def _run_spec(
         "tokenizer_sha256": sha256_file(tokenizer.path),
         "norm_stats_sha256": sha256_file(stats_file) if stats_file else None,
     }
-    sources = {
-        "checkpoint": str(model_file),
-        "tokenizer": str(tokenizer.path),
-        "norm_stats": str(stats_file) if stats_file else None,
-        "dataset_root": str(meta.root),
+    sources = {  # absolute, so the record still points at its inputs when read from elsewhere
+        "checkpoint": str(model_file.resolve()),
+        "tokenizer": str(tokenizer.path.resolve()),
+        "norm_stats": str(stats_file.resolve()) if stats_file else None,
+        "dataset_root": str(meta.root.resolve()),
         "repo_id": repo_id,
         "dataset_fingerprint": dataset_fingerprint(meta.root),
     }

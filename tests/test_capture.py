@@ -100,7 +100,7 @@ def test_rows_equal_direct_model_call(inputs, full_run):
     assert open_task["token_ids"] == prompt.ids[slice(*prompt.instruction)].tolist()
     assert open_task["token_positions"] == [LANGUAGE_START + i for i in range(*prompt.instruction)]
     assert open_task["varies_per_frame"] is False
-    assert metadata.run.sources["dataset_root"] == str(dataset)
+    assert metadata.run.sources["dataset_root"] == str(dataset.resolve())
     assert metadata.run.inputs["compute_dtype"] == "float32"
 
 
@@ -181,7 +181,7 @@ def test_a_grown_dataset_keeps_existing_shards(inputs, full_run, tmp_path):
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
     metadata = shards.read_run_metadata(run_dir)
     assert metadata.run_fingerprint == shards.read_run_metadata(full_run).run_fingerprint
-    assert metadata.run.sources["dataset_root"] == str(inputs[2])
+    assert metadata.run.sources["dataset_root"] == str(inputs[2].resolve())
 
 
 def test_split_run_equals_full_run(inputs, full_run, tmp_path):
