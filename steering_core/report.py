@@ -128,7 +128,7 @@ def _plot_cosines(path: Path, pairwise: dict[str, Any]) -> str:
     side = 1.2 + 0.75 * len(names)
     fig = _figure(figsize=(side * len(keys) + 2.5, side + 1.2))
     axes = fig.subplots(1, len(keys), squeeze=False)
-    for column, (ax, key) in enumerate(zip(axes[0], keys)):
+    for column, (ax, key) in enumerate(zip(axes[0], keys, strict=True)):
         matrix = _cosine_matrix(pairwise, key)
         image = ax.imshow(matrix, vmin=-1, vmax=1, cmap="RdBu_r")
         ax.set_xticks(range(len(names)), names, rotation=40, ha="right")
@@ -145,7 +145,8 @@ def _plot_top_latents(path: Path, pair: dict[str, Any]) -> str:
     """Draw one pair's top latents as horizontal bars (value of the latent direction); return the file name."""
     latents = pair["top_latents"]
     labels = [
-        f"#{item['index']}  ({item['firing_rate_positive']:.0%} | {item['firing_rate_negative']:.0%})" for item in latents
+        f"#{item['index']}  ({item['firing_rate_positive']:.0%} | {item['firing_rate_negative']:.0%})"
+        for item in latents
     ]
     values = [item["value"] for item in latents]
     fig = _figure(figsize=(8, 1.4 + 0.32 * len(latents)))

@@ -69,7 +69,10 @@ class Sae(ABC):
         self.cfg = cfg
         self.device = torch.device(device or "cpu")
         self.dtype = DTYPES[cfg.dtype]
-        cast = {name: weights[name].to(device=self.device, dtype=self.dtype) for name in weight_shapes(cfg, self.extra_weights)}
+        cast = {
+            name: weights[name].to(device=self.device, dtype=self.dtype)
+            for name in weight_shapes(cfg, self.extra_weights)
+        }
         self.W_enc, self.b_enc, self.W_dec, self.b_dec = (cast[n] for n in ("W_enc", "b_enc", "W_dec", "b_dec"))
         for name in self.extra_weights:
             setattr(self, name, cast[name])
@@ -236,7 +239,12 @@ class TopKSae(Sae):
 
 def weight_shapes(cfg: SaeConfig, extra_weights: tuple[str, ...] = ()) -> dict[str, tuple[int, ...]]:
     """Return the expected shape of every SAE tensor under `cfg`; extra ones are per latent."""
-    shapes = {"W_enc": (cfg.d_in, cfg.d_sae), "b_enc": (cfg.d_sae,), "W_dec": (cfg.d_sae, cfg.d_in), "b_dec": (cfg.d_in,)}
+    shapes = {
+        "W_enc": (cfg.d_in, cfg.d_sae),
+        "b_enc": (cfg.d_sae,),
+        "W_dec": (cfg.d_sae, cfg.d_in),
+        "b_dec": (cfg.d_in,),
+    }
     return shapes | {name: (cfg.d_sae,) for name in extra_weights}
 
 
@@ -259,7 +267,11 @@ def _check_weights(cfg: SaeConfig, weights: dict[str, torch.Tensor], extra_weigh
 
 def fold_norm_scaling_factor(weights: dict[str, torch.Tensor], factor: float) -> dict[str, torch.Tensor]:
     """Return weights with an input scale folded in as SAELens does: W_enc * s, W_dec / s, b_dec / s."""
-    return weights | {"W_enc": weights["W_enc"] * factor, "W_dec": weights["W_dec"] / factor, "b_dec": weights["b_dec"] / factor}
+    return weights | {
+        "W_enc": weights["W_enc"] * factor,
+        "W_dec": weights["W_dec"] / factor,
+        "b_dec": weights["b_dec"] / factor,
+    }
 
 
 def load_sae(
@@ -318,7 +330,9 @@ def load_sae(
             weights = fold_norm_scaling_factor(weights, factor)
             cfg = cfg.model_copy(update={"normalize_activations": "none", "norm_scaling_factor": factor})
     sae = sae_class(cfg.architecture)(cfg, weights, device=device, log_sparsity=log_sparsity, weights_path=weights_path)
-    logger.info("loaded %s SAE %s (d_in %d, d_sae %d) on %s", cfg.architecture, sae.name, cfg.d_in, cfg.d_sae, sae.device)
+    logger.info(
+        "loaded %s SAE %s (d_in %d, d_sae %d) on %s", cfg.architecture, sae.name, cfg.d_in, cfg.d_sae, sae.device
+    )
     return sae
 
 
@@ -340,4 +354,6 @@ def _locate(
         return resolve_release(str(source), sae_id, local_dir=local_dir), (str(source), sae_id, entry)
     if path.suffix or os.sep in str(source):
         raise FileNotFoundError(f"{path}: no such SAE folder or state-dict file")
-    raise ValueError(f"{source!r} is neither an SAE folder or file nor a known release; known releases: {sorted(RELEASES)}")
+    raise ValueError(
+        f"{source!r} is neither an SAE folder or file nor a known release; known releases: {sorted(RELEASES)}"
+    )

@@ -210,8 +210,11 @@ def check_concepts(
     sources: dict[Path, ConceptSource], pairs: dict[str, tuple[Path, Path]], sae: Sae | None
 ) -> dict[Path, ConceptReader]:
     """Return an open reader per concept file; raise once listing every missing or unusable file."""
-    users = {path: [f"{name}.{side}_path" for name, files in pairs.items() for side, f in zip(SIDES, files) if f == path]
-             for path in sources}
+    users = {
+        path: [f"{name}.{side}_path" for name, files in pairs.items() for side, f in zip(SIDES, files, strict=True)
+               if f == path]
+        for path in sources
+    }
     readers, missing, problems = {}, [], []
     for path in sources:
         where = f"{path} ({', '.join(users[path])})"
@@ -387,7 +390,7 @@ def compute_pair(
     include_decoder_bias: bool = False,
 ) -> Path:
     """Write one pair's direction files from its two concept statistics; return the pair folder."""
-    stats = dict(zip(SIDES, (read_concept_stats(positive_stats), read_concept_stats(negative_stats))))
+    stats = dict(zip(SIDES, (read_concept_stats(positive_stats), read_concept_stats(negative_stats)), strict=True))
     head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label}
     counts = {side: stats[side].count for side in SIDES}
     mean_difference = (stats["positive"].residual_mean - stats["negative"].residual_mean).float()
@@ -403,7 +406,7 @@ def compute_pair(
         "concepts": {
             side: {"label": stats[side].label, "stats": os.path.relpath(path, layer_path / pair.name),
                    "fvu": stats[side].fvu, "mean_l0": stats[side].mean_l0}
-            for side, path in zip(SIDES, (positive_stats, negative_stats))
+            for side, path in zip(SIDES, (positive_stats, negative_stats), strict=True)
         },
         "files": {},
     }
@@ -487,12 +490,17 @@ def load_steering_sae(settings: SteeringSettings) -> Sae | None:
         local_dir=settings.sae_dir,
         cfg_from=settings.sae_cfg_from,
     )
-    if sae.cfg.hook_layer is not None and sae.cfg.hook_layer != settings.layer:
-        raise ValueError(
-            f"SAE {sae.name} reads {sae.cfg.hook_name} (layer {sae.cfg.hook_layer}) but layer {settings.layer} "
-            f"was requested; pass the SAE of layer {settings.layer}, or no SAE for residual-space directions"
-        )
+    check_sae_layer(sae, settings.layer)
     return sae
+
+
+def check_sae_layer(sae: Sae, layer: int) -> None:
+    """Raise if the SAE's hook names another layer than the residuals' (unknown hooks pass)."""
+    if sae.cfg.hook_layer is not None and sae.cfg.hook_layer != layer:
+        raise ValueError(
+            f"SAE {sae.name} reads {sae.cfg.hook_name} (layer {sae.cfg.hook_layer}) but layer {layer} "
+            f"was requested; pass the SAE of layer {layer}, or no SAE for residual-space directions"
+        )
 
 
 def resolve_device(device: str) -> torch.device:
@@ -506,7 +514,9 @@ def resolve_device(device: str) -> torch.device:
 
 
 def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: Progress | None = None) -> Path:
-    """Run every step for one layer (concept statistics, pair directions, pairwise stats, report); return the layer folder.
+    """Run every step for one layer; return the layer folder.
+
+    Steps: concept statistics, pair directions, pairwise stats, report.
 
     Relative concept paths resolve against the current directory (the seed's behaviour) or, with
     `paths_relative_to="config"`, against the pairs config's folder. A preloaded `sae` overrides `settings.sae`.
@@ -514,7 +524,10 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
     config = read_pairs_config(settings.pairs_config)
     base_dir = Path.cwd() if settings.paths_relative_to == "cwd" else settings.pairs_config.parent
     sources, pairs = concept_sources(config, base_dir)
-    sae = sae if sae is not None else load_steering_sae(settings)
+    if sae is None:
+        sae = load_steering_sae(settings)
+    else:
+        check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     layer_path = settings.output_root / layer_dir(settings.layer)
     batches = {path: math.ceil(reader.rows / settings.batch_size) for path, reader in readers.items()}

@@ -303,6 +303,8 @@ def test_sae_of_another_layer_is_refused(project, tmp_path):
     sae = write_sae_folder(tmp_path / "l6", d_in=D_IN, d_sae=D_SAE, hook_layer=6)
     with pytest.raises(ValueError, match="reads blocks.6.hook_resid_post \\(layer 6\\) but layer 12 was requested"):
         compute_steering(settings(project, sae))
+    with pytest.raises(ValueError, match="but layer 12 was requested"):
+        compute_steering(settings(project, None), sae=load_sae(sae))
 
 
 @pytest.mark.parametrize(
