@@ -9,7 +9,7 @@ from helpers_capture import EPISODES, make_lerobot_dataset
 from safetensors.torch import load_file
 
 from steering_core import shards
-from steering_core.capture import CaptureSettings, capture, select_tokens
+from steering_core.capture import CaptureSettings, capture, checkpoint_fingerprint, select_tokens
 from steering_core.pi05 import PromptFormat, PromptTokenizer, libero_camera_slots, quantile_normalize, read_norm_stats
 from steering_core.pi05.model import Pi05Prefix
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
@@ -270,3 +270,12 @@ def test_capture_command(inputs, tmp_path):
     result = CliRunner().invoke(app, [*args, "--layers", "9", "--output-dir", str(tmp_path / "other")])
     assert result.exit_code == 1
     assert "layers [9] out of range" in result.output
+
+
+def test_checkpoint_fingerprint_tells_same_layout_checkpoints_apart(inputs, tmp_path):
+    model_file = inputs[0] / "model.safetensors"
+    other = write_pi05_checkpoint(tmp_path / "other", ARCH, seed=1) / "model.safetensors"
+    same = write_pi05_checkpoint(tmp_path / "same", ARCH, seed=0) / "model.safetensors"
+    assert other.stat().st_size == model_file.stat().st_size
+    assert checkpoint_fingerprint(same) == checkpoint_fingerprint(model_file)
+    assert checkpoint_fingerprint(other) != checkpoint_fingerprint(model_file)

@@ -102,7 +102,10 @@ def brute_force(run_dir, concept_map_path, layer):
 
 def test_token_slices_equal_brute_force(tmp_path, run_dir, concept_map):
     out = tmp_path / "slices"
-    written = slice_concepts(run_dir, concept_map, out, SliceSettings(layers=LAYERS))
+    calls = []
+    written = slice_concepts(run_dir, concept_map, out, SliceSettings(layers=LAYERS),
+                             progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(i, 4) for i in range(1, 5)]  # two shards (two episodes each) per layer
     assert written == {layer: out / f"layer{layer:02d}" / "index.json" for layer in LAYERS}
     for layer in LAYERS:
         expected = brute_force(run_dir, concept_map, layer)
