@@ -156,7 +156,12 @@ def plan_sources(input_dirs: Sequence[str | Path]) -> list[tuple[Path, EpisodeSo
         digest = sha256_file(path)
         for key, length in info.demo_lengths.items():
             source = EpisodeSource(
-                episode_index=len(planned), file=path.name, demo=key, sha256=digest, task=info.instruction, length=length
+                episode_index=len(planned),
+                file=path.name,
+                demo=key,
+                sha256=digest,
+                task=info.instruction,
+                length=length,
             )
             planned.append((path, source))
     if problems:
@@ -177,7 +182,9 @@ def read_sources(root: str | Path) -> SourcesRecord:
     try:
         record = SourcesRecord.model_validate(payload)
     except ValueError as err:
-        raise ValueError(f"{path}: not a valid sources record ({err}); re-run `latent-steering convert --rebuild`") from None
+        raise ValueError(
+            f"{path}: not a valid sources record ({err}); re-run `latent-steering convert --rebuild`"
+        ) from None
     indices = [e.episode_index for e in record.episodes]
     if indices != list(range(len(indices))):
         raise ValueError(f"{path}: episode_index values are {indices[:10]}..., expected 0, 1, 2, ... in order")
@@ -213,27 +220,12 @@ def convert_libero(
             log.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
             return _result(output_dir, settings, "unchanged", new_sources, added=0)
         log.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
-        with atomic_dir(output_dir, overwrite=True) as tmp:
-            shutil.copytree(output_dir, tmp, symlinks=True)
-            dataset = _lerobot_class()(settings.repo_id, root=tmp)
-            _write_episodes(dataset, planned[done:], settings, progress)
-            write_json(tmp / SOURCES_FILE, _record(settings, new_sources).model_dump(mode="json"))
+        _append(output_dir, planned, done, settings, progress)
         return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
-
-    action: Action = "created" if existing is None else "rebuilt"
     if existing is not None:
         log.info("%s: rebuilding from scratch (%s)", output_dir, reason)
-    with atomic_dir(output_dir, overwrite=True) as tmp:
-        dataset = _lerobot_class().create(
-            repo_id=settings.repo_id,
-            root=tmp,
-            fps=settings.fps,
-            robot_type=settings.robot_type,
-            features=lerobot_features(settings.image_size),
-            use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
-        )
-        _write_episodes(dataset, planned, settings, progress)
-        write_json(tmp / SOURCES_FILE, _record(settings, new_sources).model_dump(mode="json"))
+    _create(output_dir, planned, settings, progress)
+    action: Action = "created" if existing is None else "rebuilt"
     return _result(output_dir, settings, action, new_sources, added=len(new_sources))
 
 
@@ -247,6 +239,41 @@ def _lerobot_class() -> type[LeRobotDataset]:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     return LeRobotDataset
+
+
+def _create(
+    output_dir: Path,
+    planned: list[tuple[Path, EpisodeSource]],
+    settings: ConvertSettings,
+    progress: ProgressCallback | None,
+) -> None:
+    """Write a new dataset of every planned episode in a staging folder, then move it onto `output_dir`."""
+    with atomic_dir(output_dir, overwrite=True) as tmp:
+        dataset = _lerobot_class().create(
+            repo_id=settings.repo_id,
+            root=tmp,
+            fps=settings.fps,
+            robot_type=settings.robot_type,
+            features=lerobot_features(settings.image_size),
+            use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
+        )
+        _write_episodes(dataset, planned, settings, progress)
+        write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
+
+
+def _append(
+    output_dir: Path,
+    planned: list[tuple[Path, EpisodeSource]],
+    done: int,
+    settings: ConvertSettings,
+    progress: ProgressCallback | None,
+) -> None:
+    """Add planned[done:] to a copy of the existing dataset, then swap the copy in."""
+    with atomic_dir(output_dir, overwrite=True) as tmp:
+        shutil.copytree(output_dir, tmp, symlinks=True)
+        dataset = _lerobot_class()(settings.repo_id, root=tmp)
+        _write_episodes(dataset, planned[done:], settings, progress)
+        write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
 
 
 def _input_files(input_dirs: Sequence[str | Path]) -> list[Path]:
@@ -306,7 +333,8 @@ def _rebuild_reason(
         return f"dataset files missing: {', '.join(missing)}"
     info = read_json(output_dir / "meta/info.json")
     if info.get("total_episodes") != len(existing.episodes):
-        return f"meta/info.json has {info.get('total_episodes')} episodes but {SOURCES_FILE} lists {len(existing.episodes)}"
+        listed = len(existing.episodes)
+        return f"meta/info.json has {info.get('total_episodes')} episodes but {SOURCES_FILE} lists {listed}"
     new_keys = [s.key() for s in new_sources]
     for old in existing.episodes:
         if old.episode_index >= len(new_keys) or new_keys[old.episode_index] != old.key():

@@ -114,7 +114,8 @@ def read_selection(folder: str | Path) -> Selection:
     version = payload.get("format_version") if isinstance(payload, dict) else None
     if version != SELECTION_FORMAT_VERSION:
         raise ValueError(
-            f"{path}: format_version is {version!r}, expected {SELECTION_FORMAT_VERSION}; re-run `latent-steering filter`"
+            f"{path}: format_version is {version!r}, expected {SELECTION_FORMAT_VERSION}; "
+            "re-run `latent-steering filter`"
         )
     try:
         return Selection.model_validate(payload)
@@ -146,7 +147,9 @@ def _candidates(input_dirs: list[str | Path] | tuple[str | Path, ...], output_di
                 clashes.append(f"{path.name} in both {found[path.name].parent} and {folder}")
             found.setdefault(path.name, path)
     if clashes:
-        raise ValueError("two input files share a name, so they cannot sit in one filtered folder: " + "; ".join(clashes))
+        raise ValueError(
+            "two input files share a name, so they cannot sit in one filtered folder: " + "; ".join(clashes)
+        )
     if not found:
         raise ValueError(f"no {DEMO_FILE_GLOB} files in {', '.join(str(d) for d in input_dirs)}")
     return [found[name] for name in sorted(found)]

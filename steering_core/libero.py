@@ -272,7 +272,8 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
         problems.append(f"data/{key} has 0 steps, expected at least 1")
     num_samples = group.attrs.get("num_samples")
     if num_samples is not None and int(np.asarray(num_samples)) != steps:
-        problems.append(f"data/{key} attribute num_samples is {int(np.asarray(num_samples))}, expected {steps} (the datasets' T)")
+        found = int(np.asarray(num_samples))
+        problems.append(f"data/{key} attribute num_samples is {found}, expected {steps} (the datasets' T)")
     return steps, problems
 
 

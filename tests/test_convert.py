@@ -53,7 +53,10 @@ def read_back(root, repo_id=SETTINGS.repo_id):
 
     dataset = LeRobotDataset(repo_id, root=root)
     frames = [dataset[i] for i in range(len(dataset))]
-    to_uint8 = lambda img: np.rint(img.numpy().transpose(1, 2, 0) * 255).astype(np.uint8)  # noqa: E731
+
+    def to_uint8(img):
+        return np.rint(img.numpy().transpose(1, 2, 0) * 255).astype(np.uint8)
+
     return {
         "image": np.stack([to_uint8(f["image"]) for f in frames]),
         "wrist_image": np.stack([to_uint8(f["wrist_image"]) for f in frames]),
@@ -219,8 +222,8 @@ def test_converting_twice_gives_equal_data(raw, tmp_path):
     assert read_sources(tmp_path / "one") == read_sources(tmp_path / "two")
 
 
-def test_incremental_append_equals_full_conversion(raw, tmp_path, caplog):
-    folder, files = raw
+def test_incremental_append_equals_full_conversion(raw, tmp_path):
+    folder, _ = raw
     out = tmp_path / "ds"
     convert_libero([folder], out, SETTINGS)
     before = (out / "meta" / "libero_sources.json").stat().st_mtime_ns
@@ -312,7 +315,7 @@ def test_bad_inputs(raw, tmp_path):
     foreign = tmp_path / "foreign"
     foreign.mkdir()
     (foreign / "keep.txt").write_text("mine")
-    with pytest.raises(ValueError, match="has no meta/libero_sources.json, so it was not written by `latent-steering convert`"):
+    with pytest.raises(ValueError, match="no meta/libero_sources.json, so it was not written by `latent-steering"):
         convert_libero([folder], foreign, SETTINGS)
     assert (foreign / "keep.txt").exists()
     with pytest.raises(FileNotFoundError, match="input folder not found"):
@@ -336,7 +339,8 @@ def test_cli_convert(raw, tmp_path):
     folder, _ = raw
     out = tmp_path / "ds"
     runner = CliRunner()
-    args = ["convert", "--input-dir", str(folder), "--repo-id", "local/cli", "--output-dir", str(out), "--image-size", "16"]
+    args = ["convert", "--input-dir", str(folder), "--repo-id", "local/cli", "--output-dir", str(out)]
+    args += ["--image-size", "16"]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "created" in result.output and "6 episodes" in result.output

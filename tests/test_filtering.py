@@ -70,7 +70,10 @@ def test_task_text_ignores_case_unless_exact(sources, tmp_path):
 
 def test_select_by_glob_and_union_with_tasks(sources, tmp_path):
     selection = filter_demos(list(sources), tmp_path / "stove", FilterSettings(globs=("*stove*",)))
-    assert _names(selection) == ["KITCHEN_SCENE3_turn_on_the_stove_demo.hdf5", "KITCHEN_SCENE8_turn_off_the_stove_demo.hdf5"]
+    assert _names(selection) == [
+        "KITCHEN_SCENE3_turn_on_the_stove_demo.hdf5",
+        "KITCHEN_SCENE8_turn_off_the_stove_demo.hdf5",
+    ]
     union = filter_demos(list(sources), tmp_path / "union", FilterSettings(tasks=(CLOSE,), globs=("LIVING_ROOM_*",)))
     assert _names(union) == [
         "KITCHEN_SCENE10_close_the_top_drawer_of_the_cabinet_demo.hdf5",
@@ -90,10 +93,14 @@ def test_copy_mode_copies_bytes(sources, tmp_path):
 
 def test_unknown_task_lists_closest_instructions(sources, tmp_path):
     with pytest.raises(ValueError) as err:
-        filter_demos(list(sources), tmp_path / "x", FilterSettings(tasks=("open the drawer", STOVE_ON, "turn the stove on"), globs=("*.h5",)))
+        tasks = ("open the drawer", STOVE_ON, "turn the stove on")
+        filter_demos(list(sources), tmp_path / "x", FilterSettings(tasks=tasks, globs=("*.h5",)))
     text = str(err.value)
     assert text.startswith("cannot select demo files:")
-    assert "task 'open the drawer' matches no file's instruction; closest available: 'open the top drawer of the cabinet'" in text
+    assert (
+        "task 'open the drawer' matches no file's instruction; closest available: 'open the top drawer of the cabinet'"
+        in text
+    )
     assert "task 'turn the stove on' matches no file's instruction; closest available: 'turn on the stove'" in text
     assert "glob '*.h5' matches no file name among 6 candidate(s)" in text
     assert "task 'turn on the stove'" not in text
@@ -102,8 +109,13 @@ def test_unknown_task_lists_closest_instructions(sources, tmp_path):
 
 def test_filename_fallback_selects_files_without_instruction_attributes(sources, tmp_path):
     path = sources[1] / "LIVING_ROOM_SCENE2_pick_up_the_milk_and_put_it_in_the_basket_demo.hdf5"
-    edit_file(path, lambda h: (h["data"].attrs.__delitem__("problem_info"), h["data"].attrs.__delitem__("bddl_file_content")))
-    selection = filter_demos(list(sources), tmp_path / "milk", FilterSettings(tasks=("pick up the milk and put it in the basket",)))
+    def strip_instruction(handle):
+        del handle["data"].attrs["problem_info"]
+        del handle["data"].attrs["bddl_file_content"]
+
+    edit_file(path, strip_instruction)
+    settings = FilterSettings(tasks=("pick up the milk and put it in the basket",))
+    selection = filter_demos(list(sources), tmp_path / "milk", settings)
     assert [(f.name, f.instruction_source) for f in selection.files] == [(path.name, "filename")]
 
 

@@ -180,7 +180,8 @@ def test_instruction_from_problem_info(tiny_file, value, expected):
 def test_instruction_falls_back_to_bddl_then_file_name(tmp_path):
     path = write_tiny(tmp_path, "put the bowl on the plate", scene="LIVING_ROOM_SCENE2").path
     edit_file(path, lambda h: h["data"].attrs.__delitem__("problem_info"))
-    edit_file(path, lambda h: h["data"].attrs.__setitem__("bddl_file_content", "(define (problem P)\n (:language  stack the bowls )\n)"))
+    bddl = "(define (problem P)\n (:language  stack the bowls )\n)"
+    edit_file(path, lambda h: h["data"].attrs.__setitem__("bddl_file_content", bddl))
     assert libero.read_instruction_with_source(path) == ("stack the bowls", "bddl")
 
     edit_file(path, lambda h: h["data"].attrs.__delitem__("bddl_file_content"))

@@ -78,7 +78,8 @@ def test_file_has_the_exact_libero_layout(tmp_path):
             assert int(demo.attrs["num_samples"]) == steps
             assert "<mujoco" in demo.attrs["model_file"]
             np.testing.assert_array_equal(demo.attrs["init_state"], demo["states"][0])
-            np.testing.assert_array_equal(demo["obs/ee_states"][()], np.hstack([demo["obs/ee_pos"][()], demo["obs/ee_ori"][()]]))
+            ee_states = np.hstack([demo["obs/ee_pos"][()], demo["obs/ee_ori"][()]])
+            np.testing.assert_array_equal(demo["obs/ee_states"][()], ee_states)
             assert demo["rewards"][()].tolist() == [0] * (steps - 1) + [1]
             assert demo["dones"][()].tolist() == [0] * (steps - 1) + [1]
     # and our own reader accepts it
@@ -158,11 +159,13 @@ def test_window_must_fit_the_episode():
     with pytest.raises(ValueError):
         MotionSpec(axis=6, direction=1)  # grippers follow the grasp, they are not motion axes
     with pytest.raises(ValueError, match="no demos requested"):
-        write_libero_file("/nonexistent", SyntheticTask(instruction="x", motion=MotionSpec(axis=0, direction=1)), num_demos=0)
+        task = SyntheticTask(instruction="x", motion=MotionSpec(axis=0, direction=1))
+        write_libero_file("/nonexistent", task, num_demos=0)
 
 
 def test_demo_suite_and_cli(tmp_path):
-    files = write_demo_suite(tmp_path / "lib", demos_per_task=2, settings=SyntheticSettings(image_size=16, num_steps=10))
+    settings = SyntheticSettings(image_size=16, num_steps=10)
+    files = write_demo_suite(tmp_path / "lib", demos_per_task=2, settings=settings)
     assert sorted(f.path.name for f in files) == [
         "KITCHEN_SCENE10_close_the_top_drawer_of_the_cabinet_demo.hdf5",
         "KITCHEN_SCENE1_open_the_top_drawer_of_the_cabinet_demo.hdf5",
@@ -174,7 +177,8 @@ def test_demo_suite_and_cli(tmp_path):
 
     out = tmp_path / "cli"
     result = CliRunner().invoke(
-        app, ["make-demos", "--output-dir", str(out), "--image-size", "16", "--demos-per-task", "2", "--num-steps", "10"]
+        app,
+        ["make-demos", "--output-dir", str(out), "--image-size", "16", "--demos-per-task", "2", "--num-steps", "10"],
     )
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.iterdir()) == sorted(f.path.name for f in files)

@@ -35,7 +35,9 @@ def _user_errors() -> Iterator[None]:
 @app.command("filter")
 def filter_command(
     input_dir: list[Path] = typer.Option(..., "--input-dir", help="Folder of LIBERO *_demo.hdf5 files (repeatable)."),
-    output_dir: Path = typer.Option(..., "--output-dir", help="Filtered folder to (re)write, e.g. data/libero_filtered/open_close."),
+    output_dir: Path = typer.Option(
+        ..., "--output-dir", help="Filtered folder to (re)write, e.g. data/libero_filtered/open_close."
+    ),
     task: list[str] = typer.Option([], "--task", help="Select files whose instruction is this text (repeatable)."),
     glob: list[str] = typer.Option([], "--glob", help="Select files whose name matches this glob (repeatable)."),
     copy: bool = typer.Option(False, "--copy", help="Copy the files instead of symlinking them."),
@@ -43,7 +45,10 @@ def filter_command(
 ) -> None:
     """Select demo files by task text or file-name glob into a folder with selection.json."""
     settings = FilterSettings(
-        tasks=tuple(task), globs=tuple(glob), match="exact" if exact else "ignore_case", mode="copy" if copy else "symlink"
+        tasks=tuple(task),
+        globs=tuple(glob),
+        match="exact" if exact else "ignore_case",
+        mode="copy" if copy else "symlink",
     )
     with _user_errors():
         selection = filter_demos(input_dir, output_dir, settings)
@@ -55,11 +60,17 @@ def filter_command(
 @app.command("convert")
 def convert_command(
     input_dir: list[Path] = typer.Option(..., "--input-dir", help="Folder of LIBERO *.hdf5 files (repeatable)."),
-    repo_id: str = typer.Option(..., "--repo-id", help="LeRobot repo id recorded in the dataset, e.g. libero_open_close_lerobot."),
+    repo_id: str = typer.Option(
+        ..., "--repo-id", help="LeRobot repo id recorded in the dataset, e.g. libero_open_close_lerobot."
+    ),
     output_dir: Path = typer.Option(..., "--output-dir", help="Dataset folder, e.g. data/libero_lerobot/<repo_id>."),
-    image_size: int = typer.Option(256, "--image-size", help="Square frame size (physical-intelligence/libero: 256)."),
+    image_size: int = typer.Option(
+        256, "--image-size", help="Square frame size (physical-intelligence/libero: 256)."
+    ),
     orientation: OrientationChoice = typer.Option(
-        OrientationChoice.rotate180, "--orientation", help="rotate180 (what pi05_libero was trained on) or as_stored (raw renders)."
+        OrientationChoice.rotate180,
+        "--orientation",
+        help="rotate180 (what pi05_libero was trained on) or as_stored (raw renders).",
     ),
     append: bool = typer.Option(
         True, "--append/--rebuild", help="Append only new demos to an existing dataset when possible, or rebuild it."
@@ -85,7 +96,10 @@ def make_demos_command(
 ) -> None:
     """Write synthetic LIBERO demos for two concept pairs (drawer open/close, stove on/off)."""
     with _user_errors():
-        settings = SyntheticSettings(image_size=image_size, num_steps=num_steps, length_jitter=num_steps // 10, seed=seed)
+        # a little length variation, as real demos have
+        settings = SyntheticSettings(
+            image_size=image_size, num_steps=num_steps, length_jitter=num_steps // 10, seed=seed
+        )
         files = write_demo_suite(output_dir, demos_per_task=demos_per_task, settings=settings)
     for written in files:
         typer.echo(f"{written.path}\t{len(written.demos)} demos\t{written.instruction}")

@@ -53,7 +53,9 @@ class MotionSpec(StrictModel):
     def _window_inside_episode(self) -> MotionSpec:
         start, end = self.window
         if not 0.0 <= start - self.window_jitter < end + self.window_jitter <= 1.0:
-            raise ValueError(f"window {self.window} with jitter {self.window_jitter} must lie inside [0, 1], start < end")
+            raise ValueError(
+                f"window {self.window} with jitter {self.window_jitter} must lie inside [0, 1], start < end"
+            )
         return self
 
 
@@ -124,8 +126,8 @@ def make_demo(task: SyntheticTask, demo_index: int, settings: SyntheticSettings)
     steps = settings.num_steps + int(rng.integers(0, settings.length_jitter + 1))
     motion = task.motion
     shift = rng.uniform(-motion.window_jitter, motion.window_jitter)
-    start = int(round((motion.window[0] + shift) * (steps - 1)))
-    end = max(start + 1, int(round((motion.window[1] + shift) * (steps - 1))))
+    start = round((motion.window[0] + shift) * (steps - 1))
+    end = max(start + 1, round((motion.window[1] + shift) * (steps - 1)))
 
     t = np.arange(steps)
     pose = np.tile(np.concatenate([HOME_EE_POS, HOME_EE_ORI]), (steps, 1))
@@ -298,7 +300,9 @@ def _bddl_text(task: SyntheticTask) -> str:
     )
 
 
-def _write_file_attrs(data: h5py.Group, task: SyntheticTask, settings: SyntheticSettings, *, num_demos: int, total: int) -> None:
+def _write_file_attrs(
+    data: h5py.Group, task: SyntheticTask, settings: SyntheticSettings, *, num_demos: int, total: int
+) -> None:
     bddl_file = f"libero/libero/bddl_files/libero_90/{task.file_name.removesuffix('_demo.hdf5')}.bddl"
     env_kwargs = {
         "robots": ["Panda"],
@@ -324,7 +328,13 @@ def _write_file_attrs(data: h5py.Group, task: SyntheticTask, settings: Synthetic
     data.attrs["bddl_file_name"] = bddl_file
     data.attrs["bddl_file_content"] = _bddl_text(task)
     data.attrs["env_args"] = json.dumps(
-        {"type": 1, "env_name": ENV_NAME, "problem_name": PROBLEM_NAME, "bddl_file": bddl_file, "env_kwargs": env_kwargs}
+        {
+            "type": 1,
+            "env_name": ENV_NAME,
+            "problem_name": PROBLEM_NAME,
+            "bddl_file": bddl_file,
+            "env_kwargs": env_kwargs,
+        }
     )
     data.attrs["num_demos"] = num_demos
     data.attrs["total"] = total
