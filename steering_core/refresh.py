@@ -80,7 +80,10 @@ def _describe_files(label: str, files: Sequence[str], shown: int = 3) -> str:
 
 
 def list_demo_files(folders: Iterable[str | os.PathLike], pattern: str = DEMO_PATTERN) -> list[Path]:
-    """Return the sorted absolute paths of the demo files matching `pattern` under each folder (recursive)."""
+    """Return the sorted absolute paths of the demo files matching `pattern` directly inside each folder.
+
+    Not recursive, like the filter step, which selects only files directly inside its input folders.
+    """
     found: set[Path] = set()
     missing = []
     for folder in folders:
@@ -88,7 +91,7 @@ def list_demo_files(folders: Iterable[str | os.PathLike], pattern: str = DEMO_PA
         if not folder.is_dir():
             missing.append(str(folder))
             continue
-        found.update(p.resolve() for p in folder.rglob(pattern) if p.is_file())
+        found.update(p.resolve() for p in folder.glob(pattern) if p.is_file())
     if missing:
         raise FileNotFoundError(
             f"demo source folder(s) not found: {', '.join(missing)}; "

@@ -18,8 +18,9 @@ def _write(path, data: bytes):
 @pytest.fixture
 def sources(tmp_path):
     a = _write(tmp_path / "src1" / "A_demo.hdf5", b"alpha")
-    b = _write(tmp_path / "src2" / "nested" / "B_demo.hdf5", b"beta")
+    b = _write(tmp_path / "src2" / "B_demo.hdf5", b"beta")
     _write(tmp_path / "src1" / "notes.txt", b"not a demo")
+    _write(tmp_path / "src1" / "nested" / "C_demo.hdf5", b"not looked at, like the filter step")
     return [tmp_path / "src1", tmp_path / "src2"], a, b
 
 
