@@ -1,0 +1,258 @@
+"""Cache keys built from input content, and task results kept beside the outputs they describe.
+
+A task's identity is the content of its inputs (file hashes, settings fingerprints), its own
+source, and the source of the `steering_core` modules it calls (followed through their imports):
+equal identity, equal outputs. `ContentKey` turns a task's parameters into that identity, so an
+unchanged input gives a `Cached` task run and a changed one recomputes only what depends on it.
+
+Results (small JSON summaries) and their cache records live under `<output_root>/.prefect-cache/`,
+not in `$PREFECT_HOME`: they travel with the outputs, every worker sharing the output folder sees
+them, and deleting the outputs deletes the cache. A task's summary lists the files it wrote under
+`outputs`; a record whose outputs are gone is dropped before lookup, so the task runs again.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import hashlib
+import inspect
+import logging
+import os
+import threading
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from prefect.cache_policies import CachePolicy
+from prefect.context import TaskRunContext
+from prefect.results import ResultRecord
+from prefect.states import State
+from prefect.tasks import Task
+from pydantic import BaseModel
+
+from steering_core.fileio import sha256_file, sha256_json
+
+logger = logging.getLogger(__name__)
+
+CACHE_DIR = ".prefect-cache"  # under the output root: one record per finished task run
+OUTPUTS = "outputs"           # key of a task summary that lists the files the task wrote
+PROJECT_PACKAGES = ("steering_core",)  # imports followed when versioning code
+_PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the folder holding steering_core/ and tasks/
+
+Fingerprint = Callable[[Any], Any]
+
+# Every task persists a small JSON summary: cache hits need it, and JSON is never unpickled.
+RESULTS: dict[str, Any] = {"persist_result": True, "result_serializer": "json"}
+# Retries only where a second attempt can succeed: file systems (network mounts, a full disk being
+# cleared) and GPUs (an out-of-memory from a neighbour, a lost device). Bad content fails at once.
+IO_RETRIES, IO_RETRY_DELAYS = 2, [2, 30]            # seconds
+GPU_RETRIES, GPU_RETRY_DELAYS = 2, [30, 120]        # seconds: give a crashed neighbour time to free memory
+
+
+# ----------------------------------------------------------------------------- content fingerprints
+
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """Return the sha256 of a file, remembered per (path, size, mtime) so large files are read once."""
+    path = Path(path).resolve()
+    stat = path.stat()
+    memo = (str(path), stat.st_size, stat.st_mtime_ns)
+    if memo not in _DIGESTS:
+        _DIGESTS[memo] = sha256_file(path)
+    return _DIGESTS[memo]
+
+
+def files_digest(paths: Iterable[str | os.PathLike] | str | os.PathLike | None) -> Any:
+    """Return {path: sha256} of one path or many (None stays None): a parameter fingerprint."""
+    if paths is None:
+        return None
+    if isinstance(paths, (str, os.PathLike)):
+        return file_digest(paths)
+    return {str(p): file_digest(p) for p in paths}
+
+
+def tree_listing(folders: Iterable[str | os.PathLike], pattern: str = "*.hdf5") -> list[tuple[str, int, int]]:
+    """Return (path, size, mtime_ns) of each file matching `pattern` directly in the folders: a cheap fingerprint.
+
+    Used where hashing every candidate would be costly and a later step hashes what it selects.
+    """
+    listing = []
+    for folder in folders:
+        for path in sorted(Path(folder).glob(pattern)):
+            stat = path.stat()
+            listing.append((str(path.resolve()), stat.st_size, stat.st_mtime_ns))
+    return listing
+
+
+def plain(value: Any) -> Any:
+    """Return `value` as JSON-ready data for hashing: settings models by content, paths as text."""
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set, frozenset)):
+        items = [plain(v) for v in value]
+        return sorted(items, key=repr) if isinstance(value, (set, frozenset)) else items
+    return value
+
+
+# ----------------------------------------------------------------------------- code version
+
+@functools.lru_cache(maxsize=None)
+def _module_file(name: str) -> Path | None:
+    """Return the source file of project module `name` (found by path, never imported), or None if not a module."""
+    top = name.split(".")[0]
+    if top not in PROJECT_PACKAGES:
+        return None
+    base = _PROJECT_ROOT.joinpath(*name.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _project_imports(name: str, path: Path) -> set[str]:
+    """Return the project modules imported by the module `name` stored at `path`."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                base = f"{parent}.{base}" if base else parent
+            found.add(base)
+            # `from pkg import submodule` imports a module too
+            found.update(f"{base}.{alias.name}" for alias in node.names)
+    return {m for m in found if _module_file(m) is not None}
+
+
+_AST_LOCK = threading.Lock()  # CPython 3.11's ast.parse is not safe in concurrent threads (recursion-depth check)
+
+
+@functools.lru_cache(maxsize=None)
+def code_version(*modules: str) -> str:
+    """Return the sha256 of the source of `modules` and every project module they import, transitively."""
+    with _AST_LOCK:
+        return _code_version(modules)
+
+
+def _code_version(modules: tuple[str, ...]) -> str:
+    seen: dict[str, str] = {}
+    pending = list(modules)
+    while pending:
+        name = pending.pop()
+        if name in seen:
+            continue
+        path = _module_file(name)
+        if path is None:
+            raise ValueError(f"code_version: module {name!r} has no Python source file; expected a steering_core module")
+        seen[name] = hashlib.sha256(path.read_bytes()).hexdigest()
+        pending.extend(_project_imports(name, path) - seen.keys())
+    return sha256_json(seen)
+
+
+# ----------------------------------------------------------------------------- retries
+
+def retry_on(*errors: type[BaseException]) -> Callable[[Task, Any, State], bool]:
+    """Return a `retry_condition_fn` that retries only when the task raised one of `errors`."""
+
+    def transient(task: Task, task_run: Any, state: State) -> bool:
+        try:
+            state.result()
+        except errors:
+            return True
+        except Exception:  # noqa: BLE001  any other failure is final
+            return False
+        return False
+
+    transient.__qualname__ = f"retry_on({', '.join(e.__name__ for e in errors)})"
+    return transient
+
+
+# ----------------------------------------------------------------------------- the cache policy
+
+@dataclasses.dataclass
+class ContentKey(CachePolicy):
+    """Cache key = task source + code version of `modules` + every parameter by content.
+
+    `fingerprints` maps a parameter name to a function of its value (e.g. `files_digest` for a
+    path); other parameters count by value (settings models by their JSON). `derived` adds
+    fingerprints computed from all parameters (e.g. the shards a concept map's episodes live in).
+    Names in `ignore` do not count (e.g. a label only used in the task run's name).
+    """
+
+    modules: tuple[str, ...] = ()
+    fingerprints: Mapping[str, Fingerprint] = dataclasses.field(default_factory=dict)
+    derived: Mapping[str, Callable[[dict[str, Any]], Any]] = dataclasses.field(default_factory=dict)
+    ignore: tuple[str, ...] = ()
+    store: Path | None = None  # where results live (set by `rooted`): stale records are dropped here
+
+    def compute_key(
+        self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any
+    ) -> str:
+        fn = task_ctx.task.fn
+        identity = {
+            "task": f"{fn.__module__}.{fn.__qualname__}",
+            "source": hashlib.sha256(inspect.getsource(fn).encode()).hexdigest(),
+            "code": code_version(*self.modules) if self.modules else "",
+            "inputs": {
+                name: self.fingerprints.get(name, plain)(value)
+                for name, value in sorted(inputs.items())
+                if name not in self.ignore
+            },
+            "derived": {name: fn(inputs) for name, fn in sorted(self.derived.items())},
+        }
+        key = sha256_json(identity)
+        if self.store is not None:
+            _drop_if_outputs_missing(self.store / key)
+        return key
+
+
+def content_key(
+    *modules: str,
+    derived: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
+    ignore: tuple[str, ...] = (),
+    **fingerprints: Fingerprint,
+) -> ContentKey:
+    """Return a `ContentKey` over the given steering_core modules and per-parameter fingerprints."""
+    return ContentKey(modules=modules, fingerprints=fingerprints, derived=dict(derived or {}), ignore=ignore)
+
+
+def _drop_if_outputs_missing(record_path: Path) -> None:
+    """Delete a cache record whose summary lists an output that no longer exists (or that is unreadable)."""
+    if not record_path.is_file():
+        return
+    try:
+        result = ResultRecord.deserialize(record_path.read_bytes()).result
+    except Exception as err:  # a damaged record must not block the run: recompute instead
+        logger.warning("%s: unreadable cache record (%s); the task will run again", record_path, err)
+        record_path.unlink(missing_ok=True)
+        return
+    outputs = result.get(OUTPUTS, []) if isinstance(result, dict) else []
+    missing = [p for p in outputs if not Path(p).exists()]
+    if missing:
+        logger.info("%s: cached outputs are gone (%s); the task will run again", record_path.name, ", ".join(missing[:3]))
+        record_path.unlink(missing_ok=True)
+
+
+def cache_store(output_root: str | os.PathLike) -> Path:
+    """Return the folder holding task results and cache records for runs writing under `output_root`."""
+    return Path(output_root).resolve() / CACHE_DIR
+
+
+def rooted(task: Task, output_root: str | os.PathLike) -> Task:
+    """Return `task` with results and cache records under `<output_root>/.prefect-cache`."""
+    store = cache_store(output_root)
+    policy = task.cache_policy
+    if isinstance(policy, ContentKey):
+        policy = dataclasses.replace(policy, store=store)
+    return task.with_options(result_storage=store, cache_policy=policy)

@@ -1,0 +1,138 @@
+"""Phase 2 tasks: capture residuals for a group of episodes (GPU), write run metadata, slice by concept."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import get_run_logger, task
+
+from steering_core import capture, shards, slicing
+from steering_core.capture import CaptureSettings
+from steering_core.concept_map import read_concept_map
+from steering_core.convert import read_sources
+from steering_core.fileio import read_json
+from steering_core.layout import layer_dir
+from steering_core.pi05.checkpoint import resolve_model_file
+from steering_core.slicing import SliceSettings
+from tasks.artifacts import artifact_key, progress_artifact
+from tasks.cache import (
+    GPU_RETRIES,
+    GPU_RETRY_DELAYS,
+    IO_RETRIES,
+    IO_RETRY_DELAYS,
+    OUTPUTS,
+    RESULTS,
+    content_key,
+    file_digest,
+    plain,
+    retry_on,
+)
+
+GPU_TAG = "gpu"  # a tag concurrency limit of this name caps running GPU tasks (latent-steering deploy)
+
+
+# ----------------------------------------------------------------------------- input fingerprints
+
+def model_inputs(settings: CaptureSettings) -> dict[str, Any]:
+    """Return the capture settings plus the content of the files they name (checkpoint, tokenizer, norm stats)."""
+    return {
+        "settings": plain(settings),
+        "checkpoint": capture.checkpoint_fingerprint(resolve_model_file(settings.checkpoint_path)),
+        "tokenizer": file_digest(settings.tokenizer_path),
+        "norm_stats": file_digest(settings.norm_stats_path) if settings.norm_stats_path else None,
+    }
+
+
+def episode_sources(inputs: dict[str, Any]) -> Any:
+    """Return where the requested episodes came from (file, demo, sha256, length) and how they were converted."""
+    record = read_sources(inputs["dataset_root"])
+    wanted = set(inputs["episodes"])
+    return {
+        "conversion": plain(record.model_copy(update={"episodes": ()})),
+        "episodes": [plain(e) for e in record.episodes if e.episode_index in wanted],
+    }
+
+
+def run_sidecars(inputs: dict[str, Any]) -> Any:
+    """Return the digests of run.json and every shard sidecar of the run: what metadata.json is built from."""
+    run_dir = Path(inputs["run_dir"])
+    return {str(p.relative_to(run_dir)): file_digest(p)
+            for p in sorted(run_dir.glob(f"**/{shards.SIDECAR_FILE.format(key='*')}")) + [run_dir / shards.RUN_FILE]}
+
+
+def concept_rows(path: str) -> Any:
+    """Return the segments of a concept map (what slicing reads), not its dataset-wide counts."""
+    return {name: [plain(row) for row in rows] for name, rows in read_concept_map(path).concepts.items()}
+
+
+def sliced_shards(inputs: dict[str, Any]) -> Any:
+    """Return the run identity and the (file, sha256) of the shards holding the concept map's episodes."""
+    metadata = shards.read_run_metadata(inputs["run_dir"])
+    episodes = {row.episode_index for rows in read_concept_map(inputs["concept_map_path"]).concepts.values()
+                for row in rows}
+    return {
+        "run": metadata.run.identity(),
+        "shards": [(r.file, r.sha256) for layer in inputs["settings"].layers for r in metadata.layer_shards(layer)
+                   if episodes & set(r.episodes)],
+    }
+
+
+def shard_files(run_dir: str, settings: CaptureSettings, episodes: list[int]) -> list[str]:
+    """Return the shard files (every layer) that hold `episodes`."""
+    keys = shards.group_episodes(episodes, settings.episodes_per_shard)
+    return [str(shards.shard_path(run_dir, settings.token_type, layer, key)) for layer in settings.layers for key in keys]
+
+
+# ----------------------------------------------------------------------------- tasks
+
+@task(
+    name="capture-residuals",
+    task_run_name="capture {label}",
+    tags=[GPU_TAG],
+    cache_policy=content_key("steering_core.capture", settings=model_inputs,
+                             derived={"episodes": episode_sources}, ignore=("label",)),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_on(OSError, RuntimeError),
+    **RESULTS,
+)
+def capture_episodes(
+    label: str, dataset_root: str, repo_id: str, run_dir: str, settings: CaptureSettings, episodes: list[int]
+) -> dict:
+    """Capture the residuals of `episodes` (whole shard groups) into the run; return what was written."""
+    progress = progress_artifact(artifact_key("capture", Path(run_dir).name, label), "frames",
+                                 f"capture {label} into {run_dir}")
+    result = capture.capture(dataset_root, repo_id, run_dir, settings, episodes=episodes, progress=progress)
+    get_run_logger().info("%s: %d shard group(s) written, %d already complete, %d frames",
+                          label, len(result.written), len(result.skipped), result.frames)
+    return {OUTPUTS: shard_files(run_dir, settings, episodes), "written": list(result.written),
+            "skipped": list(result.skipped), "frames": result.frames}
+
+
+@task(
+    name="write-run-metadata",
+    task_run_name="run metadata {run_dir}",
+    cache_policy=content_key("steering_core.shards", derived={"sidecars": run_sidecars}),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    **RESULTS,
+)
+def write_run_metadata(run_dir: str) -> dict:
+    """Rebuild the run's metadata.json from its sidecars; return episode and shard counts."""
+    path = shards.write_run_metadata(run_dir)
+    metadata = shards.read_run_metadata(run_dir)
+    return {OUTPUTS: [str(path)], "episodes": len(metadata.episodes), "shards": len(metadata.shards)}
+
+
+@task(
+    name="slice-concepts",
+    task_run_name="slice {pair} layer {layer}",
+    cache_policy=content_key("steering_core.slicing", concept_map_path=concept_rows,
+                             derived={"shards": sliced_shards}),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    **RESULTS,
+)
+def slice_layer(pair: str, layer: int, run_dir: str, concept_map_path: str, output_dir: str, settings: SliceSettings) -> dict:
+    """Write one pair's per-concept residual tensors for one layer; return concept -> .pt path."""
+    index_path = slicing.slice_concepts(run_dir, concept_map_path, output_dir, settings)[layer]
+    folder = Path(output_dir) / layer_dir(layer)
+    concepts = {name: str(folder / entry["pt"]) for name, entry in read_json(index_path)["concepts"].items()}
+    return {OUTPUTS: [str(index_path), *concepts.values()], "concepts": concepts, "index": str(index_path)}

@@ -1,0 +1,81 @@
+"""Phase 1 tasks: filter demo files, convert them to LeRobot, build contrast manifests and concept maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from prefect import get_run_logger, task
+
+from steering_core import concept_map, contrast, convert, filtering
+from steering_core.contrast import ContrastSettings
+from steering_core.convert import ConvertSettings
+from steering_core.dataset import dataset_fingerprint
+from steering_core.filtering import FilterSettings
+from steering_core.layout import SELECTION_FILE
+from tasks.cache import OUTPUTS, content_key, file_digest, retry_on, tree_listing, IO_RETRIES, IO_RETRY_DELAYS, RESULTS
+
+
+def selection_digest(folder: str) -> str:
+    """Return the sha256 of a filtered folder's selection.json (which holds every selected file's sha256)."""
+    return file_digest(Path(folder) / SELECTION_FILE)
+
+
+@task(
+    name="filter-demos",
+    task_run_name="filter demos into {output_dir}",
+    cache_policy=content_key("steering_core.filtering", sources=tree_listing),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    **RESULTS,
+)
+def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) -> dict:
+    """Select demo files into `output_dir` (links + selection.json); return the selected file names."""
+    selection = filtering.filter_demos(sources, output_dir, settings)
+    get_run_logger().info("%d file(s) selected into %s", len(selection.files), output_dir)
+    return {OUTPUTS: [str(Path(output_dir) / SELECTION_FILE)], "files": [f.name for f in selection.files]}
+
+
+@task(
+    name="convert-dataset",
+    task_run_name="convert to LeRobot {settings.repo_id}",
+    cache_policy=content_key("steering_core.convert", filtered_dir=selection_digest),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    **RESULTS,
+)
+def convert_dataset(filtered_dir: str, dataset_root: str, settings: ConvertSettings) -> dict:
+    """Convert (or append new episodes to) the LeRobot dataset; return what was done."""
+    result = convert.convert_libero([filtered_dir], dataset_root, settings)
+    get_run_logger().info("%s: %s, %d episode(s) added, %d in total",
+                          dataset_root, result.action, result.episodes_added, result.episodes_total)
+    return {OUTPUTS: [dataset_root], "action": result.action, "episodes_added": result.episodes_added,
+            "episodes_total": result.episodes_total, "frames_total": result.frames_total}
+
+
+@task(
+    name="build-manifest",
+    task_run_name="manifest {pair}",
+    cache_policy=content_key("steering_core.contrast", dataset_root=dataset_fingerprint),
+    **RESULTS,
+)
+def build_manifest(
+    pair: str, dataset_root: str, task_a: str, task_b: str, settings: ContrastSettings, repo_id: str, output: str
+) -> dict:
+    """Write the contrast manifest of two tasks of the dataset; return its axis and segment count."""
+    manifest = contrast.build_manifest(dataset_root, task_a, task_b, settings, repo_id=repo_id)
+    contrast.write_manifest(manifest, output)
+    return {OUTPUTS: [output], "tasks": list(manifest.axis.mean_delta_per_task),  # (A, B) as the dataset spells them
+            "axis": manifest.axis.index, "effect_size": manifest.axis.effect_size, "segments": len(manifest.segments)}
+
+
+@task(
+    name="map-concepts",
+    task_run_name="concept map {pair}",
+    cache_policy=content_key("steering_core.concept_map", manifest_path=file_digest, dataset_root=dataset_fingerprint),
+    **RESULTS,
+)
+def map_concepts(
+    pair: str, manifest_path: str, dataset_root: str, repo_id: str, rename: dict[str, str], output: str
+) -> dict:
+    """Write the concept map of a manifest on the dataset; return the sample count per concept."""
+    result = concept_map.build_concept_map(manifest_path, dataset_root, repo_id=repo_id, rename=rename)
+    concept_map.write_concept_map(result, output)
+    return {OUTPUTS: [output], "concepts": {name: sum(r.length for r in rows) for name, rows in result.concepts.items()}}

@@ -1,0 +1,47 @@
+"""Per-layer tasks: pairwise statistics of every two pairs' directions, and the report (summary + plots)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import task
+
+from steering_core import report, steering
+from tasks.cache import OUTPUTS, RESULTS, content_key, file_digest
+
+
+def pair_folders(inputs: dict[str, Any]) -> dict[str, dict[str, str]]:
+    """Return the digests of every file in each pair folder of the layer (the directions the stats read)."""
+    layer_path = Path(inputs["layer_path"])
+    return {name: {p.name: file_digest(p) for p in sorted((layer_path / name).iterdir()) if p.is_file()}
+            for name in inputs["pair_names"]}
+
+
+def pairwise_digest(inputs: dict[str, Any]) -> str:
+    """Return the digest of the layer's pairwise_stats.json."""
+    return file_digest(Path(inputs["layer_path"]) / report.PAIRWISE_JSON)
+
+
+@task(
+    name="pairwise-stats",
+    task_run_name="pairwise stats layer {layer}",
+    cache_policy=content_key("steering_core.steering", derived={"pairs": pair_folders}),
+    **RESULTS,
+)
+def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:
+    """Write cosines and norms between every two pairs' directions of one layer; return the files."""
+    pt_path = steering.compute_pairwise_stats(Path(layer_path), pair_names)
+    return {OUTPUTS: [str(pt_path), str(pt_path.with_suffix(".json"))]}
+
+
+@task(
+    name="write-report",
+    task_run_name="report layer {layer}",
+    cache_policy=content_key("steering_core.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest}),
+    **RESULTS,
+)
+def write_report(layer: int, layer_path: str, pair_names: list[str], top_k: int) -> dict:
+    """Write summary.md, summary.json and the plots of one layer; return their paths."""
+    md_path = report.write_report(Path(layer_path), top_k=top_k)
+    return {OUTPUTS: [str(md_path), str(md_path.with_name(report.SUMMARY_JSON))]}

@@ -1,0 +1,97 @@
+"""Phase 3 tasks: the seed's pairs config, per-concept SAE statistics, per-pair steering directions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import task
+
+from steering_core import steering
+from steering_core.fileio import write_json
+from steering_core.layout import layer_dir
+from steering_core.sae_formats import HOOK_NAME
+from steering_core.sae_registry import resolve_release
+from steering_core.steering import PairsConfig, PairSpec, SteeringSettings
+from tasks.cache import IO_RETRIES, IO_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, file_digest, retry_on
+
+_SAE_FIELDS = ("layer", "device", "batch_size")  # settings that change concept statistics besides the SAE
+
+
+def sae_files(source: str | None, sae_id: str | None, local_dir: Path | None) -> dict[str, str] | None:
+    """Return {file: sha256} of an SAE given as a path (file or folder) or as a release; None for no SAE."""
+    if source is None:
+        return None
+    path = Path(source).expanduser()
+    if not path.exists():
+        path = resolve_release(source, sae_id, local_dir=local_dir)
+    files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
+    return {p.name: file_digest(p) for p in files}
+
+
+def sae_inputs(settings: SteeringSettings) -> dict[str, Any]:
+    """Return what concept statistics depend on: the SAE's files and the numeric settings."""
+    sae_id = settings.sae_id or HOOK_NAME.format(layer=settings.layer)
+    cfg_from = settings.sae_cfg_from
+    return {
+        "sae": sae_files(settings.sae, sae_id, settings.sae_dir),
+        "sae_id": sae_id,
+        "cfg_from": sae_files(cfg_from, sae_id, settings.sae_dir) if cfg_from else None,
+        **{name: getattr(settings, name) for name in _SAE_FIELDS},
+    }
+
+
+def direction_inputs(settings: SteeringSettings) -> dict[str, Any]:
+    """Return what pair directions depend on besides the statistics: the SAE and the decoder-bias option."""
+    return {**sae_inputs(settings), "include_decoder_bias": settings.include_decoder_bias}
+
+
+def stats_files(path: str) -> dict[str, str]:
+    """Return the digests of a concept statistics file (.json) and its tensors (.safetensors)."""
+    json_path = Path(path)
+    return {"json": file_digest(json_path), "tensors": file_digest(json_path.with_suffix(".safetensors"))}
+
+
+@task(
+    name="write-pairs-config",
+    task_run_name="pairs config layer {layer}",
+    cache_policy=content_key("steering_core.steering"),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    **RESULTS,
+)
+def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:
+    """Write the seed's pairs config (layerNN_pairs.json) for one layer; return its path."""
+    write_json(path, pairs.model_dump(mode="json"))
+    return {OUTPUTS: [path]}
+
+
+@task(
+    name="encode-concept",
+    task_run_name="encode {pair} {side} layer {layer}",
+    cache_policy=content_key("steering_core.steering", slice_path=file_digest, settings=sae_inputs),
+    **RESULTS,
+)
+def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str, settings: SteeringSettings) -> dict:
+    """Stream one concept's residuals through the layer's SAE; return the statistics file."""
+    sae = steering.load_steering_sae(settings)
+    layer_path = settings.output_root / layer_dir(settings.layer)
+    source = steering.ConceptSource(label=label, path=Path(slice_path))
+    stats = steering.encode_concept(source, layer_path, sae, batch_size=settings.batch_size)
+    return {OUTPUTS: [str(stats), str(stats.with_suffix(".safetensors"))], "stats": str(stats)}
+
+
+@task(
+    name="pair-directions",
+    task_run_name="directions {pair.name} layer {layer}",
+    cache_policy=content_key("steering_core.steering", positive_stats=stats_files, negative_stats=stats_files,
+                             settings=direction_inputs),
+    **RESULTS,
+)
+def pair_directions(pair: PairSpec, layer: int, positive_stats: str, negative_stats: str, settings: SteeringSettings) -> dict:
+    """Write one pair's latent and residual directions; return the pair folder's summary file."""
+    sae = steering.load_steering_sae(settings)
+    layer_path = settings.output_root / layer_dir(settings.layer)
+    folder = steering.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
+                                   include_decoder_bias=settings.include_decoder_bias)
+    summary = folder / steering.PAIR_SUMMARY_FILE
+    return {OUTPUTS: [str(summary)], "folder": str(folder)}
