@@ -1,0 +1,117 @@
+"""The capture flow `latent-steering-capture`: residuals of groups of episodes, on the `gpu` work pool.
+
+Episodes are captured in fixed runs of `shards_per_capture_run` shard groups (run r holds shard
+groups r*S .. r*S+S-1), so the runs of a growing dataset keep their episodes and cached runs stay
+cached. With a server, the parent flow starts one deployment run per capture run so several GPU
+workers share the work; without one, the parent calls this flow in-process (a subflow) and the
+runs go one after another on the local device.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger, runtime
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.objects import FlowRun
+from prefect.deployments import run_deployment
+
+from steering_core import shards
+from steering_core.config import RunConfig, load_run_config
+from steering_core.dataset import read_meta
+from tasks import capture as capture_tasks
+from tasks.cache import rooted
+
+CAPTURE_FLOW = "latent-steering-capture"
+
+
+def capture_plan(config: RunConfig, episodes: Sequence[int] | None = None) -> list[list[int]]:
+    """Return the episodes of each capture run (all dataset episodes, or only `episodes`), in order."""
+    known = [e.episode_index for e in read_meta(config.dataset_root).episodes]
+    wanted = known if episodes is None else sorted(set(episodes) & set(known))
+    per_run = config.orchestration.shards_per_capture_run
+    runs: dict[int, list[int]] = {}
+    for key, members in shards.group_episodes(wanted, config.capture.episodes_per_shard).items():
+        runs.setdefault(int(key) // per_run, []).extend(members)
+    return [runs[r] for r in sorted(runs)]
+
+
+def run_label(episodes: Sequence[int]) -> str:
+    """Return a capture run's name, e.g. `episodes 0-15`."""
+    return f"episodes {episodes[0]}-{episodes[-1]}"
+
+
+def capture_mode(config: RunConfig) -> str:
+    """Return `deployment` or `local`: `auto` means deployments when this flow run came from a deployment."""
+    mode = config.orchestration.capture
+    if mode == "auto":
+        return "deployment" if runtime.deployment.id else "local"
+    return mode
+
+
+@flow(name=CAPTURE_FLOW, log_prints=False)
+def capture_flow(config_path: str, episodes: list[int] | None = None, write_metadata: bool = True) -> dict:
+    """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run."""
+    config = load_run_config(config_path)
+    settings = config.capture_settings()
+    capture_task = rooted(capture_tasks.capture_episodes, config.output_root)
+    plan = capture_plan(config, episodes)
+    get_run_logger().info("capturing %d episode(s) in %d run(s) into %s",
+                          sum(map(len, plan)), len(plan), config.run_dir)
+    frames = 0
+    for members in plan:  # one after another: they share this worker's device
+        result = capture_task(run_label(members), str(config.dataset_root), config.dataset.repo_id,
+                              str(config.run_dir), settings, members)
+        frames += result["frames"]
+    if write_metadata:
+        rooted(capture_tasks.write_run_metadata, config.output_root)(str(config.run_dir))
+    return {"runs": len(plan), "frames": frames}
+
+
+def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
+    """Start one capture deployment run per capture run, wait for all, then write the run metadata."""
+    logger = get_run_logger()
+    deployment = config.orchestration.capture_deployment
+    started = [
+        run_deployment(deployment, parameters={"config_path": config_path, "episodes": members, "write_metadata": False},
+                       flow_run_name=f"capture {run_label(members)}", timeout=0)
+        for members in capture_plan(config)
+    ]
+    logger.info("started %d capture run(s) of %s; waiting", len(started), deployment)
+    finished = wait_for_runs(started, config.orchestration.poll_seconds)
+    failed = [f"{run.name} ({run.state.name if run.state else 'no state'})" for run in finished
+              if run.state is None or not run.state.is_completed()]
+    if failed:
+        raise RuntimeError(f"capture run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI, "
+                           "fix the cause and re-run: complete shards are kept")
+    rooted(capture_tasks.write_run_metadata, config.output_root)(str(config.run_dir))
+    return finished
+
+
+def wait_for_runs(runs: Sequence[FlowRun], poll_seconds: float) -> list[FlowRun]:
+    """Return `runs` re-read once each has reached a final state (polling the API every `poll_seconds`)."""
+    pending = {run.id: run for run in runs}
+    finished: dict[Any, FlowRun] = {}
+    with get_client(sync_client=True) as client:
+        while pending:
+            for run_id in list(pending):
+                run = client.read_flow_run(run_id)
+                if run.state is not None and run.state.is_final():
+                    del pending[run_id]
+                    finished[run_id] = run
+            if pending:
+                time.sleep(poll_seconds)
+    return [finished[run.id] for run in runs]
+
+
+def run_capture(config: RunConfig, config_path: str | Path) -> str:
+    """Capture the whole dataset on the `gpu` pool or in-process (see `capture_mode`); return the mode used."""
+    mode = capture_mode(config)
+    if mode == "deployment":
+        capture_on_workers(config, str(config_path))
+    else:
+        capture_flow(str(config_path))
+    return mode

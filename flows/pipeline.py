@@ -1,0 +1,115 @@
+"""The parent flow `latent-steering`: the seed's three phases over every concept pair and layer.
+
+1. Phase 1 (CPU): filter demo files, convert them to one LeRobot dataset, then a contrast manifest
+   and a concept map per pair.
+2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
+   in-process (`flows.capture.run_capture`), then the run metadata.
+3. Fan-out (CPU) over every (pair, layer): slice residuals by concept, SAE statistics per concept,
+   directions per pair; then per layer the pairwise statistics, the report and its artifacts.
+
+Every task is cached on the content of its inputs (`tasks.cache`): a re-run on unchanged inputs
+reads every result from the cache, and a new demo file recomputes only what depends on it. After a
+successful run the demo sources are recorded for the scheduled refresh (`flows.refresh`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger
+from prefect.futures import PrefectFuture
+from prefect.task_runners import ThreadPoolTaskRunner
+
+from flows.capture import run_capture
+from steering_core.config import RunConfig, load_run_config
+from steering_core.refresh import SOURCES_RECORD_FILE, read_sources_record, scan_sources, write_sources_record
+from steering_core.steering import SIDES
+from tasks import capture as capture_tasks
+from tasks import data, report, sae
+from tasks.artifacts import publish_layer_report
+from tasks.cache import rooted
+
+PIPELINE_FLOW = "latent-steering"
+
+
+@flow(name=PIPELINE_FLOW, task_runner=ThreadPoolTaskRunner(), log_prints=False)
+def latent_steering(config_path: str) -> dict[str, Any]:
+    """Run the whole pipeline described by a run config (YAML); return where its outputs are."""
+    logger = get_run_logger()
+    config_path = str(Path(config_path).resolve())
+    config = load_run_config(config_path)
+    record_path = config.output_root / SOURCES_RECORD_FILE
+    sources = scan_sources(config.sources.folders, previous=read_sources_record(record_path))
+
+    tasks = prepare_data(config)
+    mode = run_capture(config, config_path)
+    logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
+    reports = steering_vectors(config, tasks)
+
+    for layer_path in reports.values():
+        publish_layer_report(Path(layer_path), config.name)
+    write_sources_record(record_path, sources.with_config(config.fingerprint()))
+    logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
+    return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
+            "reports": {str(layer): path for layer, path in reports.items()}}
+
+
+def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
+    """Run phase 1; return pair -> (positive, negative) task texts as the dataset spells them."""
+    root, dataset_root, repo_id = config.output_root, str(config.dataset_root), config.dataset.repo_id
+    rooted(data.filter_demos, root)([str(f) for f in config.sources.folders], str(config.filtered_dir),
+                                    config.filter_settings())
+    rooted(data.convert_dataset, root)(str(config.filtered_dir), dataset_root, config.convert_settings())
+    manifests: dict[str, PrefectFuture] = {}
+    maps: dict[str, PrefectFuture] = {}
+    for pair in config.pairs:
+        manifests[pair.name] = rooted(data.build_manifest, root).submit(
+            pair.name, dataset_root, pair.positive, pair.negative, pair.manifest, repo_id,
+            str(config.manifest_path(pair)))
+        maps[pair.name] = rooted(data.map_concepts, root).submit(
+            pair.name, str(config.manifest_path(pair)), dataset_root, repo_id, pair.rename,
+            str(config.concept_map_path(pair)), wait_for=[manifests[pair.name]])
+    for future in maps.values():
+        future.result()
+    return {name: tuple(future.result()["tasks"]) for name, future in manifests.items()}
+
+
+def steering_vectors(config: RunConfig, tasks: dict[str, tuple[str, str]]) -> dict[int, str]:
+    """Run the SAE phase over every (pair, layer); return layer -> its output folder."""
+    root, run_dir = config.output_root, str(config.run_dir)
+    slices = {
+        (pair.name, layer): rooted(capture_tasks.slice_layer, root).submit(
+            pair.name, layer, run_dir, str(config.concept_map_path(pair)), str(config.slices_dir(pair)),
+            config.slice_settings(layer))
+        for layer in config.layers for pair in config.pairs
+    }
+    stats: dict[tuple[str, int, str], PrefectFuture] = {}
+    specs = {}
+    for layer in config.layers:
+        concepts = {pair.name: slices[pair.name, layer].result()["concepts"] for pair in config.pairs}
+        pairs_config = config.pairs_config(layer, tasks, concepts)
+        path = config.pairs_config_path(layer)
+        rooted(sae.write_pairs_config, root)(layer, pairs_config, str(path))
+        settings = config.steering_settings(layer)
+        for spec in pairs_config.pairs:
+            specs[spec.name, layer] = spec
+            for side in SIDES:
+                label, concept_path = getattr(spec, f"{side}_label"), getattr(spec, f"{side}_path")
+                stats[spec.name, layer, side] = rooted(sae.encode_concept, root).submit(
+                    spec.name, side, layer, label, str(path.parent / concept_path), settings)
+    directions = {
+        key: rooted(sae.pair_directions, root).submit(
+            spec, key[1], stats[(*key, "positive")].result()["stats"], stats[(*key, "negative")].result()["stats"],
+            config.steering_settings(key[1]))
+        for key, spec in specs.items()
+    }
+    reports = {}
+    for layer in config.layers:
+        layer_path, names = str(config.layer_path(layer)), [pair.name for pair in config.pairs]
+        for name in names:
+            directions[name, layer].result()
+        rooted(report.pairwise_stats, root)(layer, layer_path, names)
+        rooted(report.write_report, root)(layer, layer_path, names, config.steering.top_k)
+        reports[layer] = layer_path
+    return reports

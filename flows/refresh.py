@@ -1,0 +1,48 @@
+"""The scheduled flow `latent-steering-refresh`: re-run the pipeline only when the demo sources changed.
+
+It compares the sha256 of every demo file (and the run config's fingerprint) with the record the
+pipeline wrote after its last successful run. Nothing changed: it ends at once, saying so.
+Something changed: it runs the pipeline, which is incremental (new episodes are appended and
+captured, cached steps whose inputs did not change are reused). As a deployment it starts the
+pipeline deployment, whose concurrency limit of 1 keeps it from overlapping a manual run; its
+own deployment limit keeps two refreshes from running at once.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import flow, get_run_logger, runtime
+from prefect.deployments import run_deployment
+
+from flows.pipeline import latent_steering
+from steering_core.config import load_run_config
+from steering_core.refresh import SOURCES_RECORD_FILE, diff_sources, read_sources_record, scan_sources
+
+REFRESH_FLOW = "latent-steering-refresh"
+
+
+@flow(name=REFRESH_FLOW, log_prints=False)
+def refresh(config_path: str, rehash: bool = False) -> dict[str, Any]:
+    """Run the pipeline if demo files were added, changed or removed (or the config changed) since its last success."""
+    logger = get_run_logger()
+    config_path = str(Path(config_path).resolve())
+    config = load_run_config(config_path)
+    previous = read_sources_record(config.output_root / SOURCES_RECORD_FILE)
+    current = scan_sources(config.sources.folders, previous=previous, rehash=rehash)
+    changes = diff_sources(previous, current, config_fingerprint=config.fingerprint())
+    if not changes:
+        logger.info("no demo file added, changed or removed since the last successful run (%d files checked); "
+                    "nothing to do", len(current.files))
+        return {"ran": False, "changes": changes.describe()}
+    logger.info("since the last successful run: %s", changes.describe())
+    if runtime.deployment.id:
+        run = run_deployment(config.orchestration.pipeline_deployment, parameters={"config_path": config_path},
+                             poll_interval=config.orchestration.poll_seconds)
+        if run.state is None or not run.state.is_completed():
+            raise RuntimeError(f"pipeline run {run.name} ended {run.state.name if run.state else 'without a state'}; "
+                               "see it in the Prefect UI")
+    else:
+        latent_steering(config_path)
+    return {"ran": True, "changes": changes.describe()}
