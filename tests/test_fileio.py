@@ -1,0 +1,76 @@
+"""Atomic writes leave either the old or the new content, never a partial file or a stray temp."""
+
+import hashlib
+import json
+import os
+import stat
+
+import pytest
+
+from steering_core.fileio import atomic_dir, atomic_path, read_json, sha256_file, sha256_json, write_json
+
+
+def test_atomic_path_replaces_only_on_success(tmp_path):
+    target = tmp_path / "out.json"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("crash")
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]
+    with atomic_path(target) as tmp:
+        tmp.write_text("new")
+    assert target.read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]
+
+
+def test_atomic_files_get_umask_mode(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_json(tmp_path / "a.json", {"x": 1})
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o644
+
+
+def test_atomic_dir_builds_aside_then_swaps(tmp_path):
+    target = tmp_path / "dataset"
+    with atomic_dir(target) as build:
+        assert not build.exists()
+        build.mkdir()
+        (build / "f.txt").write_text("v1")
+    assert (target / "f.txt").read_text() == "v1"
+    with pytest.raises(FileExistsError, match="already exists"):
+        with atomic_dir(target):
+            pass
+    with pytest.raises(RuntimeError):
+        with atomic_dir(target, overwrite=True) as build:
+            build.mkdir()
+            (build / "f.txt").write_text("v2-partial")
+            raise RuntimeError("crash")
+    assert (target / "f.txt").read_text() == "v1"
+    with atomic_dir(target, overwrite=True) as build:
+        build.mkdir()
+        (build / "f.txt").write_text("v2")
+    assert (target / "f.txt").read_text() == "v2"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dataset"]
+
+
+def test_read_json_errors_name_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.json: file not found"):
+        read_json(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"a": 1,\n}')
+    with pytest.raises(ValueError, match=r"bad.json: not valid JSON \(line 2, column 1"):
+        read_json(bad)
+    write_json(tmp_path / "ok.json", {"ü": [1, 2]})
+    assert read_json(tmp_path / "ok.json") == {"ü": [1, 2]}
+
+
+def test_hashes_match_hashlib(tmp_path):
+    blob = os.urandom(3 * (1 << 20) + 17)  # spans several read chunks
+    (tmp_path / "blob").write_bytes(blob)
+    assert sha256_file(tmp_path / "blob") == hashlib.sha256(blob).hexdigest()
+    assert sha256_json({"b": 1, "a": [1, 2]}) == sha256_json({"a": [1, 2], "b": 1})
+    assert sha256_json({"a": 1}) == hashlib.sha256(json.dumps({"a": 1}).replace(" ", "").encode()).hexdigest()
