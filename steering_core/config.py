@@ -354,14 +354,17 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
     try:
         return RunConfig.model_validate(data, context={"base_dir": path.resolve().parent})
     except ValidationError as err:
-        raise ValueError("\n".join(f"{path}: {line}" for line in format_errors(err))) from None
+        raise ValueError("\n".join(f"{path}: {line}" for line in format_errors(err, data))) from None
 
 
-def format_errors(err: ValidationError) -> list[str]:
-    """Return one `key path: message` line per validation error, e.g. `pairs[1].positive: field required`."""
+def format_errors(err: ValidationError, data: Any = None) -> list[str]:
+    """Return one `key path: message` line per validation error, e.g. `pairs[1].positive: field required`.
+
+    With the validated `data`, list positions print as `[i]` and mapping keys as `.key` (`sae.12`).
+    """
     lines = []
     for error in err.errors(include_url=False):
-        key = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in error["loc"]).lstrip(".")
+        key = _key_path(error["loc"], data)
         message = error["msg"].removeprefix("Value error, ")
         message = message[:1].lower() + message[1:]
         if error["type"] == "extra_forbidden":
@@ -370,6 +373,19 @@ def format_errors(err: ValidationError) -> list[str]:
             message = f"set by the run config: use `{instead}`" if instead else "unknown key (check its spelling and section)"
         lines.append(f"{key}: {message}" if key else message)
     return lines
+
+
+def _key_path(loc: tuple[Any, ...], data: Any) -> str:
+    """Return a YAML key path for an error location: `pairs[1].manifest.pad`."""
+    parts, node = [], data
+    for part in loc:
+        in_list = isinstance(node, list) or (node is None and isinstance(part, int))
+        parts.append(f"[{part}]" if in_list else f".{part}")
+        try:
+            node = node[part] if isinstance(node, (list, dict)) else None
+        except (IndexError, KeyError):
+            node = None
+    return "".join(parts).lstrip(".")
 
 
 def write_run_config(config: RunConfig, path: str | os.PathLike) -> Path:

@@ -1,0 +1,203 @@
+"""Run config: YAML loading, path resolution, each step's settings, and errors naming file and key path."""
+
+import json
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from steering_core.capture import CaptureSettings
+from steering_core.config import RunConfig, load_run_config, write_run_config
+from steering_core.slicing import SliceSettings
+from steering_core.steering import PairsConfig, SteeringSettings
+
+VALID = """\
+name: drawer_stove
+sources:
+  folders: [demos, /abs/more_demos]
+dataset: {repo_id: libero_ds, image_size: 64}
+pairs:
+  - name: open_vs_close
+    positive: open the top drawer of the cabinet
+    negative: close the top drawer of the cabinet
+  - name: on_vs_off
+    positive: turn on the stove
+    negative: turn off the stove
+    rename: {turn on the stove: stove_on}
+    manifest: {pad: 3}
+layers: [2, 1]
+model: {checkpoint: ckpt, tokenizer: tok/tokenizer.model, arch: {width: 64, depth: 4}}
+capture: {batch_size: 8, storage_dtype: bfloat16}
+slicing: {reduce: frame}
+sae:
+  2: {release: gemma-2b-it-res-jb, sae_id: blocks.12.hook_resid_post}
+  1: {path: saes/one}
+steering: {top_k: 7, include_decoder_bias: true}
+"""
+
+
+def write_yaml(tmp_path: Path, text: str, name: str = "run.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text), encoding="utf-8")
+    return path
+
+
+def load_error(tmp_path: Path, text: str) -> list[str]:
+    path = write_yaml(tmp_path, text)
+    with pytest.raises(ValueError) as err:
+        load_run_config(path)
+    prefix = f"{path}: "
+    lines = str(err.value).splitlines()
+    assert all(line.startswith(prefix) for line in lines), lines
+    return [line.removeprefix(prefix) for line in lines]
+
+
+def test_valid_config_resolves_paths_against_its_file(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID))
+    assert config.sources.folders == (tmp_path / "demos", Path("/abs/more_demos"))
+    assert config.output_root == tmp_path / "data"  # default `data`, next to the file
+    assert config.model.checkpoint == tmp_path / "ckpt"
+    assert config.sae[1].path == tmp_path / "saes/one"
+    assert config.layers == (1, 2)
+    # the seed's layout under output_root
+    assert config.dataset_root == tmp_path / "data/libero_lerobot/libero_ds"
+    assert config.filtered_dir == tmp_path / "data/libero_filtered/demos"
+    assert config.manifest_path(config.pairs[1]) == tmp_path / "data/manifests/on_vs_off.json"
+    assert config.concept_map_path(config.pairs[0]) == tmp_path / "data/manifests/open_vs_close_concept_map.json"
+    assert config.run_dir == tmp_path / "data/residuals/drawer_stove"
+    assert config.slices_dir(config.pairs[0]) == tmp_path / "data/residuals/open_vs_close_slices"
+    assert config.pairs_config_path(2) == tmp_path / "data/latent_steering/layer02_pairs.json"
+
+
+def test_each_step_gets_its_own_full_settings(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID))
+    capture = config.capture_settings()
+    assert isinstance(capture, CaptureSettings)
+    assert (capture.checkpoint_path, capture.tokenizer_path) == (tmp_path / "ckpt", tmp_path / "tok/tokenizer.model")
+    assert capture.layers == (1, 2) and capture.batch_size == 8 and capture.storage_dtype == "bfloat16"
+    assert capture.arch.width == 64
+
+    sliced = config.slice_settings(2)
+    assert isinstance(sliced, SliceSettings)
+    assert (sliced.layers, sliced.token_type, sliced.reduce) == ((2,), "instructions", "frame")
+
+    with_release, with_path = config.steering_settings(2), config.steering_settings(1)
+    assert isinstance(with_release, SteeringSettings)
+    assert (with_release.sae, with_release.sae_id, with_release.layer) == (
+        "gemma-2b-it-res-jb", "blocks.12.hook_resid_post", 2)
+    assert with_path.sae == str(tmp_path / "saes/one")
+    assert with_path.output_root == tmp_path / "data/latent_steering"
+    assert with_path.pairs_config == tmp_path / "data/latent_steering/layer01_pairs.json"
+    assert (with_path.top_k, with_path.include_decoder_bias) == (7, True)
+
+    convert = config.convert_settings()
+    assert (convert.repo_id, convert.image_size, convert.orientation) == ("libero_ds", 64, "rotate180")
+    # no tasks and no globs: the pairs' four task texts are selected
+    assert config.filter_settings().tasks == (
+        "open the top drawer of the cabinet", "close the top drawer of the cabinet",
+        "turn on the stove", "turn off the stove")
+
+
+def test_layer_without_sae_gets_residual_directions_only(tmp_path):
+    text = VALID.replace("  1: {path: saes/one}\n", "")
+    config = load_run_config(write_yaml(tmp_path, text))
+    assert config.sae_for(1) is None and config.steering_settings(1).sae is None
+
+
+def test_write_and_reload_round_trip(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID))
+    moved = tmp_path / "elsewhere" / "copy.yaml"
+    moved.parent.mkdir()
+    write_run_config(config, moved)
+    again = load_run_config(moved)
+    assert again == config
+    assert again.fingerprint() == config.fingerprint()
+
+
+def test_missing_field_names_file_and_key_path(tmp_path):
+    text = VALID.replace("    positive: turn on the stove\n", "")
+    assert load_error(tmp_path, text) == ["pairs[1].positive: field required"]
+
+
+def test_every_problem_is_reported_at_once(tmp_path):
+    text = (VALID.replace("manifest: {pad: 3}", "manifest: {pad: -1, padding: 4}")
+            .replace("batch_size: 8", "batch_size: 0, layers: [3]")
+            .replace("reduce: frame", "reduce: frame, token_type: prompt"))
+    assert load_error(tmp_path, text) == [
+        "pairs[1].manifest.pad: input should be greater than or equal to 0",
+        "pairs[1].manifest.padding: unknown key (check its spelling and section)",
+        "capture.batch_size: input should be greater than or equal to 1",
+        "capture.layers: set by the run config: use `layers`",
+        "slicing.token_type: set by the run config: use `capture.token_type`",
+    ]
+
+
+def test_cross_section_errors(tmp_path):
+    text = VALID.replace("layers: [2, 1]", "layers: [1, 4]").replace("  2: {release", "  3: {release")
+    assert load_error(tmp_path, text) == [
+        "layers [4] out of range: model.arch has 4 decoder layers (0..3); "
+        "sae has entries for layers [3] that are not in layers [1, 4]"
+    ]
+    duplicate = VALID.replace("name: on_vs_off", "name: open_vs_close")
+    assert load_error(tmp_path, duplicate) == [
+        "pairs: pairs[0] and pairs[1] are both named 'open_vs_close'; names must be unique"
+    ]
+    same_task = VALID.replace("negative: turn off the stove", "negative: Turn on the stove")
+    assert load_error(tmp_path, same_task) == [
+        "pairs[1]: positive and negative are both 'turn on the stove'; a pair needs two different tasks"
+    ]
+
+
+def test_sae_section_needs_exactly_one_source(tmp_path):
+    text = VALID.replace("1: {path: saes/one}", "1: {path: saes/one, release: gemma-2b-res-jb}")
+    assert load_error(tmp_path, text) == [
+        "sae.1: give exactly one of `release` (with optional `sae_id`) or `path`"
+    ]
+
+
+def test_unsafe_pair_name_and_bad_yaml(tmp_path):
+    assert load_error(tmp_path, VALID.replace("name: on_vs_off", "name: on/off"))[0].startswith(
+        "pairs[1].name: string should match pattern")
+    broken = write_yaml(tmp_path, "pairs: [\n  - {name: x\n", "broken.yaml")
+    with pytest.raises(ValueError, match=r"broken\.yaml: not valid YAML \(line \d+, column \d+: "):
+        load_run_config(broken)
+    listing = write_yaml(tmp_path, "- just\n- a list\n", "list.yaml")
+    with pytest.raises(ValueError, match=r"list\.yaml: expected a mapping of sections .* found list"):
+        load_run_config(listing)
+    with pytest.raises(FileNotFoundError, match=r"nope\.yaml: run config not found"):
+        load_run_config(tmp_path / "nope.yaml")
+
+
+def test_pairs_config_uses_dataset_texts_renames_and_relative_paths(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID))
+    slices = tmp_path / "data/residuals"
+    concepts = {
+        "open_vs_close": {"open the top drawer of the cabinet": str(slices / "a/open.pt"),
+                          "close the top drawer of the cabinet": str(slices / "a/close.pt")},
+        "on_vs_off": {"stove_on": str(slices / "b/on.pt"), "turn off the stove": str(slices / "b/off.pt")},
+    }
+    tasks = {"open_vs_close": ("open the top drawer of the cabinet", "close the top drawer of the cabinet"),
+             "on_vs_off": ("turn on the stove", "turn off the stove")}
+    pairs = config.pairs_config(1, tasks, concepts)
+    assert isinstance(pairs, PairsConfig)
+    on = pairs.pairs[1]
+    assert (on.positive_label, on.positive_path) == ("stove_on", "../residuals/b/on.pt")
+    # the written file is the seed's format and its paths resolve against its own folder
+    written = config.pairs_config_path(1)
+    written.parent.mkdir(parents=True)
+    written.write_text(json.dumps(pairs.model_dump()))
+    assert (written.parent / json.loads(written.read_text())["pairs"][0]["negative_path"]).resolve() == (
+        slices / "a/close.pt")
+
+    del concepts["on_vs_off"]["stove_on"]
+    with pytest.raises(ValueError, match=r"pair 'on_vs_off': no slice for concept\(s\) \['stove_on'\]"):
+        config.pairs_config(1, tasks, concepts)
+
+
+def test_python_construction_keeps_paths_as_given():
+    config = RunConfig.model_validate({
+        "sources": {"folders": ["demos"]}, "dataset": {"repo_id": "r"},
+        "pairs": [{"name": "p", "positive": "a", "negative": "b"}],
+        "model": {"checkpoint": "ckpt", "tokenizer": "tok"},
+    })
+    assert config.sources.folders == (Path("demos"),) and config.output_root == Path("data")
