@@ -1,0 +1,303 @@
+"""The parent flow end to end in Prefect's test harness, on the generated demo inputs.
+
+One module-wide sequence, each step a fixture building on the previous one:
+1. a first run with a fault injected into one task (retried: its state history shows it);
+   its outputs equal the CLI steps run one by one on the same inputs;
+2. a second run on unchanged inputs: every task run is `Cached` (read through Prefect's API);
+3. a refresh with nothing changed ends at once without running the pipeline;
+4. one demo file added, then a refresh: only its episodes are captured, only the pair it
+   belongs to is recomputed, existing shards are untouched.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+from uuid import UUID
+
+import pytest
+import torch
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import (
+    ArtifactFilter,
+    ArtifactFilterKey,
+    FlowRunFilter,
+    FlowRunFilterId,
+    FlowRunFilterParentFlowRunId,
+)
+from prefect.testing.utilities import prefect_test_harness
+from safetensors.torch import load_file
+from typer.testing import CliRunner
+
+from flows.pipeline import latent_steering
+from flows.refresh import refresh
+from steering_core import slicing
+from steering_core.cli import app
+from steering_core.config import load_run_config
+from steering_core.contrast import read_manifest
+from steering_core.convert import read_sources
+from steering_core.demo import DEMO_STEPS, build_demo
+from steering_core.fileio import read_json, sha256_file
+from steering_core.layout import layer_dir
+from steering_core.shards import read_run_metadata
+from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module", autouse=True)
+def prefect_backend():
+    with prefect_test_harness(server_startup_timeout=120):
+        yield
+
+
+@pytest.fixture(scope="module")
+def demo_config(tmp_path_factory) -> Path:
+    return build_demo(tmp_path_factory.mktemp("flows"), demos_per_task=2)
+
+
+# ----------------------------------------------------------------------------- reading runs back
+
+def flow_runs_under(client, root: UUID) -> list:
+    """Return the flow run `root` and every subflow run below it."""
+    found, frontier = [], [root]
+    while frontier:
+        runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=frontier)))
+        found += runs
+        frontier = [r.id for r in client.read_flow_runs(
+            flow_run_filter=FlowRunFilter(parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=frontier)))]
+    return found
+
+
+def task_runs_under(root: UUID) -> dict[str, object]:
+    """Return task run name -> task run for every task of `root` and its subflows (subflow stand-ins excluded)."""
+    with get_client(sync_client=True) as client:
+        runs = flow_runs_under(client, root)
+        subflow_stand_ins = {r.parent_task_run_id for r in runs}
+        tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[r.id for r in runs])))
+    named = {t.name: t for t in tasks if t.id not in subflow_stand_ins}
+    assert len(named) == len(tasks) - len(subflow_stand_ins & {t.id for t in tasks}), "task run names must be unique"
+    return named
+
+
+def shard_files(config) -> dict[str, tuple[int, str]]:
+    """Return shard file -> (mtime_ns, sha256) of the pipeline's residual run."""
+    return {str(p): (p.stat().st_mtime_ns, sha256_file(p)) for p in sorted(config.run_dir.glob("**/shard-*.safetensors"))}
+
+
+# ----------------------------------------------------------------------------- the run sequence
+
+@pytest.fixture(scope="module")
+def first_run(demo_config):
+    """Run the pipeline once, with the first slicing call failing on an I/O error (retried)."""
+    real = slicing.slice_concepts
+    lock, calls = threading.Lock(), []
+
+    def flaky(*args, **kwargs):
+        with lock:
+            calls.append(args[2])
+            first = len(calls) == 1
+        if first:
+            raise OSError("injected: shared file system hiccup")
+        return real(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(slicing, "slice_concepts", flaky)
+        state = latent_steering(str(demo_config), return_state=True)
+    assert state.is_completed(), state
+    return state.state_details.flow_run_id
+
+
+@pytest.fixture(scope="module")
+def second_run(first_run, demo_config):
+    config = load_run_config(demo_config)
+    shards_before = shard_files(config)
+    state = latent_steering(str(demo_config), return_state=True)
+    assert state.is_completed(), state
+    return state.state_details.flow_run_id, shards_before
+
+
+def test_first_run_writes_the_seed_layout(first_run, demo_config):
+    config = load_run_config(demo_config)
+    tasks = task_runs_under(first_run)
+    assert all(t.state.name == "Completed" for t in tasks.values()), {n: t.state.name for n, t in tasks.items()}
+    # one task per step, fanned out over pairs and layers
+    for pair in ("open_vs_close", "on_vs_off"):
+        assert {f"manifest {pair}", f"concept map {pair}"} <= set(tasks)
+        for layer in config.layers:
+            assert {f"slice {pair} layer {layer}", f"directions {pair} layer {layer}",
+                    f"encode {pair} positive layer {layer}", f"encode {pair} negative layer {layer}"} <= set(tasks)
+            assert (config.layer_path(layer) / pair / "latent_direction.pt").is_file()
+            assert (config.slices_dir(config.pair(pair)) / layer_dir(layer) / "index.json").is_file()
+    assert {"capture episodes 0-7", "pairwise stats layer 1", "report layer 2"} <= set(tasks)
+    assert tasks["capture episodes 0-7"].tags == ["gpu"]
+    assert read_run_metadata(config.run_dir).episodes == tuple(range(8))
+    for layer in config.layers:
+        assert (config.layer_path(layer) / "summary.md").is_file()
+        assert read_json(config.pairs_config_path(layer))["pairs"][0]["name"] == "open_vs_close"
+
+
+def test_injected_fault_is_retried_and_recorded(first_run):
+    tasks = task_runs_under(first_run)
+    retried = [t for t in tasks.values() if t.run_count > 1]
+    assert [t.name.split(" layer")[0].split(" ")[0] for t in retried] == ["slice"]
+    with get_client(sync_client=True) as client:
+        history = [s.name for s in client.read_task_run_states(retried[0].id)]
+    # the failed attempt waits out its retry delay, then the second attempt completes
+    assert history[history.index("Running"):] == ["Running", "AwaitingRetry", "Retrying", "Completed"], history
+    assert retried[0].state.name == "Completed"
+
+
+def test_artifacts_are_published(first_run):
+    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", "demo-layer01-summary-md",
+            "demo-layer02-plot-pairwise-cosine", "capture-demo-episodes-0-7"]
+    with get_client(sync_client=True) as client:
+        artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)))
+    by_key = {a.key: a for a in artifacts}
+    assert set(by_key) == set(keys)
+    assert by_key["capture-demo-episodes-0-7"].data == 100.0
+    assert by_key["demo-report-layer01"].data.startswith("# Steering vectors, layer01")
+    assert by_key["demo-layer01-summary-md"].type == "markdown" and "file://" in by_key["demo-layer01-summary-md"].data
+    assert by_key["demo-pairwise-cosines-layer02"].type == "table"
+    assert "open_vs_close__on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
+
+
+def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
+    """Run the seed's steps one by one through the CLI on the same inputs; every output must be equal."""
+    config = load_run_config(demo_config)
+    out, repo = tmp_path / "cli", config.dataset.repo_id
+    dataset, run_dir = out / "libero_lerobot" / repo, out / "residuals" / "demo"
+    arch_file = tmp_path / "arch.json"
+    arch_file.write_text(config.model.arch.model_dump_json())
+    layers = ",".join(map(str, config.layers))
+    tasks = [text for pair in config.pairs for text in (pair.positive, pair.negative)]
+    steps = [
+        ["filter", "--input-dir", str(config.sources.folders[0]), "--output-dir", str(out / "filtered"),
+         *[arg for task in tasks for arg in ("--task", task)]],
+        ["convert", "--input-dir", str(out / "filtered"), "--repo-id", repo, "--output-dir", str(dataset),
+         "--image-size", str(config.dataset.image_size)],
+    ]
+    for pair in config.pairs:
+        manifest, concept_map = out / "manifests" / f"{pair.name}.json", out / "manifests" / f"{pair.name}_map.json"
+        steps += [
+            ["manifest", "--lerobot-root", str(dataset), "--task-a-text", pair.positive, "--task-b-text",
+             pair.negative, "--output", str(manifest), "--repo-id", repo],
+            ["concept-map", "--manifest-path", str(manifest), "--output-path", str(concept_map),
+             "--lerobot-root", str(dataset), "--repo-id", repo],
+        ]
+    steps.append(["capture", "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path",
+                  str(config.model.tokenizer), "--lerobot-root", str(dataset), "--repo-id", repo, "--output-dir",
+                  str(run_dir), "--layers", layers, "--batch-size", str(config.capture.batch_size), "--device", "cpu",
+                  "--num-workers", "0", "--arch-file", str(arch_file)])
+    steps += [["slice", "--run-dir", str(run_dir), "--concept-map-path", str(out / "manifests" / f"{p.name}_map.json"),
+               "--output-dir", str(out / "residuals" / f"{p.name}_slices"), "--layers", layers] for p in config.pairs]
+    runner = CliRunner()
+    for step in steps:
+        result = runner.invoke(app, step)
+        assert result.exit_code == 0, (step[0], result.output, result.exception)
+    for layer in config.layers:
+        pairs = {"pairs": [{
+            "name": p.name,
+            "positive_label": p.positive, "negative_label": p.negative,
+            "positive_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.positive}.pt"),
+            "negative_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.negative}.pt"),
+        } for p in config.pairs]}
+        pairs_file = out / f"layer{layer}_pairs.json"
+        pairs_file.write_text(json.dumps(pairs))
+        result = runner.invoke(app, [
+            "steer", "--pairs-config", str(pairs_file), "--output-root", str(out / "latent_steering"),
+            "--layer", str(layer), "--device", "cpu", "--batch-size", str(config.steering.batch_size),
+            "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k)])
+        assert result.exit_code == 0, (result.output, result.exception)
+
+    for pair in config.pairs:
+        ours, theirs = read_manifest(config.manifest_path(pair)), read_manifest(out / "manifests" / f"{pair.name}.json")
+        assert (ours.axis, ours.segments) == (theirs.axis, theirs.segments)
+        assert (read_json(config.concept_map_path(pair))["concepts"]
+                == read_json(out / "manifests" / f"{pair.name}_map.json")["concepts"])
+    # shards are byte-identical: same rows, same dtype, same header
+    assert ([(r.file, r.sha256) for r in read_run_metadata(config.run_dir).shards]
+            == [(r.file, r.sha256) for r in read_run_metadata(run_dir).shards])
+    for layer in config.layers:
+        for pair in config.pairs:
+            for concept in (pair.positive, pair.negative):
+                name = f"{concept}.pt"
+                assert torch.equal(
+                    torch.load(config.slices_dir(pair) / layer_dir(layer) / name, weights_only=True),
+                    torch.load(out / "residuals" / f"{pair.name}_slices" / layer_dir(layer) / name, weights_only=True))
+            for stem in ("latent_direction", "residual_direction", "positive_latent_mean"):
+                ours = load_file(config.layer_path(layer) / pair.name / f"{stem}.safetensors")
+                theirs = load_file(out / "latent_steering" / layer_dir(layer) / pair.name / f"{stem}.safetensors")
+                assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
+        assert (read_json(config.layer_path(layer) / "pairwise_stats.json")["entries"]
+                == read_json(out / "latent_steering" / layer_dir(layer) / "pairwise_stats.json")["entries"])
+
+
+def test_second_run_on_unchanged_inputs_is_all_cached(second_run):
+    run_id, _ = second_run
+    tasks = task_runs_under(run_id)
+    assert len(tasks) >= 25
+    assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {}
+
+
+@pytest.fixture(scope="module")
+def unchanged_refresh(second_run, demo_config):
+    state = refresh(str(demo_config), return_state=True)
+    return state
+
+
+def test_refresh_without_changes_ends_at_once(unchanged_refresh):
+    assert unchanged_refresh.result() == {"ran": False, "changes": "0 added, 0 changed, 0 removed"}
+    with get_client(sync_client=True) as client:
+        runs = flow_runs_under(client, unchanged_refresh.state_details.flow_run_id)
+    assert len(runs) == 1  # the refresh alone: no pipeline subflow
+
+
+@pytest.fixture(scope="module")
+def added_demo_refresh(unchanged_refresh, second_run, demo_config):
+    """Add one 'open the drawer' demo file (named to sort last), then let the refresh flow react."""
+    config = load_run_config(demo_config)
+    _, shards_before = second_run
+    episodes_before = read_sources(config.dataset_root).episodes
+    task = SyntheticTask(instruction=DRAWER_OPEN, scene="LIVING_ROOM_SCENE1", motion=MotionSpec(axis=2, direction=1))
+    write_libero_file(config.sources.folders[0], task, num_demos=1,
+                      settings=SyntheticSettings(image_size=32, num_steps=DEMO_STEPS, seed=7))
+    state = refresh(str(demo_config), return_state=True)
+    assert state.is_completed(), state
+    return state, shards_before, episodes_before
+
+
+def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_config):
+    state, shards_before, episodes_before = added_demo_refresh
+    config = load_run_config(demo_config)
+    assert state.result()["ran"] is True
+    assert state.result()["changes"].startswith("1 added (LIVING_ROOM_SCENE1_open_the_top_drawer_of_the_cabinet_demo")
+
+    # the dataset grew by one episode appended after the old ones
+    episodes = read_sources(config.dataset_root).episodes
+    assert episodes[:8] == episodes_before and len(episodes) == 9 and episodes[8].file.startswith("LIVING_ROOM")
+
+    tasks = task_runs_under(state.state_details.flow_run_id)
+    recomputed = {name for name, t in tasks.items() if t.state.name != "Cached"}
+    steps = {f"{step} layer {layer}" for layer in config.layers for step in (
+        "slice open_vs_close", "encode open_vs_close positive", "directions open_vs_close", "pairwise stats", "report")}
+    assert recomputed == {
+        f"filter demos into {config.filtered_dir}", f"convert to LeRobot {config.dataset.repo_id}",
+        "manifest open_vs_close", "manifest on_vs_off", "concept map open_vs_close", "concept map on_vs_off",
+        "capture episodes 8-8", f"run metadata {config.run_dir}", *steps,
+    }
+    assert all(tasks[name].state.name == "Completed" for name in recomputed)
+    assert tasks["capture episodes 0-7"].state.name == "Cached"
+
+    # only the new episode's shards were written; every old shard is the same file as before
+    shards_after = shard_files(config)
+    assert {path: shards_after[path] for path in shards_before} == shards_before
+    assert sorted(set(shards_after) - set(shards_before)) == [
+        str(config.run_dir / "instructions" / layer_dir(layer) / "shard-00008.safetensors") for layer in config.layers]
+    assert read_run_metadata(config.run_dir).episodes == tuple(range(9))
+    # the stove pair kept its outputs; the drawer pair's positive concept grew
+    counts = read_json(config.layer_path(1) / "open_vs_close" / "directions.json")["counts"]
+    index = read_json(config.slices_dir(config.pair("open_vs_close")) / "layer01" / "index.json")
+    assert counts["positive"] == index["concepts"][DRAWER_OPEN]["rows"]
+    assert len(index["concepts"][DRAWER_OPEN]["segments"]) == 3
