@@ -1,0 +1,182 @@
+"""A real Prefect server, work pools, deployments and workers: the pipeline as users run it.
+
+Starts `prefect server start` on 127.0.0.1 (free port, SQLite in a temporary PREFECT_HOME), runs
+`latent-steering deploy`, starts one worker per pool, triggers `prefect deployment run`, and checks
+through the API that capture ran on `gpu` (two runs sharing the `gpu` concurrency limit of one) and
+the slicing and SAE tasks on `cpu`, with outputs written. Every process it started, and their
+children, is killed at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import FlowFilter, FlowFilterName, FlowRunFilter, FlowRunFilterId
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+from steering_core.config import load_run_config
+from steering_core.demo import build_demo
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parent.parent
+PREFECT = [sys.executable, "-m", "prefect"]
+LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
+RUN_TIMEOUT = 420  # seconds for the whole deployment run on a busy 2-core machine
+WORKER_GRACE = 5   # seconds a worker gets after SIGTERM before SIGKILL (they rarely stop by themselves)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def descendants(pid: int) -> list[int]:
+    """Return the pids of every live descendant of `pid` (read from /proc; flow runs start their own sessions)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, frontier = [], [pid]
+    while frontier:
+        frontier = [child for parent in frontier for child in children.get(parent, [])]
+        found += frontier
+    return found
+
+
+class Processes:
+    """Processes this test started, each in its own process group, stopped together."""
+
+    def __init__(self, env: dict[str, str], logs: Path):
+        self.env, self.logs, self.started = env, logs, []
+
+    def start(self, name: str, *args: str) -> subprocess.Popen:
+        log = open(self.logs / f"{name}.log", "w")  # noqa: SIM115  closed in stop()
+        process = subprocess.Popen(args, cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                   start_new_session=True)
+        self.started.append((process, log))
+        return process
+
+    def stop(self) -> None:
+        for process, log in reversed(self.started):
+            family = [process.pid, *descendants(process.pid)]
+            self._signal(process.pid, family, signal.SIGTERM)
+            try:
+                process.wait(timeout=WORKER_GRACE)
+            except subprocess.TimeoutExpired:
+                pass
+            self._signal(process.pid, family, signal.SIGKILL)
+            process.wait(timeout=30)
+            log.close()
+        assert not [pid for process, _ in self.started for pid in descendants(process.pid)]
+
+    @staticmethod
+    def _signal(leader: int, family: list[int], sig: int) -> None:
+        for target in (lambda: os.killpg(leader, sig), *[(lambda p=p: os.kill(p, sig)) for p in family]):
+            try:
+                target()
+            except (ProcessLookupError, PermissionError):
+                pass
+
+
+def run_cli(env: dict[str, str], *args: str, timeout: int = 180) -> str:
+    done = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    assert done.returncode == 0, f"{' '.join(args[:4])} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    return done.stdout + done.stderr
+
+
+@pytest.fixture
+def server(tmp_path):
+    """A Prefect server on a free port with its own SQLite database; yields (env, processes)."""
+    port = free_port()
+    url = f"http://127.0.0.1:{port}/api"
+    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect_home"), "PREFECT_API_URL": url,
+           "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_WORKER_QUERY_SECONDS": "2",
+           "PREFECT_UI_ENABLED": "false", "HF_HUB_OFFLINE": "1"}
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    processes = Processes(env, logs)
+    try:
+        processes.start("server", *PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port), "--no-ui")
+        deadline = time.monotonic() + 120
+        while True:  # a busy port still exits 0, so trust only the health endpoint
+            try:
+                if httpx.get(f"{url}/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, (logs / "server.log").read_text()[-3000:]
+            time.sleep(1)
+        with temporary_settings(updates={PREFECT_API_URL: url}):
+            yield env, processes
+    finally:
+        processes.stop()
+
+
+def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, tmp_path):
+    env, processes = server
+    config_path = build_demo(tmp_path / "demo", demos_per_task=2)
+    # two capture runs (4 shard groups each) so the gpu pool has work to share
+    raw = yaml.safe_load(config_path.read_text())
+    raw["orchestration"] = {"shards_per_capture_run": 4, "poll_seconds": 2}
+    config_path.write_text(yaml.safe_dump(raw))
+    config = load_run_config(config_path)
+
+    run_cli(env, LATENT_STEERING, "deploy", "--config", str(config_path), "--gpu-slots", "1")
+    with get_client(sync_client=True) as client:
+        assert {p.name for p in client.read_work_pools()} >= {"gpu", "cpu"}
+        assert client.read_concurrency_limit_by_tag("gpu").concurrency_limit == 1
+        deployments = {d.name: d for d in client.read_deployments()}
+        assert {"pipeline", "gpu", "scheduled"} <= set(deployments)
+        assert deployments["scheduled"].schedules and deployments["gpu"].work_pool_name == "gpu"
+
+    for pool in ("gpu", "cpu"):
+        processes.start(f"worker-{pool}", *PREFECT, "worker", "start", "--pool", pool)
+    output = run_cli(env, *PREFECT, "deployment", "run", "latent-steering/pipeline")
+    parent_id = re.search(r"UUID: ([0-9a-f-]{36})", output).group(1)
+
+    with get_client(sync_client=True) as client:
+        deadline = time.monotonic() + RUN_TIMEOUT
+        while not (parent := client.read_flow_run(parent_id)).state.is_final():
+            assert time.monotonic() < deadline, (tmp_path / "logs" / "worker-cpu.log").read_text()[-3000:]
+            time.sleep(2)
+        assert parent.state.is_completed(), (tmp_path / "logs" / "worker-cpu.log").read_text()[-5000:]
+        assert parent.work_pool_name == "cpu"
+
+        captures = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
+        assert len(captures) == 2
+        assert {(r.work_pool_name, r.state.name) for r in captures} == {("gpu", "Completed")}
+        assert {r.parent_task_run_id is not None for r in captures} == {True}  # linked to the parent
+
+        runs = {r.id: r for r in [parent, *captures]}
+        tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=list(runs))))
+        pool_of = {t.name: runs[t.flow_run_id].work_pool_name for t in tasks if t.id not in
+                   {r.parent_task_run_id for r in captures}}
+    assert {pool_of["capture episodes 0-3"], pool_of["capture episodes 4-7"]} == {"gpu"}
+    sae_tasks = [name for name in pool_of if name.split(" ")[0] in ("slice", "encode", "directions", "pairwise")]
+    assert len(sae_tasks) == 2 * 2 + 2 * 2 * 2 + 2 * 2 + 2  # slices, encodes, directions, pairwise per layer
+    assert {pool_of[name] for name in sae_tasks} == {"cpu"}
+
+    # the tag limit of one GPU slot kept the two capture tasks from overlapping
+    spans = sorted((t.start_time, t.end_time) for t in tasks if t.name.startswith("capture episodes"))
+    assert spans[0][1] <= spans[1][0]
+
+    assert len(list(config.run_dir.glob("**/shard-*.safetensors"))) == 8 * len(config.layers)
+    for layer in config.layers:
+        assert (config.layer_path(layer) / "summary.md").is_file()
+        assert (config.layer_path(layer) / "on_vs_off" / "residual_direction.pt").is_file()
