@@ -52,7 +52,7 @@ def capture_mode(config: RunConfig) -> str:
     return mode
 
 
-@flow(name=CAPTURE_FLOW, log_prints=False)
+@flow(name=CAPTURE_FLOW)
 def capture_flow(config_path: str, episodes: list[int] | None = None, write_metadata: bool = True) -> dict:
     """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run."""
     config = load_run_config(config_path)

@@ -33,7 +33,7 @@ from tasks.cache import rooted
 PIPELINE_FLOW = "latent-steering"
 
 
-@flow(name=PIPELINE_FLOW, task_runner=ThreadPoolTaskRunner(), log_prints=False)
+@flow(name=PIPELINE_FLOW, task_runner=ThreadPoolTaskRunner())  # threads: PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS
 def latent_steering(config_path: str) -> dict[str, Any]:
     """Run the whole pipeline described by a run config (YAML); return where its outputs are."""
     logger = get_run_logger()
@@ -42,10 +42,10 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     record_path = config.output_root / SOURCES_RECORD_FILE
     sources = scan_sources(config.sources.folders, previous=read_sources_record(record_path))
 
-    tasks = prepare_data(config)
+    task_texts = prepare_data(config)
     mode = run_capture(config, config_path)
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
-    reports = steering_vectors(config, tasks)
+    reports = steering_vectors(config, task_texts)
 
     for layer_path in reports.values():
         publish_layer_report(Path(layer_path), config.name)
@@ -75,7 +75,7 @@ def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
     return {name: tuple(future.result()["tasks"]) for name, future in manifests.items()}
 
 
-def steering_vectors(config: RunConfig, tasks: dict[str, tuple[str, str]]) -> dict[int, str]:
+def steering_vectors(config: RunConfig, task_texts: dict[str, tuple[str, str]]) -> dict[int, str]:
     """Run the SAE phase over every (pair, layer); return layer -> its output folder."""
     root, run_dir = config.output_root, str(config.run_dir)
     slices = {
@@ -88,7 +88,7 @@ def steering_vectors(config: RunConfig, tasks: dict[str, tuple[str, str]]) -> di
     specs = {}
     for layer in config.layers:
         concepts = {pair.name: slices[pair.name, layer].result()["concepts"] for pair in config.pairs}
-        pairs_config = config.pairs_config(layer, tasks, concepts)
+        pairs_config = config.pairs_config(layer, task_texts, concepts)
         path = config.pairs_config_path(layer)
         rooted(sae.write_pairs_config, root)(layer, pairs_config, str(path))
         settings = config.steering_settings(layer)

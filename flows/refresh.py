@@ -23,7 +23,7 @@ from steering_core.refresh import SOURCES_RECORD_FILE, diff_sources, read_source
 REFRESH_FLOW = "latent-steering-refresh"
 
 
-@flow(name=REFRESH_FLOW, log_prints=False)
+@flow(name=REFRESH_FLOW)
 def refresh(config_path: str, rehash: bool = False) -> dict[str, Any]:
     """Run the pipeline if demo files were added, changed or removed (or the config changed) since its last success."""
     logger = get_run_logger()

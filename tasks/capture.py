@@ -30,14 +30,15 @@ from tasks.cache import (
 )
 
 GPU_TAG = "gpu"  # a tag concurrency limit of this name caps running GPU tasks (latent-steering deploy)
+_READING_ONLY = ("num_workers", "video_backend")  # how frames are read, never what the rows hold
 
 
 # ----------------------------------------------------------------------------- input fingerprints
 
 def model_inputs(settings: CaptureSettings) -> dict[str, Any]:
-    """Return the capture settings plus the content of the files they name (checkpoint, tokenizer, norm stats)."""
+    """Return the capture settings that shape the rows, plus the content of the files they name."""
     return {
-        "settings": plain(settings),
+        "settings": plain(settings.model_dump(mode="json", exclude=set(_READING_ONLY))),
         "checkpoint": capture.checkpoint_fingerprint(resolve_model_file(settings.checkpoint_path)),
         "tokenizer": file_digest(settings.tokenizer_path),
         "norm_stats": file_digest(settings.norm_stats_path) if settings.norm_stats_path else None,

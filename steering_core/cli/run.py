@@ -21,11 +21,12 @@ EPHEMERAL_STARTUP_SECONDS = "90"
 
 
 def prefect_environment(home: Path | None = None) -> None:
-    """Set Prefect's environment for an in-process run (unless already set): startup timeout, no telemetry, offline hub."""
+    """Set Prefect's environment for an in-process run (unless already set): startup, telemetry, logs, offline hub."""
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per API call otherwise
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", EPHEMERAL_STARTUP_SECONDS)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "steering_core")  # library logs reach the Prefect UI
     if home is not None:
         os.environ.setdefault("PREFECT_HOME", str(home))
 
