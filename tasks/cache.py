@@ -66,15 +66,6 @@ def file_digest(path: str | os.PathLike) -> str:
     return _DIGESTS[memo]
 
 
-def files_digest(paths: Iterable[str | os.PathLike] | str | os.PathLike | None) -> Any:
-    """Return {path: sha256} of one path or many (None stays None): a parameter fingerprint."""
-    if paths is None:
-        return None
-    if isinstance(paths, (str, os.PathLike)):
-        return file_digest(paths)
-    return {str(p): file_digest(p) for p in paths}
-
-
 def tree_listing(folders: Iterable[str | os.PathLike], pattern: str = "*.hdf5") -> list[tuple[str, int, int]]:
     """Return (path, size, mtime_ns) of each file matching `pattern` directly in the folders: a cheap fingerprint.
 
@@ -96,15 +87,14 @@ def plain(value: Any) -> Any:
         return str(value)
     if isinstance(value, Mapping):
         return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set, frozenset)):
-        items = [plain(v) for v in value]
-        return sorted(items, key=repr) if isinstance(value, (set, frozenset)) else items
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
     return value
 
 
 # ----------------------------------------------------------------------------- code version
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _module_file(name: str) -> Path | None:
     """Return the source file of project module `name` (found by path, never imported), or None if not a module."""
     top = name.split(".")[0]
@@ -138,14 +128,19 @@ def _project_imports(name: str, path: Path) -> set[str]:
 _AST_LOCK = threading.Lock()  # CPython 3.11's ast.parse is not safe in concurrent threads (recursion-depth check)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def code_version(*modules: str) -> str:
     """Return the sha256 of the source of `modules` and every project module they import, transitively."""
+    return sha256_json(code_modules(*modules))
+
+
+def code_modules(*modules: str) -> dict[str, str]:
+    """Return module name -> sha256 of its source for `modules` and every project module they import."""
     with _AST_LOCK:
-        return _code_version(modules)
+        return _code_modules(modules)
 
 
-def _code_version(modules: tuple[str, ...]) -> str:
+def _code_modules(modules: tuple[str, ...]) -> dict[str, str]:
     seen: dict[str, str] = {}
     pending = list(modules)
     while pending:
@@ -157,7 +152,7 @@ def _code_version(modules: tuple[str, ...]) -> str:
             raise ValueError(f"code_version: module {name!r} has no Python source file; expected a steering_core module")
         seen[name] = hashlib.sha256(path.read_bytes()).hexdigest()
         pending.extend(_project_imports(name, path) - seen.keys())
-    return sha256_json(seen)
+    return dict(sorted(seen.items()))
 
 
 # ----------------------------------------------------------------------------- retries
@@ -184,7 +179,7 @@ def retry_on(*errors: type[BaseException]) -> Callable[[Task, Any, State], bool]
 class ContentKey(CachePolicy):
     """Cache key = task source + code version of `modules` + every parameter by content.
 
-    `fingerprints` maps a parameter name to a function of its value (e.g. `files_digest` for a
+    `fingerprints` maps a parameter name to a function of its value (e.g. `file_digest` for a
     path); other parameters count by value (settings models by their JSON). `derived` adds
     fingerprints computed from all parameters (e.g. the shards a concept map's episodes live in).
     Names in `ignore` do not count (e.g. a label only used in the task run's name).
@@ -199,17 +194,17 @@ class ContentKey(CachePolicy):
     def compute_key(
         self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any
     ) -> str:
-        fn = task_ctx.task.fn
+        task_fn = task_ctx.task.fn
         identity = {
-            "task": f"{fn.__module__}.{fn.__qualname__}",
-            "source": hashlib.sha256(inspect.getsource(fn).encode()).hexdigest(),
+            "task": f"{task_fn.__module__}.{task_fn.__qualname__}",
+            "source": hashlib.sha256(inspect.getsource(task_fn).encode()).hexdigest(),
             "code": code_version(*self.modules) if self.modules else "",
             "inputs": {
                 name: self.fingerprints.get(name, plain)(value)
                 for name, value in sorted(inputs.items())
                 if name not in self.ignore
             },
-            "derived": {name: fn(inputs) for name, fn in sorted(self.derived.items())},
+            "derived": {name: fingerprint(inputs) for name, fingerprint in sorted(self.derived.items())},
         }
         key = sha256_json(identity)
         if self.store is not None:
@@ -233,7 +228,7 @@ def _drop_if_outputs_missing(record_path: Path) -> None:
         return
     try:
         result = ResultRecord.deserialize(record_path.read_bytes()).result
-    except Exception as err:  # a damaged record must not block the run: recompute instead
+    except Exception as err:  # noqa: BLE001  a damaged record must not block the run: recompute instead
         logger.warning("%s: unreadable cache record (%s); the task will run again", record_path, err)
         record_path.unlink(missing_ok=True)
         return

@@ -12,7 +12,7 @@ from steering_core.convert import ConvertSettings
 from steering_core.dataset import dataset_fingerprint
 from steering_core.filtering import FilterSettings
 from steering_core.layout import SELECTION_FILE
-from tasks.cache import OUTPUTS, content_key, file_digest, retry_on, tree_listing, IO_RETRIES, IO_RETRY_DELAYS, RESULTS
+from tasks.cache import IO_RETRIES, IO_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, file_digest, retry_on, tree_listing
 
 
 def selection_digest(folder: str) -> str:

@@ -134,10 +134,10 @@ def test_every_problem_is_reported_at_once(tmp_path):
 
 def test_cross_section_errors(tmp_path):
     text = VALID.replace("layers: [2, 1]", "layers: [1, 4]").replace("  2: {release", "  3: {release")
-    assert load_error(tmp_path, text) == [
+    assert load_error(tmp_path, text) == [(
         "layers [4] out of range: model.arch has 4 decoder layers (0..3); "
         "sae has entries for layers [3] that are not in layers [1, 4]"
-    ]
+    )]
     duplicate = VALID.replace("name: on_vs_off", "name: open_vs_close")
     assert load_error(tmp_path, duplicate) == [
         "pairs: pairs[0] and pairs[1] are both named 'open_vs_close'; names must be unique"

@@ -1,9 +1,10 @@
 """The parent flow end to end in Prefect's test harness, on the generated demo inputs.
 
 One module-wide sequence, each step a fixture building on the previous one:
-1. a first run with a fault injected into one task (retried: its state history shows it);
-   its outputs equal the CLI steps run one by one on the same inputs;
-2. a second run on unchanged inputs: every task run is `Cached` (read through Prefect's API);
+1. `latent-steering demo` with a fault injected into one task (retried: its state history shows
+   it); its outputs equal the CLI steps run one by one on the same inputs;
+2. `latent-steering run --config` on unchanged inputs: every task run is `Cached` (read through
+   Prefect's API);
 3. a refresh with nothing changed ends at once without running the pipeline;
 4. one demo file added, then a refresh: only its episodes are captured, only the pair it
    belongs to is recomputed, existing shards are untouched.
@@ -12,36 +13,53 @@ One module-wide sequence, each step a fixture building on the previous one:
 from __future__ import annotations
 
 import json
+import os
 import threading
 from pathlib import Path
 from uuid import UUID
 
 import pytest
 import torch
+from prefect import flow, task
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (
     ArtifactFilter,
     ArtifactFilterKey,
+    FlowFilter,
+    FlowFilterName,
     FlowRunFilter,
     FlowRunFilterId,
     FlowRunFilterParentFlowRunId,
 )
+from prefect.client.schemas.sorting import FlowRunSort
+from prefect.states import Failed
 from prefect.testing.utilities import prefect_test_harness
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
-from flows.pipeline import latent_steering
+from flows.pipeline import PIPELINE_FLOW
 from flows.refresh import refresh
-from steering_core import slicing
+from steering_core import fileio, slicing
 from steering_core.cli import app
 from steering_core.config import load_run_config
 from steering_core.contrast import read_manifest
 from steering_core.convert import read_sources
-from steering_core.demo import DEMO_STEPS, build_demo
+from steering_core.demo import DEMO_STEPS, format_summary, summarise
 from steering_core.fileio import read_json, sha256_file
 from steering_core.layout import layer_dir
 from steering_core.shards import read_run_metadata
 from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
+from tasks.cache import (
+    CACHE_DIR,
+    OUTPUTS,
+    RESULTS,
+    code_modules,
+    code_version,
+    content_key,
+    file_digest,
+    retry_on,
+    rooted,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -53,8 +71,81 @@ def prefect_backend():
 
 
 @pytest.fixture(scope="module")
-def demo_config(tmp_path_factory) -> Path:
-    return build_demo(tmp_path_factory.mktemp("flows"), demos_per_task=2)
+def demo_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("flows") / "demo_output"
+
+
+@pytest.fixture(scope="module")
+def demo_config(first_run, demo_dir) -> Path:
+    return demo_dir / "run.yaml"
+
+
+def invoke(*args: str):
+    """Run a CLI command in this process; environment variables it sets are undone afterwards."""
+    saved = dict(os.environ)
+    try:
+        result = CliRunner().invoke(app, list(args))
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    assert result.exit_code == 0, (args[0], result.output, result.exception)
+    return result
+
+
+def latest_pipeline_run() -> UUID:
+    """Return the id of the most recent `latent-steering` flow run."""
+    with get_client(sync_client=True) as client:
+        runs = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=[PIPELINE_FLOW])),
+                                     sort=FlowRunSort.START_TIME_DESC, limit=1)
+    return runs[0].id
+
+
+# ----------------------------------------------------------------------------- cache keys and retries
+
+@task(cache_policy=content_key("steering_core.layout", source=file_digest, ignore=("label",)), **RESULTS)
+def double(label: str, source: str, output: str, times: int = 2) -> dict:
+    """Write `times` copies of a file's text into `output`."""
+    Path(output).write_text(Path(source).read_text() * times)
+    return {OUTPUTS: [output]}
+
+
+@flow
+def double_twice(root: str, source: str, label: str = "a", times: int = 2) -> list[str]:
+    states = [rooted(double, root)(label, source, f"{root}/out-{i}.txt", times, return_state=True) for i in range(2)]
+    return [state.name for state in states]
+
+
+def test_content_key_caches_on_content_and_reruns_for_missing_outputs(tmp_path):
+    source = tmp_path / "in.txt"
+    source.write_text("x")
+    assert double_twice(str(tmp_path), str(source)) == ["Completed", "Completed"]
+    assert double_twice(str(tmp_path), str(source), label="b") == ["Cached", "Cached"]  # ignored parameter
+    (tmp_path / "out-1.txt").unlink()
+    assert double_twice(str(tmp_path), str(source)) == ["Cached", "Completed"]  # its output was gone
+    assert (tmp_path / "out-1.txt").read_text() == "xx"
+    source.write_text("y")  # same path, new content
+    assert double_twice(str(tmp_path), str(source)) == ["Completed", "Completed"]
+    assert double_twice(str(tmp_path), str(source), times=3) == ["Completed", "Completed"]  # a plain parameter
+    records = list((tmp_path / CACHE_DIR).iterdir())
+    assert len(records) == 2 * 3  # one record per distinct key, beside the outputs
+
+
+def test_code_version_follows_project_imports_only():
+    modules = code_modules("steering_core.slicing")
+    assert {"steering_core.slicing", "steering_core.shards", "steering_core.concept_map", "steering_core.fileio",
+            "steering_core.layout", "steering_core.schema"} <= set(modules)
+    assert "steering_core.capture" not in modules and not any(m.startswith("torch") for m in modules)
+    assert modules["steering_core.fileio"] == sha256_file(Path(fileio.__file__))
+    # capture imports the prefix model lazily inside a function: still part of its code version
+    assert "steering_core.pi05.model" in code_modules("steering_core.capture")
+    assert code_version("steering_core.slicing") != code_version("steering_core.shards")
+
+
+def test_retry_only_on_transient_errors():
+    transient = retry_on(OSError)
+    assert transient(double, None, Failed(data=OSError("disk")))
+    assert transient(double, None, Failed(data=FileNotFoundError("gone")))  # an OSError too
+    assert not transient(double, None, Failed(data=ValueError("bad content")))
 
 
 # ----------------------------------------------------------------------------- reading runs back
@@ -89,8 +180,8 @@ def shard_files(config) -> dict[str, tuple[int, str]]:
 # ----------------------------------------------------------------------------- the run sequence
 
 @pytest.fixture(scope="module")
-def first_run(demo_config):
-    """Run the pipeline once, with the first slicing call failing on an I/O error (retried)."""
+def first_run(demo_dir):
+    """`latent-steering demo`, with the first slicing call failing on an I/O error (retried)."""
     real = slicing.slice_concepts
     lock, calls = threading.Lock(), []
 
@@ -104,23 +195,22 @@ def first_run(demo_config):
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(slicing, "slice_concepts", flaky)
-        state = latent_steering(str(demo_config), return_state=True)
-    assert state.is_completed(), state
-    return state.state_details.flow_run_id
+        result = invoke("demo", "--output-dir", str(demo_dir), "--demos-per-task", "2")
+    return latest_pipeline_run(), result.output
 
 
 @pytest.fixture(scope="module")
 def second_run(first_run, demo_config):
+    """`latent-steering run --config` on the same inputs."""
     config = load_run_config(demo_config)
     shards_before = shard_files(config)
-    state = latent_steering(str(demo_config), return_state=True)
-    assert state.is_completed(), state
-    return state.state_details.flow_run_id, shards_before
+    result = invoke("run", "--config", str(demo_config))
+    return latest_pipeline_run(), shards_before, result.output
 
 
 def test_first_run_writes_the_seed_layout(first_run, demo_config):
     config = load_run_config(demo_config)
-    tasks = task_runs_under(first_run)
+    tasks = task_runs_under(first_run[0])
     assert all(t.state.name == "Completed" for t in tasks.values()), {n: t.state.name for n, t in tasks.items()}
     # one task per step, fanned out over pairs and layers
     for pair in ("open_vs_close", "on_vs_off"):
@@ -138,8 +228,26 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
         assert read_json(config.pairs_config_path(layer))["pairs"][0]["name"] == "open_vs_close"
 
 
+def test_demo_prints_summary_and_locations(first_run, demo_config):
+    config = load_run_config(demo_config)
+    output = first_run[1]
+    rows = summarise(config)
+    assert format_summary(rows) in output
+    assert [(r["layer"], r["pair"]) for r in rows] == [(1, "open_vs_close"), (1, "on_vs_off"),
+                                                       (2, "open_vs_close"), (2, "on_vs_off")]
+    for row in rows:  # counts are the slice rows; the cosine is the one pairwise entry of the layer
+        index = read_json(config.slices_dir(config.pair(row["pair"])) / layer_dir(row["layer"]) / "index.json")
+        pair = config.pair(row["pair"])
+        assert (row["positive_rows"], row["negative_rows"]) == (
+            index["concepts"][pair.positive]["rows"], index["concepts"][pair.negative]["rows"])
+        entry = read_json(config.layer_path(row["layer"]) / "pairwise_stats.json")["entries"]["open_vs_close__on_vs_off"]
+        assert row["residual_cosine"] == {"open_vs_close__on_vs_off": entry["residual_cosine"]}
+    assert f"outputs: {config.output_root}" in output
+    assert f"report:  {config.layer_path(2) / 'summary.md'}" in output
+
+
 def test_injected_fault_is_retried_and_recorded(first_run):
-    tasks = task_runs_under(first_run)
+    tasks = task_runs_under(first_run[0])
     retried = [t for t in tasks.values() if t.run_count > 1]
     assert [t.name.split(" layer")[0].split(" ")[0] for t in retried] == ["slice"]
     with get_client(sync_client=True) as client:
@@ -234,9 +342,10 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
                 == read_json(out / "latent_steering" / layer_dir(layer) / "pairwise_stats.json")["entries"])
 
 
-def test_second_run_on_unchanged_inputs_is_all_cached(second_run):
-    run_id, _ = second_run
+def test_second_run_on_unchanged_inputs_is_all_cached(second_run, demo_config):
+    run_id, _, output = second_run
     tasks = task_runs_under(run_id)
+    assert f"report: {load_run_config(demo_config).layer_path(1) / 'summary.md'}" in output
     assert len(tasks) >= 25
     assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {}
 
@@ -258,7 +367,7 @@ def test_refresh_without_changes_ends_at_once(unchanged_refresh):
 def added_demo_refresh(unchanged_refresh, second_run, demo_config):
     """Add one 'open the drawer' demo file (named to sort last), then let the refresh flow react."""
     config = load_run_config(demo_config)
-    _, shards_before = second_run
+    _, shards_before, _ = second_run
     episodes_before = read_sources(config.dataset_root).episodes
     task = SyntheticTask(instruction=DRAWER_OPEN, scene="LIVING_ROOM_SCENE1", motion=MotionSpec(axis=2, direction=1))
     write_libero_file(config.sources.folders[0], task, num_demos=1,
