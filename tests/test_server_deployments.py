@@ -22,7 +22,14 @@ import httpx
 import pytest
 import yaml
 from prefect.client.orchestration import get_client
-from prefect.client.schemas.filters import FlowFilter, FlowFilterName, FlowRunFilter, FlowRunFilterId
+from prefect.client.schemas.filters import (
+    FlowFilter,
+    FlowFilterName,
+    FlowRunFilter,
+    FlowRunFilterId,
+    LogFilter,
+    LogFilterFlowRunId,
+)
 from prefect.settings import PREFECT_API_URL, temporary_settings
 
 from steering_core.config import load_run_config
@@ -94,6 +101,19 @@ class Processes:
                 pass
 
 
+def run_deployment_and_wait(env: dict[str, str], deployment: str, worker_log: Path):
+    """Start a deployment run with the CLI and return the flow run once it completed."""
+    output = run_cli(env, *PREFECT, "deployment", "run", deployment)
+    run_id = re.search(r"UUID: ([0-9a-f-]{36})", output).group(1)
+    deadline = time.monotonic() + RUN_TIMEOUT
+    with get_client(sync_client=True) as client:
+        while not (run := client.read_flow_run(run_id)).state.is_final():
+            assert time.monotonic() < deadline, worker_log.read_text()[-3000:]
+            time.sleep(2)
+    assert run.state.is_completed(), worker_log.read_text()[-5000:]
+    return run
+
+
 def run_cli(env: dict[str, str], *args: str, timeout: int = 180) -> str:
     done = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout, check=False)
     assert done.returncode == 0, f"{' '.join(args[:4])} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
@@ -144,18 +164,14 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
         deployments = {d.name: d for d in client.read_deployments()}
         assert {"pipeline", "gpu", "scheduled"} <= set(deployments)
         assert deployments["scheduled"].schedules and deployments["gpu"].work_pool_name == "gpu"
+        # no scheduled refresh may start during the test (an hour boundary can fall inside it);
+        # pausing deletes its auto-scheduled runs, manual runs still work
+        client.pause_deployment(deployments["scheduled"].id)
 
     for pool in ("gpu", "cpu"):
         processes.start(f"worker-{pool}", *PREFECT, "worker", "start", "--pool", pool)
-    output = run_cli(env, *PREFECT, "deployment", "run", "latent-steering/pipeline")
-    parent_id = re.search(r"UUID: ([0-9a-f-]{36})", output).group(1)
-
+    parent = run_deployment_and_wait(env, "latent-steering/pipeline", tmp_path / "logs" / "worker-cpu.log")
     with get_client(sync_client=True) as client:
-        deadline = time.monotonic() + RUN_TIMEOUT
-        while not (parent := client.read_flow_run(parent_id)).state.is_final():
-            assert time.monotonic() < deadline, (tmp_path / "logs" / "worker-cpu.log").read_text()[-3000:]
-            time.sleep(2)
-        assert parent.state.is_completed(), (tmp_path / "logs" / "worker-cpu.log").read_text()[-5000:]
         assert parent.work_pool_name == "cpu"
 
         captures = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
@@ -180,3 +196,17 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
     for layer in config.layers:
         assert (config.layer_path(layer) / "summary.md").is_file()
         assert (config.layer_path(layer) / "on_vs_off" / "residual_direction.pt").is_file()
+
+    # the refresh deployment sees the sources of that successful run: it ends without a pipeline run
+    refreshed = run_deployment_and_wait(env, "latent-steering-refresh/scheduled", tmp_path / "logs" / "worker-cpu.log")
+    with get_client(sync_client=True) as client:
+        pipelines = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering"])))
+        deadline = time.monotonic() + 30  # a run's last log lines are sent shortly after its final state
+        while True:
+            logs = [log.message for log in client.read_logs(
+                log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[refreshed.id])))]
+            if any("nothing to do" in message for message in logs):
+                break
+            assert time.monotonic() < deadline, logs
+            time.sleep(1)
+    assert refreshed.work_pool_name == "cpu" and [r.id for r in pipelines] == [parent.id]
