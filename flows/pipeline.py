@@ -19,6 +19,7 @@ from typing import Any
 
 from prefect import flow, get_run_logger
 from prefect.futures import PrefectFuture
+from prefect.settings import get_current_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.capture import run_capture
@@ -31,9 +32,12 @@ from tasks.artifacts import publish_layer_report
 from tasks.cache import rooted
 
 PIPELINE_FLOW = "latent-steering"
+# CPU tasks running at once (PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS overrides): each SAE task
+# holds its own copy of the SAE (256 MiB for Gemma-2B's 16k latents), so the pool must stay bounded.
+CPU_TASKS = get_current_settings().tasks.runner.thread_pool_max_workers or 4
 
 
-@flow(name=PIPELINE_FLOW, task_runner=ThreadPoolTaskRunner())  # threads: PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS
+@flow(name=PIPELINE_FLOW, task_runner=ThreadPoolTaskRunner(max_workers=CPU_TASKS))
 def latent_steering(config_path: str) -> dict[str, Any]:
     """Run the whole pipeline described by a run config (YAML); return where its outputs are."""
     logger = get_run_logger()

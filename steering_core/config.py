@@ -4,7 +4,7 @@
 name: drawer_stove                # residuals/<name>/
 output_root: data                 # the seed's data/ folder; relative paths resolve against this file
 sources:
-  folders: [/data/libero_90]      # searched recursively for *.hdf5
+  folders: [/data/libero_90]      # the *.hdf5 files directly inside
   select: {match: ignore_case}    # FilterSettings; no tasks/globs = the pairs' task texts
 dataset: {repo_id: libero_drawer_stove_lerobot}   # ConvertSettings fields (+ optional root)
 pairs:
