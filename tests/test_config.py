@@ -201,3 +201,13 @@ def test_python_construction_keeps_paths_as_given():
         "model": {"checkpoint": "ckpt", "tokenizer": "tok"},
     })
     assert config.sources.folders == (Path("demos"),) and config.output_root == Path("data")
+
+
+def test_documented_example_is_valid(tmp_path):
+    import steering_core.config as module
+
+    example = module.__doc__.split("```yaml\n")[1].split("```")[0]
+    config = load_run_config(write_yaml(tmp_path, example))
+    assert [p.name for p in config.pairs] == ["open_vs_close", "on_vs_off"]
+    assert config.steering_settings(12).sae == "gemma-2b-it-res-jb"
+    assert config.pairs[1].concept("turn on the stove") == "stove_on"
