@@ -16,7 +16,7 @@ interpolation, antialiased, half-pixel centres (torch `interpolate(antialias=Tru
 matches openpi's JAX resize), rounded and clipped to uint8.
 
 Every episode's source (file name, demo key, file sha256, task, length) goes to
-`meta/libero_sources.json`; when that record lists a prefix of the current sources, a
+`meta/libero_sources.json`; when every source in that record is still present, a
 re-run appends only the new episodes.
 """
 
@@ -202,9 +202,10 @@ def convert_libero(
     """Return what was done after converting every demo under `input_dirs` into `output_dir`.
 
     Without `rebuild`, an existing dataset written by this function with the same settings
-    whose sources are a prefix of the current ones gets only the new episodes appended; any
-    other existing dataset is rebuilt from scratch. Output is staged in a temporary sibling
-    and moved into place only when complete.
+    whose sources are all still present (same file, demo and sha256) keeps its episodes and
+    indices, and only the new demos are appended after them, in name order, whatever their
+    names; any other existing dataset is rebuilt from scratch. Output is staged in a temporary
+    sibling and moved into place only when complete.
     """
     output_dir = Path(output_dir)
     planned = plan_sources(input_dirs)
@@ -215,6 +216,8 @@ def convert_libero(
     existing = _existing_record(output_dir)
     reason = "rebuild requested" if rebuild else _rebuild_reason(output_dir, existing, settings, new_sources)
     if existing is not None and reason is None:
+        planned = _existing_first(planned, existing)
+        new_sources = [source for _, source in planned]
         done = len(existing.episodes)
         if done == len(new_sources):
             log.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
@@ -335,13 +338,27 @@ def _rebuild_reason(
     if info.get("total_episodes") != len(existing.episodes):
         listed = len(existing.episodes)
         return f"meta/info.json has {info.get('total_episodes')} episodes but {SOURCES_FILE} lists {listed}"
-    new_keys = [s.key() for s in new_sources]
+    current = {s.key() for s in new_sources}
+    current_demos = {key[:2] for key in current}
     for old in existing.episodes:
-        if old.episode_index >= len(new_keys) or new_keys[old.episode_index] != old.key():
-            now = new_keys[old.episode_index] if old.episode_index < len(new_keys) else None
-            what = "disappeared" if now is None or now[:2] != old.key()[:2] else "changed (sha256 differs)"
+        if old.key() not in current:
+            what = "changed (sha256 differs)" if old.key()[:2] in current_demos else "disappeared"
             return f"source {old.file}:{old.demo} of episode {old.episode_index} {what}"
     return None
+
+
+def _existing_first(
+    planned: list[tuple[Path, EpisodeSource]], existing: SourcesRecord
+) -> list[tuple[Path, EpisodeSource]]:
+    """Return `planned` with the existing episodes first, at their indices, then the new ones in name order.
+
+    Keeping old indices is what lets later steps (capture shards, caches) reuse their work after an append.
+    """
+    path_of = {source.key(): path for path, source in planned}
+    known = {episode.key() for episode in existing.episodes}
+    ordered = [(path_of[episode.key()], episode) for episode in existing.episodes]
+    ordered += [(path, source) for path, source in planned if source.key() not in known]
+    return [(path, source.model_copy(update={"episode_index": i})) for i, (path, source) in enumerate(ordered)]
 
 
 def _record(settings: ConvertSettings, sources: list[EpisodeSource]) -> SourcesRecord:

@@ -248,6 +248,29 @@ def test_incremental_append_equals_full_conversion(raw, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "extra", "raw", "scratch"]
 
 
+def test_append_keeps_old_indices_when_a_new_file_sorts_first(raw, tmp_path):
+    folder, files = raw
+    out = tmp_path / "ds"
+    convert_libero([folder], out, SETTINGS)
+    before, record_before = read_back(out), read_sources(out)
+    early = tmp_path / "early"
+    added = write_tiny(early, "turn off the stove", "KITCHEN_SCENE0", num_demos=2).path  # sorts before all
+    result = convert_libero([early, folder], out, SETTINGS)
+    assert (result.action, result.episodes_added, result.episodes_total) == ("appended", 2, 8)
+
+    after = read_back(out)
+    n_old = len(before["task"])
+    for key in ("image", "state", "actions"):
+        np.testing.assert_array_equal(after[key][:n_old], before[key], err_msg=key)
+    assert after["episodes"][: len(before["episodes"])] == before["episodes"]
+    expected_new = expected_rows([(added, "turn off the stove")])
+    np.testing.assert_array_equal(after["state"][n_old:], expected_new["state"])
+    np.testing.assert_array_equal(after["image"][n_old:], expected_new["image"])
+    record = read_sources(out)
+    assert [(e.episode_index, e.file) for e in record.episodes[-2:]] == [(6, added.name), (7, added.name)]
+    assert record.episodes[:6] == record_before.episodes
+
+
 def test_changed_or_missing_sources_trigger_rebuild(raw, tmp_path, caplog):
     folder, files = raw
     out = tmp_path / "ds"
