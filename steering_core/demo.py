@@ -26,7 +26,7 @@ from steering_core.config import (
     SteeringSection,
     write_run_config,
 )
-from steering_core.fileio import read_json
+from steering_core.fileio import read_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.report import SUMMARY_JSON, SUMMARY_MD
 from steering_core.synthetic.libero import (
@@ -44,6 +44,7 @@ from steering_core.synthetic.tokenizer import write_tokenizer
 logger = logging.getLogger(__name__)
 
 INPUTS_DIR = "inputs"          # generated inputs, beside the outputs (`data/`) and the run config
+ARCH_FILE = "pi05_tiny_arch.json"  # the tiny checkpoint's Pi05Arch
 DEMO_LAYERS = (1, 2)           # two of the tiny model's four decoder layers
 DEMO_SAE_LATENTS = 256         # d_sae of the tiny SAEs (4x the tiny model's width of 64)
 DEMO_IMAGE_SIZE = 64           # dataset frames (real: 256); the tiny model resizes them to 28
@@ -67,6 +68,9 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
     checkpoint = inputs / "pi05_tiny"
     if not checkpoint.is_dir():
         write_pi05_checkpoint(checkpoint, arch)
+    arch_file = inputs / ARCH_FILE
+    if not arch_file.is_file():  # for `latent-steering capture --arch-file` in the README walk-through
+        write_json(arch_file, arch.model_dump(mode="json"))
     tokenizer = inputs / "tokenizer.model"
     if not tokenizer.is_file():
         write_tokenizer(tokenizer)
