@@ -178,5 +178,5 @@ def test_cli_filter(sources, tmp_path):
     assert not any(p.is_symlink() for p in out.iterdir())
 
     result = runner.invoke(app, [*args, "--task", OPEN.upper(), "--exact"])
-    assert result.exit_code == 2
+    assert result.exit_code == 1
     assert "closest available: 'open the top drawer of the cabinet'" in result.output

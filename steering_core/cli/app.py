@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator
 
 import typer
 
@@ -22,3 +24,16 @@ def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug 
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         datefmt="%H:%M:%S",
     )
+
+
+@contextlib.contextmanager
+def input_errors(*extra: type[Exception]) -> Iterator[None]:
+    """Turn the library's bad-input errors into one `error: ...` line and exit code 1, not a traceback.
+
+    Usage errors (unknown flags, unparsable values) stay typer's own, with exit code 2.
+    """
+    try:
+        yield
+    except (ValueError, FileNotFoundError, FileExistsError, *extra) as err:
+        typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(1) from None

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from enum import Enum
 from pathlib import Path
 
 import typer
 
 from steering_core.capture import CaptureSettings, capture
-from steering_core.cli.app import app
+from steering_core.cli.app import app, input_errors
 from steering_core.fileio import read_json
 from steering_core.pi05 import Pi05Arch, PromptFormat
 from steering_core.slicing import SliceSettings, slice_concepts
@@ -40,15 +38,6 @@ class TokenTypeChoice(str, Enum):
     prompt = "prompt"
     last = "last"
 
-
-@contextlib.contextmanager
-def _input_errors() -> Iterator[None]:
-    """Turn bad-input errors of the library into a one-line message and exit code 1."""
-    try:
-        yield
-    except (ValueError, FileNotFoundError) as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(1) from None
 
 
 def _layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
@@ -123,7 +112,7 @@ def capture_command(
             f"--capture-instructions contradicts --token-type {token_type.value}; pass one of them",
             param_hint="--capture-instructions",
         )
-    with _input_errors():
+    with input_errors():
         arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
         settings = CaptureSettings(
             checkpoint_path=checkpoint_path,
@@ -173,7 +162,7 @@ def slice_command(
     ),
 ) -> None:
     """Write <output-dir>/layerNN/<concept>.pt (+ .safetensors, index.json) for each concept."""
-    with _input_errors():
+    with input_errors():
         settings = SliceSettings(
             layers=_layer_list(layers),
             token_type=token_type.value,

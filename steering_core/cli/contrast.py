@@ -2,27 +2,16 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from pathlib import Path
 
 import typer
 
-from steering_core.cli.app import app
+from steering_core.cli.app import app, input_errors
 from steering_core.concept_map import build_concept_map, read_rename_map, write_concept_map
 from steering_core.contrast import ContrastSettings, build_manifest, write_manifest
 
 _DEFAULTS = ContrastSettings()
 
-
-@contextlib.contextmanager
-def _input_errors() -> Iterator[None]:
-    """Turn bad-input errors of the library into a one-line message and exit code 1."""
-    try:
-        yield
-    except (ValueError, FileNotFoundError) as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(1) from None
 
 
 def _episode_list(values: list[str] | None, flag: str) -> tuple[int, ...] | None:
@@ -73,7 +62,7 @@ def manifest_command(
     ),
 ) -> None:
     """Find the state axis two tasks move along in opposite directions and each demo's window on it."""
-    with _input_errors():
+    with input_errors():
         settings = ContrastSettings(
             min_abs_delta=min_abs_delta,
             progress_frac=progress_frac,
@@ -104,7 +93,7 @@ def concept_map_command(
     ),
 ) -> None:
     """Map every manifest segment to its global dataset indices, grouped by concept."""
-    with _input_errors():
+    with input_errors():
         rename = read_rename_map(concept_map) if concept_map is not None else None
         result = build_concept_map(manifest_path, lerobot_root, repo_id=repo_id, rename=rename)
         write_concept_map(result, output_path)

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from enum import Enum
 from pathlib import Path
 
 import typer
 
-from steering_core.cli.app import app
+from steering_core.cli.app import app, input_errors
 from steering_core.convert import ConvertSettings, convert_libero
 from steering_core.filtering import FilterSettings, filter_demos
 from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
@@ -21,15 +19,6 @@ class OrientationChoice(str, Enum):
     rotate180 = "rotate180"
     as_stored = "as_stored"
 
-
-@contextlib.contextmanager
-def _user_errors() -> Iterator[None]:
-    """Turn bad-input errors into a one-message exit (code 2) instead of a traceback."""
-    try:
-        yield
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
-        raise typer.Exit(code=2) from None
 
 
 @app.command("filter")
@@ -50,7 +39,7 @@ def filter_command(
         match="exact" if exact else "ignore_case",
         mode="copy" if copy else "symlink",
     )
-    with _user_errors():
+    with input_errors():
         selection = filter_demos(input_dir, output_dir, settings)
     for entry in selection.files:
         typer.echo(f"{entry.name}\t{entry.num_demos} demos\t{entry.instruction}")
@@ -77,7 +66,7 @@ def convert_command(
     ),
 ) -> None:
     """Convert LIBERO demos into a LeRobot v3.0 dataset (openpi's physical-intelligence/libero schema)."""
-    with _user_errors():
+    with input_errors():
         settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation.value)
         result = convert_libero(input_dir, output_dir, settings, rebuild=not append)
     typer.echo(
@@ -95,7 +84,7 @@ def make_demos_command(
     seed: int = typer.Option(0, "--seed", help="Seed of the small deterministic noise."),
 ) -> None:
     """Write synthetic LIBERO demos for two concept pairs (drawer open/close, stove on/off)."""
-    with _user_errors():
+    with input_errors():
         # a little length variation, as real demos have
         settings = SyntheticSettings(
             image_size=image_size, num_steps=num_steps, length_jitter=num_steps // 10, seed=seed

@@ -13,7 +13,7 @@ from pathlib import Path
 import typer
 
 from steering_core import demo
-from steering_core.cli.app import app
+from steering_core.cli.app import app, input_errors
 from steering_core.config import load_run_config
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.
@@ -31,11 +31,6 @@ def prefect_environment(home: Path | None = None) -> None:
         os.environ.setdefault("PREFECT_HOME", str(home))
 
 
-def _user_errors(err: Exception) -> typer.Exit:
-    typer.echo(f"error: {err}", err=True)
-    return typer.Exit(code=2)
-
-
 @app.command("run")
 def run_command(
     config: Path = typer.Option(..., "--config", help="Run config (YAML): sources, pairs, layers, model, SAE."),
@@ -46,10 +41,8 @@ def run_command(
     inputs did not change.
     """
     prefect_environment()
-    try:
+    with input_errors():
         run_config = load_run_config(config)
-    except (ValueError, FileNotFoundError) as err:
-        raise _user_errors(err) from None
     from flows.pipeline import latent_steering
 
     result = latent_steering(str(config))
@@ -93,12 +86,10 @@ def deploy_command(
 
     Needs PREFECT_API_URL (a running `prefect server start`); run it from the repository root.
     """
-    try:
+    with input_errors(RuntimeError):
         load_run_config(config)
         from flows.deploy import setup
 
         setup(config, gpu_slots=gpu_slots)
-    except (ValueError, FileNotFoundError, RuntimeError) as err:
-        raise _user_errors(err) from None
     typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-refresh/scheduled")
     typer.echo("start workers: prefect worker start --pool gpu  |  prefect worker start --pool cpu")

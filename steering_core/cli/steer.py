@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from enum import Enum
 from pathlib import Path
 
 import typer
 
-from steering_core.cli.app import app
+from steering_core.cli.app import app, input_errors
 from steering_core.report import SUMMARY_MD
 from steering_core.steering import SteeringSettings, compute_steering
 
@@ -23,15 +21,6 @@ class PathsRelativeTo(str, Enum):
     cwd = "cwd"
     config = "config"
 
-
-@contextlib.contextmanager
-def _input_errors() -> Iterator[None]:
-    """Turn bad-input errors of the library into a message and exit code 1."""
-    try:
-        yield
-    except (ValueError, FileNotFoundError) as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(1) from None
 
 
 @app.command("steer")
@@ -63,7 +52,7 @@ def steer_command(
     ),
 ) -> None:
     """Encode concept residuals with the SAE and write latent means, directions, pairwise stats and a report."""
-    with _input_errors():
+    with input_errors():
         settings = SteeringSettings(
             pairs_config=pairs_config,
             output_root=output_root,
