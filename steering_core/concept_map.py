@@ -15,12 +15,12 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
 from steering_core.contrast import ContrastManifest, read_manifest
 from steering_core.dataset import DatasetMeta, IndexColumns, dataset_fingerprint, read_index_columns, read_meta
 from steering_core.fileio import read_json, write_json
-from steering_core.schema import StrictModel
+from steering_core.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 
@@ -207,8 +207,4 @@ def write_concept_map(concept_map: ConceptMap, path: str | os.PathLike) -> Path:
 
 def read_concept_map(path: str | os.PathLike) -> ConceptMap:
     """Return the validated concept map at `path` (ours or the seed's)."""
-    payload = read_json(path)
-    try:
-        return ConceptMap.model_validate(payload)
-    except ValidationError as err:
-        raise ValueError(f"{path}: not a valid concept map: {err}") from None
+    return read_model(path, ConceptMap, what="concept map")

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from steering_core.dataset import (
     DatasetMeta,
@@ -30,8 +30,8 @@ from steering_core.dataset import (
     read_meta,
     resolve_task,
 )
-from steering_core.fileio import read_json, write_json
-from steering_core.schema import StrictModel
+from steering_core.fileio import write_json
+from steering_core.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 
@@ -312,8 +312,4 @@ def write_manifest(manifest: ContrastManifest, path: str | os.PathLike) -> Path:
 
 def read_manifest(path: str | os.PathLike) -> ContrastManifest:
     """Return the validated manifest at `path` (ours, or the seed's without a `dataset` record)."""
-    payload = read_json(path)
-    try:
-        return ContrastManifest.model_validate(payload)
-    except ValidationError as err:
-        raise ValueError(f"{path}: not a valid contrast manifest: {err}") from None
+    return read_model(path, ContrastManifest, what="contrast manifest")

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
 from steering_core.libero import LiberoDemo, iter_demos, validate_file
-from steering_core.schema import StrictModel
+from steering_core.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -172,19 +172,8 @@ def plan_sources(input_dirs: Sequence[str | Path]) -> list[tuple[Path, EpisodeSo
 def read_sources(root: str | Path) -> SourcesRecord:
     """Return the validated `meta/libero_sources.json` of a converted dataset."""
     path = Path(root) / SOURCES_FILE
-    payload = read_json(path)
-    version = payload.get("format_version") if isinstance(payload, dict) else None
-    if version != SOURCES_FORMAT_VERSION:
-        raise ValueError(
-            f"{path}: format_version is {version!r}, expected {SOURCES_FORMAT_VERSION}; "
-            "re-run `latent-steering convert --rebuild`"
-        )
-    try:
-        record = SourcesRecord.model_validate(payload)
-    except ValueError as err:
-        raise ValueError(
-            f"{path}: not a valid sources record ({err}); re-run `latent-steering convert --rebuild`"
-        ) from None
+    record = read_model(path, SourcesRecord, what="sources record",
+                        fix="re-run `latent-steering convert --rebuild`", format_version=SOURCES_FORMAT_VERSION)
     indices = [e.episode_index for e in record.episodes]
     if indices != list(range(len(indices))):
         raise ValueError(f"{path}: episode_index values are {indices[:10]}..., expected 0, 1, 2, ... in order")

@@ -17,10 +17,10 @@ from typing import Literal
 
 from pydantic import Field
 
-from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.fileio import atomic_dir, sha256_file, write_json
 from steering_core.layout import SELECTION_FILE
 from steering_core.libero import InstructionSource, read_instruction_with_source, validate_file
-from steering_core.schema import StrictModel
+from steering_core.schema import StrictModel, read_model
 
 log = logging.getLogger(__name__)
 
@@ -109,18 +109,8 @@ def filter_demos(
 
 def read_selection(folder: str | Path) -> Selection:
     """Return the validated `selection.json` of a filtered folder."""
-    path = Path(folder) / SELECTION_FILE
-    payload = read_json(path)
-    version = payload.get("format_version") if isinstance(payload, dict) else None
-    if version != SELECTION_FORMAT_VERSION:
-        raise ValueError(
-            f"{path}: format_version is {version!r}, expected {SELECTION_FORMAT_VERSION}; "
-            "re-run `latent-steering filter`"
-        )
-    try:
-        return Selection.model_validate(payload)
-    except ValueError as err:
-        raise ValueError(f"{path}: not a valid selection record ({err}); re-run `latent-steering filter`") from None
+    return read_model(Path(folder) / SELECTION_FILE, Selection, what="selection record",
+                      fix="re-run `latent-steering filter`", format_version=SELECTION_FORMAT_VERSION)
 
 
 def normalize_task(text: str, match: Literal["exact", "ignore_case"]) -> str:

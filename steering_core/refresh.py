@@ -15,10 +15,9 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from pydantic import ValidationError
 
-from steering_core.fileio import read_json, sha256_file, write_json
-from steering_core.schema import StrictModel
+from steering_core.fileio import sha256_file, write_json
+from steering_core.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 
@@ -156,18 +155,8 @@ def read_sources_record(path: str | os.PathLike) -> SourcesRecord | None:
     path = Path(path)
     if not path.exists():
         return None
-    payload = read_json(path)
-    version = payload.get("format_version") if isinstance(payload, dict) else None
-    if version != RECORD_FORMAT_VERSION:
-        raise ValueError(
-            f"{path}: `format_version` is {version!r}, expected {RECORD_FORMAT_VERSION}; "
-            "delete the file to make the next refresh run the whole pipeline"
-        )
-    try:
-        return SourcesRecord.model_validate(payload)
-    except ValidationError as err:
-        raise ValueError(f"{path}: not a sources record ({err.error_count()} problems: {err}); "
-                         "delete the file to make the next refresh run the whole pipeline") from None
+    return read_model(path, SourcesRecord, what="refresh record", format_version=RECORD_FORMAT_VERSION,
+                      fix="delete the file to make the next refresh run the whole pipeline")
 
 
 def write_sources_record(path: str | os.PathLike, record: SourcesRecord) -> Path:

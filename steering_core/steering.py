@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
@@ -41,7 +41,7 @@ from steering_core.layout import STEERING_ROOT, layer_dir
 from steering_core.report import write_report
 from steering_core.sae import Sae, load_sae
 from steering_core.sae_formats import HOOK_NAME
-from steering_core.schema import StrictModel
+from steering_core.schema import StrictModel, read_model
 from steering_core.slicing import safe_file_name
 
 logger = logging.getLogger(__name__)
@@ -135,12 +135,7 @@ class ConceptStats:
 
 def read_pairs_config(path: str | os.PathLike) -> PairsConfig:
     """Return the pairs config at `path` (the seed's format, read unchanged)."""
-    raw = read_json(path)
-    try:
-        return PairsConfig.model_validate(raw)
-    except ValidationError as err:
-        problems = "\n  ".join(f"{'.'.join(map(str, e['loc'])) or '(top level)'}: {e['msg']}" for e in err.errors())
-        raise ValueError(f"{path}: not a valid pairs config:\n  {problems}") from None
+    return read_model(path, PairsConfig, what="pairs config")
 
 
 def concept_sources(
