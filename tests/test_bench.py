@@ -1,0 +1,163 @@
+"""Smoke tests of the benchmarks: each runs at its --quick size and its correctness checks hold.
+
+No timing is asserted anywhere: the numbers of a quick run mean nothing. What is asserted is that each
+benchmark's baseline computes the same thing as our code (same residual rows, same concept ranges, same
+latent means), that the seed's inference-call model does the work it claims, that the FLOP model gives
+hand-computed answers, and that the report renders.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repository root, not an installed package
+    sys.path.insert(0, str(REPO_ROOT))
+
+from bench import (  # noqa: E402
+    capture_throughput,
+    concept_map_speed,
+    run_all,
+    sae_encoding,
+    slicing_memory,
+)
+from bench.common import Result  # noqa: E402
+from bench.seed_pi05 import ACTION_DIM, ACTION_HORIZON, DENOISE_STEPS, SeedPi05  # noqa: E402
+from steering_core.pi05 import Pi05Arch  # noqa: E402
+from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("bench-cache")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def refresh_run(tmp_path_factory):
+    """Start the refresh benchmark's quick run in its own process before the first test of this module.
+
+    Its Prefect server start and two pipeline runs then overlap the other tests; the last test waits for it.
+    """
+    folder = tmp_path_factory.mktemp("bench-refresh")
+    output = folder / "result.json"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "bench.incremental_refresh", "--quick",
+         f"--cache-dir={folder}", f"--json={output}"],
+        cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    yield process, output
+    if process.poll() is None:
+        process.kill()
+        process.communicate()
+
+
+def run_quick(module, cache: Path, tmp_path: Path) -> Result:
+    """Run a benchmark's main at --quick size; check its JSON round trip; return the result."""
+    output = tmp_path / "result.json"
+    result = module.main(["--quick", f"--cache-dir={cache}", f"--json={output}"])
+    assert Result.from_json(json.loads(output.read_text())) == result
+    assert result.table and math.isfinite(result.ratio) and result.ratio > 0
+    assert result.command.startswith("uv run python -m bench.") and "--quick" in result.command
+    return result
+
+
+def test_capture_baseline_captures_the_same_rows(cache, tmp_path):
+    result = run_quick(capture_throughput, cache, tmp_path)
+    assert result.checks["max_abs_difference"] < 1e-4
+    cases = [row["case"] for row in result.table]
+    assert cases[-2:] == ["real pi0.5, layers 12 (analytic)", "real pi0.5, layers 4,8,12 (analytic)"]
+
+
+def test_concept_map_baseline_finds_the_same_ranges(cache, tmp_path):
+    result = run_quick(concept_map_speed, cache, tmp_path)
+    assert result.checks == {"same_mapping": True, "frames": 160}
+
+
+def test_slicing_benchmark_reports_every_size(cache, tmp_path):
+    result = run_quick(slicing_memory, cache, tmp_path)
+    assert [row["case"] for row in result.table] == ["1x run, fixed pair", "1x run, every row sliced",
+                                                     "10x run, fixed pair"]
+    assert [row["episodes"] for row in result.table] == [4, 4, 40]
+    assert result.checks["peak_rss_spread"] >= 1.0
+
+
+def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
+    result = run_quick(sae_encoding, cache, tmp_path)
+    assert result.checks["latent_mean_max_abs_difference"] < 1e-5
+    assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
+
+
+def test_seed_model_runs_a_whole_inference_call(tmp_path):
+    arch = tiny_arch()
+    checkpoint = write_pi05_checkpoint(tmp_path / "ckpt", arch)
+    model = SeedPi05.from_checkpoint(checkpoint, arch, torch.device("cpu"))
+    calls: dict[str, list] = {"prefix": [], "expert": []}
+    for layer in model.prefix.layers:
+        layer.register_forward_pre_hook(
+            lambda _m, args, kwargs: calls["prefix"].append((args[0].shape, kwargs["attention_mask"].shape)),
+            with_kwargs=True,
+        )
+    for layer in model.gemma_expert.model.layers:
+        layer.register_forward_pre_hook(lambda _m, args: calls["expert"].append(args[0].shape))
+    batch, side, slots = 2, arch.image_size, 200
+    images = [torch.zeros(batch, 3, side, side) for _ in range(3)]
+    present, absent = torch.ones(batch, dtype=torch.bool), torch.zeros(batch, dtype=torch.bool)
+    masks = [present, present, absent]
+    tokens = torch.zeros(batch, slots, dtype=torch.long)
+    token_mask = torch.zeros(batch, slots, dtype=torch.bool)
+    token_mask[:, :5] = True
+    actions = model.sample_actions(images, masks, tokens, token_mask)
+
+    full = 3 * arch.tokens_per_image + slots  # every camera slot and every language slot, padding included
+    assert actions.shape == (batch, ACTION_HORIZON, ACTION_DIM) and torch.isfinite(actions).all()
+    assert calls["prefix"] == [((batch, full, arch.width), (batch, 1, full, full))] * arch.depth
+    assert calls["expert"] == [(batch, ACTION_HORIZON, arch.width // 2)] * (arch.depth * DENOISE_STEPS)
+
+
+def test_flop_model_known_answers():
+    arch = Pi05Arch(width=64, depth=4, mlp_dim=128, num_heads=8, num_kv_heads=1, head_dim=16, vocab_size=512)
+    # per token: q 64x128, k and v 64x16 each, o 128x64, MLP 3 x 64x128 = 43008 multiply-adds; 10 tokens, x2
+    # attention: (q k^T and p v) x 10 queries x 20 keys x 128 query width x 2 = 102400
+    assert capture_throughput.decoder_layer_flops(arch, 10, 20) == 2 * 10 * 43008 + 102400
+    real = Pi05Arch()
+    ours = capture_throughput.ours_flops(real, 12, 16)
+    seed = capture_throughput.seed_flops(real, 1)
+    assert capture_throughput.seed_flops(real, 3) == pytest.approx(3 * seed)
+    # ours runs 2 of 3 cameras and 13 of 18 layers over fewer tokens: well under half the prefix
+    assert 2.0 < seed / ours < 3.0
+    assert capture_throughput.h100_frames_per_second(ours) == pytest.approx(0.4 * 989e12 / ours)
+
+
+def test_report_renders_summary_and_sections():
+    results = [
+        ("concept_map_speed", Result("concept_map", "2. Concept map", "uv run python -m bench.concept_map_speed",
+                                     "10 frames/s", "1 frames/s", 10.0, ">= 100x", False,
+                                     [{"method": "ours", "seconds": 0.5}], ["a note"]), 12.0),
+    ]
+    text = run_all.render(results, {"date": "today", "cpu": "test cpu"}, 90.0, "uv run python -m bench.run_all")
+    assert "| 2. Concept map | 10 frames/s | 1 frames/s | 10.00x | >= 100x | **no** | 12 s | " \
+           "`uv run python -m bench.concept_map_speed` |" in text
+    assert "## 2. Concept map" in text and "| ours | 0.5 |" in text and "- a note" in text
+    assert "| cpu | test cpu |" in text and "took 1.5 min" in text
+    assert "found by binary search over the" in text  # the module docstring explains the method
+    assert "[--device cuda]" not in text  # but its usage line stays out
+
+
+def test_refresh_captures_only_the_added_file(refresh_run):
+    process, output = refresh_run
+    log, _ = process.communicate(timeout=600)
+    assert process.returncode == 0, log[-4000:]
+    result = Result.from_json(json.loads(output.read_text()))
+    assert result.name == "refresh" and len(result.table) == 2 and result.ratio > 0
+    assert result.checks["refresh_ran"] and result.checks["old_shards_untouched"]
+    assert result.checks["shards_added"] == 2 * 2  # the added file's 2 episodes, 2 layers
+    assert result.checks["changes"].startswith("1 added (KITCHEN_SCENE30_open_the_top_drawer")
