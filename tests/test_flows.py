@@ -342,6 +342,14 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
                 == read_json(out / "latent_steering" / layer_dir(layer) / "pairwise_stats.json")["entries"])
 
 
+def test_capture_cli_with_run_config_agrees_with_the_pipeline(first_run, demo_config):
+    """`capture --config` resolves the same settings as the flow: every shard the flow wrote counts as complete."""
+    result = invoke("capture", "--config", str(demo_config))
+    assert "0 shard group(s) written" in result.output and ", 0 frame(s) captured" in result.output
+    refused = CliRunner().invoke(app, ["capture", "--config", str(demo_config), "--layers", "3"])
+    assert refused.exit_code == 2 and "--layers cannot be combined with --config" in refused.output
+
+
 def test_second_run_on_unchanged_inputs_is_all_cached(second_run, demo_config):
     run_id, _, output = second_run
     tasks = task_runs_under(run_id)

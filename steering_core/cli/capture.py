@@ -7,8 +7,9 @@ from pathlib import Path
 
 import typer
 
-from steering_core.capture import CaptureSettings, capture
+from steering_core.capture import CaptureResult, CaptureSettings, capture
 from steering_core.cli.app import app, input_errors
+from steering_core.config import load_run_config
 from steering_core.fileio import read_json
 from steering_core.pi05 import Pi05Arch, PromptFormat
 from steering_core.slicing import SliceSettings, slice_concepts
@@ -53,13 +54,18 @@ def _layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
 
 @app.command("capture")
 def capture_command(
-    checkpoint_path: Path = typer.Option(
-        ..., "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
+    ctx: typer.Context,
+    config: Path | None = typer.Option(
+        None, "--config", help="Run config (YAML): capture its dataset with its model and capture settings "
+        "into its run folder, exactly as the pipeline does; the other flags are then not allowed."
     ),
-    output_dir: Path = typer.Option(..., "--output-dir", help="Run folder, e.g. data/residuals/open_close_run."),
-    lerobot_root: Path = typer.Option(..., "--lerobot-root", help="LeRobot v3.0 dataset folder."),
-    tokenizer_path: Path = typer.Option(
-        ..., "--tokenizer-path", help="PaliGemma SentencePiece model (paligemma_tokenizer.model)."
+    checkpoint_path: Path | None = typer.Option(
+        None, "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
+    ),
+    output_dir: Path | None = typer.Option(None, "--output-dir", help="Run folder, e.g. data/residuals/open_close_run."),
+    lerobot_root: Path | None = typer.Option(None, "--lerobot-root", help="LeRobot v3.0 dataset folder."),
+    tokenizer_path: Path | None = typer.Option(
+        None, "--tokenizer-path", help="PaliGemma SentencePiece model (paligemma_tokenizer.model)."
     ),
     repo_id: str | None = typer.Option(None, "--repo-id", help="Dataset repo id (default: the dataset folder name)."),
     layers: str = typer.Option("12", "--layers", help="Decoder layers to capture in one pass, e.g. 12 or 6,12."),
@@ -106,7 +112,18 @@ def capture_command(
         None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
     ),
 ) -> None:
-    """Capture pi0.5 residuals of every dataset frame at the given layers into resumable shards."""
+    """Capture pi0.5 residuals of every dataset frame at the given layers into resumable shards.
+
+    Give either --config, or --checkpoint-path, --tokenizer-path, --lerobot-root and --output-dir.
+    """
+    if config is not None:
+        _capture_from_config(ctx, config)
+        return
+    missing = [flag for flag, value in (("--checkpoint-path", checkpoint_path), ("--tokenizer-path", tokenizer_path),
+                                        ("--lerobot-root", lerobot_root), ("--output-dir", output_dir))
+               if value is None]
+    if missing:
+        raise typer.BadParameter(f"{', '.join(missing)} required (or give --config)", param_hint=missing[0])
     if capture_instructions and token_type not in (None, TokenTypeChoice.instructions):
         raise typer.BadParameter(
             f"--capture-instructions contradicts --token-type {token_type.value}; pass one of them",
@@ -133,8 +150,25 @@ def capture_command(
             video_backend=video_backend,
         )
         result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings)
+    _echo_result(output_dir, result)
+
+
+def _capture_from_config(ctx: typer.Context, config: Path) -> None:
+    """Run the capture a run config describes; refuse other capture flags, which the config would contradict."""
+    given = [f"--{name.replace('_', '-')}" for name, value in ctx.params.items()
+             if name != "config" and ctx.get_parameter_source(name).name != "DEFAULT"]
+    if given:
+        raise typer.BadParameter(f"{', '.join(given)} cannot be combined with --config: set them in the run config",
+                                 param_hint="--config")
+    with input_errors():
+        run = load_run_config(config)
+        result = capture(run.dataset_root, run.dataset.repo_id, run.run_dir, run.capture_settings())
+    _echo_result(run.run_dir, result)
+
+
+def _echo_result(run_dir: Path, result: CaptureResult) -> None:
     typer.echo(
-        f"{output_dir}: {len(result.written)} shard group(s) written, {len(result.skipped)} already complete, "
+        f"{run_dir}: {len(result.written)} shard group(s) written, {len(result.skipped)} already complete, "
         f"{result.frames} frame(s) captured"
     )
 
