@@ -26,7 +26,7 @@ from bench.common import Result, cache_dir, command, finish, parser, resolve_dev
 # ----------------------------------------------------------------------------- settings
 
 BASE_FILES = 10  # demo files before the refresh
-DEMOS_PER_FILE = 3  # LIBERO files hold 50; enough here for the per-file work to outweigh fixed costs
+DEMOS_PER_FILE = 4  # LIBERO files hold 50; enough here for the per-file work to outweigh fixed costs
 STEPS_PER_DEMO = 80  # real demos: 100-300 steps
 SOURCE_IMAGE_SIZE = 128  # LIBERO's render size in the demo files
 DATASET_IMAGE_SIZE = 256  # physical-intelligence/libero's frame size (the convert default)

@@ -62,17 +62,22 @@ def build_inputs(folder: Path, d_in: int, d_sae: int, rows: int) -> tuple[Path, 
 # ----------------------------------------------------------------------------- child measurements
 
 
-def reference_products(sae: Any, batch_size: int, device: torch.device) -> Any:
-    """Return a call running x @ W_enc then (that) @ W_dec for one batch into preallocated buffers."""
+def references(sae: Any, batch_size: int, device: torch.device) -> dict[str, Any]:
+    """Return the calls timed between ours' batches, on one random batch.
+
+    `matmul`: x @ W_enc then (that) @ W_dec into preallocated buffers, the target's reference;
+    `reconstruct`: the SAE's own encode and decode (`Sae.reconstruct`) without the running statistics,
+    which tells how the gap to the reference splits between steering_core.sae and steering_core.steering.
+    """
     x = torch.randn(batch_size, sae.cfg.d_in, device=device, dtype=sae.dtype)
     latents = torch.empty(batch_size, sae.cfg.d_sae, device=device, dtype=sae.dtype)
     decoded = torch.empty(batch_size, sae.cfg.d_in, device=device, dtype=sae.dtype)
 
-    def products() -> None:
+    def matmul() -> None:
         torch.matmul(x, sae.W_enc, out=latents)
         torch.matmul(latents, sae.W_dec, out=decoded)
 
-    return products
+    return {"matmul": matmul, "reconstruct": lambda: sae.reconstruct(x)}
 
 
 def _peaks(device: torch.device) -> dict[str, float | None]:
@@ -91,17 +96,18 @@ def child_ours(sae_dir: Path, concept: Path, out: Path, batch_size: int, device:
     from steering_core.steering import ConceptSource, encode_concept
 
     sae = load_sae(sae_dir, device=device)
-    products = reference_products(sae, batch_size, device)
+    calls = references(sae, batch_size, device)
     before = rss_mib()
     ours_times: list[float] = []
-    reference_times: list[float] = []
+    reference_times: dict[str, list[float]] = {name: [] for name in calls}
     resumed = [0.0]
 
     def progress(done: int, total: int) -> None:
         synchronize(device)
         ours_times.append(time.perf_counter() - resumed[0])
         if done < total:
-            reference_times.append(timed(products, device)[1])
+            for name, call in calls.items():
+                reference_times[name].append(timed(call, device)[1])
         resumed[0] = time.perf_counter()
 
     # a fresh output folder each time: statistics already on disk would be reused instead of recomputed
@@ -115,7 +121,8 @@ def child_ours(sae_dir: Path, concept: Path, out: Path, batch_size: int, device:
         "rows": rows,
         "total_seconds": total,
         "batch_seconds": median(full),
-        "matmul_seconds": median(reference_times[1:]),
+        "matmul_seconds": median(reference_times["matmul"][1:]),
+        "reconstruct_seconds": median(reference_times["reconstruct"][1:]),
         "rss_before_mib": before,
         "stats": str(stats),
         **_peaks(device),
@@ -182,6 +189,7 @@ def main(argv: list[str] | None = None) -> Result | None:
     ours_rate = batch_size / ours["batch_seconds"]
     ours_gflops = ours_rate * flops_per_row / 1e9
     matmul_gflops = batch_size * flops_per_row / ours["matmul_seconds"] / 1e9
+    reconstruct_gflops = batch_size * flops_per_row / ours["reconstruct_seconds"] / 1e9
     seed_rate = seed["rows"] / seed["seconds"]
     ratio = ours_gflops / matmul_gflops
     memory = "peak GPU MiB" if device.type == "cuda" else "peak RSS MiB"
@@ -189,6 +197,9 @@ def main(argv: list[str] | None = None) -> Result | None:
     table = [
         {"method": "ours: encode_concept (streamed, encode + decode)", "rows/s": ours_rate, "GFLOP/s": ours_gflops,
          "of matmul": ratio, "RSS before MiB": ours["rss_before_mib"], memory: ours[key]},
+        {"method": "Sae.reconstruct alone (no statistics)", "rows/s": batch_size / ours["reconstruct_seconds"],
+         "GFLOP/s": reconstruct_gflops, "of matmul": reconstruct_gflops / matmul_gflops, "RSS before MiB": "",
+         memory: ""},
         {"method": "torch.matmul, same two shapes", "rows/s": batch_size / ours["matmul_seconds"],
          "GFLOP/s": matmul_gflops, "of matmul": 1.0, "RSS before MiB": "", memory: ""},
         {"method": "seed: every latent kept (encode only)", "rows/s": seed_rate,
@@ -196,7 +207,7 @@ def main(argv: list[str] | None = None) -> Result | None:
          memory: seed[key]},
     ]
     latents_mib = rows * d_sae * 4 / 2**20
-    reference_mib = batch_size * (2 * d_in + d_sae) * 4 / 2**20
+    reference_mib = batch_size * (3 * d_in + 2 * d_sae) * 4 / 2**20  # buffers, plus reconstruct's outputs
     result = Result(
         name="sae",
         title=f"4. SAE encoding (d_in {d_in}, d_sae {d_sae}, batch {batch_size})",
@@ -210,10 +221,16 @@ def main(argv: list[str] | None = None) -> Result | None:
         checks={"latent_mean_max_abs_difference": difference, "ours_peak_mib": ours[key], "seed_peak_mib": seed[key]},
         notes=[
             f"{rows} rows of d_in {d_in}, d_sae {d_sae}, batch {batch_size}, float32 on {device.type}; ours counts "
-            f"{flops_per_row / 1e6:.3g} MFLOP per row (both products). The reference (both products into "
-            "preallocated buffers) runs between ours' batches, so both see the same load; medians over the batches, "
+            f"{flops_per_row / 1e6:.3g} MFLOP per row (both products). The references (both products into "
+            "preallocated buffers; the SAE's reconstruct) run between ours' batches, so all see the same load; "
+            "medians over the batches, "
             f"first left out as warm-up (the whole stream, reference included, took {ours['total_seconds']:.1f} s). "
-            f"Ours' peak includes the reference's {reference_mib:.0f} MiB of buffers.",
+            f"Ours' peak includes the references' {reference_mib:.0f} MiB of buffers.",
+            f"where the time goes, per batch: the two products {ours['matmul_seconds'] * 1e3:.3g} ms; the SAE's encode "
+            f"+ decode (bias, ReLU, b_dec, unfused: steering_core/sae.py) {ours['reconstruct_seconds'] * 1e3:.3g} ms; "
+            f"the whole streamed step {ours['batch_seconds'] * 1e3:.3g} ms, the rest being the running statistics "
+            "in steering_core/steering.py `_Sums.add` (float64 copies and reductions over the (batch, d_sae) latents, "
+            "a second pass for firing counts, an isfinite pass over the input).",
             f"memory at {rows} rows: ours {ours[key]:.0f} MiB vs the seed's {seed[key]:.0f} MiB ({memory}); the seed "
             f"holds {latents_mib:.0f} MiB of latents, and twice that while concatenating them. Same latent means on "
             f"both sides: max |ours - seed| = {difference:.1e}.",

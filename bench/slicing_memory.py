@@ -151,6 +151,26 @@ def read_write_twice(files: list[Path], out: Path) -> float:
     return seconds
 
 
+def write_outputs_again(out: Path, scratch: Path) -> float:
+    """Write the slicer's output tensors again (.pt and .safetensors, as it does) from memory; return the seconds.
+
+    This is the output side of slicing on its own: what slicing costs beyond it is reading and copying rows.
+    """
+    from safetensors.torch import save_file
+
+    from steering_core.layout import layer_dir
+
+    tensors = [torch.load(path, weights_only=True) for path in sorted((out / layer_dir(LAYER)).glob("*.pt"))]
+    scratch.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    for number, tensor in enumerate(tensors):
+        torch.save(tensor, scratch / f"{number}.pt")
+        save_file({"residuals": tensor}, scratch / f"{number}.safetensors")
+    seconds = time.perf_counter() - start
+    shutil.rmtree(scratch)
+    return seconds
+
+
 def child_memory(run_dir: Path, concept_map: Path, out: Path, device: str) -> dict[str, Any]:
     """Slice once in this fresh process; return its peak RSS, the RSS before slicing, and the time."""
     from steering_core.slicing import SliceSettings, slice_concepts
@@ -165,17 +185,21 @@ def child_memory(run_dir: Path, concept_map: Path, out: Path, device: str) -> di
 
 
 def child_throughput(run_dir: Path, concept_map: Path, out: Path, device: str) -> dict[str, Any]:
-    """Time slicing, a plain read and a read-and-write-twice of the same shards, alternating; best of each."""
+    """Time slicing, its output writes alone, a plain read and a read-and-write-twice of the same shards.
+
+    The four alternate for ROUNDS rounds after a warm-up; the best of each is returned.
+    """
     from steering_core.slicing import SliceSettings, slice_concepts
 
     files = shard_files(run_dir)
     settings = SliceSettings(layers=(LAYER,), device=device)
     slice_concepts(run_dir, concept_map, out, settings)  # warm-up; also warms the page cache
-    times: dict[str, list[float]] = {"seconds": [], "read_seconds": [], "floor_seconds": []}
+    times: dict[str, list[float]] = {"seconds": [], "write_seconds": [], "read_seconds": [], "floor_seconds": []}
     for _ in range(ROUNDS):
         start = time.perf_counter()
         slice_concepts(run_dir, concept_map, out, settings)
         times["seconds"].append(time.perf_counter() - start)
+        times["write_seconds"].append(write_outputs_again(out, out.parent / "slices-rewrite"))
         times["read_seconds"].append(plain_read(files))
         times["floor_seconds"].append(read_write_twice(files, out / "floor"))
     shutil.rmtree(out, ignore_errors=True)
@@ -255,6 +279,11 @@ def main(argv: list[str] | None = None) -> Result | None:
             f"warm): slicing {slicing_rate:.0f} MiB/s of shard bytes vs a plain sequential read {read_rate:.0f} MiB/s "
             f"= {slicing_rate / read_rate:.3f}x, and vs reading the shards and writing their bytes twice (slicing "
             f"writes every row to a .pt and a .safetensors) {floor_rate:.0f} MiB/s = {slicing_rate / floor_rate:.2f}x.",
+            f"where the time goes: writing the outputs alone (torch.save, which checksums every byte for its zip "
+            f"format, and safetensors' save_file, which builds the whole file in memory first) takes "
+            f"{throughput['write_seconds']:.2f} of {throughput['seconds']:.2f} s; the rest is reading and copying rows "
+            "in steering_core/slicing.py (`_read_rows` concatenates runs, `_read_selected` gathers the block again "
+            "even when every row is selected, `_concatenate` copies once more and reorders an already ordered result).",
         ],
     )
     return finish(result, args)
@@ -272,6 +301,7 @@ def _row(case: str, episodes: int, measured: dict[str, Any]) -> dict[str, Any]:
         "peak RSS MiB": measured.get("peak_rss_mib", ""),
         "slicing working set MiB": measured["peak_rss_mib"] - measured["rss_before_mib"] if not throughput else "",
         "slice s": measured["seconds"],
+        "of which writing outputs s": measured["write_seconds"] if throughput else "",
         "slice MiB/s": megabytes / measured["seconds"] if throughput else "",
         "plain read MiB/s": megabytes / measured["read_seconds"] if throughput else "",
         "read + write x2 MiB/s": megabytes / measured["floor_seconds"] if throughput else "",
