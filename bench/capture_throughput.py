@@ -277,7 +277,7 @@ def main(argv: list[str] | None = None) -> Result:
         ours_fps, seed_fps = frames / min(ours_times[layers]), frames / (passes * seed_pass)
         seed_note = "" if passes == 1 else f" (seed: {passes} x its measured pass)"
         rows.append({
-            "case": f"measured {device.type}, layers {','.join(map(str, layers))}{seed_note}",
+            "case": f"measured {device.type}, {_layers(layers)}{seed_note}",
             "frames": frames,
             "ours frames/s": ours_fps,
             "seed frames/s": seed_fps,
@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> Result:
         real_ours = ours_flops(REAL_ARCH, max(layers), REAL_PROMPT_TOKENS)
         real_seed = seed_flops(REAL_ARCH, len(layers))
         rows.append({
-            "case": f"real pi0.5, layers {','.join(map(str, layers))} (analytic)",
+            "case": f"real pi0.5, {_layers(layers)} (analytic)",
             "frames": "",
             "ours frames/s": "",
             "seed frames/s": "",
@@ -337,6 +337,11 @@ def main(argv: list[str] | None = None) -> Result:
         ],
     )
     return finish(result, args)
+
+
+def _layers(layers: tuple[int, ...]) -> str:
+    """Return `layer 12` or `layers 4,8,12`."""
+    return f"layer{'s' if len(layers) > 1 else ''} {','.join(map(str, layers))}"
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ ADDED_SCENE = 30  # scene of the eleventh file
 WARM_UP_DEMOS = 2  # demos per task of the warm-up pipeline run
 TARGET = 0.20  # refresh time / from-scratch time, at most
 
-QUICK = {"base_files": 4, "demos_per_file": 2, "steps": 24, "image_size": 64, "warm_up": False}
+QUICK = {"base_files": 4, "demos_per_file": 2, "steps": 12, "image_size": 32, "warm_up": False}
 
 
 def demo_settings(steps: int, seed: int = 0):

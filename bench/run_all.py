@@ -38,8 +38,8 @@ def run_one(name: str, flags: list[str], folder: Path) -> tuple[Result, float]:
 def description(name: str) -> list[str]:
     """Return a benchmark module's docstring without its first line and usage line, as markdown lines."""
     doc = importlib.import_module(f"bench.{name}").__doc__ or ""
-    lines = doc.strip().splitlines()[1:]
-    return [line for line in lines if "uv run python" not in line]
+    lines = [line for line in doc.strip().splitlines()[1:] if "uv run python" not in line]
+    return "\n".join(lines).strip().splitlines()
 
 
 def render(results: list[tuple[str, Result, float]], info: dict[str, str], total: float, invocation: str) -> str:

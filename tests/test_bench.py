@@ -74,7 +74,8 @@ def test_capture_baseline_captures_the_same_rows(cache, tmp_path):
     result = run_quick(capture_throughput, cache, tmp_path)
     assert result.checks["max_abs_difference"] < 1e-4
     cases = [row["case"] for row in result.table]
-    assert cases[-2:] == ["real pi0.5, layers 12 (analytic)", "real pi0.5, layers 4,8,12 (analytic)"]
+    assert cases == ["measured cpu, layer 2", "measured cpu, layers 1,2 (seed: 2 x its measured pass)",
+                     "real pi0.5, layer 12 (analytic)", "real pi0.5, layers 4,8,12 (analytic)"]
 
 
 def test_concept_map_baseline_finds_the_same_ranges(cache, tmp_path):
