@@ -88,7 +88,10 @@ class Sae(ABC):
 
     @abstractmethod
     def activate(self, hidden_pre: torch.Tensor) -> torch.Tensor:
-        """Return latent activations (..., d_sae) from pre-activations x~ @ W_enc + b_enc."""
+        """Return latent activations (..., d_sae) from pre-activations x~ @ W_enc + b_enc.
+
+        `hidden_pre` is a fresh tensor owned by the caller: implementations may overwrite it.
+        """
 
     def decoder_input(self, feature_acts: torch.Tensor) -> torch.Tensor:
         """Return what multiplies W_dec for these activations (identity except for rescaled TopK)."""
@@ -114,7 +117,7 @@ class Sae(ABC):
             x = (x - mean) / (std + LAYER_NORM_EPS)
         if self.cfg.apply_b_dec_to_input:
             x = x - self.b_dec
-        return self.activate(x @ self.W_enc + self.b_enc), norm
+        return self.activate(_affine(x, self.W_enc, self.b_enc)), norm
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         """Return latent activations (..., d_sae) of residuals (..., d_in), as SAELens's `encode`."""
@@ -128,7 +131,8 @@ class Sae(ABC):
                 f"SAE {self.name} normalises inputs ({self.cfg.normalize_activations}); decoding needs the "
                 "InputNorm returned by encode_with_norm(x) for the same rows"
             )
-        out = self.decode_direction(feature_acts) + self.b_dec
+        feature_acts = feature_acts.to(device=self.device, dtype=self.dtype)
+        out = _affine(self.decoder_input(feature_acts), self.W_dec, self.b_dec)
         if norm is not None and norm.scale is not None:
             out = out / norm.scale
         if norm is not None and norm.std is not None:
@@ -196,7 +200,7 @@ class StandardSae(Sae):
 
     def activate(self, hidden_pre: torch.Tensor) -> torch.Tensor:
         """Return ReLU of the pre-activations."""
-        return hidden_pre.relu()
+        return hidden_pre.relu_()
 
 
 @register_architecture
@@ -209,7 +213,7 @@ class JumpReluSae(Sae):
 
     def activate(self, hidden_pre: torch.Tensor) -> torch.Tensor:
         """Return ReLU of the pre-activations, zeroed at or below each latent's threshold."""
-        return hidden_pre.relu() * (hidden_pre > self.threshold).to(hidden_pre.dtype)
+        return hidden_pre.masked_fill_(hidden_pre <= self.threshold, 0).relu_()
 
 
 @register_architecture
@@ -235,6 +239,12 @@ class TopKSae(Sae):
         if self.cfg.rescale_acts_by_decoder_norm:
             return feature_acts / self.W_dec.norm(dim=-1)
         return feature_acts
+
+
+def _affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """Return x @ weight + bias for x of shape (..., n), in one fused product (addmm) over the flattened rows."""
+    rows = x.reshape(-1, x.shape[-1])
+    return torch.addmm(bias, rows, weight).reshape(*x.shape[:-1], weight.shape[-1])
 
 
 def weight_shapes(cfg: SaeConfig, extra_weights: tuple[str, ...] = ()) -> dict[str, tuple[int, ...]]:

@@ -317,50 +317,55 @@ def read_concept_stats(json_path: Path) -> ConceptStats:
 
 
 class _Sums:
-    """Running float64 sums over batches: the only state kept while a concept streams."""
+    """Running float64 sums over batches: the only state kept while a concept streams.
+
+    Sums stay on the SAE's device as tensors (no host sync per batch but the finiteness check). Per
+    batch, large sums run in the input dtype and are added to float64 totals: a batch of 512 rows
+    loses nothing that matters, while a float64 copy of every (n, d_sae) latent batch would cost as
+    much as the decode product.
+    """
 
     def __init__(self) -> None:
         self.count = 0
-        self.residual_sum: torch.Tensor | float = 0.0
-        self.residual_sq = 0.0  # sum of squared norms, for the total variance
-        self.latent_sum: torch.Tensor | float = 0.0
-        self.firing: torch.Tensor | float = 0.0
-        self.active = 0.0
-        self.squared_error = 0.0
+        self.residual_sum: torch.Tensor | float = 0.0   # (d_in,) float64
+        self.residual_sq: torch.Tensor | float = 0.0    # sum of squared norms, for the total variance
+        self.latent_sum: torch.Tensor | float = 0.0     # (d_sae,) float64
+        self.firing: torch.Tensor | int = 0             # (d_sae,) int64: rows where each latent fired
+        self.squared_error: torch.Tensor | float = 0.0  # sum of ||x - x_hat||^2
 
     def add(self, batch: torch.Tensor, sae: Sae | None, path: Path, *, start: int) -> None:
         """Accumulate one (n, d_in) batch; raise if it holds NaN or inf."""
         if sae is not None:
             batch = batch.to(sae.device)
-        if not torch.isfinite(batch).all():
+        column_sum = batch.sum(dim=0, dtype=torch.float64)  # finite iff every value is (no float64 overflow)
+        if not torch.isfinite(column_sum).all():
             raise ValueError(f"{path}: rows {start}..{start + len(batch) - 1} hold NaN or inf; re-run capture")
-        x = batch.double()
-        self.count += len(x)
-        self.residual_sum = self.residual_sum + x.sum(dim=0)
-        self.residual_sq += float((x * x).sum())
+        self.count += len(batch)
+        self.residual_sum = self.residual_sum + column_sum
+        self.residual_sq = self.residual_sq + batch.double().square().sum()
         if sae is None:
             return
         reconstruction, latents = sae.reconstruct(batch)
-        fired = latents > 0
-        self.latent_sum = self.latent_sum + latents.sum(dim=0, dtype=torch.float64)
-        self.firing = self.firing + fired.sum(dim=0, dtype=torch.float64)
-        self.active += float(fired.sum())
-        self.squared_error += float(((x - reconstruction.double()) ** 2).sum())
+        self.latent_sum = self.latent_sum + latents.sum(dim=0).double()
+        self.firing = self.firing + torch.count_nonzero(latents, dim=0)  # activations are >= 0: nonzero = fired
+        error = batch.to(reconstruction.dtype) - reconstruction
+        self.squared_error = self.squared_error + error.square().sum(dtype=torch.float64)
 
     def finish(self, source: ConceptSource) -> ConceptStats:
         """Return means and fidelity from the sums (all on CPU)."""
         mean = self.residual_sum.cpu() / self.count
-        total_variance = self.residual_sq - self.count * float(mean @ mean)
+        total_variance = float(self.residual_sq) - self.count * float(mean @ mean)
         has_latents = isinstance(self.latent_sum, torch.Tensor)
+        firing = self.firing.cpu().double() if has_latents else None
         return ConceptStats(
             label=source.label,
             path=source.path,
             count=self.count,
             residual_mean=mean,
             latent_mean=self.latent_sum.cpu() / self.count if has_latents else None,
-            firing_rate=self.firing.cpu() / self.count if has_latents else None,
-            fvu=self.squared_error / total_variance if has_latents and total_variance > 0 else None,
-            mean_l0=self.active / self.count if has_latents else None,
+            firing_rate=firing / self.count if has_latents else None,
+            fvu=float(self.squared_error) / total_variance if has_latents and total_variance > 0 else None,
+            mean_l0=float(firing.sum()) / self.count if has_latents else None,
         )
 
 
