@@ -118,8 +118,8 @@ def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     layer_path = compute_steering(settings(project, sae_folder))
     ref = reference(sae_folder)
     pair_dir = layer_path / "on_stove"
-    pos_x = torch.load(project / "data/residuals/on_vs_off_slices/layer12/turn on the stove.pt").double().numpy()
-    neg_x = torch.load(project / "data/residuals/on_vs_off_slices/layer12/turn off the stove.pt").double().numpy()
+    pos_x = torch.load(project / "data/residuals/on_vs_off_slices/layer12/turn on the stove.pt", weights_only=True).double().numpy()
+    neg_x = torch.load(project / "data/residuals/on_vs_off_slices/layer12/turn off the stove.pt", weights_only=True).double().numpy()
     pos_mean, neg_mean = ref.encode(pos_x)[0].mean(axis=0), ref.encode(neg_x)[0].mean(axis=0)
 
     positive = torch.load(pair_dir / "positive_latent_mean.pt", weights_only=True)
@@ -199,7 +199,7 @@ def test_each_concept_is_encoded_once(project, sae_folder):
     original = sae.encode_with_norm
     sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
     compute_steering(settings(project, None), sae=sae)
-    rows = sum(len(torch.load(path)) for path in (project / "data").rglob("*.pt"))
+    rows = sum(len(torch.load(path, weights_only=True)) for path in (project / "data").rglob("*.pt"))
     assert sum(encoded) == rows
 
 
@@ -224,8 +224,8 @@ def test_without_sae_directions_are_mean_differences(project):
         "directions.json", "residual_direction.pt", "residual_direction.safetensors"]
     residual = torch.load(pair_dir / "residual_direction.pt", weights_only=True)
     assert set(residual) == SEED_KEYS["residual_direction"]
-    pos = torch.load(project / "data/residuals/open_vs_close_slices/layer12/open the top drawer of the cabinet.pt")
-    neg = torch.load(project / "data/residuals/open_vs_close_slices/layer12/close the top drawer of the cabinet.pt")
+    pos = torch.load(project / "data/residuals/open_vs_close_slices/layer12/open the top drawer of the cabinet.pt", weights_only=True)
+    neg = torch.load(project / "data/residuals/open_vs_close_slices/layer12/close the top drawer of the cabinet.pt", weights_only=True)
     np.testing.assert_allclose(residual["residual_direction"].numpy(), (pos.double().mean(0) - neg.double().mean(0)).numpy(),
                                rtol=1e-6, atol=1e-6)
     summary = json.loads((pair_dir / "directions.json").read_text())
