@@ -12,6 +12,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 from helpers_dataset import CLOSE, OPEN, brute_force_rows, write_contrast_dataset
+from reference_formats import FORMATS
 from typer.testing import CliRunner
 
 from steering_core.cli import app
@@ -23,8 +24,8 @@ from steering_core.concept_map import (
 )
 from steering_core.contrast import ContrastSettings, build_manifest, write_manifest
 
-REFERENCE = Path("/work/shared/reference/formats/open_vs_close_concept_map.json")
-REFERENCE_MANIFEST = Path("/work/shared/reference/formats/open_vs_close.json")
+REFERENCE = FORMATS / "open_vs_close_concept_map.json"
+REFERENCE_MANIFEST = FORMATS / "open_vs_close.json"
 ROW_FIELDS = ["segment_id", "episode_index", "frame_start", "frame_end", "observed_frame_start",
               "observed_frame_end", "start_index", "end_index", "length"]
 

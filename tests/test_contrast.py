@@ -6,13 +6,13 @@ import json
 import math
 import re
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 from helpers_dataset import CLOSE, CONTRAST_AXIS, OPEN, STOVE, contrast_episodes, write_contrast_dataset
 from pydantic import ValidationError
+from reference_formats import FORMATS
 from typer.testing import CliRunner
 
 from steering_core.cli import app
@@ -25,7 +25,7 @@ from steering_core.contrast import (
 )
 from steering_core.dataset import dataset_fingerprint
 
-REFERENCE = Path("/work/shared/reference/formats/open_vs_close.json")
+REFERENCE = FORMATS / "open_vs_close.json"
 SEED_SEGMENT_FIELDS = {"task", "file", "demo", "start_step", "end_step", "axis_delta", "axis_values", "episode_index"}
 DATA_FILE = {0: "data/chunk-000/file-000.parquet", 1: "data/chunk-000/file-001.parquet"}
 

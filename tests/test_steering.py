@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from reference_formats import FORMATS
 from reference_sae import ReferenceSae
 from safetensors import safe_open
 from safetensors.torch import save_file
@@ -29,7 +30,7 @@ from steering_core.steering import (
 from steering_core.synthetic.sae import write_sae_folder
 
 D_IN, D_SAE = 16, 48
-REFERENCE_PAIRS = Path("/work/shared/reference/formats/layer12_pairs.json")
+REFERENCE_PAIRS = FORMATS / "layer12_pairs.json"
 SEED_KEYS = {
     "latent_mean": {"concept", "count", "mean"},
     "latent_direction": {"pair", "positive_concept", "negative_concept", "latent_direction", "latent_norm", "counts"},
