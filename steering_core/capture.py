@@ -17,6 +17,7 @@ import hashlib
 import logging
 import os
 import struct
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -394,6 +395,7 @@ def _capture_groups(
         _Frames(frames, keys),
         batch_sampler=[positions for _, positions in plan],
         num_workers=settings.num_workers,
+        multiprocessing_context=_worker_start_method(settings.num_workers),
         collate_fn=functools.partial(_collate, image_size=settings.arch.image_size),
         pin_memory=resolve_device(settings.device).type == "cuda",
     )
@@ -420,6 +422,17 @@ def _capture_groups(
             bar.update(size)
             if progress is not None:
                 progress(done, total)
+
+
+def _worker_start_method(num_workers: int) -> str | None:
+    """Return how frame workers start: forked from a single-threaded process, else from a fresh forkserver.
+
+    A fork copies every lock but only the forking thread: when other threads run (a Prefect flow's API
+    and log threads, for one), a worker can block on a lock held at fork time and die at shutdown.
+    """
+    if num_workers == 0:
+        return None
+    return "fork" if threading.active_count() == 1 else "forkserver"
 
 
 def _prompt(

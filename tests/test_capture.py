@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 import sentencepiece
 import torch
@@ -201,6 +203,27 @@ def test_split_run_equals_full_run(inputs, full_run, tmp_path):
         capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, episodes_per_shard=2), episodes=[1])
     with pytest.raises(ValueError, match=r"episodes \[9\] are not in the dataset"):
         capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, episodes_per_shard=2), episodes=[9])
+
+
+def test_workers_in_a_threaded_process_start_from_a_forkserver(inputs, full_run, tmp_path, monkeypatch):
+    """Inside a Prefect flow other threads run: forking then can deadlock a worker, so capture uses a forkserver."""
+    from steering_core import capture as capture_module
+
+    methods = []
+    real = capture_module._worker_start_method
+    monkeypatch.setattr(capture_module, "_worker_start_method", lambda n: methods.append(real(n)) or methods[-1])
+    stop = threading.Event()
+    busy = threading.Thread(target=stop.wait, daemon=True)
+    busy.start()
+    try:
+        capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, num_workers=1))
+    finally:
+        stop.set()
+        busy.join()
+    assert methods == ["forkserver"]
+    assert real(0) is None and (threading.active_count() > 1 or real(1) == "fork")
+    ours, full = load_layer(tmp_path / "run", 3), load_layer(full_run, 3)
+    assert all(torch.equal(ours[name], full[name]) for name in full)
 
 
 def test_discrete_state_prompt(inputs, tmp_path):
