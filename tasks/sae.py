@@ -7,7 +7,7 @@ from typing import Any
 
 from prefect import task
 
-from steering_core import steering
+from steering_core import concept_stats, steering
 from steering_core.fileio import write_json
 from steering_core.layout import layer_dir
 from steering_core.sae_formats import HOOK_NAME
@@ -68,15 +68,15 @@ def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:
 @task(
     name="encode-concept",
     task_run_name="encode {pair} {side} layer {layer}",
-    cache_policy=content_key("steering_core.steering", slice_path=file_digest, settings=sae_inputs),
+    cache_policy=content_key("steering_core.concept_stats", slice_path=file_digest, settings=sae_inputs),
     **RESULTS,
 )
 def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str, settings: SteeringSettings) -> dict:
     """Stream one concept's residuals through the layer's SAE; return the statistics file."""
     sae = steering.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    source = steering.ConceptSource(label=label, path=Path(slice_path))
-    stats = steering.encode_concept(source, layer_path, sae, batch_size=settings.batch_size)
+    source = concept_stats.ConceptSource(label=label, path=Path(slice_path))
+    stats = concept_stats.encode_concept(source, layer_path, sae, batch_size=settings.batch_size)
     return {OUTPUTS: [str(stats), str(stats.with_suffix(".safetensors"))], "stats": str(stats)}
 
 
