@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 from pathlib import Path
 from uuid import UUID
 
@@ -161,13 +162,22 @@ def flow_runs_under(client, root: UUID) -> list:
     return found
 
 
-def task_runs_under(root: UUID) -> dict[str, object]:
-    """Return task run name -> task run for every task of `root` and its subflows (subflow stand-ins excluded)."""
-    with get_client(sync_client=True) as client:
-        runs = flow_runs_under(client, root)
-        subflow_stand_ins = {r.parent_task_run_id for r in runs}
-        tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[r.id for r in runs])))
-    named = {t.name: t for t in tasks if t.id not in subflow_stand_ins}
+def task_runs_under(root: UUID, settle_seconds: float = 30.0) -> dict[str, object]:
+    """Return task run name -> task run for every task of `root` and its subflows (subflow stand-ins excluded).
+
+    Prefect 3 records task run states from events, asynchronously: right after a flow returns, a task
+    may still read as Running. Poll until every state is final (or `settle_seconds` pass).
+    """
+    deadline = time.monotonic() + settle_seconds
+    while True:
+        with get_client(sync_client=True) as client:
+            runs = flow_runs_under(client, root)
+            subflow_stand_ins = {r.parent_task_run_id for r in runs}
+            tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[r.id for r in runs])))
+        named = {t.name: t for t in tasks if t.id not in subflow_stand_ins}
+        if all(t.state is not None and t.state.is_final() for t in named.values()) or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
     assert len(named) == len(tasks) - len(subflow_stand_ins & {t.id for t in tasks}), "task run names must be unique"
     return named
 
