@@ -191,7 +191,7 @@ def run_seed(model: Any, inputs: Inputs, layers: tuple[int, ...], batch_size: in
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from torch.utils.data import DataLoader
 
-    from steering_core.capture import select_tokens
+    from steering_core.capture import select_tokens, worker_start_method
 
     tokenizer = PromptTokenizer(inputs.tokenizer)
     language_start = CAMERA_SLOTS * model.prefix.arch.tokens_per_image
@@ -199,6 +199,7 @@ def run_seed(model: Any, inputs: Inputs, layers: tuple[int, ...], batch_size: in
     for layer in layers:
         frames = LeRobotDataset(inputs.repo_id, root=inputs.dataset)
         loader = DataLoader(frames, batch_size=batch_size, num_workers=NUM_WORKERS,
+                            multiprocessing_context=worker_start_method(NUM_WORKERS),  # as capture starts them
                             collate_fn=functools.partial(seed_collate, image_size=model.prefix.arch.image_size))
         hooked: list[torch.Tensor] = []
         hook = model.prefix.layers[layer]  # the seed's hook point: one PaliGemma decoder layer

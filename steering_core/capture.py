@@ -395,7 +395,7 @@ def _capture_groups(
         _Frames(frames, keys),
         batch_sampler=[positions for _, positions in plan],
         num_workers=settings.num_workers,
-        multiprocessing_context=_worker_start_method(settings.num_workers),
+        multiprocessing_context=worker_start_method(settings.num_workers),
         collate_fn=functools.partial(_collate, image_size=settings.arch.image_size),
         pin_memory=resolve_device(settings.device).type == "cuda",
     )
@@ -424,7 +424,7 @@ def _capture_groups(
                 progress(done, total)
 
 
-def _worker_start_method(num_workers: int) -> str | None:
+def worker_start_method(num_workers: int) -> str | None:
     """Return how frame workers start: forked from a single-threaded process, else from a fresh forkserver.
 
     A fork copies every lock but only the forking thread: when other threads run (a Prefect flow's API

@@ -210,8 +210,8 @@ def test_workers_in_a_threaded_process_start_from_a_forkserver(inputs, full_run,
     from steering_core import capture as capture_module
 
     methods = []
-    real = capture_module._worker_start_method
-    monkeypatch.setattr(capture_module, "_worker_start_method", lambda n: methods.append(real(n)) or methods[-1])
+    real = capture_module.worker_start_method
+    monkeypatch.setattr(capture_module, "worker_start_method", lambda n: methods.append(real(n)) or methods[-1])
     stop = threading.Event()
     busy = threading.Thread(target=stop.wait, daemon=True)
     busy.start()
