@@ -15,9 +15,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import logging
+import multiprocessing
 import os
 import struct
-import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +66,8 @@ logger = logging.getLogger(__name__)
 STATE_KEY = "state"  # the dataset feature the discrete-state prompt reads
 CAMERA_DTYPES = ("image", "video")
 N_CAMERAS = 3  # pi0.5's camera slots: base, left wrist, right wrist (absent in LIBERO, mask False)
+# Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork.
+WORKER_PRELOAD = ("torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture")
 _FINGERPRINT_SAMPLES = 16  # data blocks hashed by checkpoint_fingerprint, evenly spaced
 _FINGERPRINT_BLOCK = 1 << 16  # 64 KiB each: 1 MiB read whatever the checkpoint size
 
@@ -425,14 +427,16 @@ def _capture_groups(
 
 
 def worker_start_method(num_workers: int) -> str | None:
-    """Return how frame workers start: forked from a single-threaded process, else from a fresh forkserver.
+    """Return how frame workers start: from a forkserver that imported torch and lerobot once (None: no workers).
 
-    A fork copies every lock but only the forking thread: when other threads run (a Prefect flow's API
-    and log threads, for one), a worker can block on a lock held at fork time and die at shutdown.
+    Forking the capturing process itself copies every lock but only the forking thread: inside a Prefect
+    flow (API and log threads) workers then died at shutdown. A forkserver is a fresh single-threaded
+    process; preloading the heavy imports there keeps each worker's start as cheap as a plain fork.
     """
     if num_workers == 0:
         return None
-    return "fork" if threading.active_count() == 1 else "forkserver"
+    multiprocessing.set_forkserver_preload(list(WORKER_PRELOAD))
+    return "forkserver"
 
 
 def _prompt(
