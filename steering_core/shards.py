@@ -28,13 +28,12 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import ValidationError
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from steering_core.fileio import atomic_path, read_json, sha256_file, sha256_json, write_json
+from steering_core.fileio import atomic_path, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
-from steering_core.schema import StrictModel
+from steering_core.schema import M, StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 
@@ -176,13 +175,7 @@ def write_run_spec(run_dir: str | os.PathLike, spec: RunSpec) -> Path:
 
 def read_run_spec(run_dir: str | os.PathLike) -> RunSpec:
     """Return the validated `run.json` of a run folder."""
-    path = Path(run_dir) / RUN_FILE
-    payload = read_json(path)
-    _check_format_version(path, payload)
-    try:
-        return RunSpec.model_validate(payload)
-    except ValidationError as err:
-        raise ValueError(f"{path}: not a valid run spec: {err}") from None
+    return _read_versioned(Path(run_dir) / RUN_FILE, RunSpec, "run spec")
 
 
 def write_shard(
@@ -230,13 +223,7 @@ def write_shard(
 
 def read_shard_record(path: str | os.PathLike) -> ShardRecord:
     """Return a validated sidecar record."""
-    path = Path(path)
-    payload = read_json(path)
-    _check_format_version(path, payload)
-    try:
-        return ShardRecord.model_validate(payload)
-    except ValidationError as err:
-        raise ValueError(f"{path}: not a valid shard record: {err}") from None
+    return _read_versioned(path, ShardRecord, "shard record")
 
 
 def find_complete_shard(
@@ -353,12 +340,7 @@ def read_run_metadata(run_dir: str | os.PathLike) -> RunMetadata:
     path = Path(run_dir) / METADATA_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: run metadata not found; run capture into {Path(run_dir)} first")
-    payload = read_json(path)
-    _check_format_version(path, payload)
-    try:
-        return RunMetadata.model_validate(payload)
-    except ValidationError as err:
-        raise ValueError(f"{path}: not valid run metadata: {err}") from None
+    return _read_versioned(path, RunMetadata, "run metadata")
 
 
 def _header(handle: Any) -> dict[str, Any]:
@@ -370,14 +352,10 @@ def _header(handle: Any) -> dict[str, Any]:
     return header if isinstance(header, dict) else {}
 
 
-def _check_format_version(path: Path, payload: Any) -> None:
-    """Raise unless `payload` is a JSON object with this module's format_version."""
-    found = payload.get("format_version") if isinstance(payload, dict) else None
-    if found != FORMAT_VERSION:
-        raise ValueError(
-            f"{path}: `format_version` is {found!r}, expected {FORMAT_VERSION}; "
-            "it was written by another version of latent-steering, re-run capture"
-        )
+def _read_versioned(path: str | os.PathLike, model: type[M], what: str) -> M:
+    """Return a run-folder JSON record validated as `model`, checking this module's format_version."""
+    return read_model(path, model, what=what, format_version=FORMAT_VERSION,
+                      fix="it was written by another version of latent-steering, re-run capture")
 
 
 def _validate_rows(rows: ShardRows, spec: RunSpec, layer: int, key: str) -> None:
