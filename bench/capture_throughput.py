@@ -26,7 +26,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench.common import Result, cache_dir, command, finish, parser, resolve_device, timed
+from bench.common import (
+    Result,
+    cache_dir,
+    command,
+    finish,
+    parser,
+    timed,
+)
+from steering_core.devices import resolve_device
 from steering_core.pi05 import Pi05Arch, PromptTokenizer, libero_camera_slots
 from steering_core.synthetic.pi05 import tiny_arch
 
@@ -137,8 +145,12 @@ class Inputs:
 
 def build_inputs(folder: Path, arch: Pi05Arch, frames: int) -> Inputs:
     """Return the LeRobot dataset, checkpoint and tokenizer, generating whatever is not cached yet."""
-    from steering_core.convert import ConvertSettings, convert_libero
-    from steering_core.synthetic.libero import DEMO_SUITE_TASKS, SyntheticSettings, write_libero_file
+    from steering_core.data.convert import ConvertSettings, convert_libero
+    from steering_core.synthetic.libero import (
+        DEMO_SUITE_TASKS,
+        SyntheticSettings,
+        write_libero_file,
+    )
     from steering_core.synthetic.pi05 import write_pi05_checkpoint
     from steering_core.synthetic.tokenizer import TOKENIZER_FILE, write_tokenizer
 
@@ -191,7 +203,8 @@ def run_seed(model: Any, inputs: Inputs, layers: tuple[int, ...], batch_size: in
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from torch.utils.data import DataLoader
 
-    from steering_core.capture import select_tokens, worker_start_method
+    from steering_core.capture.frames import worker_start_method
+    from steering_core.capture.settings import select_tokens
 
     tokenizer = PromptTokenizer(inputs.tokenizer)
     language_start = CAMERA_SLOTS * model.prefix.arch.tokens_per_image
@@ -224,7 +237,7 @@ def run_seed(model: Any, inputs: Inputs, layers: tuple[int, ...], batch_size: in
 
 def ours_rows(run_dir: Path, layer: int) -> torch.Tensor:
     """Return every captured row of one layer (n, width) float32, in shard order."""
-    from steering_core.shards import open_shard, read_run_metadata
+    from steering_core.capture.shards import open_shard, read_run_metadata
 
     parts = []
     for record in read_run_metadata(run_dir).layer_shards(layer):

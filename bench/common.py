@@ -94,14 +94,6 @@ def cache_dir(args: argparse.Namespace) -> Path:
     return folder
 
 
-def resolve_device(name: str) -> torch.device:
-    """Return the torch device for --device; refuse cuda on a machine without it."""
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit(f"--device {name}: CUDA is not available on this machine; run with --device cpu")
-    return device
-
-
 def command(module: str, args: argparse.Namespace, *extra: str) -> str:
     """Return the command line that reproduces a benchmark run with these flags."""
     flags = [f"--device {args.device}"] if args.device != "cpu" else []

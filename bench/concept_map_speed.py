@@ -1,6 +1,6 @@
 """Concept map: our index-column mapping against the seed's row-by-row walk over a LeRobot dataset.
 
-Ours is `steering_core.concept_map.build_concept_map`: manifest segments found by binary search over the
+Ours is `steering_core.data.concept_map.build_concept_map`: manifest segments found by binary search over the
 dataset's integer index columns, read from parquet without touching a frame. The seed's
 `map_concept_samples.py` iterated every row of the LeRobotDataset (`dataset.hf_dataset`), which decodes
 both camera images of each frame, to learn each row's episode and frame index. Both map the same manifest
@@ -16,7 +16,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from bench.common import Result, cache_dir, command, finish, median, parser, repeat_timed, resolve_device, timed
+from bench.common import (
+    Result,
+    cache_dir,
+    command,
+    finish,
+    median,
+    parser,
+    repeat_timed,
+    timed,
+)
+from steering_core.devices import resolve_device
 
 # ----------------------------------------------------------------------------- settings
 
@@ -32,9 +42,14 @@ QUICK = {"demos_per_task": 2, "steps_per_demo": 20}
 
 def build_dataset(folder: Path, demos_per_task: int, steps: int) -> tuple[Path, str, Path]:
     """Return (dataset root, repo id, manifest path) of the drawer pair, generating what is not cached yet."""
-    from steering_core.contrast import build_manifest, write_manifest
-    from steering_core.convert import ConvertSettings, convert_libero
-    from steering_core.synthetic.libero import DRAWER_CLOSE, DRAWER_OPEN, SyntheticSettings, write_demo_suite
+    from steering_core.data.contrast import build_manifest, write_manifest
+    from steering_core.data.convert import ConvertSettings, convert_libero
+    from steering_core.synthetic.libero import (
+        DRAWER_CLOSE,
+        DRAWER_OPEN,
+        SyntheticSettings,
+        write_demo_suite,
+    )
 
     frames = TASKS * demos_per_task * steps
     demos = folder / f"libero-{frames}"
@@ -58,7 +73,7 @@ def seed_concept_map(manifest_path: Path, root: Path, repo_id: str) -> dict[str,
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from steering_core.contrast import read_manifest
+    from steering_core.data.contrast import read_manifest
 
     manifest = read_manifest(manifest_path)
     by_episode: dict[int, list[tuple[int, int, int]]] = {}
@@ -98,7 +113,7 @@ def main(argv: list[str] | None = None) -> Result:
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from steering_core.concept_map import build_concept_map
+    from steering_core.data.concept_map import build_concept_map
 
     LeRobotDataset(repo_id, root=root)  # warm-up: builds the datasets library's Arrow cache once
     ours_times = repeat_timed(lambda: build_concept_map(manifest, root), device, warmup=1, repeats=REPEATS)

@@ -21,7 +21,15 @@ from pathlib import Path
 
 import torch
 
-from bench.common import Result, cache_dir, command, finish, parser, resolve_device, timed
+from bench.common import (
+    Result,
+    cache_dir,
+    command,
+    finish,
+    parser,
+    timed,
+)
+from steering_core.devices import resolve_device
 
 # ----------------------------------------------------------------------------- settings
 
@@ -50,7 +58,11 @@ def build_inputs(folder: Path, base_files: int, demos_per_file: int, steps: int,
     """Return (run config, demo folder): the demo's model side with `base_files` demo files of our sizes."""
     from steering_core.config import load_run_config, write_run_config
     from steering_core.demo import build_demo
-    from steering_core.synthetic.libero import DEMO_SUITE_TASKS, SyntheticTask, write_libero_file
+    from steering_core.synthetic.libero import (
+        DEMO_SUITE_TASKS,
+        SyntheticTask,
+        write_libero_file,
+    )
 
     shutil.rmtree(folder, ignore_errors=True)  # every run starts from the same ten files and no outputs
     config_path = build_demo(folder, demos_per_task=demos_per_file)
@@ -73,7 +85,11 @@ def build_inputs(folder: Path, base_files: int, demos_per_file: int, steps: int,
 
 def add_file(demos: Path, demos_per_file: int, steps: int) -> Path:
     """Write the eleventh demo file (another scene of the first task) into the demo folder; return it."""
-    from steering_core.synthetic.libero import DEMO_SUITE_TASKS, SyntheticTask, write_libero_file
+    from steering_core.synthetic.libero import (
+        DEMO_SUITE_TASKS,
+        SyntheticTask,
+        write_libero_file,
+    )
 
     task = DEMO_SUITE_TASKS[0]
     scene = SyntheticTask(instruction=task.instruction, scene=f"KITCHEN_SCENE{ADDED_SCENE}", motion=task.motion)
@@ -82,8 +98,8 @@ def add_file(demos: Path, demos_per_file: int, steps: int) -> Path:
 
 def shard_digests(config_path: Path) -> dict[str, str]:
     """Return shard file -> sha256 of a finished run, from its metadata."""
+    from steering_core.capture.shards import read_run_metadata
     from steering_core.config import load_run_config
-    from steering_core.shards import read_run_metadata
 
     return {record.file: record.sha256 for record in read_run_metadata(load_run_config(config_path).run_dir).shards}
 
@@ -99,7 +115,7 @@ def main(argv: list[str] | None = None) -> Result:
             QUICK["base_files"], QUICK["demos_per_file"], QUICK["steps"], QUICK["image_size"], QUICK["warm_up"])
     folder = cache_dir(args) / "refresh"
 
-    from steering_core.cli.run import prefect_environment
+    from cli.run import prefect_environment
 
     prefect_environment(home=folder.parent / "prefect-home")  # before Prefect is imported
     from prefect import flow

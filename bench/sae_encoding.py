@@ -1,6 +1,6 @@
 """SAE encoding: our streaming concept encode against torch.matmul of the same shapes, and its memory.
 
-Ours is `steering_core.concept_stats.encode_concept`: a concept file read in batches from its memory map, each
+Ours is `steering_core.sae.concept_stats.encode_concept`: a concept file read in batches from its memory map, each
 batch encoded *and* decoded by the SAE (the reconstruction gives the fraction of variance unexplained)
 while only running sums are kept. Its FLOP count per row is therefore two products, x @ W_enc and
 f @ W_dec; the reference is torch.matmul of exactly those two shapes, timed in the same process. The seed's
@@ -29,12 +29,12 @@ from bench.common import (
     parser,
     peak_rss_mib,
     print_child_result,
-    resolve_device,
     rss_mib,
     run_child,
     synchronize,
     timed,
 )
+from steering_core.devices import resolve_device
 
 # ----------------------------------------------------------------------------- settings
 
@@ -67,7 +67,7 @@ def references(sae: Any, batch_size: int, device: torch.device) -> dict[str, Any
 
     `matmul`: x @ W_enc then (that) @ W_dec into preallocated buffers, the target's reference;
     `reconstruct`: the SAE's own encode and decode (`Sae.reconstruct`) without the running statistics,
-    which tells how the gap to the reference splits between steering_core.sae and steering_core.steering.
+    which tells how the gap to the reference splits between steering_core.sae.model and steering_core.sae.steering.
     """
     x = torch.randn(batch_size, sae.cfg.d_in, device=device, dtype=sae.dtype)
     latents = torch.empty(batch_size, sae.cfg.d_sae, device=device, dtype=sae.dtype)
@@ -92,8 +92,8 @@ def child_ours(sae_dir: Path, concept: Path, out: Path, batch_size: int, device:
     Interleaving puts both under the same machine load, batch by batch. Returns the median time of a
     full batch of ours (the first, a warm-up, left out) and of the reference, and the peak memory.
     """
-    from steering_core.sae import load_sae
-    from steering_core.concept_stats import ConceptSource, encode_concept
+    from steering_core.sae.concept_stats import ConceptSource, encode_concept
+    from steering_core.sae.model import load_sae
 
     sae = load_sae(sae_dir, device=device)
     calls = references(sae, batch_size, device)
@@ -134,7 +134,7 @@ def child_seed(sae_dir: Path, concept: Path, out: Path, batch_size: int, device:
 
     The latent mean goes to `out` (a .pt file) for comparison with ours.
     """
-    from steering_core.sae import load_sae
+    from steering_core.sae.model import load_sae
 
     sae = load_sae(sae_dir, device=device)
     before = rss_mib()
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> Result | None:
     ours = run_child("sae_encoding", [*flags, "--child=ours"])
     seed = run_child("sae_encoding", [*flags, "--child=seed"])
 
-    from steering_core.concept_stats import read_concept_stats
+    from steering_core.sae.concept_stats import read_concept_stats
 
     ours_mean = read_concept_stats(Path(ours["stats"])).latent_mean
     difference = float((ours_mean - torch.load(seed["mean"], weights_only=True).double()).abs().max())

@@ -1,6 +1,6 @@
 """Slicing memory: peak resident memory while slicing runs 1x, 10x and 100x as large, and slicing throughput.
 
-Runs are written directly with `steering_core.shards` (one shard per episode, real width 2048, float32),
+Runs are written directly with `steering_core.capture.shards` (one shard per episode, real width 2048, float32),
 as capture would write them. Two questions:
 
 - Memory: a concept pair's segments stay the same while the run around them grows, as when one pair is
@@ -32,10 +32,10 @@ from bench.common import (
     parser,
     peak_rss_mib,
     print_child_result,
-    resolve_device,
     rss_mib,
     run_child,
 )
+from steering_core.devices import resolve_device
 
 # ----------------------------------------------------------------------------- settings
 
@@ -61,8 +61,8 @@ CONCEPTS = ("open the top drawer of the cabinet", "close the top drawer of the c
 
 
 def write_run(run_dir: Path, episodes: int, width: int) -> Path:
-    """Write a run of `episodes` one-episode shards through `steering_core.shards`, unless already there."""
-    from steering_core.shards import (
+    """Write a run of `episodes` one-episode shards through `steering_core.capture.shards`, unless already there."""
+    from steering_core.capture.shards import (
         METADATA_FILE,
         RunSpec,
         ShardRows,
@@ -99,7 +99,7 @@ def write_run(run_dir: Path, episodes: int, width: int) -> Path:
 
 def write_map(path: Path, episodes: list[int], frames: tuple[int, int], total_frames: int) -> Path:
     """Write a concept map whose two concepts take alternate episodes, frames `frames` of each."""
-    from steering_core.concept_map import ConceptMap, ConceptRow, write_concept_map
+    from steering_core.data.concept_map import ConceptMap, ConceptRow, write_concept_map
 
     concepts: dict[str, list[ConceptRow]] = {concept: [] for concept in CONCEPTS}
     first, last = frames
@@ -173,7 +173,7 @@ def write_outputs_again(out: Path, scratch: Path) -> float:
 
 def child_memory(run_dir: Path, concept_map: Path, out: Path, device: str) -> dict[str, Any]:
     """Slice once in this fresh process; return its peak RSS, the RSS before slicing, and the time."""
-    from steering_core.slicing import SliceSettings, slice_concepts
+    from steering_core.capture.slicing import SliceSettings, slice_concepts
 
     before = rss_mib()
     start = time.perf_counter()
@@ -189,7 +189,7 @@ def child_throughput(run_dir: Path, concept_map: Path, out: Path, device: str) -
 
     The four alternate for ROUNDS rounds after a warm-up; the best of each is returned.
     """
-    from steering_core.slicing import SliceSettings, slice_concepts
+    from steering_core.capture.slicing import SliceSettings, slice_concepts
 
     files = shard_files(run_dir)
     settings = SliceSettings(layers=(LAYER,), device=device)

@@ -19,9 +19,9 @@ from prefect.client.orchestration import get_client
 from prefect.client.schemas.objects import FlowRun
 from prefect.deployments import run_deployment
 
-from steering_core import shards
+from steering_core.capture import shards
 from steering_core.config import RunConfig, load_run_config
-from steering_core.dataset import read_meta
+from steering_core.data.dataset import read_meta
 from tasks import capture as capture_tasks
 from tasks.cache import rooted
 

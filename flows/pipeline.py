@@ -24,8 +24,13 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.capture import run_capture
 from steering_core.config import RunConfig, load_run_config
-from steering_core.refresh import SOURCES_RECORD_FILE, read_sources_record, scan_sources, write_sources_record
-from steering_core.steering import SIDES
+from steering_core.refresh import (
+    SOURCES_RECORD_FILE,
+    read_sources_record,
+    scan_sources,
+    write_sources_record,
+)
+from steering_core.sae.steering import SIDES
 from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report

@@ -18,7 +18,12 @@ from prefect.deployments import run_deployment
 
 from flows.pipeline import latent_steering
 from steering_core.config import load_run_config
-from steering_core.refresh import SOURCES_RECORD_FILE, diff_sources, read_sources_record, scan_sources
+from steering_core.refresh import (
+    SOURCES_RECORD_FILE,
+    diff_sources,
+    read_sources_record,
+    scan_sources,
+)
 
 REFRESH_FLOW = "latent-steering-refresh"
 

@@ -48,14 +48,14 @@ from pydantic import (
 
 from steering_core import layout
 from steering_core.capture import CaptureSettings
-from steering_core.contrast import ContrastSettings
-from steering_core.convert import ConvertSettings
+from steering_core.capture.slicing import SliceSettings
+from steering_core.data.contrast import ContrastSettings
+from steering_core.data.convert import ConvertSettings
+from steering_core.data.filtering import FilterSettings
 from steering_core.fileio import atomic_path
-from steering_core.filtering import FilterSettings
 from steering_core.pi05 import Pi05Arch
+from steering_core.sae.steering import PairsConfig, PairSpec, SteeringSettings
 from steering_core.schema import StrictModel
-from steering_core.slicing import SliceSettings
-from steering_core.steering import PairsConfig, PairSpec, SteeringSettings
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 PAIRS_CONFIG_FILE = "{layer_dir}_pairs.json"  # the seed's data/latent_steering/layer12_pairs.json

@@ -27,8 +27,7 @@ from steering_core.config import (
     write_run_config,
 )
 from steering_core.fileio import read_json, write_json
-from steering_core.layout import layer_dir
-from steering_core.report import SUMMARY_JSON, SUMMARY_MD
+from steering_core.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.synthetic.libero import (
     DRAWER_CLOSE,
     DRAWER_OPEN,

@@ -11,6 +11,11 @@ CONCEPT_MAP_FILE = "manifests/{pair}_concept_map.json"
 RESIDUALS_RUN_DIR = "residuals/{run}"
 SLICES_DIR = "residuals/{pair}_slices"
 STEERING_ROOT = "latent_steering"
+# Files of one steering layer folder (STEERING_ROOT/layerNN/) and of its pair folders (layerNN/<pair>/).
+PAIR_SUMMARY_FILE = "directions.json"
+PAIRWISE_STATS_FILE = "pairwise_stats"  # + .pt / .json
+SUMMARY_MD = "summary.md"
+SUMMARY_JSON = "summary.json"
 
 
 def layer_dir(layer: int) -> str:

@@ -15,7 +15,6 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-
 from steering_core.fileio import sha256_file, write_json
 from steering_core.schema import StrictModel, read_model
 

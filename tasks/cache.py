@@ -1,8 +1,8 @@
 """Cache keys built from input content, and task results kept beside the outputs they describe.
 
-A task's identity is the content of its inputs (file hashes, settings fingerprints), its own
-source, and the source of the `steering_core` modules it calls (followed through their imports):
-equal identity, equal outputs. `ContentKey` turns a task's parameters into that identity, so an
+A task's identity (`steering_core.identity`) is the content of its inputs (file hashes, settings
+fingerprints), its own source, and the source of the `steering_core` modules it calls: equal
+identity, equal outputs. `ContentKey` turns a task's parameters into that identity, so an
 unchanged input gives a `Cached` task run and a changed one recomputes only what depends on it.
 
 Results (small JSON summaries) and their cache records live under `<output_root>/.prefect-cache/`,
@@ -13,15 +13,12 @@ them, and deleting the outputs deletes the cache. A task's summary lists the fil
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import functools
 import hashlib
 import inspect
 import logging
 import os
-import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -30,16 +27,14 @@ from prefect.context import TaskRunContext
 from prefect.results import ResultRecord
 from prefect.states import State
 from prefect.tasks import Task
-from pydantic import BaseModel
 
-from steering_core.fileio import sha256_file, sha256_json
+from steering_core.fileio import sha256_json
+from steering_core.identity import code_version, plain
 
 logger = logging.getLogger(__name__)
 
 CACHE_DIR = ".prefect-cache"  # under the output root: one record per finished task run
 OUTPUTS = "outputs"           # key of a task summary that lists the files the task wrote
-PROJECT_PACKAGES = ("steering_core",)  # imports followed when versioning code
-_PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the folder holding steering_core/ and tasks/
 
 Fingerprint = Callable[[Any], Any]
 
@@ -49,110 +44,6 @@ RESULTS: dict[str, Any] = {"persist_result": True, "result_serializer": "json"}
 # cleared) and GPUs (an out-of-memory from a neighbour, a lost device). Bad content fails at once.
 IO_RETRIES, IO_RETRY_DELAYS = 2, [2, 30]            # seconds
 GPU_RETRIES, GPU_RETRY_DELAYS = 2, [30, 120]        # seconds: give a crashed neighbour time to free memory
-
-
-# ----------------------------------------------------------------------------- content fingerprints
-
-_DIGESTS: dict[tuple[str, int, int], str] = {}
-
-
-def file_digest(path: str | os.PathLike) -> str:
-    """Return the sha256 of a file, remembered per (path, size, mtime) so large files are read once."""
-    path = Path(path).resolve()
-    stat = path.stat()
-    memo = (str(path), stat.st_size, stat.st_mtime_ns)
-    if memo not in _DIGESTS:
-        _DIGESTS[memo] = sha256_file(path)
-    return _DIGESTS[memo]
-
-
-def tree_listing(folders: Iterable[str | os.PathLike], pattern: str = "*.hdf5") -> list[tuple[str, int, int]]:
-    """Return (path, size, mtime_ns) of each file matching `pattern` directly in the folders: a cheap fingerprint.
-
-    Used where hashing every candidate would be costly and a later step hashes what it selects.
-    """
-    listing = []
-    for folder in folders:
-        for path in sorted(Path(folder).glob(pattern)):
-            stat = path.stat()
-            listing.append((str(path.resolve()), stat.st_size, stat.st_mtime_ns))
-    return listing
-
-
-def plain(value: Any) -> Any:
-    """Return `value` as JSON-ready data for hashing: settings models by content, paths as text."""
-    if isinstance(value, BaseModel):
-        return value.model_dump(mode="json")
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, Mapping):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain(v) for v in value]
-    return value
-
-
-# ----------------------------------------------------------------------------- code version
-
-@functools.cache
-def _module_file(name: str) -> Path | None:
-    """Return the source file of project module `name` (found by path, never imported), or None if not a module."""
-    top = name.split(".")[0]
-    if top not in PROJECT_PACKAGES:
-        return None
-    base = _PROJECT_ROOT.joinpath(*name.split("."))
-    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-def _project_imports(name: str, path: Path) -> set[str]:
-    """Return the project modules imported by the module `name` stored at `path`."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-        if isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parent = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
-                base = f"{parent}.{base}" if base else parent
-            found.add(base)
-            # `from pkg import submodule` imports a module too
-            found.update(f"{base}.{alias.name}" for alias in node.names)
-    return {m for m in found if _module_file(m) is not None}
-
-
-_AST_LOCK = threading.Lock()  # CPython 3.11's ast.parse is not safe in concurrent threads (recursion-depth check)
-
-
-@functools.cache
-def code_version(*modules: str) -> str:
-    """Return the sha256 of the source of `modules` and every project module they import, transitively."""
-    return sha256_json(code_modules(*modules))
-
-
-def code_modules(*modules: str) -> dict[str, str]:
-    """Return module name -> sha256 of its source for `modules` and every project module they import."""
-    with _AST_LOCK:
-        return _code_modules(modules)
-
-
-def _code_modules(modules: tuple[str, ...]) -> dict[str, str]:
-    seen: dict[str, str] = {}
-    pending = list(modules)
-    while pending:
-        name = pending.pop()
-        if name in seen:
-            continue
-        path = _module_file(name)
-        if path is None:
-            raise ValueError(f"code_version: module {name!r} has no Python source file; expected a steering_core module")
-        seen[name] = hashlib.sha256(path.read_bytes()).hexdigest()
-        pending.extend(_project_imports(name, path) - seen.keys())
-    return dict(sorted(seen.items()))
 
 
 # ----------------------------------------------------------------------------- retries

@@ -7,14 +7,16 @@ from typing import Any
 
 from prefect import get_run_logger, task
 
-from steering_core import capture, shards, slicing
-from steering_core.capture import CaptureSettings
-from steering_core.concept_map import read_concept_map
-from steering_core.convert import read_sources
+from steering_core.capture import CaptureSettings, shards, slicing
+from steering_core.capture import loop as capture
+from steering_core.capture.identity import checkpoint_fingerprint
+from steering_core.capture.slicing import SliceSettings
+from steering_core.data.concept_map import read_concept_map
+from steering_core.data.convert import read_sources
 from steering_core.fileio import read_json
+from steering_core.identity import file_digest, plain
 from steering_core.layout import layer_dir
 from steering_core.pi05.checkpoint import resolve_model_file
-from steering_core.slicing import SliceSettings
 from tasks.artifacts import artifact_key, progress_artifact
 from tasks.cache import (
     GPU_RETRIES,
@@ -24,8 +26,6 @@ from tasks.cache import (
     OUTPUTS,
     RESULTS,
     content_key,
-    file_digest,
-    plain,
     retry_on,
 )
 
@@ -39,7 +39,7 @@ def model_inputs(settings: CaptureSettings) -> dict[str, Any]:
     """Return the capture settings that shape the rows, plus the content of the files they name."""
     return {
         "settings": plain(settings.model_dump(mode="json", exclude=set(_READING_ONLY))),
-        "checkpoint": capture.checkpoint_fingerprint(resolve_model_file(settings.checkpoint_path)),
+        "checkpoint": checkpoint_fingerprint(resolve_model_file(settings.checkpoint_path)),
         "tokenizer": file_digest(settings.tokenizer_path),
         "norm_stats": file_digest(settings.norm_stats_path) if settings.norm_stats_path else None,
     }
@@ -91,7 +91,7 @@ def shard_files(run_dir: str, settings: CaptureSettings, episodes: list[int]) ->
     name="capture-residuals",
     task_run_name="capture {label}",
     tags=[GPU_TAG],
-    cache_policy=content_key("steering_core.capture", settings=model_inputs,
+    cache_policy=content_key("steering_core.capture.loop", settings=model_inputs,
                              derived={"episodes": episode_sources}, ignore=("label",)),
     retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_on(OSError, RuntimeError),
     **RESULTS,
@@ -112,7 +112,7 @@ def capture_episodes(
 @task(
     name="write-run-metadata",
     task_run_name="run metadata {run_dir}",
-    cache_policy=content_key("steering_core.shards", derived={"sidecars": run_sidecars}),
+    cache_policy=content_key("steering_core.capture.shards", derived={"sidecars": run_sidecars}),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
     **RESULTS,
 )
@@ -126,7 +126,7 @@ def write_run_metadata(run_dir: str) -> dict:
 @task(
     name="slice-concepts",
     task_run_name="slice {pair} layer {layer}",
-    cache_policy=content_key("steering_core.slicing", concept_map_path=concept_rows,
+    cache_policy=content_key("steering_core.capture.slicing", concept_map_path=concept_rows,
                              derived={"shards": sliced_shards}),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
     **RESULTS,

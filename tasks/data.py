@@ -6,13 +6,21 @@ from pathlib import Path
 
 from prefect import get_run_logger, task
 
-from steering_core import concept_map, contrast, convert, filtering
-from steering_core.contrast import ContrastSettings
-from steering_core.convert import ConvertSettings
-from steering_core.dataset import dataset_fingerprint
-from steering_core.filtering import FilterSettings
+from steering_core.data import concept_map, contrast, convert, filtering
+from steering_core.data.contrast import ContrastSettings
+from steering_core.data.convert import ConvertSettings
+from steering_core.data.dataset import dataset_fingerprint
+from steering_core.data.filtering import FilterSettings
+from steering_core.identity import file_digest, tree_listing
 from steering_core.layout import SELECTION_FILE
-from tasks.cache import IO_RETRIES, IO_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, file_digest, retry_on, tree_listing
+from tasks.cache import (
+    IO_RETRIES,
+    IO_RETRY_DELAYS,
+    OUTPUTS,
+    RESULTS,
+    content_key,
+    retry_on,
+)
 
 
 def selection_digest(folder: str) -> str:
@@ -23,7 +31,7 @@ def selection_digest(folder: str) -> str:
 @task(
     name="filter-demos",
     task_run_name="filter demos into {output_dir}",
-    cache_policy=content_key("steering_core.filtering", sources=tree_listing),
+    cache_policy=content_key("steering_core.data.filtering", sources=tree_listing),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
     **RESULTS,
 )
@@ -37,7 +45,7 @@ def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) 
 @task(
     name="convert-dataset",
     task_run_name="convert to LeRobot {settings.repo_id}",
-    cache_policy=content_key("steering_core.convert", filtered_dir=selection_digest),
+    cache_policy=content_key("steering_core.data.convert", filtered_dir=selection_digest),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
     **RESULTS,
 )
@@ -53,7 +61,7 @@ def convert_dataset(filtered_dir: str, dataset_root: str, settings: ConvertSetti
 @task(
     name="build-manifest",
     task_run_name="manifest {pair}",
-    cache_policy=content_key("steering_core.contrast", dataset_root=dataset_fingerprint),
+    cache_policy=content_key("steering_core.data.contrast", dataset_root=dataset_fingerprint),
     **RESULTS,
 )
 def build_manifest(
@@ -69,7 +77,7 @@ def build_manifest(
 @task(
     name="map-concepts",
     task_run_name="concept map {pair}",
-    cache_policy=content_key("steering_core.concept_map", manifest_path=file_digest, dataset_root=dataset_fingerprint),
+    cache_policy=content_key("steering_core.data.concept_map", manifest_path=file_digest, dataset_root=dataset_fingerprint),
     **RESULTS,
 )
 def map_concepts(

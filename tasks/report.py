@@ -7,8 +7,10 @@ from typing import Any
 
 from prefect import task
 
-from steering_core import report, steering
-from tasks.cache import OUTPUTS, RESULTS, content_key, file_digest
+from steering_core import layout
+from steering_core.identity import file_digest
+from steering_core.sae import report, steering
+from tasks.cache import OUTPUTS, RESULTS, content_key
 
 
 def pair_folders(inputs: dict[str, Any]) -> dict[str, dict[str, str]]:
@@ -20,13 +22,13 @@ def pair_folders(inputs: dict[str, Any]) -> dict[str, dict[str, str]]:
 
 def pairwise_digest(inputs: dict[str, Any]) -> str:
     """Return the digest of the layer's pairwise_stats.json."""
-    return file_digest(Path(inputs["layer_path"]) / report.PAIRWISE_JSON)
+    return file_digest(Path(inputs["layer_path"]) / f"{layout.PAIRWISE_STATS_FILE}.json")
 
 
 @task(
     name="pairwise-stats",
     task_run_name="pairwise stats layer {layer}",
-    cache_policy=content_key("steering_core.steering", derived={"pairs": pair_folders}),
+    cache_policy=content_key("steering_core.sae.steering", derived={"pairs": pair_folders}),
     **RESULTS,
 )
 def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:
@@ -38,10 +40,10 @@ def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:
 @task(
     name="write-report",
     task_run_name="report layer {layer}",
-    cache_policy=content_key("steering_core.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest}),
+    cache_policy=content_key("steering_core.sae.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest}),
     **RESULTS,
 )
 def write_report(layer: int, layer_path: str, pair_names: list[str], top_k: int) -> dict:
     """Write summary.md, summary.json and the plots of one layer; return their paths."""
     md_path = report.write_report(Path(layer_path), top_k=top_k)
-    return {OUTPUTS: [str(md_path), str(md_path.with_name(report.SUMMARY_JSON))]}
+    return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))]}

@@ -7,13 +7,22 @@ from typing import Any
 
 from prefect import task
 
-from steering_core import concept_stats, steering
+from steering_core import layout
 from steering_core.fileio import write_json
+from steering_core.identity import file_digest
 from steering_core.layout import layer_dir
-from steering_core.sae_formats import HOOK_NAME
-from steering_core.sae_registry import resolve_release
-from steering_core.steering import PairsConfig, PairSpec, SteeringSettings
-from tasks.cache import IO_RETRIES, IO_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, file_digest, retry_on
+from steering_core.sae import concept_stats, steering
+from steering_core.sae.formats import HOOK_NAME
+from steering_core.sae.registry import resolve_release
+from steering_core.sae.steering import PairsConfig, PairSpec, SteeringSettings
+from tasks.cache import (
+    IO_RETRIES,
+    IO_RETRY_DELAYS,
+    OUTPUTS,
+    RESULTS,
+    content_key,
+    retry_on,
+)
 
 _SAE_FIELDS = ("layer", "device", "batch_size")  # settings that change concept statistics besides the SAE
 
@@ -55,7 +64,7 @@ def stats_files(path: str) -> dict[str, str]:
 @task(
     name="write-pairs-config",
     task_run_name="pairs config layer {layer}",
-    cache_policy=content_key("steering_core.steering"),
+    cache_policy=content_key("steering_core.sae.steering"),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
     **RESULTS,
 )
@@ -68,7 +77,7 @@ def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:
 @task(
     name="encode-concept",
     task_run_name="encode {pair} {side} layer {layer}",
-    cache_policy=content_key("steering_core.concept_stats", slice_path=file_digest, settings=sae_inputs),
+    cache_policy=content_key("steering_core.sae.concept_stats", slice_path=file_digest, settings=sae_inputs),
     **RESULTS,
 )
 def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str, settings: SteeringSettings) -> dict:
@@ -83,7 +92,7 @@ def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str
 @task(
     name="pair-directions",
     task_run_name="directions {pair.name} layer {layer}",
-    cache_policy=content_key("steering_core.steering", positive_stats=stats_files, negative_stats=stats_files,
+    cache_policy=content_key("steering_core.sae.steering", positive_stats=stats_files, negative_stats=stats_files,
                              settings=direction_inputs),
     **RESULTS,
 )
@@ -93,5 +102,5 @@ def pair_directions(pair: PairSpec, layer: int, positive_stats: str, negative_st
     layer_path = settings.output_root / layer_dir(settings.layer)
     folder = steering.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
                                    include_decoder_bias=settings.include_decoder_bias)
-    summary = folder / steering.PAIR_SUMMARY_FILE
+    summary = folder / layout.PAIR_SUMMARY_FILE
     return {OUTPUTS: [str(summary)], "folder": str(folder)}

@@ -25,7 +25,9 @@ def make_lerobot_dataset(
     seed: int = 0,
 ) -> Path:
     """Write a LeRobot dataset with random uint8 cameras, `state` (8,) and `actions` (7,); return `root`."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset  # slow import: only when a dataset is built
+    from lerobot.datasets.lerobot_dataset import (
+        LeRobotDataset,  # slow import: only when a dataset is built
+    )
 
     camera = {"dtype": "image", "shape": (image_size, image_size, 3), "names": ["height", "width", "channel"]}
     features = {name: dict(camera) for name in cameras}

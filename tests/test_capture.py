@@ -10,9 +10,17 @@ import torch
 from helpers_capture import EPISODES, make_lerobot_dataset
 from safetensors.torch import load_file
 
-from steering_core import shards
-from steering_core.capture import CaptureSettings, capture, checkpoint_fingerprint, select_tokens, worker_start_method
-from steering_core.pi05 import PromptFormat, PromptTokenizer, libero_camera_slots, quantile_normalize, read_norm_stats
+from steering_core.capture import CaptureSettings, capture, shards
+from steering_core.capture.frames import worker_start_method
+from steering_core.capture.identity import checkpoint_fingerprint
+from steering_core.capture.settings import select_tokens
+from steering_core.pi05 import (
+    PromptFormat,
+    PromptTokenizer,
+    libero_camera_slots,
+    quantile_normalize,
+    read_norm_stats,
+)
 from steering_core.pi05.model import Pi05Prefix
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
@@ -269,7 +277,7 @@ def test_capture_errors(inputs, tmp_path):
 def test_capture_command(inputs, tmp_path):
     from typer.testing import CliRunner
 
-    from steering_core.cli.capture import app
+    from cli.capture import app
 
     checkpoint, tokenizer, dataset = inputs
     arch_file = tmp_path / "arch.json"

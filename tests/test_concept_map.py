@@ -15,14 +15,14 @@ from helpers_dataset import CLOSE, OPEN, brute_force_rows, write_contrast_datase
 from reference_formats import FORMATS
 from typer.testing import CliRunner
 
-from steering_core.cli import app
-from steering_core.concept_map import (
+from cli import app
+from steering_core.data.concept_map import (
     build_concept_map,
     read_concept_map,
     read_rename_map,
     write_concept_map,
 )
-from steering_core.contrast import ContrastSettings, build_manifest, write_manifest
+from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
 
 REFERENCE = FORMATS / "open_vs_close_concept_map.json"
 REFERENCE_MANIFEST = FORMATS / "open_vs_close.json"
@@ -108,7 +108,7 @@ def test_order_follows_the_dataset_not_the_manifest(root, rows, manifest_path, t
 
 def test_rename_map(root, rows, manifest_path, tmp_path, caplog):
     rename = {OPEN: "drawer", CLOSE: "drawer", "turn on the stove": "stove"}
-    with caplog.at_level(logging.WARNING, logger="steering_core.concept_map"):
+    with caplog.at_level(logging.WARNING, logger="steering_core.data.concept_map"):
         merged = build_concept_map(manifest_path, root, rename=rename)
     assert "rename entries for tasks not in the manifest: ['turn on the stove']" in caplog.text
     assert merged.concept_count == {"drawer": 6}

@@ -10,20 +10,27 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-from helpers_dataset import CLOSE, CONTRAST_AXIS, OPEN, STOVE, contrast_episodes, write_contrast_dataset
+from helpers_dataset import (
+    CLOSE,
+    CONTRAST_AXIS,
+    OPEN,
+    STOVE,
+    contrast_episodes,
+    write_contrast_dataset,
+)
 from pydantic import ValidationError
 from reference_formats import FORMATS
 from typer.testing import CliRunner
 
-from steering_core.cli import app
-from steering_core.contrast import (
+from cli import app
+from steering_core.data.contrast import (
     ContrastSettings,
     build_manifest,
     interaction_window,
     read_manifest,
     write_manifest,
 )
-from steering_core.dataset import dataset_fingerprint
+from steering_core.data.dataset import dataset_fingerprint
 
 REFERENCE = FORMATS / "open_vs_close.json"
 SEED_SEGMENT_FIELDS = {"task", "file", "demo", "start_step", "end_step", "axis_delta", "axis_values", "episode_index"}

@@ -11,10 +11,15 @@ import pytest
 from helpers_libero import TINY, edit_file, sha256_bytes, write_tiny
 from typer.testing import CliRunner
 
-from steering_core import convert as convert_module
-from steering_core.cli import app
-from steering_core.convert import ConvertSettings, convert_libero, prepare_frames, read_sources
-from steering_core.libero import iter_demos
+from cli import app
+from steering_core.data import convert as convert_module
+from steering_core.data.convert import (
+    ConvertSettings,
+    convert_libero,
+    prepare_frames,
+    read_sources,
+)
+from steering_core.data.libero import iter_demos
 from steering_core.synthetic.libero import SyntheticSettings
 
 OPEN = "open the top drawer of the cabinet"
@@ -275,7 +280,7 @@ def test_changed_or_missing_sources_trigger_rebuild(raw, tmp_path, caplog):
     folder, files = raw
     out = tmp_path / "ds"
     convert_libero([folder], out, SETTINGS)
-    caplog.set_level(logging.INFO, logger="steering_core.convert")
+    caplog.set_level(logging.INFO, logger="steering_core.data.convert")
 
     stove = files[2][0]
     edit_file(stove, lambda h: h["data/demo_0/actions"].__setitem__((0, 0), 0.5))

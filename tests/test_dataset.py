@@ -21,8 +21,8 @@ from helpers_dataset import (
     write_contrast_dataset,
 )
 
-from steering_core import dataset
-from steering_core.dataset import (
+from steering_core.data import dataset
+from steering_core.data.dataset import (
     dataset_fingerprint,
     read_episode_column,
     read_episode_columns,

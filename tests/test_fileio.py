@@ -7,7 +7,14 @@ import stat
 
 import pytest
 
-from steering_core.fileio import atomic_dir, atomic_path, read_json, sha256_file, sha256_json, write_json
+from steering_core.fileio import (
+    atomic_dir,
+    atomic_path,
+    read_json,
+    sha256_file,
+    sha256_json,
+    write_json,
+)
 
 
 def test_atomic_path_replaces_only_on_success(tmp_path):

@@ -8,8 +8,8 @@ import pytest
 from helpers_libero import edit_file, sha256_bytes, write_tiny
 from typer.testing import CliRunner
 
-from steering_core.cli import app
-from steering_core.filtering import FilterSettings, filter_demos, read_selection
+from cli import app
+from steering_core.data.filtering import FilterSettings, filter_demos, read_selection
 
 OPEN = "open the top drawer of the cabinet"
 CLOSE = "close the top drawer of the cabinet"

@@ -38,29 +38,27 @@ from prefect.testing.utilities import prefect_test_harness
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
+from cli import app
 from flows.pipeline import PIPELINE_FLOW
 from flows.refresh import refresh
-from steering_core import fileio, slicing
-from steering_core.cli import app
+from steering_core import fileio
+from steering_core.capture import slicing
+from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
-from steering_core.contrast import read_manifest
-from steering_core.convert import read_sources
+from steering_core.data.contrast import read_manifest
+from steering_core.data.convert import read_sources
 from steering_core.demo import DEMO_STEPS, format_summary, summarise
 from steering_core.fileio import read_json, sha256_file
+from steering_core.identity import code_modules, code_version, file_digest
 from steering_core.layout import layer_dir
-from steering_core.shards import read_run_metadata
-from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
-from tasks.cache import (
-    CACHE_DIR,
-    OUTPUTS,
-    RESULTS,
-    code_modules,
-    code_version,
-    content_key,
-    file_digest,
-    retry_on,
-    rooted,
+from steering_core.synthetic.libero import (
+    DRAWER_OPEN,
+    MotionSpec,
+    SyntheticSettings,
+    SyntheticTask,
+    write_libero_file,
 )
+from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_on, rooted
 
 pytestmark = pytest.mark.slow
 
@@ -132,14 +130,14 @@ def test_content_key_caches_on_content_and_reruns_for_missing_outputs(tmp_path):
 
 
 def test_code_version_follows_project_imports_only():
-    modules = code_modules("steering_core.slicing")
-    assert {"steering_core.slicing", "steering_core.shards", "steering_core.concept_map", "steering_core.fileio",
+    modules = code_modules("steering_core.capture.slicing")
+    assert {"steering_core.capture.slicing", "steering_core.capture.shards", "steering_core.data.concept_map", "steering_core.fileio",
             "steering_core.layout", "steering_core.schema"} <= set(modules)
-    assert "steering_core.capture" not in modules and not any(m.startswith("torch") for m in modules)
+    assert "steering_core.capture.loop" not in modules and not any(m.startswith("torch") for m in modules)
     assert modules["steering_core.fileio"] == sha256_file(Path(fileio.__file__))
     # capture imports the prefix model lazily inside a function: still part of its code version
-    assert "steering_core.pi05.model" in code_modules("steering_core.capture")
-    assert code_version("steering_core.slicing") != code_version("steering_core.shards")
+    assert "steering_core.pi05.model" in code_modules("steering_core.capture.loop")
+    assert code_version("steering_core.capture.slicing") != code_version("steering_core.capture.shards")
 
 
 def test_retry_only_on_transient_errors():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from helpers_libero import edit_file, write_tiny
 
-from steering_core import libero
+from steering_core.data import libero
 
 OPEN = "open the top drawer of the cabinet"
 

@@ -22,7 +22,11 @@ from steering_core.pi05.checkpoint import (
     VISION_PREFIX,
     prefix_tensor_shapes,
 )
-from steering_core.synthetic.pi05 import checkpoint_tensor_shapes, tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.pi05 import (
+    checkpoint_tensor_shapes,
+    tiny_arch,
+    write_pi05_checkpoint,
+)
 
 ARCH = tiny_arch()
 
@@ -173,5 +177,5 @@ def test_missing_checkpoint_is_file_not_found(tmp_path):
 
 
 def test_bad_dtype_argument_is_rejected(folder):
-    with pytest.raises(ValueError, match="dtype 'int8' is not a torch floating-point dtype"):
+    with pytest.raises(ValueError, match="dtype 'int8' is not a floating-point dtype"):
         Pi05Prefix.from_checkpoint(folder, ARCH, device="cpu", dtype="int8")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from helpers_pi05 import make_batch
 from reference_pi05 import reference_residuals
+
 from steering_core.pi05 import Pi05Prefix, PromptTokenizer
 from steering_core.pi05.checkpoint import MODEL_FILE
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint

@@ -7,8 +7,17 @@ import json
 import numpy as np
 import pytest
 
-from steering_core.pi05.norm_stats import discretize_state, norm_stats_path, quantile_normalize, read_norm_stats
-from steering_core.synthetic.pi05 import random_norm_stats, tiny_arch, write_pi05_checkpoint
+from steering_core.pi05.norm_stats import (
+    discretize_state,
+    norm_stats_path,
+    quantile_normalize,
+    read_norm_stats,
+)
+from steering_core.synthetic.pi05 import (
+    random_norm_stats,
+    tiny_arch,
+    write_pi05_checkpoint,
+)
 
 
 @pytest.fixture(scope="module")

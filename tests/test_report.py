@@ -9,8 +9,8 @@ import matplotlib.image
 import pytest
 import torch
 
-from steering_core.report import top_latents, write_report
-from steering_core.steering import SteeringSettings, compute_steering
+from steering_core.sae.report import top_latents, write_report
+from steering_core.sae.steering import SteeringSettings, compute_steering
 from steering_core.synthetic.sae import write_sae_folder
 
 D_IN, D_SAE = 12, 40

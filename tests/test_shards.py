@@ -9,7 +9,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from steering_core import shards
+from steering_core.capture import shards
 from steering_core.fileio import sha256_file
 
 WIDTH = 8

@@ -8,8 +8,13 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from steering_core import shards
-from steering_core.slicing import SliceSettings, safe_file_name, slice_concepts, slice_file_names
+from steering_core.capture import shards
+from steering_core.capture.slicing import (
+    SliceSettings,
+    safe_file_name,
+    slice_concepts,
+    slice_file_names,
+)
 
 WIDTH = 6
 LAYERS = (2, 5)
@@ -215,7 +220,7 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
 def test_slice_command(tmp_path, run_dir, concept_map):
     from typer.testing import CliRunner
 
-    from steering_core.cli.capture import app
+    from cli.capture import app
 
     args = ["slice", "--run-dir", str(run_dir), "--concept-map-path", str(concept_map),
             "--output-dir", str(tmp_path / "cli"), "--token-type", "instructions", "--layers", "2,5",

@@ -15,11 +15,20 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
-from steering_core.cli import app
-from steering_core.sae import load_sae
-from steering_core.sae_formats import WEIGHTS_FILE
-from steering_core.concept_stats import ConceptSource, encode_concept, read_concept_stats
-from steering_core.steering import SteeringSettings, compute_steering, concept_sources, read_pairs_config
+from cli import app
+from steering_core.sae.concept_stats import (
+    ConceptSource,
+    encode_concept,
+    read_concept_stats,
+)
+from steering_core.sae.formats import WEIGHTS_FILE
+from steering_core.sae.model import load_sae
+from steering_core.sae.steering import (
+    SteeringSettings,
+    compute_steering,
+    concept_sources,
+    read_pairs_config,
+)
 from steering_core.synthetic.sae import write_sae_folder
 
 D_IN, D_SAE = 16, 48

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from steering_core import libero
-from steering_core.cli import app
+from cli import app
+from steering_core.data import libero
 from steering_core.synthetic.libero import (
     DEMO_SUITE_TASKS,
     DRAWER_CLOSE,

@@ -9,7 +9,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from steering_core.pi05.arch import Pi05Arch
-from steering_core.pi05.norm_stats import NormStats, discretize_state, quantile_normalize, read_norm_stats
+from steering_core.pi05.norm_stats import (
+    NormStats,
+    discretize_state,
+    quantile_normalize,
+    read_norm_stats,
+)
 from steering_core.pi05.preprocess import libero_camera_slots
 from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer, TokenizedPrompt
 

@@ -18,9 +18,13 @@ from typing import Any, Literal
 import torch
 from torch import nn
 from transformers import GemmaConfig, SiglipVisionConfig
-from transformers.models.gemma.modeling_gemma import GemmaDecoderLayer, GemmaRotaryEmbedding
+from transformers.models.gemma.modeling_gemma import (
+    GemmaDecoderLayer,
+    GemmaRotaryEmbedding,
+)
 from transformers.models.siglip.modeling_siglip import SiglipEncoder
 
+from steering_core.devices import resolve_device, resolve_dtype
 from steering_core.pi05.arch import Pi05Arch
 from steering_core.pi05.checkpoint import (
     EMBEDDING_KEY,
@@ -108,23 +112,6 @@ def siglip_config(arch: Pi05Arch) -> SiglipVisionConfig:
     # Image tokens attend to each other without a mask, so fused attention equals eager attention.
     config._attn_implementation = "sdpa"
     return config
-
-
-def resolve_device(device: str | torch.device | None) -> torch.device:
-    """Return `device`, or CUDA when available, else CPU."""
-    if device is None:
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
-
-
-def resolve_dtype(dtype: str | torch.dtype | None, device: torch.device) -> torch.dtype:
-    """Return the compute dtype: `dtype`, or openpi's bfloat16 on CUDA and float32 elsewhere."""
-    if dtype is None:
-        return torch.bfloat16 if device.type == "cuda" else torch.float32
-    resolved = getattr(torch, dtype, None) if isinstance(dtype, str) else dtype
-    if not isinstance(resolved, torch.dtype) or not resolved.is_floating_point:
-        raise ValueError(f"dtype {dtype!r} is not a torch floating-point dtype; use bfloat16 or float32")
-    return resolved
 
 
 def parameter_dtype(key: str, dtype: torch.dtype) -> torch.dtype:

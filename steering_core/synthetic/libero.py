@@ -23,8 +23,8 @@ import h5py
 import numpy as np
 from pydantic import Field, model_validator
 
+from steering_core.data.libero import DATA_GROUP, DEMO_KEY, LiberoDemo, task_file_name
 from steering_core.fileio import atomic_path
-from steering_core.libero import DATA_GROUP, DEMO_KEY, LiberoDemo, task_file_name
 from steering_core.schema import StrictModel
 
 STATE_AXES = ("ee_x", "ee_y", "ee_z", "ee_rx", "ee_ry", "ee_rz", "gripper_left", "gripper_right")

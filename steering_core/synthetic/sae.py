@@ -13,7 +13,7 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.fileio import atomic_dir, atomic_path, write_json
-from steering_core.sae_formats import (
+from steering_core.sae.formats import (
     CFG_FILE,
     DTYPES,
     HOOK_NAME,
@@ -21,7 +21,7 @@ from steering_core.sae_formats import (
     WEIGHTS_FILE,
     NormalizeActivations,
 )
-from steering_core.sae_registry import HUB_REPO_DIR, RELEASES, get_entry
+from steering_core.sae.registry import HUB_REPO_DIR, RELEASES, get_entry
 
 CURRENT_VERSION = "6.18.0"  # SAELens version written into current-layout configs
 SNAPSHOT_REVISION = "0" * 40  # fake commit hash of a hub-cache snapshot

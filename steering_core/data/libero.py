@@ -37,7 +37,7 @@ from typing import Literal
 import h5py
 import numpy as np
 
-log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 DATA_GROUP = "data"
 DEMO_KEY_PATTERN = re.compile(r"^demo_(\d+)$")
@@ -307,13 +307,13 @@ def _instruction(path: Path, attrs: h5py.AttributeManager) -> tuple[str, Instruc
                 value = " ".join(str(part) for part in value)
             if isinstance(value, str) and _clean_text(value):
                 return _clean_text(value), "problem_info", problems
-            log.debug("%s: problem_info has no usable language_instruction; trying the BDDL", path.name)
+            logger.debug("%s: problem_info has no usable language_instruction; trying the BDDL", path.name)
     bddl = attrs.get("bddl_file_content")
     if bddl is not None:
         match = _BDDL_LANGUAGE.search(_as_str(bddl))
         if match and _clean_text(match.group(1)):
             return _clean_text(match.group(1)), "bddl", problems
-    log.debug("%s: no instruction attribute; using the file name", path.name)
+    logger.debug("%s: no instruction attribute; using the file name", path.name)
     return instruction_from_filename(path), "filename", problems
 
 

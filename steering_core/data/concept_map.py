@@ -17,8 +17,14 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, model_validator
 
-from steering_core.contrast import ContrastManifest, read_manifest
-from steering_core.dataset import DatasetMeta, IndexColumns, dataset_fingerprint, read_index_columns, read_meta
+from steering_core.data.contrast import ContrastManifest, read_manifest
+from steering_core.data.dataset import (
+    DatasetMeta,
+    IndexColumns,
+    dataset_fingerprint,
+    read_index_columns,
+    read_meta,
+)
 from steering_core.fileio import read_json, write_json
 from steering_core.schema import StrictModel, read_model
 

@@ -28,17 +28,17 @@ import torch
 from safetensors.torch import save_file
 from tqdm import tqdm
 
-from steering_core.concept_map import ConceptMap, ConceptRow, read_concept_map
-from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
-from steering_core.layout import layer_dir
-from steering_core.schema import StrictModel
-from steering_core.shards import (
+from steering_core.capture.shards import (
     RunMetadata,
     ShardRecord,
     TokenType,
     open_shard,
     read_run_metadata,
 )
+from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
+from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
+from steering_core.layout import layer_dir
+from steering_core.schema import StrictModel
 
 logger = logging.getLogger(__name__)
 
@@ -50,12 +50,15 @@ _MAX_NAME_BYTES = 200  # file systems cap names at 255 bytes; leave room for suf
 _UNSAFE = {"/", "\\", "\0", ":"}  # path separators (and ':' for Windows/macOS shares)
 
 
+Reduce = Literal["token", "frame"]  # rows per captured frame in a slice
+
+
 class SliceSettings(StrictModel):
     """How concept slices are cut from a run."""
 
     layers: tuple[int, ...] = (12,)  # the seed's SAE layer
     token_type: TokenType = "instructions"
-    reduce: Literal["token", "frame"] = "token"  # one row per captured token, or their mean per frame
+    reduce: Reduce = "token"  # one row per captured token, or their mean per frame
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
     verify_checksums: bool = False  # re-hash every shard against metadata.json before reading it
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU

@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import torch
 
 from steering_core.fileio import sha256_file, sha256_json
-from steering_core.sae_formats import (
+from steering_core.sae.formats import (
     DTYPES,
     STATE_DICT_SUFFIXES,
     WEIGHTS_FILE,
@@ -32,7 +32,13 @@ from steering_core.sae_formats import (
     read_state_dict_file,
     state_dict_cfg,
 )
-from steering_core.sae_registry import RELEASES, SaeEntry, find_by_folder, get_entry, resolve_release
+from steering_core.sae.registry import (
+    RELEASES,
+    SaeEntry,
+    find_by_folder,
+    get_entry,
+    resolve_release,
+)
 
 logger = logging.getLogger(__name__)
 

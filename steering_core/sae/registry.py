@@ -12,7 +12,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from steering_core.sae_formats import FOLDER_FILES, SPARSITY_FILE
+from steering_core.sae.formats import FOLDER_FILES, SPARSITY_FILE
 
 NEURONPEDIA_FEATURE_URL = "https://neuronpedia.org/{neuronpedia_id}/{index}"
 HUB_REPO_DIR = "models--{org}--{name}"  # huggingface_hub cache layout

@@ -2,43 +2,19 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 
 import typer
 
+from cli.app import app, input_errors
 from steering_core.capture import CaptureResult, CaptureSettings, capture
-from steering_core.cli.app import app, input_errors
+from steering_core.capture.shards import StorageDtype, TokenType
+from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
 from steering_core.config import load_run_config
 from steering_core.fileio import read_json
 from steering_core.pi05 import Pi05Arch, PromptFormat
-from steering_core.slicing import SliceSettings, slice_concepts
 
 _CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
-
-
-class ReduceChoice(str, Enum):
-    """Rows per captured frame in a slice."""
-
-    token = "token"
-    frame = "frame"
-
-
-class StorageDtypeChoice(str, Enum):
-    """Dtype of stored residual rows."""
-
-    float32 = "float32"
-    bfloat16 = "bfloat16"
-    float16 = "float16"
-
-
-class TokenTypeChoice(str, Enum):
-    """Which prompt tokens a capture keeps (see steering_core.capture)."""
-
-    instructions = "instructions"
-    prompt = "prompt"
-    last = "last"
-
 
 
 def _layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
@@ -75,7 +51,7 @@ def capture_command(
     capture_instructions: bool = typer.Option(
         False, "--capture-instructions", help="Keep the task-instruction tokens (the seed's flag)."
     ),
-    token_type: TokenTypeChoice | None = typer.Option(
+    token_type: TokenType | None = typer.Option(
         None, "--token-type", help="instructions (default), prompt (every valid token) or last (last prompt token)."
     ),
     prompt_format: PromptFormat = typer.Option(
@@ -96,8 +72,8 @@ def capture_command(
     dtype: str | None = typer.Option(
         None, "--dtype", help="Compute dtype (default: openpi's bfloat16 policy on CUDA, float32 on CPU)."
     ),
-    storage_dtype: StorageDtypeChoice = typer.Option(
-        StorageDtypeChoice.float32, "--storage-dtype", help="Dtype of stored rows (bfloat16/float16 halve the disk)."
+    storage_dtype: StorageDtype = typer.Option(
+        _CAPTURE_FIELDS["storage_dtype"].default, "--storage-dtype", help="Dtype of stored rows (bfloat16/float16 halve the disk)."
     ),
     episodes_per_shard: int = typer.Option(
         _CAPTURE_FIELDS["episodes_per_shard"].default, "--episodes-per-shard", min=1, help="Episodes per shard file."
@@ -124,9 +100,9 @@ def capture_command(
                if value is None]
     if missing:
         raise typer.BadParameter(f"{', '.join(missing)} required (or give --config)", param_hint=missing[0])
-    if capture_instructions and token_type not in (None, TokenTypeChoice.instructions):
+    if capture_instructions and token_type not in (None, "instructions"):
         raise typer.BadParameter(
-            f"--capture-instructions contradicts --token-type {token_type.value}; pass one of them",
+            f"--capture-instructions contradicts --token-type {token_type}; pass one of them",
             param_hint="--capture-instructions",
         )
     with input_errors():
@@ -135,7 +111,7 @@ def capture_command(
             checkpoint_path=checkpoint_path,
             tokenizer_path=tokenizer_path,
             layers=_layer_list(layers),
-            token_type=(token_type or TokenTypeChoice.instructions).value,
+            token_type=token_type or "instructions",
             prompt_format=prompt_format,
             norm_stats_path=norm_stats,
             norm_stats_asset_id=asset_id,
@@ -144,7 +120,7 @@ def capture_command(
             batch_size=batch_size,
             device=device,
             dtype=dtype,
-            storage_dtype=storage_dtype.value,
+            storage_dtype=storage_dtype,
             episodes_per_shard=episodes_per_shard,
             num_workers=num_workers,
             video_backend=video_backend,
@@ -180,13 +156,13 @@ def slice_command(
     output_dir: Path = typer.Option(
         ..., "--output-dir", help="Slices folder, e.g. data/residuals/open_vs_close_slices."
     ),
-    token_type: TokenTypeChoice = typer.Option(
-        TokenTypeChoice.instructions, "--token-type", help="Token type the run captured."
+    token_type: TokenType = typer.Option(
+        "instructions", "--token-type", help="Token type the run captured."
     ),
     layers: str = typer.Option("12", "--layers", help="Layers to slice, e.g. 12 or 6,12."),
     device: str = typer.Option("cpu", "--device", help="Device for frame means (outputs are saved from CPU)."),
-    reduce: ReduceChoice = typer.Option(
-        ReduceChoice.token, "--reduce", help="One row per captured token, or their mean per frame."
+    reduce: Reduce = typer.Option(
+        "token", "--reduce", help="One row per captured token, or their mean per frame."
     ),
     max_samples_per_concept: int | None = typer.Option(
         None, "--max-samples-per-concept", min=1, help="Keep at most N rows (or frames), evenly spaced."
@@ -199,8 +175,8 @@ def slice_command(
     with input_errors():
         settings = SliceSettings(
             layers=_layer_list(layers),
-            token_type=token_type.value,
-            reduce=reduce.value,
+            token_type=token_type,
+            reduce=reduce,
             max_samples_per_concept=max_samples_per_concept,
             verify_checksums=verify_checksums,
             device=device,

@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 
 import typer
 
-from steering_core.cli.app import app, input_errors
-from steering_core.convert import ConvertSettings, convert_libero
-from steering_core.filtering import FilterSettings, filter_demos
+from cli.app import app, input_errors
+from steering_core.data.convert import ConvertSettings, Orientation, convert_libero
+from steering_core.data.filtering import FilterSettings, filter_demos
 from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
-
-
-class OrientationChoice(str, Enum):
-    """Typer choices mirroring `steering_core.convert.Orientation`."""
-
-    rotate180 = "rotate180"
-    as_stored = "as_stored"
-
 
 
 @app.command("filter")
@@ -56,8 +47,8 @@ def convert_command(
     image_size: int = typer.Option(
         256, "--image-size", help="Square frame size (physical-intelligence/libero: 256)."
     ),
-    orientation: OrientationChoice = typer.Option(
-        OrientationChoice.rotate180,
+    orientation: Orientation = typer.Option(
+        "rotate180",
         "--orientation",
         help="rotate180 (what pi05_libero was trained on) or as_stored (raw renders).",
     ),
@@ -67,7 +58,7 @@ def convert_command(
 ) -> None:
     """Convert LIBERO demos into a LeRobot v3.0 dataset (openpi's physical-intelligence/libero schema)."""
     with input_errors():
-        settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation.value)
+        settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation)
         result = convert_libero(input_dir, output_dir, settings, rebuild=not append)
     typer.echo(
         f"{result.action}: {result.root} holds {result.episodes_total} episodes ({result.frames_total} frames), "

@@ -37,14 +37,14 @@ import numpy as np
 from pydantic import Field
 from tqdm import tqdm
 
+from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
-from steering_core.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 SOURCES_FILE = "meta/libero_sources.json"
 SOURCES_FORMAT_VERSION = 1
@@ -209,13 +209,13 @@ def convert_libero(
         new_sources = [source for _, source in planned]
         done = len(existing.episodes)
         if done == len(new_sources):
-            log.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
+            logger.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
             return _result(output_dir, settings, "unchanged", new_sources, added=0)
-        log.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
+        logger.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
         _append(output_dir, planned, done, settings, progress)
         return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
     if existing is not None:
-        log.info("%s: rebuilding from scratch (%s)", output_dir, reason)
+        logger.info("%s: rebuilding from scratch (%s)", output_dir, reason)
     _create(output_dir, planned, settings, progress)
     action: Action = "created" if existing is None else "rebuilt"
     return _result(output_dir, settings, action, new_sources, added=len(new_sources))
@@ -300,7 +300,7 @@ def _existing_record(output_dir: Path) -> SourcesRecord | None:
     try:
         return read_sources(output_dir)
     except ValueError as err:
-        log.warning("%s", err)
+        logger.warning("%s", err)
         return _unreadable_record()
 
 

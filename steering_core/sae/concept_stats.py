@@ -22,9 +22,10 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from steering_core.capture.slicing import safe_file_name
+from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, read_json, sha256_json, write_json
-from steering_core.sae import Sae
-from steering_core.slicing import safe_file_name
+from steering_core.sae.model import Sae
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +33,6 @@ FORMAT_VERSION = 1
 CONCEPTS_DIR = "concepts"
 CONCEPT_STATS = "{stem}-{digest}"  # + .safetensors / .json; digest tells apart concepts sharing a label
 RESIDUALS_KEY = "residuals"  # tensor name in the slicer's safetensors copies
-_SAFETENSORS_DTYPES = {"F16": torch.float16, "BF16": torch.bfloat16, "F32": torch.float32, "F64": torch.float64}
 
 Progress = Callable[[int, int], None]
 
@@ -71,7 +71,7 @@ class ConceptReader:
                 if self._key is None:
                     raise ValueError(f"{path}: no tensor `{RESIDUALS_KEY}` and not a single tensor; found {keys}")
                 rows = handle.get_slice(self._key)
-                self.shape, self.dtype = tuple(rows.get_shape()), _SAFETENSORS_DTYPES.get(rows.get_dtype())
+                self.shape, self.dtype = tuple(rows.get_shape()), SAFETENSORS_DTYPES.get(rows.get_dtype())
             self._tensor = None
         else:
             tensor = torch.load(path, map_location="cpu", weights_only=True, mmap=True)

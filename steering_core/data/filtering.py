@@ -17,12 +17,16 @@ from typing import Literal
 
 from pydantic import Field
 
+from steering_core.data.libero import (
+    InstructionSource,
+    read_instruction_with_source,
+    validate_file,
+)
 from steering_core.fileio import atomic_dir, sha256_file, write_json
 from steering_core.layout import SELECTION_FILE
-from steering_core.libero import InstructionSource, read_instruction_with_source, validate_file
 from steering_core.schema import StrictModel, read_model
 
-log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 SELECTION_FORMAT_VERSION = 1
 DEMO_FILE_GLOB = "*.hdf5"
@@ -92,7 +96,7 @@ def filter_demos(
     selection = Selection(settings=settings, files=tuple(files))
 
     if _unchanged(output_dir, selection):
-        log.info("%s: selection unchanged (%d files); nothing to do", output_dir, len(files))
+        logger.info("%s: selection unchanged (%d files); nothing to do", output_dir, len(files))
         return selection
     _check_replaceable(output_dir)
     with atomic_dir(output_dir, overwrite=True) as tmp:
@@ -103,7 +107,7 @@ def filter_demos(
             else:
                 os.symlink(entry.source, tmp / entry.name)
         write_json(tmp / SELECTION_FILE, selection.model_dump(mode="json"))
-    log.info("%s: selected %d file(s) (%s)", output_dir, len(files), settings.mode)
+    logger.info("%s: selected %d file(s) (%s)", output_dir, len(files), settings.mode)
     return selection
 
 
@@ -152,7 +156,7 @@ def _instructions(candidates: list[Path]) -> dict[Path, tuple[str, InstructionSo
         try:
             result[path] = read_instruction_with_source(path)
         except ValueError as err:
-            log.warning("skipping %s for task matching: %s", path, err)
+            logger.warning("skipping %s for task matching: %s", path, err)
     return result
 
 

@@ -20,6 +20,7 @@ from pydantic import Field
 from safetensors import safe_open
 from safetensors.torch import load_file
 
+from steering_core.devices import DTYPES
 from steering_core.fileio import read_json
 from steering_core.schema import StrictModel
 
@@ -35,13 +36,6 @@ HOOK_NAME = "blocks.{layer}.hook_resid_post"  # TransformerLens name of resid_po
 
 NormalizeActivations = Literal["none", "expected_average_only_in", "constant_norm_rescale", "layer_norm"]
 NORMALIZATIONS: tuple[str, ...] = NormalizeActivations.__args__
-
-DTYPES = {
-    "float32": torch.float32,
-    "float64": torch.float64,
-    "float16": torch.float16,
-    "bfloat16": torch.bfloat16,
-}
 
 # SAELens 6.0 changed the cfg.json layout; configs of older versions (or without a version) get upgraded.
 _FIRST_CURRENT_MAJOR = 6

@@ -6,9 +6,13 @@ from pathlib import Path
 
 import typer
 
-from steering_core.cli.app import app, input_errors
-from steering_core.concept_map import build_concept_map, read_rename_map, write_concept_map
-from steering_core.contrast import ContrastSettings, build_manifest, write_manifest
+from cli.app import app, input_errors
+from steering_core.data.concept_map import (
+    build_concept_map,
+    read_rename_map,
+    write_concept_map,
+)
+from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
 
 _DEFAULTS = ContrastSettings()
 

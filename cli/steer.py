@@ -2,25 +2,20 @@
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 
 import typer
 
-from steering_core.cli.app import app, input_errors
-from steering_core.report import SUMMARY_MD
-from steering_core.steering import SteeringSettings, compute_steering
+from cli.app import app, input_errors
+from steering_core.layout import SUMMARY_MD
+from steering_core.sae.steering import (
+    PathsRelativeTo,
+    SteeringSettings,
+    compute_steering,
+)
 
 _DEFAULTS = SteeringSettings(pairs_config=Path("."))
 NO_SAE = "none"  # --sae value for residual-space directions only
-
-
-class PathsRelativeTo(str, Enum):
-    """Base folder of relative concept paths in the pairs config."""
-
-    cwd = "cwd"
-    config = "config"
-
 
 
 @app.command("steer")
@@ -47,7 +42,7 @@ def steer_command(
     ),
     top_k: int = typer.Option(_DEFAULTS.top_k, "--top-k", min=1, help="Latents listed per direction in the report."),
     paths_relative_to: PathsRelativeTo = typer.Option(
-        PathsRelativeTo.cwd, "--paths-relative-to",
+        _DEFAULTS.paths_relative_to, "--paths-relative-to",
         help="Resolve relative concept paths against the current directory (the seed's behaviour) or the config's folder.",
     ),
 ) -> None:
@@ -65,7 +60,7 @@ def steer_command(
             batch_size=batch_size,
             include_decoder_bias=include_decoder_bias,
             top_k=top_k,
-            paths_relative_to=paths_relative_to.value,
+            paths_relative_to=paths_relative_to,
         )
         layer_path = compute_steering(settings)
     typer.echo(f"steering vectors in {layer_path}; report: {layer_path / SUMMARY_MD}")

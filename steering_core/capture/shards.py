@@ -31,6 +31,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
@@ -46,13 +47,8 @@ SHARD_KEY = "{group:05d}"  # group = episode_index // episodes_per_shard
 
 TokenType = Literal["instructions", "prompt", "last"]
 StorageDtype = Literal["float32", "bfloat16", "float16"]
-TOKEN_TYPES: tuple[str, ...] = ("instructions", "prompt", "last")
-STORAGE_DTYPES: dict[str, torch.dtype] = {
-    "float32": torch.float32,
-    "bfloat16": torch.bfloat16,
-    "float16": torch.float16,
-}
-_DTYPE_NAMES = {"F32": "float32", "BF16": "bfloat16", "F16": "float16"}  # safetensors header names
+STORAGE_DTYPES: dict[str, torch.dtype] = {name: DTYPES[name] for name in StorageDtype.__args__}
+_DTYPE_NAMES = {code: DTYPE_NAMES[dtype] for code, dtype in SAFETENSORS_DTYPES.items()}  # safetensors header names
 RESIDUALS = "residuals"
 HEADER_KEY = "latent_steering"  # safetensors metadata entry: JSON of format_version, layer, key, token_type
 ROW_COLUMNS: tuple[str, ...] = ("index", "episode_index", "frame_index", "token_position", "token_id")

@@ -15,7 +15,13 @@ import torch
 from safetensors.torch import load_file
 
 from steering_core.fileio import atomic_path, read_json, write_json
-from steering_core.sae_registry import NEURONPEDIA_FEATURE_URL
+from steering_core.layout import (
+    PAIR_SUMMARY_FILE,
+    PAIRWISE_STATS_FILE,
+    SUMMARY_JSON,
+    SUMMARY_MD,
+)
+from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -23,18 +29,14 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 REPORT_FORMAT_VERSION = 1
-SUMMARY_MD = "summary.md"
-SUMMARY_JSON = "summary.json"
 COSINE_PLOT = "pairwise_cosine.png"
 TOP_LATENTS_PLOT = "top_latents_{pair}.png"
-PAIRWISE_JSON = "pairwise_stats.json"
-PAIR_JSON = "directions.json"
 _DPI = 120
 
 
 def write_report(layer_path: Path, *, top_k: int = 20) -> Path:
     """Write summary.md, summary.json and plots for one layer folder; return the summary.md path."""
-    pairwise = read_json(layer_path / PAIRWISE_JSON)
+    pairwise = read_json(layer_path / f"{PAIRWISE_STATS_FILE}.json")
     pairs = [_pair_summary(layer_path / name, top_k) for name in pairwise["pairs"]]
     sae = next((pair["sae"] for pair in pairs if pair["sae"] is not None), None)
     plots = {}
@@ -89,7 +91,7 @@ def top_latents(
 
 def _pair_summary(pair_path: Path, top_k: int) -> dict[str, Any]:
     """Return one pair's report entry from its directions.json and tensors."""
-    info = read_json(pair_path / PAIR_JSON)
+    info = read_json(pair_path / PAIR_SUMMARY_FILE)
     entry = {key: info.get(key) for key in (
         "pair", "positive_concept", "negative_concept", "counts", "method", "include_decoder_bias",
         "direction_space", "latent_norm", "residual_norm", "mean_difference_norm",

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import typer
 
+from cli.app import app, input_errors
 from steering_core import demo
-from steering_core.cli.app import app, input_errors
 from steering_core.config import load_run_config
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
-from steering_core.dataset import (
+from steering_core.data.dataset import (
     DatasetMeta,
     EpisodeInfo,
     dataset_fingerprint,

@@ -31,7 +31,15 @@ import torch
 from pydantic import Field, field_validator, model_validator
 from safetensors.torch import load_file, save_file
 
-from steering_core.concept_stats import (
+from steering_core.devices import resolve_device
+from steering_core.fileio import atomic_dir, atomic_path, read_json, write_json
+from steering_core.layout import (
+    PAIR_SUMMARY_FILE,
+    PAIRWISE_STATS_FILE,
+    STEERING_ROOT,
+    layer_dir,
+)
+from steering_core.sae.concept_stats import (
     FORMAT_VERSION,
     ConceptReader,
     ConceptSource,
@@ -39,11 +47,9 @@ from steering_core.concept_stats import (
     encode_concept,
     read_concept_stats,
 )
-from steering_core.fileio import atomic_dir, atomic_path, read_json, write_json
-from steering_core.layout import STEERING_ROOT, layer_dir
-from steering_core.report import write_report
-from steering_core.sae import Sae, load_sae
-from steering_core.sae_formats import HOOK_NAME
+from steering_core.sae.formats import HOOK_NAME
+from steering_core.sae.model import Sae, load_sae
+from steering_core.sae.report import write_report
 from steering_core.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
@@ -53,8 +59,6 @@ LATENT_MEAN_FILE = "{side}_latent_mean"  # + .pt / .safetensors
 LATENT_DIRECTION_FILE = "latent_direction"
 RESIDUAL_DIRECTION_FILE = "residual_direction"
 MEAN_DIFFERENCE_FILE = "mean_difference_direction"
-PAIR_SUMMARY_FILE = "directions.json"
-PAIRWISE_STATS_FILE = "pairwise_stats"  # + .pt / .json
 PAIR_KEY = "{a}__{b}"  # the seed's key of two pairs in pairwise_stats.pt
 
 class PairSpec(StrictModel):
@@ -88,6 +92,9 @@ class PairsConfig(StrictModel):
         return self
 
 
+PathsRelativeTo = Literal["cwd", "config"]
+
+
 class SteeringSettings(StrictModel):
     """Everything `compute_steering` needs; defaults are the seed's."""
 
@@ -102,7 +109,7 @@ class SteeringSettings(StrictModel):
     batch_size: int = Field(512, gt=0)
     include_decoder_bias: bool = False  # seed compatibility: residual_direction = decode(delta), with b_dec
     top_k: int = Field(20, gt=0)  # latents listed per direction in the report
-    paths_relative_to: Literal["cwd", "config"] = "cwd"  # base of relative concept paths; the seed used cwd
+    paths_relative_to: PathsRelativeTo = "cwd"  # base of relative concept paths; the seed used cwd
 
 
 def read_pairs_config(path: str | os.PathLike) -> PairsConfig:
@@ -291,16 +298,6 @@ def check_sae_layer(sae: Sae, layer: int) -> None:
             f"SAE {sae.name} reads {sae.cfg.hook_name} (layer {sae.cfg.hook_layer}) but layer {layer} "
             f"was requested; pass the SAE of layer {layer}, or no SAE for residual-space directions"
         )
-
-
-def resolve_device(device: str) -> torch.device:
-    """Return the torch device for "auto" (cuda when available) or a name; cuda falls back to cpu like the seed."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        logger.warning("device %s requested but CUDA is not available; using cpu", device)
-        return torch.device("cpu")
-    return torch.device(device)
 
 
 def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: Progress | None = None) -> Path:

@@ -1,0 +1,129 @@
+"""What a capture computes: its settings, the token rows it keeps, and the inputs it checks before loading a model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from steering_core.capture.shards import StorageDtype, TokenType
+from steering_core.data.dataset import DatasetMeta
+from steering_core.pi05 import (
+    NormStats,
+    Pi05Arch,
+    PromptFormat,
+    PromptTokenizer,
+    TokenizedPrompt,
+    read_norm_stats,
+)
+from steering_core.pi05.checkpoint import resolve_model_file
+from steering_core.pi05.norm_stats import LIBERO_ASSET_ID, norm_stats_path
+from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
+from steering_core.pi05.tokenizer import MAX_TOKEN_LEN
+from steering_core.schema import StrictModel
+
+STATE_KEY = "state"  # the dataset feature the discrete-state prompt reads
+CAMERA_DTYPES = ("image", "video")
+N_CAMERAS = 3  # pi0.5's camera slots: base, left wrist, right wrist (absent in LIBERO, mask False)
+
+
+class CaptureSettings(StrictModel):
+    """What to capture and how; the seed's `save_residuals.py` flags plus the new ones."""
+
+    checkpoint_path: Path  # openpi PyTorch checkpoint folder (model.safetensors) or the file itself
+    tokenizer_path: Path  # PaliGemma SentencePiece model (paligemma_tokenizer.model)
+    layers: tuple[int, ...] = (12,)  # the seed's SAE layer
+    token_type: TokenType = "instructions"
+    prompt_format: PromptFormat = PromptFormat.LIBERO  # pi05_libero's; other pi0.5 checkpoints: discrete_state
+    max_token_len: int = Field(MAX_TOKEN_LEN, ge=1)
+    norm_stats_path: Path | None = None  # discrete_state only; default <checkpoint>/assets/<asset id>/norm_stats.json
+    norm_stats_asset_id: str = LIBERO_ASSET_ID
+    skip_norm_stats: bool = False  # the seed's flag: never read norm stats (the libero format needs none)
+    arch: Pi05Arch = Pi05Arch()
+    batch_size: int = Field(32, ge=1)  # frames per forward pass; the seed used 128 on a large GPU
+    device: str | None = None  # default CUDA when available, else CPU
+    dtype: str | None = None  # compute dtype; default openpi's bfloat16 policy on CUDA, float32 on CPU
+    storage_dtype: StorageDtype = "float32"
+    episodes_per_shard: int = Field(1, ge=1)  # 1: adding demos never rewrites a shard
+    num_workers: int = Field(2, ge=0)  # DataLoader processes decoding and resizing frames
+    video_backend: str | None = None  # lerobot's decoder for video datasets (None: lerobot's default)
+
+    @field_validator("layers")
+    @classmethod
+    def _layers_sorted(cls, layers: tuple[int, ...]) -> tuple[int, ...]:
+        if not layers:
+            raise ValueError("layers is empty; pass at least one decoder layer, e.g. 12")
+        return tuple(sorted(set(layers)))
+
+
+@dataclass(frozen=True)
+class CaptureInputs:
+    """The checked inputs of a capture: checkpoint file, tokenizer, and the state norm stats (discrete_state only)."""
+
+    model_file: Path
+    tokenizer: PromptTokenizer
+    norm_stats: NormStats | None
+
+
+def select_tokens(prompt: TokenizedPrompt, token_type: str) -> np.ndarray:
+    """Return the language indices (n,) int64 a token type keeps from one tokenised prompt.
+
+    `instructions`: the task's own tokens; `prompt`: every valid token (BOS, scaffolding, state);
+    `last`: the last valid token.
+    """
+    if token_type == "instructions":
+        return np.arange(*prompt.instruction, dtype=np.int64)
+    if token_type == "prompt":
+        return np.arange(prompt.n_valid, dtype=np.int64)
+    if token_type == "last":
+        return np.array([prompt.n_valid - 1], dtype=np.int64)
+    raise ValueError(f"token_type {token_type!r} unknown; expected instructions, prompt or last")
+
+
+def check_inputs(
+    meta: DatasetMeta, settings: CaptureSettings
+) -> CaptureInputs:
+    """Return the checkpoint file, tokenizer and state norm stats after checking every input once (no model loaded)."""
+    model_file = resolve_model_file(settings.checkpoint_path)
+    tokenizer = PromptTokenizer(settings.tokenizer_path, settings.max_token_len, settings.prompt_format)
+    discrete = settings.prompt_format is PromptFormat.DISCRETE_STATE
+    problems = []
+    features = meta.info["features"]
+    needed = [*LIBERO_IMAGE_KEYS, *([STATE_KEY] if discrete else [])]
+    for name in needed:
+        found = features.get(name, {}).get("dtype")
+        wanted = CAMERA_DTYPES if name in LIBERO_IMAGE_KEYS else None
+        if name not in features or (wanted and found not in wanted):
+            problems.append(
+                f"{meta.root}: feature `{name}` is {'missing' if name not in features else repr(found)}, "
+                f"expected {'a camera (image or video)' if wanted else 'present'}; the dataset has "
+                f"{sorted(features)} (convert LIBERO with `latent-steering convert`)"
+            )
+    depth = settings.arch.depth
+    bad_layers = [layer for layer in settings.layers if not 0 <= layer < depth]
+    if bad_layers:
+        problems.append(
+            f"layers {bad_layers} out of range: the language model has {depth} decoder layers (0..{depth - 1})"
+        )
+    if tokenizer.vocab_size > settings.arch.vocab_size:
+        problems.append(
+            f"{settings.tokenizer_path}: {tokenizer.vocab_size} pieces, more than the model's vocab_size "
+            f"{settings.arch.vocab_size}; pass the tokenizer the checkpoint was trained with"
+        )
+    if discrete and settings.skip_norm_stats:
+        problems.append(
+            "the discrete_state prompt needs the quantile-normalised state: drop --skip-norm-stats, "
+            "or use the libero prompt format (pi05_libero)"
+        )
+    if problems:
+        raise ValueError("\n".join(problems))
+    norm_stats = None
+    if discrete:
+        source = settings.norm_stats_path or settings.checkpoint_path
+        stats = read_norm_stats(source, settings.norm_stats_asset_id)
+        if STATE_KEY not in stats:
+            raise ValueError(f"{norm_stats_path(source, settings.norm_stats_asset_id)}: no `{STATE_KEY}` entry")
+        norm_stats = stats[STATE_KEY]
+    return CaptureInputs(model_file, tokenizer, norm_stats)

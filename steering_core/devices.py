@@ -1,0 +1,40 @@
+"""Devices and dtypes: one definition of how a device or dtype name becomes a torch object."""
+
+from __future__ import annotations
+
+import torch
+
+# Floating-point dtypes by the names configs and CLI flags use.
+DTYPES: dict[str, torch.dtype] = {
+    "float32": torch.float32,
+    "float64": torch.float64,
+    "float16": torch.float16,
+    "bfloat16": torch.bfloat16,
+}
+# safetensors header dtype names of the same dtypes.
+SAFETENSORS_DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F64": torch.float64, "F16": torch.float16,
+                                              "BF16": torch.bfloat16}
+DTYPE_NAMES: dict[torch.dtype, str] = {dtype: name for name, dtype in DTYPES.items()}
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """Return `device`; None or "auto" picks CUDA when available, else CPU. CUDA without a GPU is an error."""
+    if device is None or device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        resolved = torch.device(device)
+    except RuntimeError as error:
+        raise ValueError(f"device {device!r} is not a torch device; expected cpu, cuda, cuda:N or auto") from error
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested but CUDA is not available here; use --device cpu or auto")
+    return resolved
+
+
+def resolve_dtype(dtype: str | torch.dtype | None, device: torch.device) -> torch.dtype:
+    """Return the compute dtype: `dtype`, or openpi's bfloat16 on CUDA and float32 elsewhere."""
+    if dtype is None:
+        return torch.bfloat16 if device.type == "cuda" else torch.float32
+    resolved = DTYPES.get(dtype) if isinstance(dtype, str) else dtype
+    if not isinstance(resolved, torch.dtype) or not resolved.is_floating_point:
+        raise ValueError(f"dtype {dtype!r} is not a floating-point dtype; expected one of {sorted(DTYPES)}")
+    return resolved

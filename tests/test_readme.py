@@ -1,0 +1,45 @@
+"""The README's Python example runs as written, on a tiny checkpoint, tokenizer and SAE in its place."""
+
+import re
+from pathlib import Path
+
+import torch
+
+from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.sae import write_sae_folder
+from steering_core.synthetic.tokenizer import write_tokenizer
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def python_blocks() -> list[str]:
+    return re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.S)
+
+
+def test_python_api_example_runs(tmp_path, monkeypatch):
+    arch = tiny_arch()
+    checkpoint = write_pi05_checkpoint(tmp_path / "pi05_libero_pytorch", arch, seed=0)
+    tokenizer = write_tokenizer(tmp_path / "paligemma_tokenizer.model")
+    sae_dir = write_sae_folder(tmp_path / "sae", d_in=arch.width, d_sae=96, hook_layer=2)
+    language_start = 3 * arch.tokens_per_image
+    # The real sizes in the text, each replaced by its tiny counterpart; every one must still be in the README.
+    substitutions = {
+        '"pi05_libero_pytorch", max_layer=12)': f'{str(checkpoint)!r}, arch=ARCH, max_layer=2)',
+        '"paligemma_tokenizer.model"': repr(str(tokenizer)),
+        "layers=[12]": "layers=[2]",
+        "resid[12]": "resid[2]",
+        "768 + start : 768 + end": f"{language_start} + start : {language_start} + end",
+        'load_sae("gemma-2b-it-res-jb", "blocks.12.hook_resid_post")': f"load_sae({str(sae_dir)!r})",
+        "libero_camera_slots(agentview, wrist)": f"libero_camera_slots(agentview, wrist, {arch.image_size})",
+    }
+    (block,) = [b for b in python_blocks() if "Pi05Prefix" in b]
+    for text, tiny in substitutions.items():
+        assert text in block, f"README example changed: {text!r} no longer in it; update this test"
+        block = block.replace(text, tiny)
+    monkeypatch.chdir(tmp_path)
+    scope = {"ARCH": arch}
+    exec(compile(block, str(README), "exec"), scope)
+    n_instruction = scope["prompt"].instruction[1] - scope["prompt"].instruction[0]
+    assert scope["rows"].shape == (n_instruction, arch.width)
+    assert scope["latents"].shape == (n_instruction, 96)
+    assert torch.isfinite(scope["latents"]).all()
