@@ -48,7 +48,7 @@ SCALES = (1, 10, 100)  # 100x: 400 episodes, 625 MiB
 THROUGHPUT_SCALE = 10  # every row of this run (one of SCALES) is sliced for the MiB/s comparison
 SEGMENT_FRAMES = (5, 14)  # the fixed pair's window in each of the base episodes (inclusive)
 READ_CHUNK = 8 << 20  # bytes per read() of the plain sequential read
-ROUNDS = 2  # throughput: alternating rounds of slicing, plain read and read-write floor, best kept
+ROUNDS = 5  # throughput: alternating rounds of slicing, plain read and read-write floor, best kept
 TARGET = 1.5  # largest peak RSS / smallest, at most
 
 QUICK = {"width": 64, "scales": (1, 10), "throughput_scale": 1}
@@ -196,6 +196,7 @@ def child_throughput(run_dir: Path, concept_map: Path, out: Path, device: str) -
     slice_concepts(run_dir, concept_map, out, settings)  # warm-up; also warms the page cache
     times: dict[str, list[float]] = {"seconds": [], "write_seconds": [], "read_seconds": [], "floor_seconds": []}
     for _ in range(ROUNDS):
+        shutil.rmtree(out)  # both sides write into a fresh place: removing old outputs is timed on neither
         start = time.perf_counter()
         slice_concepts(run_dir, concept_map, out, settings)
         times["seconds"].append(time.perf_counter() - start)
@@ -281,9 +282,10 @@ def main(argv: list[str] | None = None) -> Result | None:
             f"writes every row to a .pt and a .safetensors) {floor_rate:.0f} MiB/s = {slicing_rate / floor_rate:.2f}x.",
             f"where the time goes: writing the outputs alone (torch.save, which checksums every byte for its zip "
             f"format, and safetensors' save_file, which builds the whole file in memory first) takes "
-            f"{throughput['write_seconds']:.2f} of {throughput['seconds']:.2f} s; the rest is reading and copying rows "
-            "in steering_core/slicing.py (`_read_rows` concatenates runs, `_read_selected` gathers the block again "
-            "even when every row is selected, `_concatenate` copies once more and reorders an already ordered result).",
+            f"{throughput['write_seconds']:.3f} of {throughput['seconds']:.3f} s; the rest is choosing rows from the "
+            "shards' index columns and reading each selected row once, straight from its shard into its place in "
+            "the output (steering_core/capture/slicing.py), which includes the first touch of the output's fresh "
+            "pages.",
         ],
     )
     return finish(result, args)

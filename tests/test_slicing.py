@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from safetensors.torch import load_file
+from safetensors.torch import load_file, save_file
 
 from steering_core.capture import shards
 from steering_core.capture.slicing import (
@@ -28,10 +28,14 @@ def first_index(episode: int) -> int:
     return sum(EPISODES.get(e, (0,))[0] for e in range(episode))
 
 
-def build_run(run_dir, episodes_per_shard=2, token_type="instructions") -> None:
-    """Write a run of every episode and layer with rows that encode where they come from."""
+def build_run(run_dir, episodes_per_shard=2, token_type="instructions", storage_dtype="float32",
+              first=first_index) -> None:
+    """Write a run of every episode and layer with rows that encode where they come from.
+
+    `first(episode)` is the dataset index of the episode's first frame.
+    """
     spec = shards.RunSpec(token_type=token_type, layers=LAYERS, width=WIDTH, episodes_per_shard=episodes_per_shard,
-                          inputs={"checkpoint": "tiny"})
+                          storage_dtype=storage_dtype, inputs={"checkpoint": "tiny"})
     shards.write_run_spec(run_dir, spec)
     generator = torch.Generator().manual_seed(0)
     for key, members in shards.group_episodes(EPISODES, episodes_per_shard).items():
@@ -41,7 +45,7 @@ def build_run(run_dir, episodes_per_shard=2, token_type="instructions") -> None:
                 frames, task = EPISODES[episode]
                 for frame in range(frames):
                     for token, position in enumerate(SPAN[task]):
-                        columns["index"].append(first_index(episode) + frame)
+                        columns["index"].append(first(episode) + frame)
                         columns["episode_index"].append(episode)
                         columns["frame_index"].append(frame)
                         columns["token_position"].append(position)
@@ -85,8 +89,11 @@ def concept_map(tmp_path):
     })
 
 
-def brute_force(run_dir, concept_map_path, layer):
-    """Load every shard whole and pick rows with python loops: concept -> (rows, [(index, position)])."""
+def brute_force(run_dir, concept_map_path, layer, with_columns=False):
+    """Load every shard whole and pick rows with python loops: concept -> (rows, [(index, position)]).
+
+    With `with_columns`, concept -> (float32 rows, keys, {column: (rows,) int64 tensor}).
+    """
     concepts = json.loads(concept_map_path.read_text())["concepts"]
     found = {name: [] for name in concepts}
     for path in sorted((run_dir / "instructions" / f"layer{layer:02d}").glob("*.safetensors")):
@@ -97,11 +104,14 @@ def brute_force(run_dir, concept_map_path, layer):
                 if any(s["episode_index"] == episode and s["frame_start"] <= frame <= s["frame_end"]
                        for s in segments):
                     key = (int(data["index"][row]), int(data["token_position"][row]))
-                    found[name].append((key, data["residuals"][row]))
+                    columns = {column: int(data[column][row]) for column in shards.ROW_COLUMNS}
+                    found[name].append((key, data["residuals"][row], columns))
     result = {}
     for name, items in found.items():
         items.sort(key=lambda item: item[0])
-        result[name] = (torch.stack([r for _, r in items]), [k for k, _ in items])
+        rows, keys = torch.stack([r for _, r, _ in items]), [k for k, _, _ in items]
+        columns = {column: torch.tensor([c[column] for _, _, c in items]) for column in shards.ROW_COLUMNS}
+        result[name] = (rows.float(), keys, columns) if with_columns else (rows, keys)
     return result
 
 
@@ -130,6 +140,52 @@ def test_token_slices_equal_brute_force(tmp_path, run_dir, concept_map):
                 [s["episode_index"] for s in json.loads(concept_map.read_text())["concepts"][name]]
     # OPEN: episode 0 frames 1-6 and episode 2 frames 0-5, three instruction tokens each
     assert json.loads(written[2].read_text())["concepts"][OPEN]["rows"] == (6 + 6) * 3
+
+
+@pytest.mark.parametrize("storage_dtype", ["float32", "bfloat16"])
+@pytest.mark.parametrize("reversed_index", [False, True])
+def test_slice_files_are_byte_identical_to_saving_the_selected_rows(tmp_path, storage_dtype, reversed_index):
+    """Each .pt and .safetensors equals, byte for byte, what torch.save / save_file write for the selected rows.
+
+    With `reversed_index` the later episodes come first in the dataset, so shard order is not dataset order.
+    """
+    def reversed_first(episode):
+        return sum(EPISODES[e][0] for e in EPISODES if e > episode)
+
+    first = reversed_first if reversed_index else first_index
+    build_run(tmp_path / "run", episodes_per_shard=3, storage_dtype=storage_dtype, first=first)
+    concepts = {OPEN: [segment(e, 1, 4, start_index=first(e) + 1, end_index=first(e) + 4) for e in (0, 2)],
+                CLOSE: [segment(e, 0, 3, start_index=first(e), end_index=first(e) + 3) for e in (1, 3)]}
+    concept_map = write_concept_map(tmp_path / "map.json", concepts)
+    slice_concepts(tmp_path / "run", concept_map, tmp_path / "slices", SliceSettings(layers=(5,)))
+    slice_concepts(tmp_path / "run", concept_map, tmp_path / "frames", SliceSettings(layers=(5,), reduce="frame"))
+    expected_dir = tmp_path / "expected"
+    expected_dir.mkdir()
+    for name, (rows, keys, columns) in brute_force(tmp_path / "run", concept_map, 5, with_columns=True).items():
+        stem = safe_file_name(name)
+        assert keys == sorted(keys) and len(keys) > 4
+        # reduce=token: the rows themselves
+        torch.save(rows, expected_dir / f"{stem}.pt")
+        save_file({"residuals": rows, **columns}, expected_dir / f"{stem}.safetensors")
+        for suffix in (".pt", ".safetensors"):
+            written = (tmp_path / "slices" / "layer05" / f"{stem}{suffix}").read_bytes()
+            assert written == (expected_dir / f"{stem}{suffix}").read_bytes(), (name, suffix)
+        # reduce=frame: float64 sums accumulated row by row in dataset order, divided by the count
+        frames = sorted(set(columns["index"].tolist()))
+        means, tokens = [], []
+        for frame in frames:
+            total, count = torch.zeros(WIDTH, dtype=torch.float64), 0
+            for row, index in zip(rows, columns["index"].tolist()):
+                if index == frame:
+                    total, count = total + row.double(), count + 1
+            means.append((total / count).float())
+            tokens.append(count)
+        first_rows = [columns["index"].tolist().index(frame) for frame in frames]
+        frame_columns = {column: columns[column][first_rows] for column in ("index", "episode_index", "frame_index")}
+        save_file({"residuals": torch.stack(means), **frame_columns, "tokens": torch.tensor(tokens)},
+                  expected_dir / f"{stem}-frames.safetensors")
+        written = (tmp_path / "frames" / "layer05" / f"{stem}.safetensors").read_bytes()
+        assert written == (expected_dir / f"{stem}-frames.safetensors").read_bytes(), name
 
 
 def test_frame_means_and_max_samples(tmp_path, run_dir, concept_map):

@@ -4,7 +4,8 @@ Rows are matched by (episode_index, frame_index) against the concept map's segme
 by their position in a stream, so slices stay right when a dataset grows. Two passes over
 each layer's shards: the first reads only the small int64 row columns (to validate the
 concept map against the run and to choose rows), the second reads each shard's selected
-residual rows once from the memory map. Peak memory is about one shard plus the outputs.
+residual rows straight from the file into their place in the (preallocated) outputs, so every
+byte is copied once. Peak memory is the outputs plus, for frame means, one shard's rows.
 
 Outputs, per layer (the seed's layout):
 
@@ -29,6 +30,8 @@ from safetensors.torch import save_file
 from tqdm import tqdm
 
 from steering_core.capture.shards import (
+    ROW_COLUMNS,
+    ResidualBlock,
     RunMetadata,
     ShardRecord,
     TokenType,
@@ -66,10 +69,19 @@ class SliceSettings(StrictModel):
 
 @dataclass
 class _Selection:
-    """Rows of one concept found in the first pass: per shard, row numbers and sort keys."""
+    """Rows of one concept found in the first pass, per shard position: row numbers and their columns."""
 
-    rows: dict[int, np.ndarray] = field(default_factory=dict)   # shard position -> (n,) row numbers
-    keys: dict[int, np.ndarray] = field(default_factory=dict)   # shard position -> (n, 2) (index, token_position)
+    rows: dict[int, np.ndarray] = field(default_factory=dict)  # shard position -> (n,) ascending row numbers
+    columns: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # shard position -> ROW_COLUMNS, (n,)
+
+
+@dataclass
+class _Part:
+    """One shard's share of a concept's output: which rows to read and where their units go."""
+
+    rows: np.ndarray  # (n,) ascending row numbers in the shard
+    dest: np.ndarray  # output row of each unit: of each row (reduce=token) or of each frame (reduce=frame)
+    frame_of_row: np.ndarray | None  # reduce=frame: (n,) the shard-local frame of each row
 
 
 def safe_file_name(concept: str) -> str:
@@ -177,8 +189,8 @@ def _slice_layer(
 ) -> Path:
     """Select, read and write the slices of one layer; return its index.json path."""
     records = metadata.layer_shards(layer)
-    selections = _select_rows(run_dir, records, concept_map, map_path, settings)
-    outputs = _read_selected(run_dir, records, selections, settings, advance)
+    selections, blocks = _select_rows(run_dir, records, concept_map, map_path, settings)
+    outputs = _read_selected(records, selections, blocks, metadata.run.width, settings, advance)
     names = slice_file_names(list(concept_map.concepts))
     index_entries: dict[str, Any] = {}
     with atomic_dir(output_dir / layer_dir(layer), overwrite=True) as staging:
@@ -215,21 +227,27 @@ def _slice_layer(
 
 def _select_rows(
     run_dir: Path, records: Sequence[ShardRecord], concept_map: ConceptMap, map_path: Path, settings: SliceSettings
-) -> dict[str, _Selection]:
-    """First pass over the row columns: return each concept's rows, checking every segment is fully captured."""
+) -> tuple[dict[str, _Selection], dict[int, ResidualBlock]]:
+    """First pass over the row columns: return each concept's rows, checking every segment is fully captured,
+    and where each opened shard keeps its residual matrix (shard position -> block)."""
     by_episode: dict[int, list[tuple[str, int, ConceptRow]]] = {}
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             by_episode.setdefault(segment.episode_index, []).append((concept, number, segment))
     selections = {concept: _Selection() for concept in concept_map.concepts}
+    blocks: dict[int, ResidualBlock] = {}
     frames_found: dict[tuple[str, int], set[int]] = {}
     problems: list[str] = []
     for position, record in enumerate(records):
         wanted = [item for episode in record.episodes for item in by_episode.get(episode, [])]
         if not wanted:
             continue
-        with open_shard(run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows) as reader:
+        sha = record.sha256 if settings.verify_checksums else None
+        with open_shard(
+            run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows, sha256=sha
+        ) as reader:
             cols = reader.columns()
+            blocks[position] = reader.residual_block()
         per_concept: dict[str, np.ndarray] = {}
         for concept, number, segment in wanted:
             hit = (
@@ -252,7 +270,7 @@ def _select_rows(
         for concept, hit in per_concept.items():
             rows = np.flatnonzero(hit)
             selections[concept].rows[position] = rows
-            selections[concept].keys[position] = np.stack([cols["index"][rows], cols["token_position"][rows]], axis=1)
+            selections[concept].columns[position] = {name: values[rows] for name, values in cols.items()}
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             expected = set(range(segment.frame_start, segment.frame_end + 1))
@@ -274,7 +292,7 @@ def _select_rows(
     if settings.max_samples_per_concept is not None:
         for concept, selection in selections.items():
             _subsample(selection, settings.max_samples_per_concept, by_frame=settings.reduce == "frame")
-    return selections
+    return selections, blocks
 
 
 def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
@@ -284,11 +302,13 @@ def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
     random seed, and spread over every segment rather than the first ones.
     """
     positions = sorted(selection.rows)
-    keys = np.concatenate([selection.keys[p] for p in positions]) if positions else np.zeros((0, 2), np.int64)
-    owner = np.concatenate([np.full(len(selection.rows[p]), p) for p in positions]) if positions else np.zeros(0)
-    local = np.concatenate([selection.rows[p] for p in positions]) if positions else np.zeros(0, np.int64)
-    order = np.lexsort((keys[:, 1], keys[:, 0]))
-    units = keys[order, 0] if by_frame else np.arange(len(order))
+    if not positions:
+        return
+    columns = {name: np.concatenate([selection.columns[p][name] for p in positions]) for name in ROW_COLUMNS}
+    owner = np.concatenate([np.full(len(selection.rows[p]), p) for p in positions])
+    local = np.concatenate([selection.rows[p] for p in positions])
+    order = np.lexsort((columns["token_position"], columns["index"]))
+    units = columns["index"][order] if by_frame else np.arange(len(order))
     unique_units, unit_of_row = np.unique(units, return_inverse=True)
     if unique_units.size <= limit:
         return
@@ -300,75 +320,96 @@ def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
         mine.sort()
         if mine.size:
             selection.rows[p] = local[mine]
-            selection.keys[p] = keys[mine]
+            selection.columns[p] = {name: values[mine] for name, values in columns.items()}
         else:
-            del selection.rows[p], selection.keys[p]
+            del selection.rows[p], selection.columns[p]
 
 
 def _read_selected(
-    run_dir: Path,
     records: Sequence[ShardRecord],
     selections: dict[str, _Selection],
+    blocks: dict[int, ResidualBlock],
+    width: int,
     settings: SliceSettings,
     advance: Callable[[], None],
 ) -> dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]]:
-    """Second pass: read each shard's selected rows once; return concept -> (residuals, row columns)."""
-    chunks: dict[str, list[tuple[torch.Tensor, dict[str, np.ndarray]]]] = {c: [] for c in selections}
+    """Second pass: read each concept's rows straight into its output; return concept -> (residuals, row columns).
+
+    Every output row is placed in dataset order as it is read (`_plan`), so rows are copied once,
+    from the file into the output (reduce=token), or into one shard's buffer before its frame means.
+    """
+    outputs: dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]] = {}
+    parts: dict[str, dict[int, _Part]] = {}
+    for concept, selection in selections.items():
+        parts[concept], columns = _plan(selection, settings.reduce)
+        residuals = torch.empty(len(columns["index"]), width, dtype=torch.float32)
+        outputs[concept] = residuals, {name: torch.from_numpy(values) for name, values in columns.items()}
     for position, record in enumerate(records):
-        needed = {c: s.rows[position] for c, s in selections.items() if position in s.rows}
+        needed = {concept: mine[position] for concept, mine in parts.items() if position in mine}
         if needed:
-            sha = record.sha256 if settings.verify_checksums else None
-            with open_shard(
-                run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows, sha256=sha
-            ) as reader:
-                union = np.unique(np.concatenate(list(needed.values())))
-                block = _read_rows(reader, union)  # (len(union), width) float32, each run read once
-                cols = reader.columns()
-            for concept, rows in needed.items():
-                where = np.searchsorted(union, rows)
-                residuals = block[torch.from_numpy(where)]
-                columns = {name: values[rows] for name, values in cols.items()}
-                if settings.reduce == "frame":
-                    residuals, columns = _frame_means(residuals, columns, settings.device)
-                chunks[concept].append((residuals, columns))
+            with open(blocks[position].path, "rb", buffering=0) as handle:
+                for concept, part in needed.items():
+                    residuals = outputs[concept][0]
+                    if part.frame_of_row is None:
+                        _read_rows(blocks[position], handle, part.rows, residuals, part.dest)
+                    else:
+                        rows = torch.empty(len(part.rows), width, dtype=torch.float32)
+                        _read_rows(blocks[position], handle, part.rows, rows, np.arange(len(part.rows)))
+                        means = _frame_means(rows, part.frame_of_row, len(part.dest), settings.device)
+                        residuals[torch.from_numpy(part.dest)] = means
         advance()
-    return {concept: _concatenate(parts, settings.reduce) for concept, parts in chunks.items()}
+    return outputs
 
 
-def _read_rows(reader: Any, rows: np.ndarray) -> torch.Tensor:
-    """Return the given sorted rows of a shard as (len(rows), width) float32, reading contiguous runs."""
-    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
-    runs = np.split(rows, breaks)
-    return torch.cat([reader.residuals(int(run[0]), int(run[-1]) + 1).to(torch.float32) for run in runs])
+def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[str, np.ndarray]]:
+    """Return one concept's parts per shard position and its output columns, in dataset order.
 
-
-def _frame_means(
-    residuals: torch.Tensor, columns: dict[str, np.ndarray], device: str
-) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
-    """Return one mean row per frame (rows grouped by global index) and that frame's columns."""
-    frames, first, inverse = np.unique(columns["index"], return_index=True, return_inverse=True)
-    inverse_t = torch.from_numpy(inverse).to(device)
-    sums = torch.zeros(len(frames), residuals.shape[1], dtype=torch.float64, device=device)
-    sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
-    counts = torch.bincount(inverse_t, minlength=len(frames)).to(torch.float64)
-    means = (sums / counts[:, None]).to("cpu", torch.float32)
-    kept = {name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
-    kept["tokens"] = counts.to("cpu", torch.int64).numpy()
-    return means, kept
-
-
-def _concatenate(
-    parts: list[tuple[torch.Tensor, dict[str, np.ndarray]]], reduce: str
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Return one concept's rows in dataset order (index, then token position) with their columns."""
-    residuals = torch.cat([p[0] for p in parts])
-    names = parts[0][1].keys()
-    columns = {name: np.concatenate([p[1][name] for p in parts]) for name in names}
+    Output units are rows (reduce=token, ordered by index, then token position) or frames
+    (reduce=frame, ordered by index; columns index, episode_index, frame_index and `tokens`,
+    the number of rows averaged).
+    """
+    positions = sorted(selection.rows)
+    units: list[dict[str, np.ndarray]] = []
+    frame_of_row: dict[int, np.ndarray | None] = {}
+    for p in positions:
+        columns = selection.columns[p]
+        if reduce == "frame":
+            _, first, inverse, counts = np.unique(
+                columns["index"], return_index=True, return_inverse=True, return_counts=True
+            )
+            units.append({name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
+                         | {"tokens": counts.astype(np.int64)})
+            frame_of_row[p] = inverse
+        else:
+            units.append(columns)
+            frame_of_row[p] = None
+    columns = {name: np.concatenate([unit[name] for unit in units]) for name in units[0]}
     secondary = columns["token_position"] if reduce == "token" else np.zeros_like(columns["index"])
     order = np.lexsort((secondary, columns["index"]))
-    return residuals[torch.from_numpy(order)].contiguous(), {
-        name: torch.from_numpy(np.ascontiguousarray(values[order])) for name, values in columns.items()
+    dest = np.empty_like(order)
+    dest[order] = np.arange(len(order))
+    bounds = np.cumsum([0] + [len(unit["index"]) for unit in units])
+    parts = {
+        p: _Part(selection.rows[p], dest[bounds[i] : bounds[i + 1]], frame_of_row[p]) for i, p in enumerate(positions)
     }
+    return parts, {name: np.ascontiguousarray(values[order]) for name, values in columns.items()}
+
+
+def _read_rows(block: ResidualBlock, handle: Any, rows: np.ndarray, out: torch.Tensor, dest: np.ndarray) -> None:
+    """Read shard rows `rows` into out[dest], one read per run of rows consecutive in both the shard and `out`."""
+    breaks = (np.flatnonzero((np.diff(rows) != 1) | (np.diff(dest) != 1)) + 1).tolist()
+    for start, stop in zip([0, *breaks], [*breaks, len(rows)]):
+        first = int(dest[start])
+        block.read_into(handle, int(rows[start]), out[first : first + stop - start])
+
+
+def _frame_means(residuals: torch.Tensor, frame_of_row: np.ndarray, frames: int, device: str) -> torch.Tensor:
+    """Return (frames, width) float32 means of the rows of each frame, summed in float64 on `device`."""
+    inverse_t = torch.from_numpy(frame_of_row).to(device)
+    sums = torch.zeros(frames, residuals.shape[1], dtype=torch.float64, device=device)
+    sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
+    counts = torch.bincount(inverse_t, minlength=frames).to(torch.float64)
+    return (sums / counts[:, None]).to("cpu", torch.float32)
 
 
 def _describe(values: Sequence[int]) -> str:
