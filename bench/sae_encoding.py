@@ -227,9 +227,9 @@ def main(argv: list[str] | None = None) -> Result | None:
             f"first left out as warm-up (the whole stream, reference included, took {ours['total_seconds']:.1f} s). "
             f"Ours' peak includes the references' {reference_mib:.0f} MiB of buffers.",
             f"where the time goes, per batch: the two products {ours['matmul_seconds'] * 1e3:.3g} ms; the SAE's encode "
-            f"+ decode (steering_core/sae.py `Sae.reconstruct`) {ours['reconstruct_seconds'] * 1e3:.3g} ms; "
+            f"+ decode (steering_core/sae/model.py `Sae.reconstruct`) {ours['reconstruct_seconds'] * 1e3:.3g} ms; "
             f"the whole streamed step {ours['batch_seconds'] * 1e3:.3g} ms, the rest being reading the batch and the "
-            "running statistics (steering_core/concept_stats.py `_Sums.add`).",
+            "running statistics (steering_core/sae/concept_stats.py `_Sums.add`: column sums, squared norms, latent sums, firing counts as a ones-vector product over the latents' signs, squared error in the reconstruction's memory).",
             f"memory at {rows} rows: ours {ours[key]:.0f} MiB vs the seed's {seed[key]:.0f} MiB ({memory}); the seed "
             f"holds {latents_mib:.0f} MiB of latents, and twice that while concatenating them. Same latent means on "
             f"both sides: max |ours - seed| = {difference:.1e}.",

@@ -117,6 +117,23 @@ def test_streaming_statistics_equal_in_memory_ones(tmp_path, sae_folder, batch_s
     assert stats.mean_l0 == pytest.approx((f > 0).sum(axis=1).mean(), rel=1e-12)
 
 
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_streaming_statistics_in_low_precision_saes(tmp_path, dtype):
+    """Firing counts are exact and means close to the SAE's own one-shot encode, whatever its dtype."""
+    folder = write_sae_folder(tmp_path / "sae", d_in=D_IN, d_sae=D_SAE, dtype=dtype)
+    x = concept_tensor(300, seed=5)  # 300 rows: more than bfloat16 counts exactly (256), so counts must widen
+    torch.save(x, tmp_path / "concept.pt")
+    sae = load_sae(folder)
+    stats = read_concept_stats(encode_concept(ConceptSource("c", tmp_path / "concept.pt"), tmp_path / "layer12", sae,
+                                              batch_size=1000))
+    latents, norm = sae.encode_with_norm(x)
+    assert torch.equal(stats.firing_rate, (latents > 0).sum(dim=0).double() / 300)
+    torch.testing.assert_close(stats.latent_mean, latents.double().mean(dim=0), rtol=1e-2, atol=1e-3)
+    error = ((x.double() - sae.decode(latents, norm).double()) ** 2).sum()
+    variance = ((x.double() - x.double().mean(dim=0)) ** 2).sum()
+    assert stats.fvu == pytest.approx(float(error / variance), rel=2e-2)
+
+
 def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     layer_path = compute_steering(settings(project, sae_folder))
     ref = reference(sae_folder)

@@ -191,7 +191,7 @@ class _Sums:
         self.residual_sum: torch.Tensor | float = 0.0   # (d_in,) float64
         self.residual_sq: torch.Tensor | float = 0.0    # sum of squared norms, for the total variance
         self.latent_sum: torch.Tensor | float = 0.0     # (d_sae,) float64
-        self.firing: torch.Tensor | int = 0             # (d_sae,) int64: rows where each latent fired
+        self.firing: torch.Tensor | int = 0             # (d_sae,) float64: rows where each latent fired
         self.squared_error: torch.Tensor | float = 0.0  # sum of ||x - x_hat||^2
 
     def add(self, batch: torch.Tensor, sae: Sae | None, path: Path, *, start: int) -> None:
@@ -208,8 +208,8 @@ class _Sums:
             return
         reconstruction, latents = sae.reconstruct(batch)
         self.latent_sum = self.latent_sum + latents.sum(dim=0).double()
-        self.firing = self.firing + torch.count_nonzero(latents, dim=0)  # activations are >= 0: nonzero = fired
-        error = batch.to(reconstruction.dtype) - reconstruction
+        self.firing = self.firing + _fired(latents)
+        error = reconstruction.sub_(batch)  # the reconstruction is this batch's own: its memory takes the error
         self.squared_error = self.squared_error + error.square().sum(dtype=torch.float64)
 
     def finish(self, source: ConceptSource) -> ConceptStats:
@@ -228,6 +228,17 @@ class _Sums:
             fvu=float(self.squared_error) / total_variance if has_latents and total_variance > 0 else None,
             mean_l0=float(firing.sum()) / self.count if has_latents else None,
         )
+
+
+def _fired(latents: torch.Tensor) -> torch.Tensor:
+    """Return (d_sae,) float64 counts of rows where each latent fired, overwriting `latents` (n, d_sae).
+
+    Activations are >= 0, so sign() is 1 where a latent fired and 0 elsewhere; a row of ones times
+    that matrix counts them (a BLAS product), several times faster than count_nonzero's boolean pass.
+    Counts stay exact: at most n per batch, summed in float32 (bf16/fp16 latents are widened first).
+    """
+    signs = latents.sign_() if latents.dtype in (torch.float32, torch.float64) else latents.sign().float()
+    return (torch.ones(len(signs), dtype=signs.dtype, device=signs.device) @ signs).double()
 
 
 def _concept_identity(source: ConceptSource, sae: Sae | None) -> dict[str, Any]:
