@@ -21,11 +21,10 @@ import contextlib
 import json
 import logging
 import os
-import struct
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -36,6 +35,7 @@ from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
+from steering_core.tensorfile import TensorLocation, tensor_locations
 
 logger = logging.getLogger(__name__)
 
@@ -249,30 +249,6 @@ def find_complete_shard(
     return record
 
 
-@dataclass(frozen=True)
-class ResidualBlock:
-    """Where a shard's `residuals` matrix lies in its file, so rows can be read straight into a caller's buffer."""
-
-    path: Path
-    offset: int  # byte offset of row 0 in the file
-    width: int
-    dtype: torch.dtype  # storage dtype
-
-    def read_into(self, handle: BinaryIO, start: int, out: torch.Tensor) -> None:
-        """Read rows [start, start + len(out)) into `out`, a contiguous (n, width) CPU tensor of any float dtype.
-
-        `handle` is the file opened with `open(path, "rb", buffering=0)`. The bytes land in `out` with
-        one copy when the storage dtype is out's dtype; otherwise through a buffer in the storage dtype.
-        """
-        target = out if out.dtype == self.dtype else torch.empty(out.shape, dtype=self.dtype)
-        view = target.view(torch.uint8).numpy().reshape(-1)  # safetensors stores little-endian, as torch on x86/arm
-        handle.seek(self.offset + start * self.width * self.dtype.itemsize)
-        if handle.readinto(view) != view.size:
-            raise ValueError(f"{self.path}: file ends before residual row {start + out.shape[0] - 1}; re-run capture")
-        if target is not out:
-            out.copy_(target)
-
-
 class ShardReader:
     """An open, validated shard: row columns as numpy, residual rows read from the memory map."""
 
@@ -288,13 +264,9 @@ class ShardReader:
         """Return residual rows [start, stop) as (stop - start, width) in the storage dtype."""
         return self._handle.get_slice(RESIDUALS)[start : self.rows if stop is None else stop]
 
-    def residual_block(self) -> ResidualBlock:
-        """Return where the residual matrix lies in the file (from the safetensors header)."""
-        with open(self.path, "rb") as handle:
-            (size,) = struct.unpack("<Q", handle.read(8))
-            header = json.loads(handle.read(size))
-        offset = 8 + size + header[RESIDUALS]["data_offsets"][0]
-        return ResidualBlock(self.path, offset, self.width, STORAGE_DTYPES[self.dtype])
+    def residual_location(self) -> TensorLocation:
+        """Return where the residual matrix lies in the file, for `steering_core.tensorfile.read_rows_into`."""
+        return tensor_locations(self.path)[RESIDUALS]
 
 
 @contextlib.contextmanager

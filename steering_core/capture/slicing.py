@@ -31,7 +31,6 @@ from tqdm import tqdm
 
 from steering_core.capture.shards import (
     ROW_COLUMNS,
-    ResidualBlock,
     RunMetadata,
     ShardRecord,
     TokenType,
@@ -42,6 +41,7 @@ from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_
 from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import StrictModel
+from steering_core.tensorfile import TensorLocation, read_rows_into
 
 logger = logging.getLogger(__name__)
 
@@ -189,8 +189,8 @@ def _slice_layer(
 ) -> Path:
     """Select, read and write the slices of one layer; return its index.json path."""
     records = metadata.layer_shards(layer)
-    selections, blocks = _select_rows(run_dir, records, concept_map, map_path, settings)
-    outputs = _read_selected(records, selections, blocks, metadata.run.width, settings, advance)
+    selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
+    outputs = _read_selected(records, selections, locations, metadata.run.width, settings, advance)
     names = slice_file_names(list(concept_map.concepts))
     index_entries: dict[str, Any] = {}
     with atomic_dir(output_dir / layer_dir(layer), overwrite=True) as staging:
@@ -227,15 +227,15 @@ def _slice_layer(
 
 def _select_rows(
     run_dir: Path, records: Sequence[ShardRecord], concept_map: ConceptMap, map_path: Path, settings: SliceSettings
-) -> tuple[dict[str, _Selection], dict[int, ResidualBlock]]:
+) -> tuple[dict[str, _Selection], dict[int, TensorLocation]]:
     """First pass over the row columns: return each concept's rows, checking every segment is fully captured,
-    and where each opened shard keeps its residual matrix (shard position -> block)."""
+    and where each opened shard keeps its residual matrix (shard position -> location)."""
     by_episode: dict[int, list[tuple[str, int, ConceptRow]]] = {}
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             by_episode.setdefault(segment.episode_index, []).append((concept, number, segment))
     selections = {concept: _Selection() for concept in concept_map.concepts}
-    blocks: dict[int, ResidualBlock] = {}
+    locations: dict[int, TensorLocation] = {}
     frames_found: dict[tuple[str, int], set[int]] = {}
     problems: list[str] = []
     for position, record in enumerate(records):
@@ -247,7 +247,7 @@ def _select_rows(
             run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows, sha256=sha
         ) as reader:
             cols = reader.columns()
-            blocks[position] = reader.residual_block()
+            locations[position] = reader.residual_location()
         per_concept: dict[str, np.ndarray] = {}
         for concept, number, segment in wanted:
             hit = (
@@ -292,7 +292,7 @@ def _select_rows(
     if settings.max_samples_per_concept is not None:
         for concept, selection in selections.items():
             _subsample(selection, settings.max_samples_per_concept, by_frame=settings.reduce == "frame")
-    return selections, blocks
+    return selections, locations
 
 
 def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
@@ -328,7 +328,7 @@ def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
 def _read_selected(
     records: Sequence[ShardRecord],
     selections: dict[str, _Selection],
-    blocks: dict[int, ResidualBlock],
+    locations: dict[int, TensorLocation],
     width: int,
     settings: SliceSettings,
     advance: Callable[[], None],
@@ -347,14 +347,14 @@ def _read_selected(
     for position, record in enumerate(records):
         needed = {concept: mine[position] for concept, mine in parts.items() if position in mine}
         if needed:
-            with open(blocks[position].path, "rb", buffering=0) as handle:
+            with open(locations[position].path, "rb", buffering=0) as handle:
                 for concept, part in needed.items():
                     residuals = outputs[concept][0]
                     if part.frame_of_row is None:
-                        _read_rows(blocks[position], handle, part.rows, residuals, part.dest)
+                        _read_rows(locations[position], handle, part.rows, residuals, part.dest)
                     else:
                         rows = torch.empty(len(part.rows), width, dtype=torch.float32)
-                        _read_rows(blocks[position], handle, part.rows, rows, np.arange(len(part.rows)))
+                        _read_rows(locations[position], handle, part.rows, rows, np.arange(len(part.rows)))
                         means = _frame_means(rows, part.frame_of_row, len(part.dest), settings.device)
                         residuals[torch.from_numpy(part.dest)] = means
         advance()
@@ -395,12 +395,12 @@ def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[st
     return parts, {name: np.ascontiguousarray(values[order]) for name, values in columns.items()}
 
 
-def _read_rows(block: ResidualBlock, handle: Any, rows: np.ndarray, out: torch.Tensor, dest: np.ndarray) -> None:
+def _read_rows(location: TensorLocation, handle: Any, rows: np.ndarray, out: torch.Tensor, dest: np.ndarray) -> None:
     """Read shard rows `rows` into out[dest], one read per run of rows consecutive in both the shard and `out`."""
     breaks = (np.flatnonzero((np.diff(rows) != 1) | (np.diff(dest) != 1)) + 1).tolist()
     for start, stop in zip([0, *breaks], [*breaks, len(rows)]):
         first = int(dest[start])
-        block.read_into(handle, int(rows[start]), out[first : first + stop - start])
+        read_rows_into(handle, location, int(rows[start]), out[first : first + stop - start])
 
 
 def _frame_means(residuals: torch.Tensor, frame_of_row: np.ndarray, frames: int, device: str) -> torch.Tensor:

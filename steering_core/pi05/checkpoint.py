@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 
 from steering_core.fileio import read_json
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
+from steering_core.tensorfile import read_tensor, tensor_locations
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +43,7 @@ ADARMS_NORMS = ("input_layernorm", "post_attention_layernorm")
 _FLOAT_DTYPES = {"BF16", "F16", "F32", "F64"}  # a converted file is uniform, a training file mixed (spec 1.4)
 
 Shape = tuple[int, ...]
+Placement = Callable[[str], tuple[torch.device, torch.dtype]]  # checkpoint name -> run-time (device, dtype)
 
 
 def resolve_model_file(path: str | os.PathLike) -> Path:
@@ -230,20 +232,24 @@ def check_tensors(model_file: Path, expected: dict[str, Shape], what: str, hint:
 def read_tensors(
     model_file: Path,
     expected: dict[str, Shape],
-    convert: Callable[[str, torch.Tensor], torch.Tensor],
+    placement: Placement,
     what: str,
     hint: str,
 ) -> dict[str, torch.Tensor]:
-    """Return checkpoint name -> tensor for the names of `expected`, read lazily after `check_tensors`.
+    """Return checkpoint name -> tensor for the names of `expected`, read after `check_tensors`.
 
-    `convert(name, tensor)` moves each tensor to its run-time device and dtype as soon as it is read, so
-    peak memory is the converted part plus one stored tensor.
+    `placement(name)` gives each tensor's run-time (device, dtype). Each tensor is allocated there and
+    filled by plain file reads (`steering_core.tensorfile`): no memory map keeps the file's pages resident,
+    and a converted tensor passes through a staging buffer of at most 64 MiB, so peak memory is the
+    converted tensors plus that buffer.
     """
     check_tensors(model_file, expected, what, hint)
+    locations = tensor_locations(model_file)
     tensors = {}
-    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
+    with open(model_file, "rb", buffering=0) as handle:
         for name in tqdm(expected, desc="loading pi0.5 tensors", unit="tensor", leave=False, disable=None):
-            tensors[name] = convert(name, handle.get_tensor(name))
+            device, dtype = placement(name)
+            tensors[name] = read_tensor(handle, locations[name], device, dtype)
     logger.info("%s: read %d %s", model_file, len(tensors), what)
     return tensors
 
@@ -252,13 +258,13 @@ def read_prefix_tensors(
     model_file: Path,
     arch: Pi05Arch,
     max_layer: int,
-    convert: Callable[[str, torch.Tensor], torch.Tensor],
+    placement: Placement,
 ) -> dict[str, torch.Tensor]:
     """Return checkpoint name -> tensor for the prefix up to `max_layer` (`read_tensors`)."""
     return read_tensors(
         model_file,
         prefix_tensor_shapes(arch, max_layer),
-        convert,
+        placement,
         f"prefix tensors (up to decoder layer {max_layer})",
         f"They do not match {arch!r}. Pass the Pi05Arch this checkpoint was built with, or re-convert it "
         "with openpi's convert_jax_model_to_pytorch.py.",
@@ -284,7 +290,7 @@ def check_expert_tensors(model_file: Path, expert: ExpertArch) -> None:
 def read_expert_tensors(
     model_file: Path,
     expert: ExpertArch,
-    convert: Callable[[str, torch.Tensor], torch.Tensor],
+    placement: Placement,
 ) -> dict[str, torch.Tensor]:
     """Return checkpoint name -> tensor for the action expert and the heads (`read_tensors`)."""
-    return read_tensors(model_file, expert_tensor_shapes(expert), convert, EXPERT_WHAT, expert_hint(expert))
+    return read_tensors(model_file, expert_tensor_shapes(expert), placement, EXPERT_WHAT, expert_hint(expert))

@@ -217,7 +217,7 @@ class Pi05Prefix(nn.Module):
             model_file,
             arch,
             max_layer,
-            lambda key, tensor: tensor.to(device=device, dtype=parameter_dtype(key, dtype)),
+            lambda key: (device, parameter_dtype(key, dtype)),
         )
         model.load_state_dict({local_names[key]: tensor for key, tensor in tensors.items()}, strict=True, assign=True)
         model.rotary_emb.to(device)

@@ -134,7 +134,7 @@ class Pi05Policy(nn.Module):
         tensors = read_expert_tensors(
             model_file,
             expert_arch,
-            lambda key, tensor: tensor.to(device=device, dtype=expert_parameter_dtype(key, dtype)),
+            lambda key: (device, expert_parameter_dtype(key, dtype)),
         )
         expert.load_state_dict({local[key]: tensor for key, tensor in tensors.items()}, strict=True, assign=True)
         expert.requires_grad_(False).eval()

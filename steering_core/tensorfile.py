@@ -1,0 +1,107 @@
+"""Read safetensors tensors straight from the file into memory the caller owns, without a memory map.
+
+safetensors' `safe_open` reads through a memory map: the file pages it touches stay mapped, and count
+in the process's resident memory, for as long as the file is open. Reading with plain file reads
+instead puts each byte once into its destination (or into one bounded buffer when the dtype or device
+differs), so loading a checkpoint costs the converted tensors and nothing more, and slicing a shard
+copies each selected row once.
+
+Format (safetensors): an 8-byte little-endian header size N, N bytes of JSON mapping each name to
+`dtype`, `shape` and `data_offsets` (begin, end) relative to the end of the header, then the data,
+little-endian (as torch stores tensors on x86 and ARM).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+import torch
+
+from steering_core.devices import SAFETENSORS_DTYPES
+
+CHUNK_BYTES = 64 << 20  # bound on the staging buffer of a converting read
+
+_DTYPES = SAFETENSORS_DTYPES | {"I64": torch.int64, "I32": torch.int32, "U8": torch.uint8, "BOOL": torch.bool}
+
+
+@dataclass(frozen=True)
+class TensorLocation:
+    """Where one tensor's bytes lie in a safetensors file."""
+
+    path: Path
+    name: str
+    dtype: torch.dtype  # as stored
+    shape: tuple[int, ...]
+    offset: int  # absolute byte offset of element 0
+
+    @property
+    def row_bytes(self) -> int:
+        """Return the bytes of one row (one element of a 1-D tensor)."""
+        return math.prod(self.shape[1:]) * self.dtype.itemsize
+
+
+def tensor_locations(path: str | os.PathLike) -> dict[str, TensorLocation]:
+    """Return name -> location of every tensor of a safetensors file, from its header alone."""
+    path = Path(path)
+    with open(path, "rb") as handle:
+        raw = handle.read(8)
+        size = struct.unpack("<Q", raw)[0] if len(raw) == 8 else -1
+        header = json.loads(handle.read(size)) if 0 < size <= path.stat().st_size - 8 else None
+    if not isinstance(header, dict):
+        raise ValueError(f"{path}: not a safetensors file (header size {size}); expected a .safetensors file")
+    locations = {}
+    for name, entry in header.items():
+        if name == "__metadata__":
+            continue
+        if entry.get("dtype") not in _DTYPES:
+            raise ValueError(f"{path}: tensor `{name}` has dtype {entry.get('dtype')!r}, expected one of {sorted(_DTYPES)}")
+        locations[name] = TensorLocation(
+            path, name, _DTYPES[entry["dtype"]], tuple(entry["shape"]), 8 + size + entry["data_offsets"][0]
+        )
+    return locations
+
+
+def read_rows_into(handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor) -> torch.Tensor:
+    """Read rows [start, start + len(out)) of a stored tensor into `out` and return it.
+
+    `handle` is the file opened with `open(path, "rb", buffering=0)`; `out` is contiguous, of the
+    tensor's row shape, on any device and in any dtype. Same dtype on CPU: the file is read straight
+    into `out`. Otherwise through a buffer in the stored dtype of at most CHUNK_BYTES (or one row),
+    converted and moved by `copy_`.
+    """
+    rows = out.shape[0] if out.ndim else 1
+    if out.device.type == "cpu" and out.dtype == location.dtype:
+        _read_exact(handle, location, start, out)
+        return out
+    per_chunk = max(1, CHUNK_BYTES // max(location.row_bytes, 1))
+    buffer = torch.empty((min(per_chunk, rows), *location.shape[1:]), dtype=location.dtype)
+    flat = out.view(rows, *location.shape[1:])
+    for first in range(0, rows, per_chunk):
+        count = min(per_chunk, rows - first)
+        flat[first : first + count].copy_(_read_exact(handle, location, start + first, buffer[:count]))
+    return out
+
+
+def read_tensor(handle: BinaryIO, location: TensorLocation, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """Return the whole stored tensor as a new tensor on `device` in `dtype` (`read_rows_into`)."""
+    out = torch.empty(location.shape, dtype=dtype, device=device)
+    return read_rows_into(handle, location, 0, out)
+
+
+def _read_exact(handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor) -> torch.Tensor:
+    """Fill CPU tensor `out` (stored dtype) with the bytes of rows start.. of the tensor; raise on a short file."""
+    if not out.numel():
+        return out
+    view = out.reshape(-1).view(torch.uint8).numpy()
+    handle.seek(location.offset + start * location.row_bytes)
+    if handle.readinto(view) != view.size:
+        raise ValueError(
+            f"{location.path}: the file ends inside tensor `{location.name}` (rows from {start}); it is truncated"
+        )
+    return out

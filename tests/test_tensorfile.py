@@ -1,0 +1,64 @@
+"""Plain-read safetensors access: same values as safetensors' own loader, in any dtype, chunked, or refused."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from steering_core import tensorfile
+from steering_core.tensorfile import read_rows_into, read_tensor, tensor_locations
+
+
+@pytest.fixture
+def stored(tmp_path):
+    generator = torch.Generator().manual_seed(0)
+    tensors = {
+        "matrix": torch.randn(37, 5, generator=generator).to(torch.bfloat16),
+        "wide": torch.randn(4, 3, 2, generator=generator),
+        "vector": torch.arange(11, dtype=torch.int64),
+        "scalar": torch.tensor(2.5, dtype=torch.float16),
+        "empty": torch.zeros(0, 4),
+    }
+    path = tmp_path / "t.safetensors"
+    save_file(tensors, path, metadata={"note": "x"})
+    return path
+
+
+def test_whole_tensors_equal_safetensors_load_in_any_dtype(stored):
+    expected = load_file(stored)
+    locations = tensor_locations(stored)
+    assert set(locations) == set(expected)
+    with open(stored, "rb", buffering=0) as handle:
+        for name, tensor in expected.items():
+            assert locations[name].shape == tuple(tensor.shape) and locations[name].dtype == tensor.dtype
+            same = read_tensor(handle, locations[name], torch.device("cpu"), tensor.dtype)
+            assert same.dtype == tensor.dtype and torch.equal(same, tensor)
+            if tensor.is_floating_point():
+                wide = read_tensor(handle, locations[name], torch.device("cpu"), torch.float64)
+                assert torch.equal(wide, tensor.double())
+
+
+def test_row_ranges_and_chunked_conversion(stored, monkeypatch):
+    monkeypatch.setattr(tensorfile, "CHUNK_BYTES", 3 * 5 * 2)  # three bf16 rows per staging chunk
+    matrix = load_file(stored)["matrix"]
+    location = tensor_locations(stored)["matrix"]
+    with open(stored, "rb", buffering=0) as handle:
+        out = torch.full((20, 5), -1.0)
+        read_rows_into(handle, location, 9, out)
+        assert torch.equal(out, matrix[9:29].float())
+        raw = read_rows_into(handle, location, 30, torch.empty(7, 5, dtype=torch.bfloat16))
+        assert torch.equal(raw, matrix[30:])
+
+
+def test_truncated_and_foreign_files_are_refused(stored, tmp_path):
+    data = stored.read_bytes()
+    short = tmp_path / "short.safetensors"
+    short.write_bytes(data[:-40])
+    location = max(tensor_locations(short).values(), key=lambda where: where.offset)  # the last in the data
+    with open(short, "rb", buffering=0) as handle, pytest.raises(ValueError, match="ends inside tensor"):
+        read_tensor(handle, location, torch.device("cpu"), torch.float32)
+    other = tmp_path / "notes.safetensors"
+    other.write_bytes(b"\xff" * 8 + b"hello")
+    with pytest.raises(ValueError, match="notes.safetensors: not a safetensors file"):
+        tensor_locations(other)
