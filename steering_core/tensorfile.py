@@ -105,3 +105,28 @@ def _read_exact(handle: BinaryIO, location: TensorLocation, start: int, out: tor
             f"{location.path}: the file ends inside tensor `{location.name}` (rows from {start}); it is truncated"
         )
     return out
+
+
+# safetensors lays tensors out by dtype, widest first in this order, then by name
+_LAYOUT_ORDER = ("U64", "I64", "F64", "U32", "I32", "F32", "BF16", "F16", "U16", "I16", "I8", "U8", "BOOL")
+_CODES = {dtype: code for code, dtype in _DTYPES.items()}
+
+
+def safetensors_layout(
+    entries: dict[str, tuple[torch.dtype, tuple[int, ...]]], metadata: dict[str, str] | None = None
+) -> tuple[bytes, dict[str, int]]:
+    """Return the header (size prefix included) of a safetensors file of these tensors, and name -> absolute
+    byte offset of each tensor's data: the bytes safetensors' `save_file` writes, so a file can be written
+    tensor by tensor (`os.pwrite`) without holding every tensor in memory."""
+    order = sorted(entries, key=lambda name: (_LAYOUT_ORDER.index(_CODES[entries[name][0]]), name))
+    header: dict[str, object] = {"__metadata__": dict(sorted(metadata.items()))} if metadata else {}
+    offsets, position = {}, 0
+    for name in order:
+        dtype, shape = entries[name]
+        size = math.prod(shape) * dtype.itemsize
+        header[name] = {"dtype": _CODES[dtype], "shape": list(shape), "data_offsets": [position, position + size]}
+        offsets[name], position = position, position + size
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)  # the data starts 8-byte aligned
+    start = 8 + len(text)
+    return struct.pack("<Q", len(text)) + text, {name: start + offset for name, offset in offsets.items()}

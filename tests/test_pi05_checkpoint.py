@@ -11,6 +11,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 import steering_core.pi05.checkpoint as checkpoint_module
+import steering_core.synthetic.pi05 as synthetic_pi05
 from steering_core.fileio import sha256_file
 from steering_core.pi05 import Pi05Arch, Pi05Prefix
 from steering_core.pi05.checkpoint import (
@@ -91,6 +92,25 @@ def test_synthetic_checkpoint_is_seeded(tmp_path, folder):
     other = write_pi05_checkpoint(tmp_path / "other", ARCH, seed=4)
     assert sha256_file(again / MODEL_FILE) == sha256_file(folder / MODEL_FILE)
     assert sha256_file(other / MODEL_FILE) != sha256_file(folder / MODEL_FILE)
+
+
+def test_checkpoint_is_written_block_by_block_as_save_file_would(tmp_path, monkeypatch):
+    """Streamed in blocks, the file is what save_file writes for the same tensors; small blocks keep the layout."""
+    generator = torch.Generator().manual_seed(5)
+    shapes = checkpoint_tensor_shapes(ARCH)
+    tensors = {name: synthetic_pi05._random_tensor(name, shape, generator).to(torch.bfloat16)
+               for name, shape in shapes.items()}
+    save_file(tensors, tmp_path / "reference.safetensors", metadata={"format": "pt"})
+    folder = write_pi05_checkpoint(tmp_path / "streamed", ARCH, seed=5, dtype=torch.bfloat16)
+    assert (folder / MODEL_FILE).read_bytes() == (tmp_path / "reference.safetensors").read_bytes()
+
+    monkeypatch.setattr(synthetic_pi05, "GENERATE_VALUES", 100)  # many blocks per matrix
+    blocks = write_pi05_checkpoint(tmp_path / "blocks", ARCH, seed=5, dtype=torch.bfloat16)
+    again = load_file(blocks / MODEL_FILE)
+    assert {name: tuple(t.shape) for name, t in again.items()} == shapes
+    assert all(t.dtype == torch.bfloat16 and torch.isfinite(t).all() for t in again.values())
+    embedding = again[EMBEDDING_KEY].float()
+    assert abs(float(embedding.std()) * ARCH.width**0.5 - 1) < 0.05  # the same scale rule, block by block
 
 
 def test_reads_only_the_prefix_up_to_max_layer(folder, monkeypatch):

@@ -7,7 +7,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from steering_core import tensorfile
-from steering_core.tensorfile import read_rows_into, read_tensor, tensor_locations
+from steering_core.tensorfile import read_rows_into, read_tensor, safetensors_layout, tensor_locations
 
 
 @pytest.fixture
@@ -62,3 +62,17 @@ def test_truncated_and_foreign_files_are_refused(stored, tmp_path):
     other.write_bytes(b"\xff" * 8 + b"hello")
     with pytest.raises(ValueError, match="notes.safetensors: not a safetensors file"):
         tensor_locations(other)
+
+
+def test_layout_is_the_one_save_file_writes(stored, tmp_path):
+    tensors = load_file(stored) | {"b_first": torch.ones(3, dtype=torch.float64), "a_half": torch.ones(2, 2, dtype=torch.float16)}
+    save_file(tensors, tmp_path / "reference.safetensors", metadata={"format": "pt"})
+    header, offsets = safetensors_layout({name: (t.dtype, tuple(t.shape)) for name, t in tensors.items()},
+                                         {"format": "pt"})
+    path = tmp_path / "streamed.safetensors"
+    with open(path, "wb") as handle:
+        handle.write(header)
+        for name in sorted(tensors, reverse=True):  # any order: each tensor goes to its own offset
+            handle.seek(offsets[name])
+            handle.write(tensors[name].contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    assert path.read_bytes() == (tmp_path / "reference.safetensors").read_bytes()

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import save_file
 
 from steering_core.fileio import atomic_dir
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
@@ -28,11 +27,13 @@ from steering_core.pi05.checkpoint import (
     prefix_tensor_shapes,
 )
 from steering_core.pi05.norm_stats import ASSETS_DIR, LIBERO_ASSET_ID, NORM_STATS_FILE
+from steering_core.tensorfile import safetensors_layout
 
 ACTION_DIM = 32  # pi0.5 pads actions and state to 32
 ACTION_HORIZON = 10  # pi05_libero
 LIBERO_STATE_DIM = 8  # eef position 3, axis-angle 3, gripper qpos 2
 LIBERO_ACTION_DIM = 7
+GENERATE_VALUES = 1 << 24  # values per generated block (64 MiB of float32 noise)
 
 
 def tiny_arch(vocab_size: int = 512) -> Pi05Arch:
@@ -126,12 +127,12 @@ def write_pi05_checkpoint(
     """Write a random pi0.5 checkpoint folder (model.safetensors, config.json, norm stats); return it.
 
     `dtype` is the storage dtype of every tensor (float32, or bfloat16 like openpi's converter default).
+    Tensors are generated and written in blocks of at most GENERATE_VALUES values straight to their place
+    in the file, so any size, the real one included (7.2 GB in bfloat16), is written in bounded memory.
+    A tensor that fits one block gets the values of one `torch.randn` call, and the file is the one
+    safetensors' `save_file` would write.
     """
-    generator = torch.Generator().manual_seed(seed)
-    tensors = {
-        name: _random_tensor(name, shape, generator).to(dtype)
-        for name, shape in checkpoint_tensor_shapes(arch).items()
-    }
+    shapes = checkpoint_tensor_shapes(arch)
     config = {
         "action_dim": ACTION_DIM,
         "action_horizon": ACTION_HORIZON,
@@ -143,7 +144,24 @@ def write_pi05_checkpoint(
     with atomic_dir(folder, overwrite=overwrite) as tmp:
         stats_dir = tmp / ASSETS_DIR / asset_id
         stats_dir.mkdir(parents=True)
-        save_file(tensors, str(tmp / MODEL_FILE), metadata={"format": "pt"})
+        _write_random_tensors(tmp / MODEL_FILE, shapes, dtype, torch.Generator().manual_seed(seed))
         (tmp / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
         (stats_dir / NORM_STATS_FILE).write_text(json.dumps(random_norm_stats(seed), indent=2) + "\n", encoding="utf-8")
     return folder
+
+
+def _write_random_tensors(
+    path: Path, shapes: dict[str, Shape], dtype: torch.dtype, generator: torch.Generator
+) -> None:
+    """Write a safetensors file of random tensors (`_random_tensor`) block by block, in `shapes` order."""
+    header, offsets = safetensors_layout({name: (dtype, shape) for name, shape in shapes.items()}, {"format": "pt"})
+    with open(path, "wb", buffering=0) as handle:
+        handle.write(header)
+        for name, shape in shapes.items():
+            rows = shape[0] if shape else 1
+            per_block = max(1, GENERATE_VALUES // max(math.prod(shape[1:]), 1))
+            for first in range(0, rows, per_block):
+                block_shape = (min(per_block, rows - first), *shape[1:]) if shape else shape
+                block = _random_tensor(name, block_shape, generator).to(dtype)
+                row_bytes = math.prod(shape[1:]) * dtype.itemsize
+                os.pwrite(handle.fileno(), block.reshape(-1).view(torch.uint8).numpy(), offsets[name] + first * row_bytes)
