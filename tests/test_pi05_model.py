@@ -177,3 +177,48 @@ def test_layer_out_of_range_is_one_clear_error(checkpoint):
     shallow = Pi05Prefix.from_checkpoint(checkpoint, ARCH, max_layer=1, device="cpu")
     with pytest.raises(ValueError, match=r"layers \[0, 2\] invalid: .*loaded with max_layer=1.*bad: \[2\]"):
         shallow.residuals([], [], torch.zeros(1, 2, dtype=torch.long), torch.ones(1, 2, dtype=torch.bool), [0, 2])
+
+
+def selected_rows(batch, valid, per_frame=(5, 0, 3), seed=0):
+    """Pick (frame, position) rows among valid tokens, unsorted, uneven per frame (one frame none, one image row)."""
+    generator = torch.Generator().manual_seed(seed)
+    frames, positions = [], []
+    for frame, count in enumerate(per_frame):
+        candidates = valid[frame].nonzero().flatten()
+        chosen = candidates[torch.randperm(len(candidates), generator=generator)[:count]]
+        frames += [frame] * len(chosen)
+        positions += chosen.tolist()
+    shuffle = torch.randperm(len(frames), generator=generator)
+    return torch.tensor(frames)[shuffle], torch.tensor(positions)[shuffle]
+
+
+def assert_rounding_close(actual, expected):
+    """Equal up to float32 rounding: max |difference| at most 1e-6 of the rows' largest magnitude."""
+    assert (actual - expected).abs().max() <= 1e-6 * expected.abs().max()
+
+
+@pytest.mark.parametrize("attention", ["sdpa", "eager"])
+def test_selected_rows_equal_the_full_residuals(model, checkpoint, batch, attention):
+    valid = batch.valid(ARCH)
+    frames, positions = selected_rows(batch, valid)
+    full = model.residuals(*batch.args(), ALL_LAYERS, attention=attention)
+    rows = model.selected_residuals(*batch.args(), [3, 0, 2], frames, positions, attention=attention)
+    assert sorted(rows) == [0, 2, 3]
+    for layer in (0, 2):  # before the deepest layer: the same computation, bit for bit
+        assert torch.equal(rows[layer], full[layer][frames, positions])
+    deepest = rows[3]  # queries, attention output and MLP of the selected rows only
+    assert deepest.shape == (len(frames), ARCH.width) and deepest.dtype == torch.float32
+    assert_rounding_close(deepest, full[3][frames, positions])
+    alone = model.selected_residuals(*batch.args(), [1], frames, positions, attention=attention)[1]
+    assert_rounding_close(alone, full[1][frames, positions])
+    if attention == "sdpa":
+        expected = reference_residuals(checkpoint / MODEL_FILE, ARCH, *batch.args(), [3])[3]
+        torch.testing.assert_close(deepest.double(), expected[frames, positions], **TOL)
+
+
+def test_selected_rows_must_be_valid_tokens(model, batch):
+    valid = batch.valid(ARCH)
+    masked = int((~valid[0]).nonzero()[0])  # the right wrist camera is masked in every frame
+    frames, positions = torch.tensor([0, 1]), torch.tensor([int(valid[0].nonzero()[0]), masked])
+    with pytest.raises(ValueError, match=rf"row 1 \(frame 1, position {masked}\) is not a valid token"):
+        model.selected_residuals(*batch.args(), [2], frames, positions)
