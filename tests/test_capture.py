@@ -127,10 +127,15 @@ def test_token_types_select_their_positions(inputs, full_run, tmp_path, token_ty
         expected += [(frame, LANGUAGE_START + i, int(prompt.ids[i])) for i in chosen]
     assert list(zip(stored["index"].tolist(), stored["token_position"].tolist(), stored["token_id"].tolist())) \
         == expected
-    if token_type == "prompt":  # same batches, same model: instruction rows are bit-identical
+    if token_type == "prompt":  # same batches, same model: the instruction rows again
         keys = list(zip(stored["index"].tolist(), stored["token_position"].tolist()))
-        wanted = list(zip(instructions["index"].tolist(), instructions["token_position"].tolist()))
-        assert torch.equal(stored["residuals"][[keys.index(k) for k in wanted]], instructions["residuals"])
+        wanted = [keys.index(k) for k in zip(instructions["index"].tolist(), instructions["token_position"].tolist())]
+        # layer 1 is computed for every token either way: bit-identical
+        assert torch.equal(load_layer(run_dir, 1, token_type)["residuals"][wanted], load_layer(full_run, 1)["residuals"])
+        # the deepest layer computes only the selected rows' queries, and another selection is another
+        # product shape: equal up to float32 rounding
+        difference = (stored["residuals"][wanted] - instructions["residuals"]).abs().max()
+        assert difference <= 1e-6 * instructions["residuals"].abs().max()
     else:
         newline = sentencepiece.SentencePieceProcessor(model_file=str(inputs[1])).piece_to_id("\n")
         assert set(stored["token_id"].tolist()) == {newline}  # the libero prompt ends with "\n"

@@ -221,15 +221,15 @@ def _capture_batch(
     prompts = [_prompt(job, task, states[b] if states is not None else None, cache) for b, task in enumerate(tasks)]
     tokens = torch.from_numpy(np.stack([p.ids for p in prompts]))
     token_mask = torch.from_numpy(np.stack([p.mask for p in prompts]))
-    residuals = model.residuals(batch["images"], batch["image_masks"], tokens, token_mask, settings.layers)
     language_start = settings.arch.prefix_length(N_CAMERAS, 0)  # language follows every camera slot
     selected = [select_tokens(p, settings.token_type) for p in prompts]
     frame_of_row = np.concatenate([np.full(len(s), b, dtype=np.int64) for b, s in enumerate(selected)])
     language_index = np.concatenate(selected)
     positions = language_start + language_index
-    rows_b, rows_p = torch.from_numpy(frame_of_row), torch.from_numpy(positions)
+    residuals = model.selected_residuals(batch["images"], batch["image_masks"], tokens, token_mask, settings.layers,
+                                         torch.from_numpy(frame_of_row), torch.from_numpy(positions))
     for layer in settings.layers:
-        buffer.per_layer[layer].append(residuals[layer][rows_b.to(model.device), rows_p.to(model.device)].cpu())
+        buffer.per_layer[layer].append(residuals[layer].cpu())
     columns = {
         "index": batch["index"].numpy()[frame_of_row],
         "episode_index": batch["episode_index"].numpy()[frame_of_row],
