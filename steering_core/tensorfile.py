@@ -25,7 +25,7 @@ import torch
 
 from steering_core.devices import SAFETENSORS_DTYPES
 
-CHUNK_BYTES = 64 << 20  # bound on the staging buffer of a converting read
+CHUNK_BYTES = 16 << 20  # the staging buffer of a converting read
 
 _DTYPES = SAFETENSORS_DTYPES | {"I64": torch.int64, "I32": torch.int32, "U8": torch.uint8, "BOOL": torch.bool}
 
@@ -67,31 +67,45 @@ def tensor_locations(path: str | os.PathLike) -> dict[str, TensorLocation]:
     return locations
 
 
-def read_rows_into(handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor) -> torch.Tensor:
+def staging_buffer() -> torch.Tensor:
+    """Return a staging buffer for converting reads: CHUNK_BYTES of CPU memory, reusable across calls."""
+    return torch.empty(CHUNK_BYTES, dtype=torch.uint8)
+
+
+def read_rows_into(
+    handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor, staging: torch.Tensor | None = None
+) -> torch.Tensor:
     """Read rows [start, start + len(out)) of a stored tensor into `out` and return it.
 
     `handle` is the file opened with `open(path, "rb", buffering=0)`; `out` is contiguous, of the
     tensor's row shape, on any device and in any dtype. Same dtype on CPU: the file is read straight
-    into `out`. Otherwise through a buffer in the stored dtype of at most CHUNK_BYTES (or one row),
-    converted and moved by `copy_`.
+    into `out`. Otherwise chunk by chunk through `staging` (a uint8 CPU buffer from `staging_buffer`,
+    one is allocated if None; pass the same one to many reads so that loading a checkpoint allocates
+    it once), converted and moved by `copy_`.
     """
     rows = out.shape[0] if out.ndim else 1
     if out.device.type == "cpu" and out.dtype == location.dtype:
         _read_exact(handle, location, start, out)
         return out
-    per_chunk = max(1, CHUNK_BYTES // max(location.row_bytes, 1))
-    buffer = torch.empty((min(per_chunk, rows), *location.shape[1:]), dtype=location.dtype)
+    staging = staging_buffer() if staging is None else staging
+    if staging.numel() < location.row_bytes:
+        staging = torch.empty(location.row_bytes, dtype=torch.uint8)
+    per_chunk = staging.numel() // max(location.row_bytes, 1)
     flat = out.view(rows, *location.shape[1:])
     for first in range(0, rows, per_chunk):
         count = min(per_chunk, rows - first)
-        flat[first : first + count].copy_(_read_exact(handle, location, start + first, buffer[:count]))
+        chunk = staging[: count * location.row_bytes].view(location.dtype).view(count, *location.shape[1:])
+        flat[first : first + count].copy_(_read_exact(handle, location, start + first, chunk))
     return out
 
 
-def read_tensor(handle: BinaryIO, location: TensorLocation, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+def read_tensor(
+    handle: BinaryIO, location: TensorLocation, device: torch.device, dtype: torch.dtype,
+    staging: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Return the whole stored tensor as a new tensor on `device` in `dtype` (`read_rows_into`)."""
     out = torch.empty(location.shape, dtype=dtype, device=device)
-    return read_rows_into(handle, location, 0, out)
+    return read_rows_into(handle, location, 0, out, staging)
 
 
 def _read_exact(handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor) -> torch.Tensor:

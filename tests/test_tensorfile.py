@@ -49,6 +49,8 @@ def test_row_ranges_and_chunked_conversion(stored, monkeypatch):
         assert torch.equal(out, matrix[9:29].float())
         raw = read_rows_into(handle, location, 30, torch.empty(7, 5, dtype=torch.bfloat16))
         assert torch.equal(raw, matrix[30:])
+        staging = torch.empty(2, dtype=torch.uint8)  # smaller than a row: the read uses a row-sized one instead
+        assert torch.equal(read_rows_into(handle, location, 0, torch.empty(37, 5), staging), matrix.float())
 
 
 def test_truncated_and_foreign_files_are_refused(stored, tmp_path):

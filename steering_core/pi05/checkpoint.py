@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from steering_core.fileio import read_json
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
-from steering_core.tensorfile import read_tensor, tensor_locations
+from steering_core.tensorfile import read_tensor, staging_buffer, tensor_locations
 
 logger = logging.getLogger(__name__)
 
@@ -240,16 +240,17 @@ def read_tensors(
 
     `placement(name)` gives each tensor's run-time (device, dtype). Each tensor is allocated there and
     filled by plain file reads (`steering_core.tensorfile`): no memory map keeps the file's pages resident,
-    and a converted tensor passes through a staging buffer of at most 64 MiB, so peak memory is the
-    converted tensors plus that buffer.
+    and converted tensors pass through one staging buffer of 16 MiB, so peak memory is the converted
+    tensors plus that buffer.
     """
     check_tensors(model_file, expected, what, hint)
     locations = tensor_locations(model_file)
+    staging = staging_buffer()  # one buffer for every converted tensor: no allocator churn
     tensors = {}
     with open(model_file, "rb", buffering=0) as handle:
         for name in tqdm(expected, desc="loading pi0.5 tensors", unit="tensor", leave=False, disable=None):
             device, dtype = placement(name)
-            tensors[name] = read_tensor(handle, locations[name], device, dtype)
+            tensors[name] = read_tensor(handle, locations[name], device, dtype, staging)
     logger.info("%s: read %d %s", model_file, len(tensors), what)
     return tensors
 
