@@ -7,6 +7,8 @@ resident memory (VmHWM) against the bytes of the parameters it loaded (target: a
 `Pi05Prefix.residuals` on one LIBERO frame (two 224 px cameras, the third masked, a 16-token prompt) and, in
 alternating rounds, `torch.nn.functional.linear` over exactly the matrix products of that forward with the
 model's own weights: GFLOP/s of ours (analytic FLOPs, attention included) against GFLOP/s of linear().
+It also times capture's call, `Pi05Prefix.selected_residuals` of the 14 instruction rows, whose deepest layer
+runs queries, attention output and MLP for those rows only.
 
 Opt-in (`bench.run_all --real-size`): it needs about 11 GB of free memory and 8 GB of disk, and is skipped,
 with a note saying so, on a machine with less than 20 GiB of RAM.
@@ -23,7 +25,14 @@ from typing import Any
 
 import torch
 
-from bench.capture_throughput import LIBERO_CAMERAS, REAL_PROMPT_TOKENS, _linear, ours_flops
+from bench.capture_throughput import (
+    LIBERO_CAMERAS,
+    REAL_PROMPT_TOKENS,
+    _linear,
+    ours_flops,
+    ours_flops_selected_queries,
+    seed_flops,
+)
 from bench.common import Result, cache_dir, command, finish, parser, peak_rss_mib, print_child_result, rss_mib, run_child
 
 LAYER = 12  # the seed's SAE layer: the prefix is loaded through it
@@ -84,18 +93,25 @@ def child(checkpoint: Path, arch_json: str, layer: int) -> dict[str, Any]:
     matrices = products(model, 1, REAL_PROMPT_TOKENS)
     inputs = {(rows, w.shape[1]): torch.randn(rows, w.shape[1], generator=generator) for rows, w in matrices}
 
+    language_start = arch.prefix_length(3, 0)
+    instruction = torch.arange(1, REAL_PROMPT_TOKENS - 1)  # BOS and the closing "\n" are not instruction tokens
+    frame_of_row, positions = torch.zeros(len(instruction), dtype=torch.long), language_start + instruction
+
     def ours() -> None:
         model.residuals(images, masks, tokens, token_mask, [layer])
+
+    def selected() -> None:  # what capture calls: the instruction rows only
+        model.selected_residuals(images, masks, tokens, token_mask, [layer], frame_of_row, positions)
 
     def linear() -> None:
         for rows, weight in matrices:
             torch.nn.functional.linear(inputs[(rows, weight.shape[1])], weight)
 
-    times: dict[str, list[float]] = {"ours": [], "linear": []}
+    times: dict[str, list[float]] = {"ours": [], "selected": [], "linear": []}
     with torch.no_grad():
         ours()  # warm-up: first-call costs of every kernel
         for _ in range(ROUNDS):
-            for name, fn in (("ours", ours), ("linear", linear)):
+            for name, fn in (("ours", ours), ("selected", selected), ("linear", linear)):
                 start = time.perf_counter()
                 fn()
                 times[name].append(time.perf_counter() - start)
@@ -105,6 +121,8 @@ def child(checkpoint: Path, arch_json: str, layer: int) -> dict[str, Any]:
         "load_peak_rss_mib": load_peak,
         "loaded_bytes": loaded,
         "ours_seconds": min(times["ours"]),
+        "selected_seconds": min(times["selected"]),
+        "selected_flops": ours_flops_selected_queries(arch, layer, REAL_PROMPT_TOKENS),
         "linear_seconds": min(times["linear"]),
         "ours_flops": ours_flops(arch, layer, REAL_PROMPT_TOKENS),
         "linear_flops": sum(_linear(rows, w.shape[1], w.shape[0]) for rows, w in matrices),
@@ -162,6 +180,11 @@ def main(argv: list[str] | None = None) -> Result | None:
         {"measure": "ours GFLOP/s (analytic, attention included)", "value": ours_rate},
         {"measure": "linear() GFLOP/s, same products", "value": linear_rate},
         {"measure": "ours / linear() GFLOP/s", "value": ours_rate / linear_rate},
+        {"measure": "capture's call (selected rows) frames/s", "value": 1 / measured["selected_seconds"]},
+        {"measure": "capture's call / every row, time", "value": measured["selected_seconds"] / measured["ours_seconds"]},
+        {"measure": "capture's call / every row, analytic FLOPs",
+         "value": measured["selected_flops"] / measured["ours_flops"]},
+        {"measure": "seed's FLOPs / capture's call (analytic)", "value": seed_flops(arch, 1) / measured["selected_flops"]},
         {"measure": "peak RSS with the forward MiB", "value": measured["final_peak_rss_mib"]},
     ]
     result = Result(

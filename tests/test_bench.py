@@ -25,6 +25,7 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
 from bench import (  # noqa: E402
     capture_throughput,
     concept_map_speed,
+    real_size,
     run_all,
     sae_encoding,
     slicing_memory,
@@ -95,6 +96,17 @@ def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
     result = run_quick(sae_encoding, cache, tmp_path)
     assert result.checks["latent_mean_max_abs_difference"] < 1e-5
     assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
+
+
+def test_real_size_section_runs_at_tiny_size(cache, tmp_path):
+    result = run_quick(real_size, cache, tmp_path)
+    measures = [row["measure"] for row in result.table]
+    assert measures[:6] == ["load time s", "loaded parameter MiB (float32)", "RSS before load MiB (imports)",
+                            "peak RSS after load MiB", "peak RSS / loaded bytes", "(peak - before) / loaded bytes"]
+    values = {row["measure"]: row["value"] for row in result.table}
+    # the selected-rows call does less work than the full one by the analytic count
+    assert 0 < values["capture's call / every row, analytic FLOPs"] < 1
+    assert "Opt-in" in real_size.__doc__ and "real_size" in run_all.OPT_IN and "real_size" not in run_all.BENCHMARKS
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):
