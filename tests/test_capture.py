@@ -304,3 +304,53 @@ def test_checkpoint_fingerprint_tells_same_layout_checkpoints_apart(inputs, tmp_
     assert other.stat().st_size == model_file.stat().st_size
     assert checkpoint_fingerprint(same) == checkpoint_fingerprint(model_file)
     assert checkpoint_fingerprint(other) != checkpoint_fingerprint(model_file)
+
+
+def rewrite_episode(dataset_root, episode, change):
+    """Rewrite the data parquet rows of one episode in place: `change(row)` edits each row dict."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for path in sorted((dataset_root / "data").rglob("*.parquet")):
+        table = pq.read_table(path)
+        rows = table.to_pylist()
+        for row in rows:
+            if row["episode_index"] == episode:
+                change(row)
+        pq.write_table(pa.Table.from_pylist(rows, schema=table.schema), path)
+
+
+def swap_cameras(row):
+    row["image"], row["wrist_image"] = row["wrist_image"], row["image"]
+
+
+def negate_state(row):
+    row["state"] = [-v for v in row["state"]]
+
+
+def negate_actions(row):
+    row["actions"] = [-v for v in row["actions"]]
+
+
+@pytest.mark.parametrize(("change", "recomputed"), [
+    (swap_cameras, ("00001",)),   # the frames: what the issue found reused (re-converted with another orientation)
+    (negate_state, ("00001",)),
+    (negate_actions, ()),          # capture never reads actions
+])
+def test_resume_recomputes_exactly_the_groups_whose_inputs_changed(inputs, full_run, tmp_path, change, recomputed):
+    import shutil
+
+    dataset = tmp_path / "dataset"
+    shutil.copytree(inputs[2], dataset)
+    run_dir = tmp_path / "run"
+    shutil.copytree(full_run, run_dir)
+    rewrite_episode(dataset, 1, change)
+    result = capture(dataset, REPO_ID, run_dir, settings_for(inputs))
+    assert result.written == recomputed
+    assert result.skipped == tuple(k for k in ("00000", "00001", "00002", "00003") if k not in recomputed)
+    if change is swap_cameras:  # the rewritten rows are those of a fresh capture of the changed frames
+        fresh = tmp_path / "fresh"
+        capture(dataset, REPO_ID, fresh, settings_for(inputs))
+        relative = "instructions/layer03/shard-00001.safetensors"
+        assert (run_dir / relative).read_bytes() == (fresh / relative).read_bytes()
+        assert (run_dir / relative).read_bytes() != (full_run / relative).read_bytes()
