@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import struct
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -24,30 +23,12 @@ from steering_core.fileio import sha256_file, sha256_json
 from steering_core.identity import file_digest
 from steering_core.pi05.norm_stats import norm_stats_path
 
-_FINGERPRINT_SAMPLES = 16  # data blocks hashed by checkpoint_fingerprint, evenly spaced
-_FINGERPRINT_BLOCK = 1 << 16  # 64 KiB each: 1 MiB read whatever the checkpoint size
-
-
 def checkpoint_fingerprint(model_file: str | os.PathLike) -> str:
-    """Return a sha256 over a safetensors file's header, its size and 16 evenly spaced 64 KiB data blocks.
+    """Return the sha256 of a checkpoint file's whole content (a fine-tune of one weight changes it).
 
-    The header names every tensor with its dtype, shape and offsets; the sampled blocks tell apart two
-    checkpoints of the same layout (e.g. base and fine-tuned). It reads about 1 MiB, so it cannot see
-    a change confined to a few weights; hash the file with `sha256_file` when that matters.
+    Read once per file version (`steering_core.identity.file_digest`): about 20 s for 7 GB, then remembered.
     """
-    path = Path(model_file)
-    size = path.stat().st_size
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        header_length = struct.unpack("<Q", handle.read(8))[0]  # safetensors: u64 little-endian header size
-        digest.update(handle.read(header_length))
-        start = 8 + header_length
-        span = max(size - start - _FINGERPRINT_BLOCK, 0)
-        for sample in range(_FINGERPRINT_SAMPLES):
-            handle.seek(start + span * sample // max(_FINGERPRINT_SAMPLES - 1, 1))
-            digest.update(handle.read(_FINGERPRINT_BLOCK))
-    digest.update(str(size).encode())
-    return digest.hexdigest()
+    return file_digest(model_file)
 
 
 def run_spec(
