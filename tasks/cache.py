@@ -9,6 +9,8 @@ Results (small JSON summaries) and their cache records live under `<output_root>
 not in `$PREFECT_HOME`: they travel with the outputs, every worker sharing the output folder sees
 them, and deleting the outputs deletes the cache. A task's summary lists the files it wrote under
 `outputs`; a record whose outputs are gone is dropped before lookup, so the task runs again.
+The output root may be shared, so records are checked as plain JSON before Prefect reads them
+(`read_cache_record`): one naming pickle or any other serializer is refused and recomputed.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import inspect
+import json
 import logging
 import os
 from collections.abc import Callable, Mapping
@@ -24,7 +27,6 @@ from typing import Any
 
 from prefect.cache_policies import CachePolicy
 from prefect.context import TaskRunContext
-from prefect.results import ResultRecord
 from prefect.states import State
 from prefect.tasks import Task
 
@@ -114,13 +116,16 @@ def content_key(
 
 
 def _drop_if_outputs_missing(record_path: Path) -> None:
-    """Delete a cache record whose summary lists an output that no longer exists (or that is unreadable)."""
+    """Delete a cache record that is not plain JSON of our schema, or whose summary lists a vanished output.
+
+    Runs before Prefect looks the key up, so Prefect only ever reads records checked here.
+    """
     if not record_path.is_file():
         return
     try:
-        result = ResultRecord.deserialize(record_path.read_bytes()).result
-    except Exception as err:  # noqa: BLE001  a damaged record must not block the run: recompute instead
-        logger.warning("%s: unreadable cache record (%s); the task will run again", record_path, err)
+        result = read_cache_record(record_path)
+    except ValueError as err:  # tampered or damaged: never handed to Prefect's deserializers; recompute instead
+        logger.warning("refused cache record: %s; the task will run again", err)
         record_path.unlink(missing_ok=True)
         return
     outputs = result.get(OUTPUTS, []) if isinstance(result, dict) else []
@@ -128,6 +133,69 @@ def _drop_if_outputs_missing(record_path: Path) -> None:
     if missing:
         logger.info("%s: cached outputs are gone (%s); the task will run again", record_path.name, ", ".join(missing[:3]))
         record_path.unlink(missing_ok=True)
+
+
+# The only serializer a record may name: Prefect's JSON serializer exactly as `RESULTS` writes it. Any
+# other (pickle, or JSON with another library, encoder or decoder) would import and run named code.
+_JSON_SERIALIZER = {
+    "type": "json", "jsonlib": "json", "object_encoder": "prefect.serializers.prefect_json_object_encoder",
+    "object_decoder": "prefect.serializers.prefect_json_object_decoder", "dumps_kwargs": {}, "loads_kwargs": {},
+}
+_METADATA_KEYS = {"storage_key", "expiration", "serializer", "prefect_version", "storage_block_id"}
+_CODE_KEYS = ("__class__", "__exc_type__")  # Prefect's JSON decoder imports what these name
+
+
+def read_cache_record(path: str | os.PathLike) -> Any:
+    """Return the task summary held by a cache record, read with the standard `json` module only.
+
+    The record must be `{"metadata": {...}, "result": "<JSON text>"}` with the JSON serializer above, no
+    storage block, `storage_key` naming the record itself, and a summary of plain JSON values (no key
+    that Prefect's decoder would turn into an import). ValueError naming the file otherwise.
+    """
+    path = Path(path)
+
+    def refuse(why: str) -> ValueError:
+        return ValueError(f"{path}: {why}; expected a JSON task summary written by this project")
+
+    try:
+        record = json.loads(path.read_bytes())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise refuse("not JSON") from None
+    if not isinstance(record, dict) or set(record) != {"metadata", "result"} or not isinstance(record["metadata"], dict):
+        raise refuse("not a result record")
+    metadata = record["metadata"]
+    if set(metadata) - _METADATA_KEYS:
+        raise refuse(f"unknown metadata {sorted(set(metadata) - _METADATA_KEYS)}")
+    serializer = metadata.get("serializer")
+    if serializer != _JSON_SERIALIZER:
+        kind = serializer.get("type") if isinstance(serializer, dict) else serializer
+        raise refuse(f"serializer {kind!r} with settings {serializer!r} (only Prefect's plain JSON serializer)")
+    if metadata.get("storage_block_id") is not None or metadata.get("storage_key") != str(path):
+        raise refuse(f"storage {metadata.get('storage_block_id')!r}, {metadata.get('storage_key')!r} is not this file")
+    if not isinstance(record["result"], str):
+        raise refuse("result is not JSON text")
+    try:
+        summary = json.loads(record["result"])
+    except json.JSONDecodeError:
+        raise refuse("result is not valid JSON") from None
+    if found := _code_keys(summary):
+        raise refuse(f"result holds {found!r}, which Prefect's decoder would import")
+    return summary
+
+
+def _code_keys(value: Any) -> str | None:
+    """Return the first key of `value` (nested) that Prefect's JSON decoder treats as code, or None."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key in _CODE_KEYS:
+                return key
+            if found := _code_keys(item):
+                return found
+    elif isinstance(value, list):
+        for item in value:
+            if found := _code_keys(item):
+                return found
+    return None
 
 
 def cache_store(output_root: str | os.PathLike) -> Path:
