@@ -66,6 +66,24 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
         shutil.rmtree(staging, ignore_errors=True)
 
 
+def check_output_dir(path: str | os.PathLike, what: str = "output folder") -> Path:
+    """Return `path` after checking that a folder can be made or used there; ValueError naming the culprit.
+
+    Refused: `path` or one of its parents is a file, or the deepest existing parent is not writable.
+    Nothing is created, so a check before hours of work leaves no trace.
+    """
+    path = Path(path).absolute()
+    for candidate in (path, *path.parents):
+        if candidate.exists() or candidate.is_symlink():
+            if not candidate.is_dir():
+                where = "" if candidate == path else f" (a parent of the {what} {path})"
+                raise ValueError(f"{candidate}: is a file{where}; expected a folder, or nothing there")
+            if not os.access(candidate, os.W_OK | os.X_OK):
+                raise ValueError(f"{candidate}: folder not writable; the {what} {path} cannot be written there")
+            return path
+    return path
+
+
 def write_json(path: str | os.PathLike, payload: Any) -> Path:
     """Write `payload` as indented JSON atomically; return the path."""
     path = Path(path)

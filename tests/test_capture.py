@@ -354,3 +354,34 @@ def test_resume_recomputes_exactly_the_groups_whose_inputs_changed(inputs, full_
         relative = "instructions/layer03/shard-00001.safetensors"
         assert (run_dir / relative).read_bytes() == (fresh / relative).read_bytes()
         assert (run_dir / relative).read_bytes() != (full_run / relative).read_bytes()
+
+
+def test_an_output_path_that_is_a_file_fails_before_the_model_loads(inputs, tmp_path, monkeypatch):
+    monkeypatch.setattr(Pi05Prefix, "from_checkpoint", lambda *a, **k: pytest.fail("the model was loaded"))
+    taken = tmp_path / "run"
+    taken.write_text("a file where the run folder goes")
+    with pytest.raises(ValueError, match=f"{taken}: is a file; expected a folder"):
+        capture(inputs[2], REPO_ID, taken, settings_for(inputs))
+    with pytest.raises(ValueError, match=rf"{taken}: is a file \(a parent of the run folder"):
+        capture(inputs[2], REPO_ID, taken / "inner", settings_for(inputs))
+
+
+@pytest.mark.parametrize("content", [b"plain text, not tensors\n", b"\x80\x04\x95 a pickle renamed"])
+def test_capture_command_refuses_a_checkpoint_that_is_not_safetensors_in_one_line(inputs, tmp_path, content):
+    from typer.testing import CliRunner
+
+    from cli.capture import app
+
+    _, tokenizer, dataset = inputs
+    bad = tmp_path / "model.safetensors"
+    bad.write_bytes(content)
+    arch_file = tmp_path / "arch.json"
+    arch_file.write_text(ARCH.model_dump_json())
+    result = CliRunner().invoke(app, [
+        "capture", "--checkpoint-path", str(bad), "--output-dir", str(tmp_path / "run"), "--layers", "1",
+        "--capture-instructions", "--skip-norm-stats", "--device", "cpu", "--lerobot-root", str(dataset),
+        "--repo-id", REPO_ID, "--tokenizer-path", str(tokenizer), "--num-workers", "0", "--arch-file", str(arch_file)])
+    assert result.exit_code == 1, result.output
+    assert f"{bad}: not a safetensors file" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "run").exists()

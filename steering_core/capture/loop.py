@@ -46,7 +46,7 @@ from steering_core.capture.shards import (
 )
 from steering_core.data.dataset import DatasetMeta, read_meta
 from steering_core.devices import resolve_device
-from steering_core.fileio import sha256_json
+from steering_core.fileio import check_output_dir, sha256_json
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
 
 if TYPE_CHECKING:
@@ -107,6 +107,7 @@ def capture(
     `write_run_metadata`, so several workers can split one run.
     """
     run_dir = Path(run_dir)
+    check_output_dir(run_dir, "run folder")  # before the model loads (~25 s on pi0.5), not after
     meta = read_meta(dataset_root)
     inputs = check_inputs(meta, settings)
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)

@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 
 from steering_core.fileio import read_json
 from steering_core.pi05.arch import Pi05Arch
+from steering_core.tensor_files import check_safetensors
 
 logger = logging.getLogger(__name__)
 
@@ -143,6 +144,28 @@ def _problems(handle: Any, expected: dict[str, Shape]) -> list[tuple[str, str, s
     return sorted(problems)
 
 
+def check_prefix_layout(model_file: Path, arch: Pi05Arch, max_layer: int) -> None:
+    """Raise one ValueError listing every prefix tensor (up to `max_layer`) missing or malformed in the header.
+
+    Reads only the file's header: a file that is not safetensors is refused before the reader trusts it.
+    """
+    check_safetensors(model_file)
+    expected = prefix_tensor_shapes(arch, max_layer)
+    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
+        problems = _problems(handle, expected)
+    if problems:
+        lines = "\n".join(
+            f"  {name}: {'' if found == 'missing' else 'found '}{found}, expected {want}"
+            for name, found, want in problems
+        )
+        raise ValueError(
+            f"{model_file}: {len(problems)} of {len(expected)} prefix tensors (up to decoder layer "
+            f"{max_layer}) are missing or do not match {arch!r}:\n{lines}\n"
+            "Pass the Pi05Arch this checkpoint was built with, or re-convert it with openpi's "
+            "convert_jax_model_to_pytorch.py."
+        )
+
+
 def read_prefix_tensors(
     model_file: Path,
     arch: Pi05Arch,
@@ -152,23 +175,12 @@ def read_prefix_tensors(
     """Return checkpoint name -> tensor for the prefix up to `max_layer`, read lazily and validated first.
 
     Every needed tensor's presence, shape and dtype is checked from the file header before any data is
-    read; all problems are reported in one error. `convert(name, tensor)` moves each tensor to its run-time
-    device and dtype as soon as it is read, so peak memory is the converted prefix plus one stored tensor.
+    read (`check_prefix_layout`). `convert(name, tensor)` moves each tensor to its run-time device and
+    dtype as soon as it is read, so peak memory is the converted prefix plus one stored tensor.
     """
+    check_prefix_layout(model_file, arch, max_layer)
     expected = prefix_tensor_shapes(arch, max_layer)
     with safe_open(str(model_file), framework="pt", device="cpu") as handle:
-        problems = _problems(handle, expected)
-        if problems:
-            lines = "\n".join(
-                f"  {name}: {'' if found == 'missing' else 'found '}{found}, expected {want}"
-                for name, found, want in problems
-            )
-            raise ValueError(
-                f"{model_file}: {len(problems)} of {len(expected)} prefix tensors (up to decoder layer "
-                f"{max_layer}) are missing or do not match {arch!r}:\n{lines}\n"
-                "Pass the Pi05Arch this checkpoint was built with, or re-convert it with openpi's "
-                "convert_jax_model_to_pytorch.py."
-            )
         tensors = {}
         for name in tqdm(expected, desc="loading pi0.5 prefix", unit="tensor", leave=False, disable=None):
             tensors[name] = convert(name, handle.get_tensor(name))
