@@ -385,3 +385,21 @@ def test_capture_command_refuses_a_checkpoint_that_is_not_safetensors_in_one_lin
     assert f"{bad}: not a safetensors file" in result.output
     assert "Traceback" not in result.output
     assert not (tmp_path / "run").exists()
+
+
+def test_non_finite_residuals_stop_capture_naming_episode_and_layer(inputs, tmp_path):
+    import shutil
+
+    from safetensors.torch import save_file
+
+    checkpoint = tmp_path / "checkpoint"
+    shutil.copytree(inputs[0], checkpoint)
+    tensors = load_file(checkpoint / "model.safetensors")
+    name = "paligemma_with_expert.paligemma.model.language_model.layers.2.mlp.down_proj.weight"
+    tensors[name][0, 0] = float("nan")  # poisons layer 2's output, so layer 3 (captured) but not layer 1
+    save_file(tensors, checkpoint / "model.safetensors")
+    run_dir = tmp_path / "run"
+    with pytest.raises(ValueError, match=r"non-finite residuals \(NaN or Inf\) at layer 3 in episode 0 "
+                                         r"\(frame 0\)"):
+        capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, checkpoint_path=checkpoint))
+    assert not list(run_dir.rglob("*.safetensors"))  # nothing written for the poisoned rows

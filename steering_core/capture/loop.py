@@ -228,9 +228,11 @@ def _capture_batch(
     frame_of_row = np.concatenate([np.full(len(s), b, dtype=np.int64) for b, s in enumerate(selected)])
     language_index = np.concatenate(selected)
     positions = language_start + language_index
-    rows_b, rows_p = torch.from_numpy(frame_of_row), torch.from_numpy(positions)
-    for layer in settings.layers:
-        buffer.per_layer[layer].append(residuals[layer][rows_b.to(model.device), rows_p.to(model.device)].cpu())
+    rows_b, rows_p = torch.from_numpy(frame_of_row).to(model.device), torch.from_numpy(positions).to(model.device)
+    kept = {layer: residuals[layer][rows_b, rows_p] for layer in settings.layers}
+    _check_finite(kept, batch, frame_of_row)
+    for layer, rows in kept.items():
+        buffer.per_layer[layer].append(rows.cpu())
     columns = {
         "index": batch["index"].numpy()[frame_of_row],
         "episode_index": batch["episode_index"].numpy()[frame_of_row],
@@ -242,6 +244,21 @@ def _capture_batch(
         buffer.columns.setdefault(name, []).append(values.astype(np.int64))
     for task, prompt, chosen in zip(tasks, prompts, selected):
         _record_task(buffer.tasks, task, prompt, chosen, language_start)
+
+
+def _check_finite(kept: dict[int, torch.Tensor], batch: dict[str, Any], frame_of_row: np.ndarray) -> None:
+    """Raise naming the first layer, episode and frame whose kept rows hold NaN or Inf (one device sync per batch)."""
+    finite = torch.stack([torch.isfinite(rows).all() for rows in kept.values()])
+    if bool(finite.all()):
+        return
+    layer = list(kept)[int((~finite).nonzero()[0])]
+    row = int((~torch.isfinite(kept[layer]).all(dim=-1)).nonzero()[0])
+    frame = int(frame_of_row[row])
+    raise ValueError(
+        f"non-finite residuals (NaN or Inf) at layer {layer} in episode {int(batch['episode_index'][frame])} "
+        f"(frame {int(batch['frame_index'][frame])}); the checkpoint holds non-finite weights or the compute dtype "
+        "overflows: check the checkpoint, or capture with --dtype float32"
+    )
 
 
 def _record_task(
