@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file
+from safetensors.torch import load_file, save
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
@@ -90,3 +90,21 @@ def load_torch_file(path: str | os.PathLike) -> Any:
         reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
         raise ValueError(f"{path}: not a readable torch.save file ({reason[:200]}); "
                          "expected tensors saved with torch.save or safetensors") from None
+
+
+def save_safetensors(tensors: dict[str, torch.Tensor], path: str | os.PathLike, metadata: dict[str, str] | None = None) -> Path:
+    """Write a safetensors file whose header keys (and metadata keys) are sorted: equal inputs, equal bytes.
+
+    safetensors keeps metadata in a hash map, so its key order (and the file's bytes) changes between
+    processes; the header is re-serialised here, the data section is written as the library laid it out.
+    """
+    data = save(tensors, metadata=metadata)
+    length = int.from_bytes(data[:_LENGTH_BYTES], "little")
+    header = json.loads(data[_LENGTH_BYTES:_LENGTH_BYTES + length])
+    if "__metadata__" in header:
+        header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+    text = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)  # the format pads the header to 8 bytes with spaces
+    path = Path(path)
+    path.write_bytes(len(text).to_bytes(_LENGTH_BYTES, "little") + text + data[_LENGTH_BYTES + length:])
+    return path

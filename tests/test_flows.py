@@ -39,6 +39,7 @@ from safetensors.torch import load_file
 from typer.testing import CliRunner
 
 from cli import app
+from helpers_pipeline import run_cli_steps
 from flows.pipeline import PIPELINE_FLOW
 from flows.refresh import refresh
 from steering_core import fileio
@@ -282,50 +283,9 @@ def test_artifacts_are_published(first_run):
 def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
     """Run the seed's steps one by one through the CLI on the same inputs; every output must be equal."""
     config = load_run_config(demo_config)
-    out, repo = tmp_path / "cli", config.dataset.repo_id
-    dataset, run_dir = out / "libero_lerobot" / repo, out / "residuals" / "demo"
-    arch_file = tmp_path / "arch.json"
-    arch_file.write_text(config.model.arch.model_dump_json())
-    layers = ",".join(map(str, config.layers))
-    tasks = [text for pair in config.pairs for text in (pair.positive, pair.negative)]
-    steps = [
-        ["filter", "--input-dir", str(config.sources.folders[0]), "--output-dir", str(out / "filtered"),
-         *[arg for task in tasks for arg in ("--task", task)]],
-        ["convert", "--input-dir", str(out / "filtered"), "--repo-id", repo, "--output-dir", str(dataset),
-         "--image-size", str(config.dataset.image_size)],
-    ]
-    for pair in config.pairs:
-        manifest, concept_map = out / "manifests" / f"{pair.name}.json", out / "manifests" / f"{pair.name}_map.json"
-        steps += [
-            ["manifest", "--lerobot-root", str(dataset), "--task-a-text", pair.positive, "--task-b-text",
-             pair.negative, "--output", str(manifest), "--repo-id", repo],
-            ["concept-map", "--manifest-path", str(manifest), "--output-path", str(concept_map),
-             "--lerobot-root", str(dataset), "--repo-id", repo],
-        ]
-    steps.append(["capture", "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path",
-                  str(config.model.tokenizer), "--lerobot-root", str(dataset), "--repo-id", repo, "--output-dir",
-                  str(run_dir), "--layers", layers, "--batch-size", str(config.capture.batch_size), "--device", "cpu",
-                  "--num-workers", "0", "--arch-file", str(arch_file)])
-    steps += [["slice", "--run-dir", str(run_dir), "--concept-map-path", str(out / "manifests" / f"{p.name}_map.json"),
-               "--output-dir", str(out / "residuals" / f"{p.name}_slices"), "--layers", layers] for p in config.pairs]
-    runner = CliRunner()
-    for step in steps:
-        result = runner.invoke(app, step)
-        assert result.exit_code == 0, (step[0], result.output, result.exception)
-    for layer in config.layers:
-        pairs = {"pairs": [{
-            "name": p.name,
-            "positive_label": p.positive, "negative_label": p.negative,
-            "positive_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.positive}.pt"),
-            "negative_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.negative}.pt"),
-        } for p in config.pairs]}
-        pairs_file = out / f"layer{layer}_pairs.json"
-        pairs_file.write_text(json.dumps(pairs))
-        result = runner.invoke(app, [
-            "steer", "--pairs-config", str(pairs_file), "--output-root", str(out / "latent_steering"),
-            "--layer", str(layer), "--device", "cpu", "--batch-size", str(config.steering.batch_size),
-            "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k)])
-        assert result.exit_code == 0, (result.output, result.exception)
+    out = tmp_path / "cli"
+    run_dir = out / "residuals" / "demo"
+    run_cli_steps(config, out)
 
     for pair in config.pairs:
         ours, theirs = read_manifest(config.manifest_path(pair)), read_manifest(out / "manifests" / f"{pair.name}.json")
