@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,11 +20,25 @@ from typing import Any
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 
 
-def _default_file_mode() -> int:
-    """Return 0o666 less the process umask: the mode `open()` would give a new file."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+def _umask() -> int:
+    """Return the process umask without setting it: `os.umask` changes it process-wide, racing threads that create files."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():  # Linux 4.7+
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    with tempfile.TemporaryDirectory() as folder:  # elsewhere: the mode a new file gets is the answer
+        probe = os.path.join(folder, "probe")
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o777))
+        return 0o777 & ~os.stat(probe).st_mode & 0o777
+
+
+def _share(path: Path, umask: int) -> None:
+    """Give `path` the mode a plain `open()`/`mkdir()` would (0666/0777 less the umask; executables keep x)."""
+    mode = os.lstat(path).st_mode
+    if stat.S_ISLNK(mode):
+        return
+    full = 0o777 if stat.S_ISDIR(mode) or mode & 0o111 else 0o666
+    os.chmod(path, full & ~umask)
 
 
 @contextlib.contextmanager
@@ -34,9 +49,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
-    tmp_path.chmod(_default_file_mode())  # mkstemp makes 0600; outputs are meant to be shared
     try:
         yield tmp_path
+        _share(tmp_path, _umask())  # mkstemp (and some writers, like safetensors) make 0600; outputs are shared
         os.replace(tmp_path, path)
     finally:
         tmp_path.unlink(missing_ok=True)
@@ -58,6 +73,11 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
     tmp_path = staging / path.name
     try:
         yield tmp_path
+        umask = _umask()
+        for folder, _, names in os.walk(tmp_path):
+            _share(Path(folder), umask)
+            for name in names:
+                _share(Path(folder) / name, umask)
         if path.exists():
             old = staging / f"{path.name}.old"
             os.replace(path, old)

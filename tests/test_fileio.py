@@ -81,3 +81,33 @@ def test_hashes_match_hashlib(tmp_path):
     assert sha256_file(tmp_path / "blob") == hashlib.sha256(blob).hexdigest()
     assert sha256_json({"b": 1, "a": [1, 2]}) == sha256_json({"a": [1, 2], "b": 1})
     assert sha256_json({"a": 1}) == hashlib.sha256(json.dumps({"a": 1}).replace(" ", "").encode()).hexdigest()
+
+
+@pytest.fixture
+def group_umask():
+    """A group-sharing umask (002) for one test; the previous one is restored."""
+    previous = os.umask(0o002)
+    yield
+    os.umask(previous)
+
+
+def test_outputs_follow_the_umask_without_changing_it(tmp_path, group_umask, monkeypatch):
+    import torch
+    from safetensors.torch import save_file
+
+    def no_umask(mask):
+        raise AssertionError("os.umask called: it is process-wide and races with threads creating files")
+
+    monkeypatch.setattr(os, "umask", no_umask)
+    with atomic_path(tmp_path / "a.safetensors") as tmp:  # safetensors creates its file 0600 by itself
+        save_file({"x": torch.zeros(2)}, tmp)
+    with atomic_dir(tmp_path / "folder") as tmp:
+        (tmp / "inner").mkdir(parents=True)
+        save_file({"x": torch.zeros(2)}, tmp / "inner" / "b.safetensors")
+        (tmp / "c.json").write_text("{}")
+    monkeypatch.undo()
+    assert stat.S_IMODE((tmp_path / "a.safetensors").stat().st_mode) == 0o664
+    for path in (tmp_path / "folder" / "inner" / "b.safetensors", tmp_path / "folder" / "c.json"):
+        assert stat.S_IMODE(path.stat().st_mode) == 0o664, path
+    for path in (tmp_path / "folder", tmp_path / "folder" / "inner"):
+        assert stat.S_IMODE(path.stat().st_mode) == 0o775, path
