@@ -403,3 +403,31 @@ def test_non_finite_residuals_stop_capture_naming_episode_and_layer(inputs, tmp_
                                          r"\(frame 0\)"):
         capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, checkpoint_path=checkpoint))
     assert not list(run_dir.rglob("*.safetensors"))  # nothing written for the poisoned rows
+
+
+def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, full_run, tmp_path):
+    """Another process holds shard group 1 and finishes it; this capture waits, then skips it."""
+    import shutil
+    import subprocess
+    import sys
+
+    run_dir = tmp_path / "run"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from steering_core.capture.locks import group_locks\n"
+         f"with group_locks({str(run_dir)!r}, [1]):\n    print('locked', flush=True); sys.stdin.readline()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    outcome = {}
+    worker = threading.Thread(target=lambda: outcome.update(
+        result=capture(inputs[2], REPO_ID, run_dir, settings_for(inputs), episodes=[1, 2])))
+    worker.start()
+    worker.join(timeout=5)
+    assert worker.is_alive() and not list(run_dir.rglob("*.safetensors"))  # waiting, nothing computed
+    for layer in (1, 3):  # the other process finishes group 1
+        for suffix in ("safetensors", "json"):
+            relative = f"instructions/layer{layer:02d}/shard-00001.{suffix}"
+            (run_dir / relative).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(full_run / relative, run_dir / relative)
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=300)
+    assert outcome["result"].skipped == ("00001",) and outcome["result"].written == ("00002",)

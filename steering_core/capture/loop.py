@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader
 from steering_core.capture.identity import episode_records, run_spec
+from steering_core.capture.locks import group_locks
 from steering_core.capture.settings import (
     N_CAMERAS,
     STATE_KEY,
@@ -114,6 +115,20 @@ def capture(
     spec = run_spec(meta, repo_id, inputs, settings)
     check_run_spec(run_dir, spec)
 
+    with group_locks(run_dir, (int(key) for key in groups)):  # another capture of these groups: wait, then skip
+        todo, skipped, frames = _capture_missing(meta, repo_id, run_dir, spec, settings, inputs, groups, progress)
+    metadata = None
+    if episodes is None:
+        write_run_metadata(run_dir)
+        metadata = read_run_metadata(run_dir)
+    return CaptureResult(run_dir=run_dir, written=tuple(todo), skipped=skipped, frames=frames, metadata=metadata)
+
+
+def _capture_missing(
+    meta: DatasetMeta, repo_id: str, run_dir: Path, spec: RunSpec, settings: CaptureSettings, inputs: CaptureInputs,
+    groups: dict[str, tuple[int, ...]], progress: Progress | None,
+) -> tuple[dict[str, tuple[int, ...]], tuple[str, ...], int]:
+    """Capture the groups without a complete shard from these inputs; return (groups computed, skipped, frames)."""
     records = episode_records(meta, [e for members in groups.values() for e in members])
     group_inputs = {key: sha256_json({"run": spec.identity(), "episodes": [records[e] for e in members]})
                     for key, members in groups.items()}
@@ -130,11 +145,7 @@ def capture(
         _capture_groups(job, progress)
     else:
         write_run_spec(run_dir, spec)  # records this call's sources
-    metadata = None
-    if episodes is None:
-        write_run_metadata(run_dir)
-        metadata = read_run_metadata(run_dir)
-    return CaptureResult(run_dir=run_dir, written=tuple(todo), skipped=skipped, frames=frames, metadata=metadata)
+    return todo, skipped, frames
 
 
 def _episode_groups(
