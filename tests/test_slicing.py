@@ -212,9 +212,10 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
     data = bytearray(shard.read_bytes())
     data[-1] ^= 0xFF
     shard.write_bytes(bytes(data))
-    slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,)))
     with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
-        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,), verify_checksums=True))
+        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))  # by default
+    assert not (tmp_path / "checked").exists()
+    slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
 
 
 def test_slice_command(tmp_path, run_dir, concept_map):

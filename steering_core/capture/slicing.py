@@ -61,7 +61,7 @@ class SliceSettings(StrictModel):
     token_type: TokenType = "instructions"
     reduce: Reduce = "token"  # one row per captured token, or their mean per frame
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
-    verify_checksums: bool = False  # re-hash every shard against metadata.json before reading it
+    verify_checksums: bool = True  # re-hash every shard against metadata.json before reading it (a damaged one stops)
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
 
 
