@@ -16,6 +16,7 @@ The output root may be shared, so records are checked as plain JSON before Prefe
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import inspect
 import json
@@ -25,6 +26,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
 from prefect.cache_policies import CachePolicy
 from prefect.context import TaskRunContext
 from prefect.states import State
@@ -43,27 +45,42 @@ Fingerprint = Callable[[Any], Any]
 # Every task persists a small JSON summary: cache hits need it, and JSON is never unpickled.
 RESULTS: dict[str, Any] = {"persist_result": True, "result_serializer": "json"}
 # Retries only where a second attempt can succeed: file systems (network mounts, a full disk being
-# cleared) and GPUs (an out-of-memory from a neighbour, a lost device). Bad content fails at once.
+# cleared) and GPUs (memory held by a neighbour). Bad content, missing files and bugs fail at once.
 IO_RETRIES, IO_RETRY_DELAYS = 2, [2, 30]            # seconds
 GPU_RETRIES, GPU_RETRY_DELAYS = 2, [30, 120]        # seconds: give a crashed neighbour time to free memory
+TRANSIENT_ERRNOS = frozenset({errno.EIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.ETIMEDOUT, errno.ESTALE,
+                              errno.ENOSPC, errno.ECONNRESET, errno.ECONNABORTED, errno.ENETUNREACH,
+                              errno.EHOSTUNREACH})
 
 
 # ----------------------------------------------------------------------------- retries
 
-def retry_on(*errors: type[BaseException]) -> Callable[[Task, Any, State], bool]:
-    """Return a `retry_condition_fn` that retries only when the task raised one of `errors`."""
+def transient_io(err: BaseException) -> bool:
+    """Return True for an I/O error a later attempt may not meet: a network or disk hiccup, not a bad path."""
+    return isinstance(err, (ConnectionError, TimeoutError)) or (
+        isinstance(err, OSError) and err.errno in TRANSIENT_ERRNOS)
 
-    def transient(task: Task, task_run: Any, state: State) -> bool:
+
+def transient_gpu(err: BaseException) -> bool:
+    """Return True for a transient I/O error or CUDA out-of-memory at one frame per pass (another process's memory).
+
+    Capture halves its batch on out-of-memory by itself; only when one frame does not fit is waiting worth it.
+    """
+    return transient_io(err) or isinstance(err, torch.cuda.OutOfMemoryError)
+
+
+def retry_if(transient: Callable[[BaseException], bool]) -> Callable[[Task, Any, State], bool]:
+    """Return a `retry_condition_fn` that retries only when the task's exception satisfies `transient`."""
+
+    def condition(task: Task, task_run: Any, state: State) -> bool:
         try:
             state.result()
-        except errors:
-            return True
-        except Exception:  # noqa: BLE001  any other failure is final
-            return False
+        except Exception as err:  # noqa: BLE001  classified, not handled
+            return transient(err)
         return False
 
-    transient.__qualname__ = f"retry_on({', '.join(e.__name__ for e in errors)})"
-    return transient
+    condition.__qualname__ = f"retry_if({transient.__name__})"
+    return condition
 
 
 # ----------------------------------------------------------------------------- the cache policy

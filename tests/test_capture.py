@@ -431,3 +431,31 @@ def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, 
     holder.communicate("done\n", timeout=30)
     worker.join(timeout=300)
     assert outcome["result"].skipped == ("00001",) and outcome["result"].written == ("00002",)
+
+
+def test_cuda_out_of_memory_halves_the_batch_and_records_it(inputs, full_run, tmp_path, monkeypatch):
+    real = Pi05Prefix.residuals
+    sizes = []
+
+    def small_memory(self, images, masks, tokens, *args, **kwargs):
+        sizes.append(len(tokens))
+        if len(tokens) > 1:  # a GPU that fits one frame per pass
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
+        return real(self, images, masks, tokens, *args, **kwargs)
+
+    monkeypatch.setattr(Pi05Prefix, "residuals", small_memory)
+    result = capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2))
+    assert result.reduced_batch_size == 1
+    assert sizes[:3] == [2, 1, 1] and set(sizes[3:]) == {1}  # halved once, then kept for the rest of the run
+    ours, full = load_layer(tmp_path / "run", 3), load_layer(full_run, 3)
+    for name in full:
+        assert torch.allclose(ours[name].double(), full[name].double(), atol=1e-5), name
+
+
+def test_out_of_memory_at_one_frame_is_raised(inputs, tmp_path, monkeypatch):
+    def no_memory(self, *args, **kwargs):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
+
+    monkeypatch.setattr(Pi05Prefix, "residuals", no_memory)
+    with pytest.raises(torch.cuda.OutOfMemoryError):
+        capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2), episodes=[1])

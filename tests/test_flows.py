@@ -12,6 +12,7 @@ One module-wide sequence, each step a fixture building on the previous one:
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import threading
@@ -59,7 +60,7 @@ from steering_core.synthetic.libero import (
     SyntheticTask,
     write_libero_file,
 )
-from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_on, rooted
+from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_if, rooted, transient_gpu, transient_io
 
 pytestmark = pytest.mark.slow
 
@@ -142,10 +143,14 @@ def test_code_version_follows_project_imports_only():
 
 
 def test_retry_only_on_transient_errors():
-    transient = retry_on(OSError)
-    assert transient(double, None, Failed(data=OSError("disk")))
-    assert transient(double, None, Failed(data=FileNotFoundError("gone")))  # an OSError too
-    assert not transient(double, None, Failed(data=ValueError("bad content")))
+    io, gpu = retry_if(transient_io), retry_if(transient_gpu)
+    assert io(double, None, Failed(data=OSError(errno.EIO, "disk")))
+    assert io(double, None, Failed(data=TimeoutError("network mount")))
+    assert not io(double, None, Failed(data=FileNotFoundError(errno.ENOENT, "gone")))  # a bad path stays bad
+    assert not io(double, None, Failed(data=ValueError("bad content")))
+    assert gpu(double, None, Failed(data=torch.cuda.OutOfMemoryError("held by a neighbour")))
+    assert not gpu(double, None, Failed(data=RuntimeError("shape mismatch")))  # a bug: never retried
+    assert not io(double, None, Failed(data=torch.cuda.OutOfMemoryError("x")))
 
 
 # ----------------------------------------------------------------------------- reading runs back
@@ -199,7 +204,7 @@ def first_run(demo_dir):
             calls.append(args[2])
             first = len(calls) == 1
         if first:
-            raise OSError("injected: shared file system hiccup")
+            raise OSError(errno.EIO, "injected: shared file system hiccup")
         return real(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
