@@ -35,7 +35,6 @@ from prefect.client.schemas.filters import (
 )
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.states import Failed
-from prefect.testing.utilities import prefect_test_harness
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
@@ -66,9 +65,9 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module", autouse=True)
-def prefect_backend():
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
+def prefect_backend(prefect_server):
+    """Every test here talks to the session's Prefect test server (tests/conftest.py)."""
+    return prefect_server
 
 
 @pytest.fixture(scope="module")

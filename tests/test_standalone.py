@@ -19,3 +19,10 @@ def test_no_test_module_reaches_outside_the_repository():
     escaping = re.compile(r"parents\[[2-9]\]|\.\./shared|/work/shared")
     offenders = [p.name for p in TESTS.glob("*.py") if p.name != Path(__file__).name and escaping.search(p.read_text())]
     assert offenders == []
+
+
+def test_prefect_tests_share_one_server():
+    """Only conftest.py starts a Prefect test server; modules and their subprocesses use it."""
+    starting = [p.name for p in TESTS.glob("*.py") if p.name != Path(__file__).name and "prefect_test_harness(" in p.read_text()]
+    assert starting == ["conftest.py"]
+    assert "PREFECT_API_URL" in (TESTS / "test_bench.py").read_text()
