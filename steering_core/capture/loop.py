@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader
+from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
 from steering_core.capture.identity import episode_records, run_spec
 from steering_core.capture.settings import (
     N_CAMERAS,
@@ -161,15 +161,11 @@ def _episode_groups(
 
 def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
     """Run the model over the groups' frames and write each group's shards as soon as it is complete."""
-    from lerobot.datasets.lerobot_dataset import (
-        LeRobotDataset,  # slow import (torchvision, datasets)
-    )
-
     from steering_core.pi05.model import Pi05Prefix
 
     settings = job.settings
     episodes = sorted(e for members in job.groups.values() for e in members)
-    frames = LeRobotDataset(job.repo_id, root=job.meta.root, episodes=episodes, video_backend=settings.video_backend)
+    frames = frame_source(job.meta, job.repo_id, episodes, settings.video_backend)
     plan = batch_plan(frames, job.groups, settings.batch_size)
     keys = [*FRAME_KEYS, *([STATE_KEY] if job.inputs.norm_stats is not None else [])]
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork

@@ -1,7 +1,7 @@
 """Contrast manifests: the state axis two tasks move along in opposite directions, and each demo's window on it.
 
 Generalises the seed's `build_contrasting_pairs.py` (LeRobot backend) to any two tasks of a
-LeRobot v3.0 dataset. For every selected demo the terminal displacement (last - first
+LeRobot dataset (v3.0 or v2.x). For every selected demo the terminal displacement (last - first
 frame) of each state dimension is taken; per task its mean and population std. The axis
 is the one with the largest |mean_a - mean_b| whose two means have opposite signs and
 both reach `min_abs_delta`; its effect size is (mean_a - mean_b) / pooled std. Each demo
@@ -259,7 +259,7 @@ def _select_episodes(
     """Return the task's demos to use, by episode index: all or `explicit`, then the first `max_demos`."""
     available = meta.episodes_for_task(task)
     if not available:
-        raise ValueError(f"{meta.root}: task {task!r} has no episodes (it is listed in meta/tasks.parquet only)")
+        raise ValueError(f"{meta.root}: task {task!r} has no episodes (it is listed in {meta.tasks_file.name} only)")
     if explicit is not None:
         by_index = {e.episode_index: e for e in available}
         foreign = sorted({i for i in explicit if i not in by_index})
