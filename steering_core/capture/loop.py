@@ -99,17 +99,22 @@ def capture(
     settings: CaptureSettings,
     episodes: Sequence[int] | None = None,
     progress: Progress | None = None,
+    max_frames: int | None = None,
 ) -> CaptureResult:
     """Capture the residuals of every frame (or of `episodes`) into `run_dir`; return what was done.
 
     Complete, checksum-valid shards computed from the same inputs are skipped. With `episodes`, only
     those episode groups are captured (whole groups only) and `metadata.json` is left to
-    `write_run_metadata`, so several workers can split one run.
+    `write_run_metadata`, so several workers can split one run. `max_frames` (the seed's
+    `--max-samples-per-layer`) keeps the first episode groups until they hold that many frames: whole
+    groups, so the last one may go past it and a later run with a larger limit reuses every shard.
     """
     run_dir = Path(run_dir)
     meta = read_meta(dataset_root)
     inputs = check_inputs(meta, settings)
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
+    if max_frames is not None:
+        groups = _first_groups(groups, {e.episode_index: e.length for e in meta.episodes}, max_frames)
     spec = run_spec(meta, repo_id, inputs, settings)
     check_run_spec(run_dir, spec)
 
@@ -157,6 +162,24 @@ def _episode_groups(
     if problems:
         raise ValueError("\n".join(problems))
     return {key: members for key, members in groups.items() if wanted & set(members)}
+
+
+def _first_groups(
+    groups: dict[str, tuple[int, ...]], lengths: dict[int, int], max_frames: int
+) -> dict[str, tuple[int, ...]]:
+    """Return the leading groups, in order, up to the first one that brings their frames to `max_frames`."""
+    if max_frames < 1:
+        raise ValueError(f"max_frames is {max_frames}, expected a positive number of frames")
+    kept: dict[str, tuple[int, ...]] = {}
+    frames = 0
+    for key, members in groups.items():
+        if frames >= max_frames:
+            break
+        kept[key] = members
+        frames += sum(lengths[e] for e in members)
+    logger.info("max %d frames: capturing %d of %d episode group(s), %d frames", max_frames, len(kept), len(groups),
+                frames)
+    return kept
 
 
 def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
