@@ -29,8 +29,10 @@ from steering_core.data.convert import ConvertSettings, convert_libero
 from steering_core.data.dataset import dataset_fingerprint, read_episode_columns, read_index_columns, read_meta
 from steering_core.data.v2_frames import V2Frames
 from steering_core.data.v21_writer import V21Writer
+from steering_core.sae.steering import SteeringSettings, compute_steering
 from steering_core.synthetic.libero import SyntheticSettings, write_libero_file
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -240,22 +242,29 @@ def test_lerobot_converter_accepts_our_v21(datasets, tmp_path):
 # ----------------------------------------------------------------------------- end to end
 
 
-def pipeline(root: Path, dataset: Path, checkpoint: Path, tokenizer: Path) -> dict[str, Path]:
+def pipeline(root: Path, dataset: Path, checkpoint: Path, tokenizer: Path, sae: Path, num_workers: int) -> dict[str, Path]:
     manifest = write_manifest(build_manifest(dataset, OPEN, CLOSE, repo_id="local/libero"), root / "manifest.json")
     concept_map = write_concept_map(build_concept_map(manifest, dataset, repo_id="local/libero"), root / "map.json")
     settings = CaptureSettings(checkpoint_path=checkpoint, tokenizer_path=tokenizer, layers=(1,), arch=ARCH,
-                               batch_size=4, device="cpu", num_workers=0)
+                               batch_size=4, device="cpu", num_workers=num_workers)
     capture(dataset, "local/libero", root / "run", settings)
     slice_concepts(root / "run", concept_map, root / "slices", SliceSettings(layers=(1,)))
-    return {"manifest": manifest, "run": root / "run", "slices": root / "slices" / "layer01"}
+    pairs = {"pairs": [{"name": "open_vs_close", "positive_label": OPEN, "positive_path": f"slices/layer01/{OPEN}.pt",
+                        "negative_label": CLOSE, "negative_path": f"slices/layer01/{CLOSE}.pt"}]}
+    (root / "pairs.json").write_text(json.dumps(pairs))
+    steering = compute_steering(SteeringSettings(pairs_config=root / "pairs.json", output_root=root / "steer", layer=1,
+                                                 sae=str(sae), device="cpu", batch_size=16))
+    return {"manifest": manifest, "run": root / "run", "slices": root / "slices" / "layer01",
+            "vectors": steering / "open_vs_close"}
 
 
 def test_pipeline_on_v21_equals_v30(datasets, tmp_path):
     v30, v21 = datasets
     checkpoint = write_pi05_checkpoint(tmp_path / "checkpoint", ARCH)
     tokenizer = write_tokenizer(tmp_path / "tokenizer.model")
-    a = pipeline(tmp_path / "a", v30, checkpoint, tokenizer)
-    b = pipeline(tmp_path / "b", v21, checkpoint, tokenizer)
+    sae = write_sae_folder(tmp_path / "sae", d_in=ARCH.width, d_sae=32, hook_layer=1)
+    a = pipeline(tmp_path / "a", v30, checkpoint, tokenizer, sae, num_workers=0)
+    b = pipeline(tmp_path / "b", v21, checkpoint, tokenizer, sae, num_workers=1)  # V2Frames through a worker process
     manifest_a, manifest_b = (json.loads(r["manifest"].read_text()) for r in (a, b))
     segments = [{k: v for k, v in s.items() if k != "file"} for s in manifest_a["segments"]]
     assert segments == [{k: v for k, v in s.items() if k != "file"} for s in manifest_b["segments"]]
@@ -273,3 +282,31 @@ def test_pipeline_on_v21_equals_v30(datasets, tmp_path):
     for path in slices_a:
         ta, tb = load_file(path), load_file(b["slices"] / path.name)
         assert all(torch.equal(ta[k], tb[k]) for k in ta)
+    vectors = sorted(a["vectors"].glob("*.safetensors"))
+    assert {p.stem for p in vectors} >= {"latent_direction", "residual_direction"}
+    for path in vectors:
+        ta, tb = load_file(path), load_file(b["vectors"] / path.name)
+        assert all(torch.equal(ta[k], tb[k]) for k in ta)
+        assert ta[next(iter(ta))].abs().sum() > 0
+
+
+def test_video_frames_equal_lerobot_s(tmp_path):
+    """A v2.1 video dataset written by openpi's pinned lerobot (AV1, 64x96, 2 x 15 frames): our frames are lerobot's."""
+    from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
+
+    fixture = Path(__file__).parent / "fixtures" / "lerobot_v21_video"
+    ours = V2Frames(read_meta(fixture), [0, 1], video_backend="pyav")
+    items = [ours[i] for i in range(len(ours))]
+    camera = "observation.images.cam"
+    assert items[17][camera].shape == (3, 64, 96) and items[17][camera].dtype == torch.float32
+    assert [int(item["frame_index"]) for item in items[13:17]] == [13, 14, 0, 1]
+    shutil.copytree(fixture, tmp_path / "u" / "vid")
+    convert_dataset(repo_id="u/vid", root=str(tmp_path), push_to_hub=False)
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    theirs = LeRobotDataset("u/vid", root=tmp_path / "u" / "vid", video_backend="pyav")
+    assert len(theirs) == len(items)
+    for position, item in enumerate(items):
+        expected = theirs[position]
+        assert torch.equal(item[camera], expected[camera]), position
+        assert torch.equal(item["state"], expected["state"]) and item["task"] == expected["task"]
