@@ -310,3 +310,23 @@ def test_video_frames_equal_lerobot_s(tmp_path):
         expected = theirs[position]
         assert torch.equal(item[camera], expected[camera]), position
         assert torch.equal(item["state"], expected["state"]) and item["task"] == expected["task"]
+
+
+def test_appending_to_a_v21_dataset_equals_converting_at_once(tmp_path):
+    demos = tmp_path / "demos"
+    demos.mkdir()
+    settings = ConvertSettings(repo_id="local/libero", image_size=16, codebase_version="v2.1")
+    write_libero_file(demos, tiny_task(CLOSE, axis=2, direction=-1), num_demos=2, settings=DEMOS)
+    assert convert_libero([demos], tmp_path / "grown", settings).action == "created"
+    write_libero_file(demos, tiny_task(OPEN, axis=2, direction=1), num_demos=2, settings=DEMOS)  # sorts after CLOSE
+    assert convert_libero([demos], tmp_path / "grown", settings).action == "appended"
+    convert_libero([demos], tmp_path / "once", settings)
+    grown, once = tmp_path / "grown", tmp_path / "once"
+    files = sorted(p.relative_to(once) for p in once.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(grown) for p in grown.rglob("*") if p.is_file())
+    for name in files:
+        if name.suffix == ".parquet":
+            assert pq.read_table(grown / name).equals(pq.read_table(once / name)), name
+        else:
+            assert (grown / name).read_bytes() == (once / name).read_bytes(), name
+    assert json.loads((grown / "meta/info.json").read_text())["total_tasks"] == 2
