@@ -35,7 +35,7 @@ def read_jsonl(path: Path, required: tuple[str, ...]) -> list[dict[str, Any]]:
                 row = json.loads(line)
             except json.JSONDecodeError as err:
                 raise ValueError(f"{path}:{number}: not valid JSON ({err.msg})") from None
-            if not isinstance(row, dict) or (missing := [k for k in required if k not in row]):
+            if not isinstance(row, dict) or any(k not in row for k in required):
                 found = sorted(row) if isinstance(row, dict) else type(row).__name__
                 raise ValueError(f"{path}:{number}: expected an object with keys {list(required)}, found {found}")
             rows.append(row)

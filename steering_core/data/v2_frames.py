@@ -39,7 +39,6 @@ class V2Frames:
         self.video_keys = [k for k, v in features.items() if v.get("dtype") == "video"]
         self.episodes = [meta.episode(int(e)) for e in sorted(set(episodes))]
         numeric = [k for k, v in features.items() if v.get("dtype") not in _NON_NUMERIC]
-        self.columns: dict[str, np.ndarray] = {}
         parts: dict[str, list[np.ndarray]] = {k: [] for k in numeric}
         for episode in self.episodes:
             table = pq.read_table(meta.root / episode.data_file, columns=numeric)
@@ -50,7 +49,7 @@ class V2Frames:
                 )
             for key in numeric:
                 parts[key].append(_column_values(table.column(key).combine_chunks(), features[key]))
-        self.columns = {k: np.concatenate(v) if v else np.empty(0) for k, v in parts.items()}
+        self.columns: dict[str, np.ndarray] = {k: np.concatenate(v) if v else np.empty(0) for k, v in parts.items()}
         self.row = np.concatenate([np.arange(e.length) for e in self.episodes]) if self.episodes else np.empty(0, int)
         self.slot = np.repeat(np.arange(len(self.episodes)), [e.length for e in self.episodes])
         self._images: tuple[int, dict[str, list[bytes | None]]] | None = None  # one episode's PNGs, per worker
