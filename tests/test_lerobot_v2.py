@@ -330,3 +330,24 @@ def test_appending_to_a_v21_dataset_equals_converting_at_once(tmp_path):
         else:
             assert (grown / name).read_bytes() == (once / name).read_bytes(), name
     assert json.loads((grown / "meta/info.json").read_text())["total_tasks"] == 2
+
+
+def test_a_hugging_face_cache_layout_reads(datasets, tmp_path):
+    """The hub cache keeps files as blobs and a snapshot folder of symlinks to them; read in place, read-only."""
+    v30, v21 = datasets
+    blobs, snapshot = tmp_path / "blobs", tmp_path / "snapshots" / "0123abc"
+    blobs.mkdir()
+    for number, path in enumerate(sorted(p for p in v21.rglob("*") if p.is_file())):
+        blob = blobs / f"blob{number:03d}"
+        shutil.copyfile(path, blob)
+        link = snapshot / path.relative_to(v21)
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to(os.path.relpath(blob, link.parent))
+    make_read_only(tmp_path)
+    try:
+        assert dataset_fingerprint(snapshot) == dataset_fingerprint(v21)
+        np.testing.assert_array_equal(read_index_columns(snapshot).index, read_index_columns(v30).index)
+        frames = V2Frames(read_meta(snapshot), [5])
+        assert_items_equal([frames[i] for i in range(len(frames))], lerobot_items(v30)[-len(frames):])
+    finally:
+        make_writable(tmp_path)
