@@ -48,7 +48,8 @@ def test_seed_spellings_are_rewritten():
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
     """Two task files of 11 demos each: enough for demo_10 to sort before demo_2."""
-    folder = tmp_path_factory.mktemp("demos")
+    folder = tmp_path_factory.mktemp("lab") / "libero_90"  # the lab folder is the --search-root
+    folder.mkdir()
     write_libero_file(folder, tiny_task(OPEN, axis=2, direction=1), num_demos=11, settings=DEMOS)
     write_libero_file(folder, tiny_task(CLOSE, axis=2, direction=-1), num_demos=11, settings=DEMOS)
     return folder
