@@ -55,12 +55,12 @@ class SteeredPi05Policy:
                              + "\n  ".join(problems))
 
     def noise(self) -> torch.Tensor | None:
-        """Return the fixed initial noise (1, action_horizon, action_dim) float32, or None for fresh noise."""
+        """Return the fixed initial noise (action_horizon, action_dim) float32 of one unbatched observation, drawn
+        on the CPU from `noise_seed` (the same on every device), or None for fresh noise."""
         if self.noise_seed is None:
             return None
         generator = torch.Generator().manual_seed(self.noise_seed)
-        shape = (1, self.policy.action_horizon, self.policy.action_dim)
-        return torch.randn(shape, generator=generator, dtype=torch.float32).to(self.policy.device)
+        return torch.randn(self.policy.action_horizon, self.policy.action_dim, generator=generator)
 
     def steerings(self, prompt: str, steering: Sequence[AppliedSteering]) -> list:
         """Return the `Steering`s adding each vector times alpha at the instruction tokens of `prompt`."""

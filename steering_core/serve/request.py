@@ -13,12 +13,11 @@ from typing import Any
 
 import numpy as np
 
+from steering_core.pi05.observation import IMAGE_KEY, PROMPT_KEY, STATE_KEY, WRIST_IMAGE_KEY
 from steering_core.serve.catalog import DEFAULT_DIRECTION, SteeringVector, VectorCatalog
 
 STEERING_KEY = "steering"
-IMAGE_KEYS = ("observation/image", "observation/wrist_image")
-STATE_KEY = "observation/state"
-PROMPT_KEY = "prompt"
+IMAGE_KEYS = (IMAGE_KEY, WRIST_IMAGE_KEY)
 ENTRY_KEYS = ("pair", "layer", "alpha", "direction")
 
 
