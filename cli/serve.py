@@ -24,7 +24,8 @@ def serve_command(
         ..., "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
     ),
     tokenizer_path: Path | None = typer.Option(
-        None, "--tokenizer-path", help=f"PaliGemma SentencePiece model (default: {TOKENIZER_FILE} in the checkpoint folder)."
+        None, "--tokenizer-path",
+        help=f"PaliGemma SentencePiece model (default: {TOKENIZER_FILE} in the checkpoint folder).",
     ),
     vectors: Path = typer.Option(
         DEFAULT_VECTORS, "--vectors", help="The steer step's output root (layerNN/<pair>/ folders) to offer clients."
@@ -66,7 +67,8 @@ def serve_command(
     from steering_core.pi05.policy import Pi05Policy  # deferred: loads transformers
 
     with input_errors():
-        catalog = VectorCatalog() if vectors == DEFAULT_VECTORS and not vectors.exists() else VectorCatalog.scan(vectors)
+        # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
+        catalog = VectorCatalog.scan(vectors) if vectors != DEFAULT_VECTORS or vectors.exists() else VectorCatalog()
         default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer")
         arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
         policy = Pi05Policy.from_checkpoint(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import threading
@@ -19,7 +20,7 @@ import torch
 from steering_core.data.libero import read_demo
 from steering_core.sae.steering import SteeringSettings, compute_steering
 from steering_core.serve import codec
-from steering_core.serve.server import PolicyServer
+from steering_core.serve.server import PolicyServer, serving_in_thread
 from steering_core.synthetic.libero import (
     DRAWER_OPEN,
     MotionSpec,
@@ -117,29 +118,8 @@ def fake_actions(observation: dict, steering: list[tuple[torch.Tensor, float]]) 
 def running(server: PolicyServer) -> Iterator[PolicyServer]:
     """Run `server` on a free loopback port in a background thread; stop it and wait on exit."""
     server.host, server.port = "127.0.0.1", 0
-    ready, failure = threading.Event(), []
-
-    def main() -> None:
-        import asyncio
-        try:
-            asyncio.run(server.serve(ready=ready.set))
-        except BaseException as err:  # surfaced to the test below
-            failure.append(err)
-            ready.set()
-
-    thread = threading.Thread(target=main, daemon=True)
-    thread.start()
-    assert ready.wait(30), "server did not start"
-    if failure:
-        raise failure[0]
-    try:
+    with serving_in_thread(server):
         yield server
-    finally:
-        server.request_stop()
-        thread.join(30)
-        assert not thread.is_alive(), "server did not stop"
-    if failure:
-        raise failure[0]
 
 
 def run_openpi_client(tmp_path: Path, port: int, clients: list[list[dict]], timeout: float = 240) -> list[dict]:
@@ -155,3 +135,17 @@ def run_openpi_client(tmp_path: Path, port: int, clients: list[list[dict]], time
     )
     assert completed.returncode == 0, f"openpi client failed:\n{completed.stdout}\n{completed.stderr}"
     return codec.unpack(out.read_bytes())["clients"]
+
+
+def port_from_log(process: subprocess.Popen, timeout: float = 120) -> int:
+    """Return the port of a server process from its "serving on ws://host:port" log line (stderr, INFO), then
+    keep draining its stderr so the server never blocks on a full pipe."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = process.stderr.readline()
+        match = re.search(r"serving on ws://[\d.]+:(\d+)", line)
+        if match:
+            threading.Thread(target=process.stderr.read, daemon=True).start()
+            return int(match.group(1))
+        assert line or process.poll() is None, "server exited before listening"
+    raise AssertionError("server did not report its port")

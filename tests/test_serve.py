@@ -3,12 +3,10 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 
 from __future__ import annotations
 
-import asyncio
 import signal
 import subprocess
 import sys
 import textwrap
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -19,6 +17,7 @@ from helpers_serve import (
     FakePolicy,
     fake_actions,
     libero_observations,
+    port_from_log,
     run_openpi_client,
     running,
     write_vectors,
@@ -53,8 +52,9 @@ def test_catalog_offers_the_residual_space_directions_the_steer_step_wrote(catal
     from safetensors.torch import load_file
 
     keys = {(e["pair"], e["layer"], e["direction"]) for e in catalog.describe()}
-    assert keys == {(pair, 1, kind) for pair in ("open_vs_close", "on_vs_off") for kind in ("residual", "mean_difference")} \
-        | {(pair, 2, "residual") for pair in ("open_vs_close", "on_vs_off")}  # latent directions are not residuals
+    pairs = ("open_vs_close", "on_vs_off")
+    assert keys == {(pair, 1, kind) for pair in pairs for kind in ("residual", "mean_difference")} \
+        | {(pair, 2, "residual") for pair in pairs}  # latent directions are not residuals: not offered
     vector = catalog.get("open_vs_close", 1, "mean_difference")
     stored = load_file(vector.path)["residual_direction"]
     assert vector.vector.dtype == stored.dtype and bool((vector.vector == stored).all())
@@ -221,6 +221,7 @@ def test_stop_finishes_the_request_in_flight_then_closes_every_connection(catalo
                 assert closed.value.rcvd.code == 1001
 
 
+@pytest.mark.slow
 def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observations, tmp_path):
     vectors = next(iter(catalog)).path.parents[2]
     script = textwrap.dedent(f"""
@@ -234,7 +235,7 @@ def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observ
     """)
     process = subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True)
     try:
-        port = _port_from_log(process)
+        port = port_from_log(process)
         with connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
             ws.recv()
             ws.send(pack(observations[1]))
@@ -247,17 +248,3 @@ def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observ
     finally:
         process.kill()
 
-
-def _port_from_log(process: subprocess.Popen) -> int:
-    """Return the port from the server's "serving on ws://host:port" log line (logged at INFO)."""
-    import re
-
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = process.stderr.readline()
-        match = re.search(r"serving on ws://[\d.]+:(\d+)", line)
-        if match:
-            threading.Thread(target=process.stderr.read, daemon=True).start()  # keep the pipe drained
-            return int(match.group(1))
-        assert line or process.poll() is None, "server exited before listening"
-    raise AssertionError("server did not report its port")

@@ -3,19 +3,16 @@ bit, plain and steered at the instruction tokens; `latent-steering serve` starts
 
 from __future__ import annotations
 
-import re
 import signal
 import subprocess
 import sys
-import threading
-import time
 import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from helpers_serve import libero_observations, run_openpi_client, running, write_vectors
+from helpers_serve import libero_observations, port_from_log, run_openpi_client, running, write_vectors
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -51,7 +48,8 @@ def direct(policy: Pi05Policy, catalog: VectorCatalog, observation: dict, *entri
     """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha) at the instruction tokens."""
     noise = torch.randn(policy.action_horizon, policy.action_dim, generator=torch.Generator().manual_seed(SEED))
     mask = policy.instruction_mask(observation["prompt"])
-    steering = [Steering(layer, catalog.get(pair, layer).vector, alpha, token_mask=mask) for pair, layer, alpha in entries]
+    steering = [Steering(layer, catalog.get(pair, layer).vector, alpha, token_mask=mask)
+                for pair, layer, alpha in entries]
     return policy.infer(observation, steering=steering or None, noise=noise)["actions"]
 
 
@@ -85,6 +83,7 @@ def test_vectors_that_do_not_fit_the_model_are_refused(model, tmp_path):
     assert "layer 9, width 65" in str(err.value)
 
 
+@pytest.mark.slow
 def test_serve_command_serves_until_sigint(model, observations, tmp_path):
     checkpoint, tokenizer, vectors, policy = model
     arch_file = write_json(tmp_path / "arch.json", ARCH.model_dump())
@@ -93,7 +92,7 @@ def test_serve_command_serves_until_sigint(model, observations, tmp_path):
                "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0"]
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
-        port = _port_from_log(process)
+        port = port_from_log(process)
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10) as response:
             assert response.read() == b"OK\n"
         with connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
@@ -113,15 +112,3 @@ def test_serve_command_serves_until_sigint(model, observations, tmp_path):
     finally:
         process.kill()
 
-
-def _port_from_log(process: subprocess.Popen) -> int:
-    """Return the port from the server's "serving on ws://host:port" log line, then keep the pipe drained."""
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        line = process.stderr.readline()
-        match = re.search(r"serving on ws://[\d.]+:(\d+)", line)
-        if match:
-            threading.Thread(target=process.stderr.read, daemon=True).start()
-            return int(match.group(1))
-        assert line or process.poll() is None, "server exited before listening"
-    raise AssertionError("server did not report its port")

@@ -94,7 +94,7 @@ class VectorCatalog:
 
     def directions(self, pair: str, layer: int) -> list[str]:
         """Return the direction kinds stored for `pair` at `layer`."""
-        return sorted(d for p, l, d in self._vectors if (p, l) == (pair, layer))
+        return sorted(kind for p, at, kind in self._vectors if (p, at) == (pair, layer))
 
     def describe(self) -> list[dict]:
         """Return the metadata entries, sorted by pair, layer and direction."""
@@ -118,7 +118,8 @@ def _read_pair(pair_path: Path, layer: int) -> list[SteeringVector]:
         except (OSError, KeyError) as err:
             raise ValueError(f"{path}: cannot read tensor {entry.get('tensor')!r} ({err})") from None
         if vector.ndim != 1 or not vector.is_floating_point():
-            raise ValueError(f"{path}: direction is {vector.dtype} {tuple(vector.shape)}, expected a float (width,) vector")
+            raise ValueError(f"{path}: direction is {vector.dtype} {tuple(vector.shape)}, "
+                             "expected a float (width,) vector")
         vector = vector.float()
         vectors.append(SteeringVector(
             pair=summary.get("pair", pair_path.name), layer=layer, direction=direction, vector=vector,

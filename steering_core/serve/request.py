@@ -91,7 +91,8 @@ def parse_steering_option(text: str) -> dict:
 
 def _parse_entry(entry: Any, catalog: VectorCatalog, key: str) -> AppliedSteering:
     if not isinstance(entry, Mapping):
-        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction), got {_describe(entry)}")
+        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction), "
+                                f"got {_describe(entry)}")
     unknown = sorted(str(k) for k in entry if k not in ENTRY_KEYS)
     if unknown:
         raise RequestError(key, f"unknown key(s) {unknown}; expected {list(ENTRY_KEYS)}")

@@ -12,12 +12,14 @@ answered, then close every connection with 1001 (going away).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import http
 import logging
 import signal
+import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from websockets.asyncio.server import Server, ServerConnection, serve
@@ -178,3 +180,35 @@ class PolicyServer:
                 "max_message_bytes": self.max_message_bytes,
             },
         }
+
+
+@contextlib.contextmanager
+def serving_in_thread(server: PolicyServer, timeout: float = 60) -> Iterator[PolicyServer]:
+    """Run `server` in a background thread (its own event loop) while the block runs; stop and join it after.
+
+    For tests, benchmarks and notebooks; `server.port` is the bound port inside the block.
+    """
+    ready, failure = threading.Event(), []
+
+    def main() -> None:
+        try:
+            asyncio.run(server.serve(ready=ready.set))
+        except BaseException as err:  # re-raised in the caller's thread
+            failure.append(err)
+            ready.set()
+
+    thread = threading.Thread(target=main, name="policy-server", daemon=True)
+    thread.start()
+    if not ready.wait(timeout):
+        raise TimeoutError(f"policy server did not start listening within {timeout} s")
+    if failure:
+        raise failure[0]
+    try:
+        yield server
+    finally:
+        server.request_stop()
+        thread.join(timeout)
+    if failure:
+        raise failure[0]
+    if thread.is_alive():
+        raise TimeoutError(f"policy server did not stop within {timeout} s")
