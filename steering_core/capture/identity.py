@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 
 from steering_core.capture.settings import STATE_KEY, CaptureInputs, CaptureSettings
 from steering_core.capture.shards import RunSpec
+from steering_core.data import lerobot_v2
 from steering_core.data.dataset import (
     DatasetMeta,
     dataset_fingerprint,
@@ -104,8 +105,7 @@ def episode_frame_digests(meta: DatasetMeta, episodes: Sequence[int]) -> dict[in
     features = meta.info["features"]
     images = sorted(k for k, f in features.items() if f.get("dtype") == "image")
     videos = sorted(k for k, f in features.items() if f.get("dtype") == "video")
-    video_files = {key: {p.relative_to(meta.root).as_posix(): file_digest(p)
-                         for p in sorted((meta.root / "videos" / key).rglob("*")) if p.is_file()} for key in videos}
+    video_files = _video_files(meta, videos)
     by_file: dict[str, list[int]] = {}
     for index in dict.fromkeys(int(e) for e in episodes):
         by_file.setdefault(meta.episode(index).data_file, []).append(index)
@@ -118,7 +118,7 @@ def episode_frame_digests(meta: DatasetMeta, episodes: Sequence[int]) -> dict[in
         for index in members:
             rows = np.flatnonzero(episode_of == index)
             rows = rows[np.argsort(frame_of[rows], kind="stable")]
-            digest = hashlib.sha256(sha256_json(video_files).encode())
+            digest = hashlib.sha256(sha256_json(video_files(index)).encode())
             for key in images:
                 digest.update(key.encode())
                 for value in encoded[key].take(rows).to_pylist():
@@ -127,6 +127,18 @@ def episode_frame_digests(meta: DatasetMeta, episodes: Sequence[int]) -> dict[in
                     digest.update(data)
             digests[index] = digest.hexdigest()
     return digests
+
+
+def _video_files(meta: DatasetMeta, keys: Sequence[str]) -> Callable[[int], dict[str, str]]:
+    """Return episode -> {video file: sha256} of its cameras: its own files (v2.x), or every file of the camera (v3.0)."""
+    if not keys:
+        return lambda index: {}
+    if meta.info["codebase_version"] in lerobot_v2.V2_VERSIONS:  # one video per episode and camera
+        return lambda index: {rel: file_digest(meta.root / rel)
+                              for rel in (lerobot_v2.episode_video_file(meta.info, index, key) for key in keys)}
+    shared = {p.relative_to(meta.root).as_posix(): file_digest(p)
+              for key in keys for p in sorted((meta.root / "videos" / key).rglob("*")) if p.is_file()}
+    return lambda index: shared
 
 
 def _image_bytes(meta: DatasetMeta, value: Any) -> bytes:
