@@ -48,7 +48,7 @@ from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
-from steering_core.demo import DEMO_STEPS, format_summary, summarise
+from steering_core.demo import DEMO_STEPS, build_demo, format_summary, summarise
 from steering_core.fileio import read_json, sha256_file
 from steering_core.identity import code_modules, code_version, file_digest
 from steering_core.layout import layer_dir
@@ -392,3 +392,20 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     index = read_json(config.slices_dir(config.pair("open_vs_close")) / "layer01" / "index.json")
     assert counts["positive"] == index["concepts"][DRAWER_OPEN]["rows"]
     assert len(index["concepts"][DRAWER_OPEN]["segments"]) == 3
+
+
+def test_bad_input_fails_the_flow_in_its_preflight_task(tmp_path):
+    """Before any step: the flow fails with the preflight task's one-line problems, and nothing is written."""
+    from flows.pipeline import latent_steering
+    from steering_core.config import write_run_config
+
+    config = load_run_config(build_demo(tmp_path / "demo", demos_per_task=2))
+    text = tmp_path / "model.safetensors"
+    text.write_text("not tensors\n")
+    bad = config.model_copy(update={"model": config.model.model_copy(update={"checkpoint": text})})
+    state = latent_steering(str(write_run_config(bad, tmp_path / "bad.yaml")), return_state=True)
+    assert state.is_failed()
+    tasks = task_runs_under(state.state_details.flow_run_id)
+    assert list(tasks) == [PREFLIGHT] and tasks[PREFLIGHT].state.is_failed()
+    assert f"{text}: not a safetensors file" in tasks[PREFLIGHT].state.message
+    assert not config.output_root.exists()
