@@ -42,14 +42,15 @@ def cache(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module", autouse=True)
-def refresh_run(tmp_path_factory):
+def refresh_run(tmp_path_factory, prefect_server):
     """Start the refresh benchmark's quick run in its own process before the first test of this module.
 
     Its Prefect server start and two pipeline runs then overlap the other tests; the last test waits for it.
     """
     folder = tmp_path_factory.mktemp("bench-refresh")
     output = folder / "result.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])),
+           "PREFECT_API_URL": prefect_server}  # the session's server: no embedded server to start under load
     process = subprocess.Popen(
         [sys.executable, "-m", "bench.incremental_refresh", "--quick",
          f"--cache-dir={folder}", f"--json={output}"],
