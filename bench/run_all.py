@@ -21,7 +21,9 @@ from pathlib import Path
 
 from bench.common import REPO_ROOT, Result, cache_dir, machine, markdown_table, parser
 
-BENCHMARKS = ("capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh")
+BENCHMARKS = (
+    "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
+)
 OPT_IN = ("real_size",)  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"
 QUICK_REPORT = "BENCHMARKS.quick.md"  # under the cache folder

@@ -35,7 +35,7 @@ from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
-from steering_core.tensorfile import TensorLocation, tensor_locations
+from steering_core.tensor_files import TensorLocation, tensor_locations
 
 logger = logging.getLogger(__name__)
 
@@ -265,7 +265,7 @@ class ShardReader:
         return self._handle.get_slice(RESIDUALS)[start : self.rows if stop is None else stop]
 
     def residual_location(self) -> TensorLocation:
-        """Return where the residual matrix lies in the file, for `steering_core.tensorfile.read_rows_into`."""
+        """Return where the residual matrix lies in the file, for `steering_core.tensor_files.read_rows_into`."""
         return tensor_locations(self.path)[RESIDUALS]
 
 

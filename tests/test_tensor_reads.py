@@ -1,4 +1,4 @@
-"""Plain-read safetensors access: same values as safetensors' own loader, in any dtype, chunked, or refused."""
+"""Plain reads of safetensors files (steering_core.tensor_files): safetensors' values, any dtype, chunked, or refused."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from steering_core import tensorfile
-from steering_core.tensorfile import read_rows_into, read_tensor, safetensors_layout, tensor_locations
+from steering_core import tensor_files
+from steering_core.tensor_files import read_rows_into, read_tensor, safetensors_layout, tensor_locations
 
 
 @pytest.fixture
@@ -40,7 +40,7 @@ def test_whole_tensors_equal_safetensors_load_in_any_dtype(stored):
 
 
 def test_row_ranges_and_chunked_conversion(stored, monkeypatch):
-    monkeypatch.setattr(tensorfile, "CHUNK_BYTES", 3 * 5 * 2)  # three bf16 rows per staging chunk
+    monkeypatch.setattr(tensor_files, "CHUNK_BYTES", 3 * 5 * 2)  # three bf16 rows per staging chunk
     matrix = load_file(stored)["matrix"]
     location = tensor_locations(stored)["matrix"]
     with open(stored, "rb", buffering=0) as handle:
@@ -54,11 +54,14 @@ def test_row_ranges_and_chunked_conversion(stored, monkeypatch):
 
 
 def test_truncated_and_foreign_files_are_refused(stored, tmp_path):
+    location = max(tensor_locations(stored).values(), key=lambda where: where.offset)  # the last in the data
     data = stored.read_bytes()
     short = tmp_path / "short.safetensors"
     short.write_bytes(data[:-40])
-    location = max(tensor_locations(short).values(), key=lambda where: where.offset)  # the last in the data
-    with open(short, "rb", buffering=0) as handle, pytest.raises(ValueError, match="ends inside tensor"):
+    with pytest.raises(ValueError, match="short.safetensors: tensor .* outside the .* data section"):
+        tensor_locations(short)
+    stored.write_bytes(data[:-40])  # truncated after its header was read
+    with open(stored, "rb", buffering=0) as handle, pytest.raises(ValueError, match="ends inside tensor"):
         read_tensor(handle, location, torch.device("cpu"), torch.float32)
     other = tmp_path / "notes.safetensors"
     other.write_bytes(b"\xff" * 8 + b"hello")

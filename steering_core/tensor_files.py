@@ -1,0 +1,241 @@
+"""Reading tensor files safely: a file that is not what its name says gives one error naming it.
+
+safetensors trusts the first 8 bytes as the header length: a text file or a pickle renamed
+`.safetensors` then fails deep inside the reader (or asks for gigabytes of memory). `check_safetensors`
+checks the framing first; `load_torch_file` refuses pickled objects other than tensors with a message
+that does not advise `weights_only=False`. `tensor_locations` / `read_rows_into` read tensors with plain
+file reads straight into caller-owned memory, and `safetensors_layout` lets a file be written tensor by
+tensor.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pickle
+import re
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import torch
+from safetensors.torch import load_file, save
+
+from steering_core.devices import SAFETENSORS_DTYPES
+
+_LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
+_MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
+SAFETENSORS_EXPECTED = "expected a safetensors file (8-byte header length, JSON header, tensor data)"
+
+
+def _looks_like(head: bytes) -> str:
+    """Return what a file's first bytes suggest it is, for the error message."""
+    if head[:1] == b"\x80":
+        return "; it looks like a pickle (torch.save of an old format)"
+    if head[:2] == b"PK":
+        return "; it looks like a zip archive (a torch.save .pt file)"
+    if head and all(32 <= b < 127 or b in b"\t\r\n" for b in head):
+        return "; it looks like text"
+    return ""
+
+
+def check_safetensors(path: str | os.PathLike) -> dict[str, Any]:
+    """Return the JSON header of a safetensors file after checking its framing; ValueError naming the file otherwise.
+
+    Checked: the header length fits the file, the header is a JSON object, and every tensor's
+    `data_offsets` lie inside the data section.
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, "rb") as handle:
+        head = handle.read(_LENGTH_BYTES)
+        length = int.from_bytes(head, "little") if len(head) == _LENGTH_BYTES else -1
+        if not 2 <= length <= min(size - _LENGTH_BYTES, _MAX_HEADER):
+            found = f"{size} bytes" if length < 0 else f"a header length of {length} in a {size}-byte file"
+            raise ValueError(f"{path}: not a safetensors file ({found}{_looks_like(head)}); {SAFETENSORS_EXPECTED}")
+        raw = handle.read(length)
+    try:
+        header = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise ValueError(f"{path}: not a safetensors file (its header is not JSON); {SAFETENSORS_EXPECTED}") from None
+    data = size - _LENGTH_BYTES - length
+    if not isinstance(header, dict):
+        raise ValueError(f"{path}: not a safetensors file (its header is not a JSON object); {SAFETENSORS_EXPECTED}")
+    for name, entry in header.items():
+        if name == "__metadata__":
+            continue
+        offsets = entry.get("data_offsets") if isinstance(entry, dict) else None
+        if not (isinstance(offsets, list) and len(offsets) == 2 and all(isinstance(o, int) for o in offsets)
+                and 0 <= offsets[0] <= offsets[1] <= data):
+            raise ValueError(f"{path}: tensor {name!r} has data_offsets {offsets!r} outside the {data}-byte data "
+                             "section; the file is truncated or damaged, re-download or re-write it")
+    return header
+
+
+def load_safetensors(path: str | os.PathLike, device: str = "cpu") -> dict[str, torch.Tensor]:
+    """Return every tensor of a safetensors file, after `check_safetensors`."""
+    check_safetensors(path)
+    return load_file(path, device=device)
+
+
+def load_torch_file(path: str | os.PathLike) -> Any:
+    """Return the content of a `torch.save` file holding only tensors and plain containers (weights_only).
+
+    Pickled objects of other classes are refused with a ValueError naming the file: they would run code.
+    """
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        # torch's message goes on to advise weights_only=False, i.e. running the file's code: keep only its reason
+        found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", str(err))
+        reason = f"it names {found.group(1)}" if found else "not plain tensors"
+        raise ValueError(f"{path}: holds pickled objects other than tensors, which are never unpickled here "
+                         f"({reason}); expected tensors saved with torch.save or safetensors") from None
+    except Exception as err:  # noqa: BLE001  torch's reader fails in many ways on a file that is no torch.save
+        reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise ValueError(f"{path}: not a readable torch.save file ({reason[:200]}); "
+                         "expected tensors saved with torch.save or safetensors") from None
+
+
+def save_safetensors(tensors: dict[str, torch.Tensor], path: str | os.PathLike, metadata: dict[str, str] | None = None) -> Path:
+    """Write a safetensors file whose header keys (and metadata keys) are sorted: equal inputs, equal bytes.
+
+    safetensors keeps metadata in a hash map, so its key order (and the file's bytes) changes between
+    processes; the header is re-serialised here, the data section is written as the library laid it out.
+    """
+    data = save(tensors, metadata=metadata)
+    length = int.from_bytes(data[:_LENGTH_BYTES], "little")
+    header = json.loads(data[_LENGTH_BYTES:_LENGTH_BYTES + length])
+    if "__metadata__" in header:
+        header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+    text = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)  # the format pads the header to 8 bytes with spaces
+    path = Path(path)
+    path.write_bytes(len(text).to_bytes(_LENGTH_BYTES, "little") + text + data[_LENGTH_BYTES + length:])
+    return path
+
+
+# ----------------------------------------------------------------------------- plain reads and streamed writes
+# safetensors' `safe_open` reads through a memory map: the file pages it touches stay mapped, and count in
+# the process's resident memory, for as long as the file is open. Reading with plain file reads instead puts
+# each byte once into its destination (or into one bounded staging buffer when the dtype or device differs),
+# so loading a checkpoint costs the converted tensors and nothing more, and slicing a shard copies each
+# selected row once. The data are little-endian, as torch stores tensors on x86 and ARM.
+
+CHUNK_BYTES = 16 << 20  # the staging buffer of a converting read
+
+_DTYPES = SAFETENSORS_DTYPES | {"I64": torch.int64, "I32": torch.int32, "U8": torch.uint8, "BOOL": torch.bool}
+
+
+@dataclass(frozen=True)
+class TensorLocation:
+    """Where one tensor's bytes lie in a safetensors file."""
+
+    path: Path
+    name: str
+    dtype: torch.dtype  # as stored
+    shape: tuple[int, ...]
+    offset: int  # absolute byte offset of element 0
+
+    @property
+    def row_bytes(self) -> int:
+        """Return the bytes of one row (one element of a 1-D tensor)."""
+        return math.prod(self.shape[1:]) * self.dtype.itemsize
+
+
+def tensor_locations(path: str | os.PathLike) -> dict[str, TensorLocation]:
+    """Return name -> location of every tensor of a safetensors file, from its header (`check_safetensors`)."""
+    path = Path(path)
+    header = check_safetensors(path)
+    with open(path, "rb") as handle:
+        start = _LENGTH_BYTES + int.from_bytes(handle.read(_LENGTH_BYTES), "little")
+    locations = {}
+    for name, entry in header.items():
+        if name == "__metadata__":
+            continue
+        if entry.get("dtype") not in _DTYPES:
+            raise ValueError(f"{path}: tensor `{name}` has dtype {entry.get('dtype')!r}, expected one of {sorted(_DTYPES)}")
+        locations[name] = TensorLocation(path, name, _DTYPES[entry["dtype"]], tuple(entry["shape"]),
+                                         start + entry["data_offsets"][0])
+    return locations
+
+
+def staging_buffer() -> torch.Tensor:
+    """Return a staging buffer for converting reads: CHUNK_BYTES of CPU memory, reusable across calls."""
+    return torch.empty(CHUNK_BYTES, dtype=torch.uint8)
+
+
+def read_rows_into(
+    handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor, staging: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Read rows [start, start + len(out)) of a stored tensor into `out` and return it.
+
+    `handle` is the file opened with `open(path, "rb", buffering=0)`; `out` is contiguous, of the
+    tensor's row shape, on any device and in any dtype. Same dtype on CPU: the file is read straight
+    into `out`. Otherwise chunk by chunk through `staging` (a uint8 CPU buffer from `staging_buffer`,
+    one is allocated if None; pass the same one to many reads so that loading a checkpoint allocates
+    it once), converted and moved by `copy_`.
+    """
+    rows = out.shape[0] if out.ndim else 1
+    if out.device.type == "cpu" and out.dtype == location.dtype:
+        _read_exact(handle, location, start, out)
+        return out
+    staging = staging_buffer() if staging is None else staging
+    if staging.numel() < location.row_bytes:
+        staging = torch.empty(location.row_bytes, dtype=torch.uint8)
+    per_chunk = staging.numel() // max(location.row_bytes, 1)
+    flat = out.view(rows, *location.shape[1:])
+    for first in range(0, rows, per_chunk):
+        count = min(per_chunk, rows - first)
+        chunk = staging[: count * location.row_bytes].view(location.dtype).view(count, *location.shape[1:])
+        flat[first : first + count].copy_(_read_exact(handle, location, start + first, chunk))
+    return out
+
+
+def read_tensor(
+    handle: BinaryIO, location: TensorLocation, device: torch.device, dtype: torch.dtype,
+    staging: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Return the whole stored tensor as a new tensor on `device` in `dtype` (`read_rows_into`)."""
+    out = torch.empty(location.shape, dtype=dtype, device=device)
+    return read_rows_into(handle, location, 0, out, staging)
+
+
+def _read_exact(handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor) -> torch.Tensor:
+    """Fill CPU tensor `out` (stored dtype) with the bytes of rows start.. of the tensor; raise on a short file."""
+    if not out.numel():
+        return out
+    view = out.reshape(-1).view(torch.uint8).numpy()
+    handle.seek(location.offset + start * location.row_bytes)
+    if handle.readinto(view) != view.size:
+        raise ValueError(
+            f"{location.path}: the file ends inside tensor `{location.name}` (rows from {start}); it is truncated"
+        )
+    return out
+
+
+# safetensors lays tensors out by dtype, widest first in this order, then by name
+_LAYOUT_ORDER = ("U64", "I64", "F64", "U32", "I32", "F32", "BF16", "F16", "U16", "I16", "I8", "U8", "BOOL")
+_CODES = {dtype: code for code, dtype in _DTYPES.items()}
+
+
+def safetensors_layout(
+    entries: dict[str, tuple[torch.dtype, tuple[int, ...]]], metadata: dict[str, str] | None = None
+) -> tuple[bytes, dict[str, int]]:
+    """Return the header (size prefix included) of a safetensors file of these tensors, and name -> absolute
+    byte offset of each tensor's data: the bytes safetensors' `save_file` writes, so a file can be written
+    tensor by tensor (`os.pwrite`) without holding every tensor in memory."""
+    order = sorted(entries, key=lambda name: (_LAYOUT_ORDER.index(_CODES[entries[name][0]]), name))
+    header: dict[str, object] = {"__metadata__": dict(sorted(metadata.items()))} if metadata else {}
+    offsets, position = {}, 0
+    for name in order:
+        dtype, shape = entries[name]
+        size = math.prod(shape) * dtype.itemsize
+        header[name] = {"dtype": _CODES[dtype], "shape": list(shape), "data_offsets": [position, position + size]}
+        offsets[name], position = position, position + size
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)  # the data starts 8-byte aligned
+    start = 8 + len(text)
+    return struct.pack("<Q", len(text)) + text, {name: start + offset for name, offset in offsets.items()}
