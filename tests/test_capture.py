@@ -464,7 +464,7 @@ def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, 
 
 
 def test_cuda_out_of_memory_halves_the_batch_and_records_it(inputs, full_run, tmp_path, monkeypatch):
-    real = Pi05Prefix.residuals
+    real = Pi05Prefix.selected_residuals  # what capture calls
     sizes = []
 
     def small_memory(self, images, masks, tokens, *args, **kwargs):
@@ -473,7 +473,7 @@ def test_cuda_out_of_memory_halves_the_batch_and_records_it(inputs, full_run, tm
             raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
         return real(self, images, masks, tokens, *args, **kwargs)
 
-    monkeypatch.setattr(Pi05Prefix, "residuals", small_memory)
+    monkeypatch.setattr(Pi05Prefix, "selected_residuals", small_memory)
     result = capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2))
     assert result.reduced_batch_size == 1
     assert sizes[:3] == [2, 1, 1] and set(sizes[3:]) == {1}  # halved once, then kept for the rest of the run
@@ -486,6 +486,6 @@ def test_out_of_memory_at_one_frame_is_raised(inputs, tmp_path, monkeypatch):
     def no_memory(self, *args, **kwargs):
         raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
 
-    monkeypatch.setattr(Pi05Prefix, "residuals", no_memory)
+    monkeypatch.setattr(Pi05Prefix, "selected_residuals", no_memory)
     with pytest.raises(torch.cuda.OutOfMemoryError):
         capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2), episodes=[1])
