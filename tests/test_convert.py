@@ -218,13 +218,46 @@ def test_real_size_path_128_to_256(tmp_path):
     assert back["info"]["features"]["image"]["shape"] == [256, 256, 3]
 
 
+def file_bytes(root):
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
 def test_converting_twice_gives_equal_data(raw, tmp_path):
     folder, _ = raw
     first = convert_libero([folder], tmp_path / "one", SETTINGS)
-    second = convert_libero([folder], tmp_path / "two", SETTINGS)
+    second = convert_libero([folder], tmp_path / "elsewhere" / "two", SETTINGS)
     assert first.frames_total == second.frames_total
-    assert_same_content(read_back(tmp_path / "one"), read_back(tmp_path / "two"))
-    assert read_sources(tmp_path / "one") == read_sources(tmp_path / "two")
+    assert_same_content(read_back(tmp_path / "one"), read_back(tmp_path / "elsewhere" / "two"))
+    assert read_sources(tmp_path / "one") == read_sources(tmp_path / "elsewhere" / "two")
+    # the same bytes, every file, although lerobot staged each in another (randomly named) folder
+    ours, theirs = file_bytes(tmp_path / "one"), file_bytes(tmp_path / "elsewhere" / "two")
+    assert "data/chunk-000/file-000.parquet" in ours
+    assert ours.keys() == theirs.keys()
+    assert [name for name in ours if ours[name] != theirs[name]] == []
+
+
+def test_append_is_byte_deterministic(raw, tmp_path):
+    """Two identical append sequences write the same bytes; the appended data file gets a content fingerprint."""
+    folder, _ = raw
+    extra = tmp_path / "extra"
+    write_tiny(extra, "turn off the stove", "KITCHEN_SCENE8", num_demos=2)
+    for name in ("one", "two"):
+        convert_libero([folder], tmp_path / name, SETTINGS)
+        assert convert_libero([folder, extra], tmp_path / name, SETTINGS).action == "appended"
+    ours, theirs = file_bytes(tmp_path / "one"), file_bytes(tmp_path / "two")
+    assert ours.keys() == theirs.keys() and len([n for n in ours if n.startswith("data/")]) == 2
+    assert [name for name in ours if ours[name] != theirs[name]] == []
+
+
+def test_v21_conversion_is_byte_deterministic(raw, tmp_path):
+    folder, _ = raw
+    settings = SETTINGS.model_copy(update={"codebase_version": "v2.1"})
+    convert_libero([folder], tmp_path / "one", settings)
+    convert_libero([folder], tmp_path / "elsewhere" / "two", settings)
+    ours, theirs = file_bytes(tmp_path / "one"), file_bytes(tmp_path / "elsewhere" / "two")
+    assert "data/chunk-000/episode_000005.parquet" in ours
+    assert ours.keys() == theirs.keys()
+    assert [name for name in ours if ours[name] != theirs[name]] == []
 
 
 def test_incremental_append_equals_full_conversion(raw, tmp_path):
