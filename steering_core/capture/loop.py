@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
 from steering_core.capture.identity import episode_records, run_spec
-from steering_core.capture.locks import group_locks
+from steering_core.locks import group_locks
 from steering_core.capture.settings import (
     N_CAMERAS,
     STATE_KEY,
