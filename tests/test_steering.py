@@ -389,3 +389,35 @@ def test_cli_steer_refuses_pickled_or_mislabelled_sae_files_in_one_line(project,
         assert result.exit_code == 1, result.output
         assert f"{path}: {message}" in result.output
         assert "Traceback" not in result.output and "weights_only=False" not in result.output
+
+
+def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its_statistics(project, sae_folder):
+    import subprocess
+    import sys
+    import threading
+
+    sae = load_sae(sae_folder)
+    reference_root = project / "reference"
+    compute_steering(settings(project, None, output_root=reference_root), sae=sae)
+    encoded = []
+    original = sae.encode_with_norm
+    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    layer = project / "out" / "layer12"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
+         f"with output_lock({str(layer)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    outcome = {}
+    worker = threading.Thread(target=lambda: outcome.update(path=compute_steering(settings(project, None), sae=sae)))
+    worker.start()
+    worker.join(timeout=3)
+    assert worker.is_alive() and not layer.exists() and encoded == []  # waiting, nothing encoded
+    shutil.copytree(reference_root / "layer12", layer)  # the other process finishes the layer
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=60)
+    assert outcome["path"] == layer and encoded == []  # the SAE pass was done once, by the other process
+    for name in ("latent_direction.pt", "residual_direction.pt"):
+        ours = torch.load(layer / "on_stove" / name, weights_only=True)
+        theirs = torch.load(reference_root / "layer12" / "on_stove" / name, weights_only=True)
+        assert torch.equal(ours[name.removesuffix(".pt")], theirs[name.removesuffix(".pt")])
