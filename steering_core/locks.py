@@ -50,8 +50,9 @@ def group_locks(run_dir: str | os.PathLike, groups: Iterable[int], lock_file: st
 def output_lock(output: str | os.PathLike) -> Iterator[None]:
     """Hold an exclusive lock on the output file or folder `output` (its lock file sits beside it).
 
-    Folders made only to hold the lock file are removed again if the block wrote nothing beside it (a step
-    that failed on bad input leaves nothing behind).
+    If the block leaves no `output` (a step that failed, e.g. on bad input), the lock file and the folders
+    made for it are removed again, so nothing is left behind. (A process already waiting on that lock then
+    holds a removed file: a third one could run beside it; the outputs stay whole, written by renames.)
     """
     output = Path(output)
     folder = output.parent
@@ -61,7 +62,7 @@ def output_lock(output: str | os.PathLike) -> Iterator[None]:
         with group_locks(folder, [0], lock.name, what=f"output {output.name}, lock"):
             yield
     finally:
-        if made and [p.name for p in folder.iterdir()] == [lock.name]:
+        if not output.exists() and not output.is_symlink():
             lock.unlink(missing_ok=True)
             for path in made:
                 with contextlib.suppress(OSError):  # not empty: another step wrote there meanwhile

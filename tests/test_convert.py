@@ -153,7 +153,7 @@ def test_round_trip_through_lerobot(raw, tmp_path):
     assert info["features"]["image"]["dtype"] == "image" and info["features"]["image"]["shape"] == [16, 16, 3]
     assert info["features"]["state"]["shape"] == [8] and info["features"]["actions"]["shape"] == [7]
     assert not (out / "images").exists()  # lerobot's PNG staging folder is gone
-    assert sorted(p.name for p in out.parent.iterdir()) == ["ds"]  # nothing left beside the output
+    assert sorted(p.name for p in out.parent.iterdir()) == [".ds.lock", "ds"]  # only its lock beside the output
 
 
 def test_sources_record_traces_every_episode(raw, tmp_path):
@@ -283,7 +283,7 @@ def test_incremental_append_equals_full_conversion(raw, tmp_path):
     appended, full = read_back(out), read_back(tmp_path / "scratch")
     assert_same_content(appended, full)
     assert read_sources(out) == read_sources(tmp_path / "scratch")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "extra", "raw", "scratch"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".ds.lock", ".scratch.lock", "ds", "extra", "raw", "scratch"]
 
 
 def test_append_keeps_old_indices_when_a_new_file_sorts_first(raw, tmp_path):
@@ -366,7 +366,7 @@ def test_failure_midway_leaves_nothing_behind(raw, tmp_path, monkeypatch):
     monkeypatch.setattr(convert_module, "_add_episode", flaky)
     with pytest.raises(RuntimeError, match="disk full"):
         convert_libero([folder, tmp_path / "extra"], parent / "ds", SETTINGS)
-    assert [p.name for p in parent.iterdir()] == ["ds"]
+    assert sorted(p.name for p in parent.iterdir()) == [".ds.lock", "ds"]
     assert (parent / "ds" / "meta" / "libero_sources.json").read_bytes() == record_before
     assert read_back(parent / "ds")["episodes"][-1][0] == 5
 
@@ -411,3 +411,32 @@ def test_cli_convert(raw, tmp_path):
     assert "rebuilt" in result.output and read_sources(out).orientation == "as_stored"
     result = runner.invoke(app, [*args, "--orientation", "sideways"])
     assert result.exit_code == 2
+
+
+def test_a_second_conversion_waits_for_another_process_then_finds_the_dataset_done(raw, tmp_path, monkeypatch):
+    import shutil
+    import subprocess
+    import sys
+    import threading
+
+    folder, _ = raw
+    convert_libero([folder], tmp_path / "reference", SETTINGS)
+    creates = []
+    real_create = convert_module._create
+    monkeypatch.setattr(convert_module, "_create", lambda *a, **k: creates.append(1) or real_create(*a, **k))
+    out = tmp_path / "shared" / "ds"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
+         f"with output_lock({str(out)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    outcome = {}
+    worker = threading.Thread(target=lambda: outcome.update(result=convert_libero([folder], out, SETTINGS)))
+    worker.start()
+    worker.join(timeout=3)
+    assert worker.is_alive() and not out.exists() and creates == []  # waiting, nothing written
+    shutil.copytree(tmp_path / "reference", out)  # the other process finishes the dataset
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=120)
+    assert outcome["result"].action == "unchanged" and creates == []  # converted once, by the other process
+    assert_same_content(read_back(out), read_back(tmp_path / "reference"))

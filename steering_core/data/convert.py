@@ -50,6 +50,7 @@ from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.locks import output_lock
 from steering_core.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
@@ -235,22 +236,23 @@ def convert_libero(
         raise ValueError(f"no demos found in {', '.join(map(str, input_dirs))}")
     new_sources = [source for _, source in planned]
 
-    existing = _existing_record(output_dir)
-    reason = "rebuild requested" if rebuild else _rebuild_reason(output_dir, existing, settings, new_sources)
-    if existing is not None and reason is None:
-        planned = _existing_first(planned, existing)
-        new_sources = [source for _, source in planned]
-        done = len(existing.episodes)
-        if done == len(new_sources):
-            logger.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
-            return _result(output_dir, settings, "unchanged", new_sources, added=0)
-        logger.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
-        _append(output_dir, planned, done, settings, progress)
-        return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
-    if existing is not None:
-        logger.info("%s: rebuilding from scratch (%s)", output_dir, reason)
-    _create(output_dir, planned, settings, progress)
-    action: Action = "created" if existing is None else "rebuilt"
+    with output_lock(output_dir):  # a second conversion into it waits, then finds it unchanged
+        existing = _existing_record(output_dir)
+        reason = "rebuild requested" if rebuild else _rebuild_reason(output_dir, existing, settings, new_sources)
+        if existing is not None and reason is None:
+            planned = _existing_first(planned, existing)
+            new_sources = [source for _, source in planned]
+            done = len(existing.episodes)
+            if done == len(new_sources):
+                logger.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
+                return _result(output_dir, settings, "unchanged", new_sources, added=0)
+            logger.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
+            _append(output_dir, planned, done, settings, progress)
+            return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
+        if existing is not None:
+            logger.info("%s: rebuilding from scratch (%s)", output_dir, reason)
+        _create(output_dir, planned, settings, progress)
+        action: Action = "created" if existing is None else "rebuilt"
     return _result(output_dir, settings, action, new_sources, added=len(new_sources))
 
 
