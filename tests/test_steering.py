@@ -421,3 +421,38 @@ def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its
         ours = torch.load(layer / "on_stove" / name, weights_only=True)
         theirs = torch.load(reference_root / "layer12" / "on_stove" / name, weights_only=True)
         assert torch.equal(ours[name.removesuffix(".pt")], theirs[name.removesuffix(".pt")])
+
+
+def test_encoding_a_concept_another_process_is_encoding_waits_then_reuses_it(tmp_path, sae_folder):
+    """The flow's per-concept step: the statistics file is locked while computed, then reused."""
+    import subprocess
+    import sys
+    import threading
+
+    from steering_core.sae.concept_stats import concept_stats_path
+
+    path = tmp_path / "on.pt"
+    torch.save(concept_tensor(20, seed=3, shift=1.0), path)
+    source, sae = ConceptSource("on", path), load_sae(sae_folder)
+    reference = encode_concept(source, tmp_path / "reference", sae, batch_size=8)
+    encoded = []
+    original = sae.encode_with_norm
+    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    json_path = concept_stats_path(tmp_path / "layer12", source).with_suffix(".json")
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
+         f"with output_lock({str(json_path)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    outcome = {}
+    worker = threading.Thread(target=lambda: outcome.update(
+        path=encode_concept(source, tmp_path / "layer12", sae, batch_size=8)))
+    worker.start()
+    worker.join(timeout=3)
+    assert worker.is_alive() and not json_path.exists()  # waiting, nothing computed
+    for suffix in (".safetensors", ".json"):  # the other process finishes the statistics
+        shutil.copy(reference.with_suffix(suffix), json_path.with_suffix(suffix))
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=60)
+    assert outcome["path"] == json_path and encoded == []
+    assert torch.equal(read_concept_stats(json_path).latent_mean, read_concept_stats(reference).latent_mean)
