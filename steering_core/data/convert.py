@@ -26,8 +26,7 @@ import contextlib
 import logging
 import os
 import shutil
-import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import groupby
 from pathlib import Path
@@ -35,10 +34,10 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import Field
-from tqdm import tqdm
 
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
@@ -55,7 +54,6 @@ _RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for
 
 Orientation = Literal["rotate180", "as_stored"]
 Action = Literal["created", "appended", "rebuilt", "unchanged"]
-ProgressCallback = Callable[[int, int], None]
 
 
 class ConvertSettings(StrictModel):
@@ -279,7 +277,7 @@ def _input_files(input_dirs: Sequence[str | Path]) -> list[Path]:
         for path in folder.glob(DEMO_FILE_GLOB):
             if path.name in by_name and by_name[path.name].resolve() != path.resolve():
                 raise ValueError(
-                    f"{path.name}: found in both {by_name[path.name].parent} and {folder}; "
+                    f"{path.name}: found as {by_name[path.name]} and as {path}; "
                     "episode order follows file names, so names must be unique"
                 )
             by_name[path.name] = path
@@ -370,19 +368,14 @@ def _write_episodes(
     """Add every planned episode to `dataset` in order, then finalize it (mandatory in lerobot 0.4)."""
     from lerobot.utils.utils import SuppressProgressBars  # lerobot is imported by now
 
-    total = len(planned)
-    done = 0
     try:
-        # our bar counts episodes; the per-episode `datasets` bars lerobot triggers are noise
-        with SuppressProgressBars(), tqdm(total=total, desc="convert", unit="episode", file=sys.stderr) as bar:
+        # we count episodes; the per-episode `datasets` bars lerobot triggers are noise
+        with SuppressProgressBars(), Progress(len(planned), "convert", "episode", callback=progress, logger=logger) as bar:
             for path, group in groupby(planned, key=lambda item: item[0]):
                 sources = [source for _, source in group]
                 for demo, source in zip(iter_demos(path, [s.demo for s in sources]), sources, strict=True):
-                    _add_episode(dataset, demo, source, settings)
-                    done += 1
+                    _add_episode(dataset, demo, path, source, settings)
                     bar.update(1)
-                    if progress is not None:
-                        progress(done, total)
     except BaseException:
         with contextlib.suppress(Exception):
             dataset.finalize()  # close the parquet writers; the staging folder is discarded anyway
@@ -392,11 +385,13 @@ def _write_episodes(
     shutil.rmtree(Path(dataset.root) / "images", ignore_errors=True)
 
 
-def _add_episode(dataset: LeRobotDataset, demo: LiberoDemo, source: EpisodeSource, settings: ConvertSettings) -> None:
-    """Add one demo's frames and save it as the next episode."""
+def _add_episode(
+    dataset: LeRobotDataset, demo: LiberoDemo, path: Path, source: EpisodeSource, settings: ConvertSettings
+) -> None:
+    """Add one demo (of the file at `path`) as the next episode."""
     if dataset.meta.total_episodes != source.episode_index:
         raise ValueError(
-            f"{source.file}:{source.demo}: would become episode {dataset.meta.total_episodes}, "
+            f"{path}:{source.demo}: would become episode {dataset.meta.total_episodes}, "
             f"expected {source.episode_index}; re-run with --rebuild"
         )
     image = prepare_frames(demo.agentview_rgb, settings.orientation, settings.image_size)
