@@ -46,7 +46,7 @@ def configure_logging(verbose: bool) -> None:
     """Log to stderr with times and run names; library chatter only when `verbose`."""
     handler = logging.StreamHandler()
     handler.setFormatter(RunNameFormatter("%(asctime)s %(levelname)s %(name)s%(run)s: %(message)s", datefmt="%H:%M:%S"))
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler], force=True)
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler])  # no-op under pytest
     for name in NOISY_LOGGERS:
         logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.WARNING)
 

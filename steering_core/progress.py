@@ -1,7 +1,8 @@
 """Progress of a long step, for whoever watches: a bar on a terminal, log lines elsewhere, and a callback.
 
 On a terminal (stderr is a TTY) a tqdm bar; otherwise (worker logs, CI, files) an INFO line at a steady
-interval with what is done, the rate and the time left, and one line at the end. A `callback(done,
+interval with what is done, the rate and the time left, and one line at the end (for steps that
+lasted an interval or more; quick ones stay quiet). A `callback(done,
 total)` sees every update (the Prefect tasks turn it into a progress artifact).
 """
 
@@ -45,6 +46,7 @@ class Progress:
         stream = stream if stream is not None else sys.stderr
         self._bar = tqdm(total=total, desc=desc, unit=unit, file=stream) if _is_tty(stream) else None
         self._start = self._last_log = clock()
+        self._logged = False
 
     def __enter__(self) -> Progress:
         return self
@@ -58,7 +60,7 @@ class Progress:
         if self._bar is not None:
             self._bar.update(amount)
         elif self._clock() - self._last_log >= self._interval and self.done < self.total:
-            self._last_log = self._clock()
+            self._last_log, self._logged = self._clock(), True
             self._logger.info("%s", self.describe())
         if self._callback is not None:
             self._callback(self.done, self.total)
@@ -72,11 +74,11 @@ class Progress:
         return f"{self.desc}: {self.done}/{self.total} {self.unit}s{percent}, {rate:.3g} {self.unit}s/s{left}"
 
     def close(self, failed: bool = False) -> None:
-        """Close the bar, or log the final count and time (not after a failure: the error says enough)."""
+        """Close the bar, or log the final count and time of a long step (not after a failure: the error says enough)."""
+        elapsed = self._clock() - self._start
         if self._bar is not None:
             self._bar.close()
-        elif not failed:
-            elapsed = self._clock() - self._start
+        elif not failed and (self._logged or elapsed >= self._interval):
             self._logger.info("%s: %d %ss in %s", self.desc, self.done, self.unit, _duration(elapsed))
 
 

@@ -24,6 +24,7 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
 
 from bench import (  # noqa: E402
     capture_throughput,
+    cli_startup,
     concept_map_speed,
     run_all,
     sae_encoding,
@@ -95,6 +96,15 @@ def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
     result = run_quick(sae_encoding, cache, tmp_path)
     assert result.checks["latent_mean_max_abs_difference"] < 1e-5
     assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
+
+
+def test_cli_startup_measures_light_commands_without_heavy_libraries(cache, tmp_path):
+    result = run_quick(cli_startup, cache, tmp_path)
+    heavy = result.checks["heavy"]
+    assert heavy["latent-steering --help"] == heavy["latent-steering filter (2 of 4 files)"] == "none"
+    assert heavy["latent-steering steer --help (needs torch)"] == "torch"  # the check can tell them apart
+    assert [row["command"] for row in result.table][-1] == "python -c pass (baseline)"
+    assert (cache / "cli-startup-filtered" / "selection.json").is_file()  # filter did its work
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

@@ -42,12 +42,25 @@ def test_off_a_terminal_logs_done_rate_and_time_left_at_the_interval(caplog):
     assert calls == [(10 * i, 100) for i in range(1, 11)]
 
 
-def test_a_failed_step_logs_no_closing_line(caplog):
+def test_a_quick_step_logs_nothing(caplog):
+    clock = FakeClock()
     caplog.set_level(logging.INFO, logger="steering_core.progress")
-    with pytest.raises(RuntimeError), Progress(5, "slice", "shard", stream=io.StringIO()) as bar:
-        bar.update(1)
-        raise RuntimeError("boom")
+    with Progress(3, "encode", "row", interval=10.0, stream=io.StringIO(), clock=clock) as bar:
+        clock.now += 9.0
+        bar.update(3)
     assert caplog.records == []
+
+
+def test_a_failed_step_logs_no_closing_line(caplog):
+    clock = FakeClock()
+    caplog.set_level(logging.INFO, logger="steering_core.progress")
+    with pytest.raises(RuntimeError), Progress(5, "slice", "shard", interval=10.0, stream=io.StringIO(),
+                                               clock=clock) as bar:
+        clock.now += 11.0
+        bar.update(1)  # logged: the interval has passed
+        clock.now += 11.0
+        raise RuntimeError("boom")
+    assert [r.getMessage() for r in caplog.records] == ["slice: 1/5 shards (20%), 0.0909 shards/s, about 44 s left"]
 
 
 def test_on_a_terminal_a_bar_and_no_log_lines(caplog):
