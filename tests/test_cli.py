@@ -33,7 +33,7 @@ def modules_loaded_by(*argv: str) -> tuple[list[str], str]:
     return eval(last.removeprefix("LOADED "), {}), done.stdout  # noqa: S307  (our own printed list)
 
 
-@pytest.mark.parametrize("argv", [("--help",), ("filter", "--help"), ("manifest", "--help")])
+@pytest.mark.parametrize("argv", [("--help",), ("filter", "--help"), ("manifest", "--help"), ("concept-map", "--help")])
 def test_help_and_light_commands_load_no_heavy_library(argv):
     loaded, output = modules_loaded_by(*argv)
     assert loaded == [], f"{' '.join(argv)} imported {loaded}"
