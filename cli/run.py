@@ -51,9 +51,10 @@ def run_command(
 ) -> None:
     """Run the whole pipeline (the `latent-steering` flow) in this process.
 
-    Uses PREFECT_API_URL when set, else Prefect's embedded server, whose state (database, run history)
-    is kept in .prefect/ beside the run config unless PREFECT_HOME is set. Re-runs reuse every step
-    whose inputs did not change. Ends with a table of every task run: ran, cached or failed, time, output.
+    Uses PREFECT_API_URL when set, else Prefect's embedded server.
+    Prefect's state (database, run history) is kept in .prefect/ beside the run config, unless PREFECT_HOME is set.
+    Re-runs reuse every step whose inputs did not change.
+    Ends with a table of every task run: ran, cached or failed, time, output.
     """
     with input_errors():
         run_config = load_run_config(config)
@@ -74,8 +75,9 @@ def demo_command(
 ) -> None:
     """Generate demos for two concept pairs, a tiny pi0.5, tokenizer and SAEs; run the whole flow; summarise.
 
-    Runs offline on Prefect's embedded server, with Prefect's state in <output-dir>/.prefect (the run
-    config's folder, as for `run`) unless PREFECT_HOME is set. Running it again reuses every cached step.
+    Runs offline on Prefect's embedded server.
+    Prefect's state is kept in <output-dir>/.prefect (beside the run config, as for `run`), unless PREFECT_HOME is set.
+    Running it again reuses every cached step.
     """
     output_dir = output_dir.resolve()
     prefect_environment(home=output_dir / PREFECT_HOME_DIR)
