@@ -21,6 +21,7 @@ from prefect.client.schemas.filters import (
     FlowRunFilterParentFlowRunId,
 )
 from prefect.client.schemas.objects import TaskRun
+from prefect.client.schemas.sorting import TaskRunSort
 from prefect.results import ResultRecord
 from prefect.tasks import Task
 
@@ -30,6 +31,7 @@ from tasks import capture, data, report, sae
 from tasks.cache import OUTPUTS, cache_store
 
 SETTLE_SECONDS = 30.0
+PAGE = 200  # task runs per API call (the server's default limit)
 STATES = {"Completed": "ran", "Cached": "cached", "Failed": "failed", "Crashed": "failed", "TimedOut": "failed"}
 _LAYER = re.compile(r"\blayer (\d+)\b")
 _EPISODES = re.compile(r"\bepisodes \d+-\d+\b")
@@ -66,12 +68,22 @@ def task_runs_of(flow_run_id: UUID, settle_seconds: float = SETTLE_SECONDS) -> l
                 frontier = [r.id for r in client.read_flow_runs(flow_run_filter=FlowRunFilter(
                     parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=frontier)))]
             stand_ins = {r.parent_task_run_id for r in flow_runs}
-            runs = [t for t in client.read_task_runs(flow_run_filter=FlowRunFilter(
-                id=FlowRunFilterId(any_=[r.id for r in flow_runs]))) if t.id not in stand_ins]
+            runs = [t for t in _all_task_runs(client, [r.id for r in flow_runs]) if t.id not in stand_ins]
             if all(t.state is not None and t.state.is_final() for t in runs) or time.monotonic() > deadline:
                 break
             time.sleep(0.5)
     return sorted(runs, key=lambda t: (t.start_time or t.expected_start_time or t.created, t.name))
+
+
+def _all_task_runs(client: Any, flow_run_ids: list[UUID]) -> list[TaskRun]:
+    """Return every task run of the flow runs, page by page (the API returns at most a page per call)."""
+    runs: list[TaskRun] = []
+    while True:
+        page = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=flow_run_ids)),
+                                     sort=TaskRunSort.ID_DESC, offset=len(runs), limit=PAGE)
+        runs += page
+        if len(page) < PAGE:
+            return runs
 
 
 def task_rows(runs: list[TaskRun], config: RunConfig) -> list[TaskRow]:
