@@ -15,6 +15,7 @@ import typer
 from cli.app import app, input_errors
 from steering_core import demo
 from steering_core.config import RunConfig, load_run_config
+from steering_core.preflight import check_run
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.
 EPHEMERAL_STARTUP_SECONDS = "90"
@@ -58,7 +59,8 @@ def run_command(
     """
     with input_errors():
         run_config = load_run_config(config)
-    prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
+        prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
+        check_run(run_config, capture_device=run_config.orchestration.capture != "deployment")  # before Prefect starts
     run_pipeline(config, run_config)
     typer.echo("")
     typer.echo(demo.format_summary(demo.summarise(run_config), random_sae=False))
