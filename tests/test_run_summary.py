@@ -21,7 +21,7 @@ def test_pair_and_side_come_from_the_run_name():
 
 def test_every_pipeline_task_has_a_step_name():
     names = set(step_names().values())
-    assert {"filter-demos", "convert-dataset", "capture-residuals", "slice-concepts", "encode-concept",
+    assert {"preflight", "filter-demos", "convert-dataset", "capture-residuals", "slice-concepts", "encode-concept",
             "pair-directions", "write-report"} <= names
 
 
