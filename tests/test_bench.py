@@ -27,6 +27,7 @@ from bench import (  # noqa: E402
     concept_map_speed,
     run_all,
     sae_encoding,
+    serve_latency,
     slicing_memory,
 )
 from bench.common import Result  # noqa: E402
@@ -95,6 +96,15 @@ def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
     result = run_quick(sae_encoding, cache, tmp_path)
     assert result.checks["latent_mean_max_abs_difference"] < 1e-5
     assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
+
+
+def test_served_actions_equal_direct_infer(cache, tmp_path):
+    result = run_quick(serve_latency, cache, tmp_path)
+    assert result.checks["served_equals_direct"] is True
+    calls = [row["call"] for row in result.table]
+    assert calls[:4] == ["tiny model: direct", "tiny model: server", "tiny model: direct steered",
+                         "tiny model: server steered"]
+    assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:4])
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):
