@@ -259,3 +259,20 @@ def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observ
     finally:
         process.kill()
 
+
+
+def test_readme_serve_commands_use_existing_flags():
+    import re
+
+    import typer
+
+    from cli import app
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## Steered rollouts in LIBERO", 1)[1].split("\n## ", 1)[0]
+    command = re.search(r"latent-steering serve (.*?)\ncurl", section, re.S).group(1)
+    used = set(re.findall(r"(--[a-z][a-z-]+)", command))
+    serve = typer.main.get_command(app).commands["serve"]
+    known = {opt for param in serve.params for opt in param.opts}
+    assert used and used <= known, used - known
+    assert "--steer open_vs_close:12:4.0" in section and parse_steering_option("open_vs_close:12:4.0")
