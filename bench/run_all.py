@@ -19,7 +19,7 @@ from pathlib import Path
 from bench.common import REPO_ROOT, Result, cache_dir, machine, markdown_table, parser
 
 BENCHMARKS = (
-    "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh",
+    "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
     "serve_latency",
 )
 REPORT = REPO_ROOT / "BENCHMARKS.md"

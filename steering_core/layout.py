@@ -10,6 +10,7 @@ MANIFEST_FILE = "manifests/{pair}.json"
 CONCEPT_MAP_FILE = "manifests/{pair}_concept_map.json"
 RESIDUALS_RUN_DIR = "residuals/{run}"
 SLICES_DIR = "residuals/{pair}_slices"
+SLICE_INDEX_FILE = "index.json"                     # beside the slices of one layer: settings, concepts
 STEERING_ROOT = "latent_steering"
 # Files of one steering layer folder (STEERING_ROOT/layerNN/) and of its pair folders (layerNN/<pair>/).
 PAIR_SUMMARY_FILE = "directions.json"
