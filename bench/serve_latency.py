@@ -51,6 +51,7 @@ def build_policy(folder: Path, arch: Any, device: torch.device) -> tuple[Any, An
     from steering_core.synthetic.pi05 import write_pi05_checkpoint
     from steering_core.synthetic.tokenizer import write_tokenizer
 
+    folder = folder / f"width{arch.width}-depth{arch.depth}-image{arch.image_size}"  # one cache per size
     checkpoint, tokenizer = folder / "ckpt", folder / "tokenizer.model"
     if not checkpoint.is_dir():
         write_pi05_checkpoint(checkpoint, arch, seed=1)
@@ -146,9 +147,9 @@ def main(argv: list[str] | None = None) -> Result:
     rounds, mid_rounds = (QUICK["rounds"], QUICK["mid_rounds"]) if args.quick else (ROUNDS, MID_ROUNDS)
     from steering_core.synthetic.pi05 import tiny_arch
 
-    served, catalog = build_policy(folder / "tiny", tiny_arch(), device)
+    served, catalog = build_policy(folder, tiny_arch(), device)
     times, same = round_trips(served, catalog, device, rounds)
-    mid_served, mid_catalog = (served, catalog) if args.quick else build_policy(folder / "mid", mid_arch(), device)
+    mid_served, mid_catalog = (served, catalog) if args.quick else build_policy(folder, mid_arch(), device)
     mid = steering_cost(mid_served, mid_catalog, device, mid_rounds)
     mid_label = "tiny model (--quick)" if args.quick else "mid-size model"
 
@@ -165,7 +166,7 @@ def main(argv: list[str] | None = None) -> Result:
     ]
     return finish(Result(
         name="serve_latency",
-        title="Policy server latency",
+        title="7. Policy server latency (loopback round trip, steering)",
         command=command("serve_latency", args),
         measured=f"{med['server']:.2f} ms median round trip",
         baseline=f"{med['direct']:.2f} ms direct infer",
