@@ -4,10 +4,11 @@ The served policy is `SteeredPi05Policy` over a random tiny pi0.5 checkpoint (op
 with the same fixed noise for every call so each call does the same work. Each of 200 rounds times, in
 turn, a direct `infer` call and a round trip through `PolicyServer` on 127.0.0.1 (a client in this process
 doing what openpi-client does: msgpack-numpy pack, send, receive, unpack), plain and steered, so machine
-load falls on all of them alike. The overhead is the server's median minus the direct median. Steering's
-added latency is measured at a mid-size model (width 256, 6 layers) by direct calls of the served policy,
-plain against one steering vector at the instruction tokens (the tokenizer's instruction span included);
-its p99 is not a target, the small difference sinks in the noise of a loaded machine.
+load falls on all of them alike; direct calls run in a worker thread like the server's inference. The
+overhead is the server's median minus the direct median. Steering's added latency is measured at a
+mid-size model (width 256, 6 layers) by direct calls of the served policy, plain against one steering
+vector at the instruction tokens (the tokenizer's instruction span included); its p99 is not a target,
+the small difference sinks in the noise of a loaded machine.
 
     uv run python -m bench.serve_latency [--device cuda] [--quick]
 """
@@ -15,6 +16,7 @@ its p99 is not a target, the small difference sinks in the noise of a loaded mac
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -96,13 +98,12 @@ def round_trips(served: Any, catalog: Any, device: torch.device, rounds: int) ->
     times: dict[str, list[float]] = {key: [] for key in ("direct", "server", "direct steered", "server steered")}
     same = True
     with serving_in_thread(PolicyServer(served, catalog, host="127.0.0.1", port=0)) as server, \
-            connect(f"ws://127.0.0.1:{server.port}", compression=None, max_size=None) as ws:
+            connect(f"ws://127.0.0.1:{server.port}", compression=None, max_size=None) as ws, \
+            ThreadPoolExecutor(1) as worker:
         ws.recv()  # metadata
 
         def direct(steer: tuple) -> np.ndarray:
-            actions = served.infer(obs, steer)["actions"]
-            synchronize(device)
-            return actions
+            return worker.submit(call_policy, served, obs, steer, device).result()["actions"]
 
         def remote(steer: tuple) -> np.ndarray:
             ws.send(pack(obs | {"steering": entry} if steer else obs))
@@ -122,6 +123,13 @@ def round_trips(served: Any, catalog: Any, device: torch.device, rounds: int) ->
     return times, same
 
 
+def call_policy(served: Any, obs: dict, steer: tuple, device: torch.device) -> dict:
+    """Return served.infer(obs, steer), its device work finished."""
+    result = served.infer(obs, steer)
+    synchronize(device)
+    return result
+
+
 def steering_cost(served: Any, catalog: Any, device: torch.device, rounds: int) -> dict[str, list[float]]:
     """Return direct call times in ms of the served policy, plain and steered, alternated."""
     from steering_core.serve import parse_steering
@@ -132,8 +140,7 @@ def steering_cost(served: Any, catalog: Any, device: torch.device, rounds: int) 
     for index in range(rounds + 1):
         for name, steer in (("plain", ()), ("steered", steering)):
             start = time.perf_counter()
-            served.infer(obs, steer)
-            synchronize(device)
+            call_policy(served, obs, steer, device)
             if index:
                 times[name].append((time.perf_counter() - start) * 1000)
     return times
@@ -143,6 +150,8 @@ def main(argv: list[str] | None = None) -> Result:
     """Run the benchmark; return its result."""
     args = parser(__doc__.splitlines()[0]).parse_args(argv)
     device = resolve_device(args.device)
+    if device.type == "cpu":
+        torch.set_num_threads(1)  # two intra-op threads thrash on a shared 2-core machine; see the notes
     folder = cache_dir(args) / "serve"
     rounds, mid_rounds = (QUICK["rounds"], QUICK["mid_rounds"]) if args.quick else (ROUNDS, MID_ROUNDS)
     from steering_core.synthetic.pi05 import tiny_arch
@@ -182,7 +191,9 @@ def main(argv: list[str] | None = None) -> Result:
             f"(tiny model, direct: {med['direct steered'] / med['direct'] - 1:+.1%})",
             f"served actions equal direct infer bit for bit: {same}",
             "client and server share this process (and its GIL) on loopback, as a policy server and its "
-            "simulator client share a machine",
+            "simulator client share a machine; direct calls run in a worker thread, as the server's do",
+            "on CPU torch runs one intra-op thread: on this shared 2-core machine two threads made single calls "
+            "up to 10x slower and erratic",
         ],
         checks={"served_equals_direct": same, "overhead_ms": overhead, "steering_added": steering_added},
     ), args)
