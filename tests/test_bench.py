@@ -29,6 +29,7 @@ from bench import (  # noqa: E402
     policy_sweep,
     run_all,
     sae_encoding,
+    serve_latency,
     slicing_memory,
 )
 from bench.common import Result  # noqa: E402
@@ -128,6 +129,14 @@ def test_cli_startup_measures_light_commands_without_heavy_libraries(cache, tmp_
     assert heavy["latent-steering steer --help (needs torch)"] == "torch"  # the check can tell them apart
     assert [row["command"] for row in result.table][-1] == "python -c pass (baseline)"
     assert (cache / "cli-startup-filtered" / "selection.json").is_file()  # filter did its work
+
+def test_served_actions_equal_direct_infer(cache, tmp_path):
+    result = run_quick(serve_latency, cache, tmp_path)
+    assert result.checks["served_equals_direct"] is True
+    calls = [row["call"] for row in result.table]
+    assert calls[:4] == ["tiny model: direct", "tiny model: server", "tiny model: direct steered",
+                         "tiny model: server steered"]
+    assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:4])
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):
