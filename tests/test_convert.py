@@ -9,6 +9,7 @@ import os
 import numpy as np
 import pytest
 from helpers_libero import TINY, edit_file, sha256_bytes, write_tiny
+from helpers_locks import hold_output_lock, start_waiting
 from typer.testing import CliRunner
 
 from cli import app
@@ -218,8 +219,13 @@ def test_real_size_path_128_to_256(tmp_path):
     assert back["info"]["features"]["image"]["shape"] == [256, 256, 3]
 
 
-def file_bytes(root):
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+def assert_same_bytes(one, two, expected_file):
+    """Every file under `one` and `two` has the same bytes, and `expected_file` is among them."""
+    ours, theirs = ({str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+                    for root in (one, two))
+    assert expected_file in ours
+    assert ours.keys() == theirs.keys()
+    assert [name for name in ours if ours[name] != theirs[name]] == []
 
 
 def test_converting_twice_gives_equal_data(raw, tmp_path):
@@ -230,10 +236,7 @@ def test_converting_twice_gives_equal_data(raw, tmp_path):
     assert_same_content(read_back(tmp_path / "one"), read_back(tmp_path / "elsewhere" / "two"))
     assert read_sources(tmp_path / "one") == read_sources(tmp_path / "elsewhere" / "two")
     # the same bytes, every file, although lerobot staged each in another (randomly named) folder
-    ours, theirs = file_bytes(tmp_path / "one"), file_bytes(tmp_path / "elsewhere" / "two")
-    assert "data/chunk-000/file-000.parquet" in ours
-    assert ours.keys() == theirs.keys()
-    assert [name for name in ours if ours[name] != theirs[name]] == []
+    assert_same_bytes(tmp_path / "one", tmp_path / "elsewhere" / "two", "data/chunk-000/file-000.parquet")
 
 
 def test_append_is_byte_deterministic(raw, tmp_path):
@@ -244,9 +247,7 @@ def test_append_is_byte_deterministic(raw, tmp_path):
     for name in ("one", "two"):
         convert_libero([folder], tmp_path / name, SETTINGS)
         assert convert_libero([folder, extra], tmp_path / name, SETTINGS).action == "appended"
-    ours, theirs = file_bytes(tmp_path / "one"), file_bytes(tmp_path / "two")
-    assert ours.keys() == theirs.keys() and len([n for n in ours if n.startswith("data/")]) == 2
-    assert [name for name in ours if ours[name] != theirs[name]] == []
+    assert_same_bytes(tmp_path / "one", tmp_path / "two", "data/chunk-000/file-001.parquet")  # a file per call
 
 
 def test_v21_conversion_is_byte_deterministic(raw, tmp_path):
@@ -254,10 +255,7 @@ def test_v21_conversion_is_byte_deterministic(raw, tmp_path):
     settings = SETTINGS.model_copy(update={"codebase_version": "v2.1"})
     convert_libero([folder], tmp_path / "one", settings)
     convert_libero([folder], tmp_path / "elsewhere" / "two", settings)
-    ours, theirs = file_bytes(tmp_path / "one"), file_bytes(tmp_path / "elsewhere" / "two")
-    assert "data/chunk-000/episode_000005.parquet" in ours
-    assert ours.keys() == theirs.keys()
-    assert [name for name in ours if ours[name] != theirs[name]] == []
+    assert_same_bytes(tmp_path / "one", tmp_path / "elsewhere" / "two", "data/chunk-000/episode_000005.parquet")
 
 
 def test_incremental_append_equals_full_conversion(raw, tmp_path):
@@ -415,9 +413,6 @@ def test_cli_convert(raw, tmp_path):
 
 def test_a_second_conversion_waits_for_another_process_then_finds_the_dataset_done(raw, tmp_path, monkeypatch):
     import shutil
-    import subprocess
-    import sys
-    import threading
 
     folder, _ = raw
     convert_libero([folder], tmp_path / "reference", SETTINGS)
@@ -425,16 +420,9 @@ def test_a_second_conversion_waits_for_another_process_then_finds_the_dataset_do
     real_create = convert_module._create
     monkeypatch.setattr(convert_module, "_create", lambda *a, **k: creates.append(1) or real_create(*a, **k))
     out = tmp_path / "shared" / "ds"
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
-         f"with output_lock({str(out)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert holder.stdout.readline().strip() == "locked"
-    outcome = {}
-    worker = threading.Thread(target=lambda: outcome.update(result=convert_libero([folder], out, SETTINGS)))
-    worker.start()
-    worker.join(timeout=3)
-    assert worker.is_alive() and not out.exists() and creates == []  # waiting, nothing written
+    holder = hold_output_lock(out)
+    worker, outcome = start_waiting(lambda: convert_libero([folder], out, SETTINGS))
+    assert not out.exists() and creates == []  # waiting, nothing written
     shutil.copytree(tmp_path / "reference", out)  # the other process finishes the dataset
     holder.communicate("done\n", timeout=30)
     worker.join(timeout=120)

@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from helpers_locks import hold_output_lock, start_waiting
 from safetensors.torch import load_file
 
 from steering_core.capture import shards
@@ -271,23 +272,9 @@ def test_concept_map_of_another_dataset_is_refused(tmp_path, concept_map):
     slice_concepts(run_dir, tmp_path / "same.json", out, SliceSettings(layers=(2,)))
 
 
-def hold_lock_in_another_process(output):
-    """Start a process that holds `output_lock(output)` until it reads a line; return it once it holds it."""
-    import subprocess
-    import sys
-
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
-         f"with output_lock({str(output)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert holder.stdout.readline().strip() == "locked"
-    return holder
-
-
 def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it(
         tmp_path, run_dir, concept_map, monkeypatch):
     import shutil
-    import threading
 
     from steering_core.capture import slicing
 
@@ -297,17 +284,13 @@ def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it
     reads = []
     real_read = slicing._read_selected
     monkeypatch.setattr(slicing, "_read_selected", lambda *a, **k: reads.append(1) or real_read(*a, **k))
-    holder = hold_lock_in_another_process(out / "layer02")
-    outcome = {}
-    worker = threading.Thread(target=lambda: outcome.update(
-        written=slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,)))))
-    worker.start()
-    worker.join(timeout=3)
-    assert worker.is_alive() and not (out / "layer02").exists()  # waiting, nothing computed
+    holder = hold_output_lock(out / "layer02")
+    worker, outcome = start_waiting(lambda: slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,))))
+    assert not (out / "layer02").exists()  # waiting, nothing computed
     shutil.copytree(reference / "layer02", out / "layer02")  # the other process finishes the layer
     holder.communicate("done\n", timeout=30)
     worker.join(timeout=60)
-    assert outcome["written"] == {2: out / "layer02" / "index.json"} and reads == []  # kept, not recomputed
+    assert outcome["result"] == {2: out / "layer02" / "index.json"} and reads == []  # kept, not recomputed
     assert sorted(p.name for p in (out / "layer02").iterdir()) == sorted(p.name for p in (reference / "layer02").iterdir())
 
     # a finished layer of other inputs is not kept: another reduction recomputes, under the same lock

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers_locks import hold_output_lock, start_waiting
 from reference_formats import FORMATS
 from reference_sae import ReferenceSae
 from safetensors import safe_open
@@ -392,10 +393,6 @@ def test_cli_steer_refuses_pickled_or_mislabelled_sae_files_in_one_line(project,
 
 
 def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its_statistics(project, sae_folder):
-    import subprocess
-    import sys
-    import threading
-
     sae = load_sae(sae_folder)
     reference_root = project / "reference"
     compute_steering(settings(project, None, output_root=reference_root), sae=sae)
@@ -403,20 +400,13 @@ def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its
     original = sae.encode_with_norm
     sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
     layer = project / "out" / "layer12"
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
-         f"with output_lock({str(layer)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert holder.stdout.readline().strip() == "locked"
-    outcome = {}
-    worker = threading.Thread(target=lambda: outcome.update(path=compute_steering(settings(project, None), sae=sae)))
-    worker.start()
-    worker.join(timeout=3)
-    assert worker.is_alive() and not layer.exists() and encoded == []  # waiting, nothing encoded
+    holder = hold_output_lock(layer)
+    worker, outcome = start_waiting(lambda: compute_steering(settings(project, None), sae=sae))
+    assert not layer.exists() and encoded == []  # waiting, nothing encoded
     shutil.copytree(reference_root / "layer12", layer)  # the other process finishes the layer
     holder.communicate("done\n", timeout=30)
     worker.join(timeout=60)
-    assert outcome["path"] == layer and encoded == []  # the SAE pass was done once, by the other process
+    assert outcome["result"] == layer and encoded == []  # the SAE pass was done once, by the other process
     for name in ("latent_direction.pt", "residual_direction.pt"):
         ours = torch.load(layer / "on_stove" / name, weights_only=True)
         theirs = torch.load(reference_root / "layer12" / "on_stove" / name, weights_only=True)
@@ -425,10 +415,6 @@ def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its
 
 def test_encoding_a_concept_another_process_is_encoding_waits_then_reuses_it(tmp_path, sae_folder):
     """The flow's per-concept step: the statistics file is locked while computed, then reused."""
-    import subprocess
-    import sys
-    import threading
-
     from steering_core.sae.concept_stats import concept_stats_path
 
     path = tmp_path / "on.pt"
@@ -439,20 +425,12 @@ def test_encoding_a_concept_another_process_is_encoding_waits_then_reuses_it(tmp
     original = sae.encode_with_norm
     sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
     json_path = concept_stats_path(tmp_path / "layer12", source).with_suffix(".json")
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
-         f"with output_lock({str(json_path)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert holder.stdout.readline().strip() == "locked"
-    outcome = {}
-    worker = threading.Thread(target=lambda: outcome.update(
-        path=encode_concept(source, tmp_path / "layer12", sae, batch_size=8)))
-    worker.start()
-    worker.join(timeout=3)
-    assert worker.is_alive() and not json_path.exists()  # waiting, nothing computed
+    holder = hold_output_lock(json_path)
+    worker, outcome = start_waiting(lambda: encode_concept(source, tmp_path / "layer12", sae, batch_size=8))
+    assert not json_path.exists()  # waiting, nothing computed
     for suffix in (".safetensors", ".json"):  # the other process finishes the statistics
         shutil.copy(reference.with_suffix(suffix), json_path.with_suffix(suffix))
     holder.communicate("done\n", timeout=30)
     worker.join(timeout=60)
-    assert outcome["path"] == json_path and encoded == []
+    assert outcome["result"] == json_path and encoded == []
     assert torch.equal(read_concept_stats(json_path).latent_mean, read_concept_stats(reference).latent_mean)
