@@ -23,6 +23,8 @@ from bench.common import REPO_ROOT, Result, cache_dir, machine, markdown_table, 
 
 BENCHMARKS = (
     "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
+    "cli_startup",
+    "serve_latency",
 )
 OPT_IN = ("real_size",)  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"

@@ -27,10 +27,10 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from safetensors.torch import save_file
-from tqdm import tqdm
 
 from steering_core.capture.shards import (
     ROW_COLUMNS,
+    STEP,
     RunMetadata,
     ShardRecord,
     TokenType,
@@ -39,8 +39,10 @@ from steering_core.capture.shards import (
 )
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
-from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
+from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
+from steering_core.locks import output_lock
+from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel
 from steering_core.tensor_files import TensorLocation, read_rows_into
 
@@ -113,7 +115,7 @@ def slice_concepts(
     concept_map_path: str | os.PathLike,
     output_dir: str | os.PathLike,
     settings: SliceSettings = SliceSettings(),
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> dict[int, Path]:
     """Write per-concept residual tensors for every requested layer; return layer -> index.json path.
 
@@ -126,20 +128,11 @@ def slice_concepts(
     _check_request(run_dir, metadata, concept_map, concept_map_path, settings)
     layers = list(settings.layers)
     total = sum(len(metadata.layer_shards(layer)) for layer in layers)
-    done = 0
     written: dict[int, Path] = {}
-    with tqdm(total=total, desc="slice", unit="shard", disable=None) as bar:
-
-        def advance() -> None:
-            nonlocal done
-            done += 1
-            bar.update(1)
-            if progress is not None:
-                progress(done, total)
-
+    with Progress(total, f"slice {Path(output_dir).name}", "shard", callback=progress, logger=logger) as bar:
         for layer in layers:
             written[layer] = _slice_layer(
-                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, advance
+                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, bar.update
             )
     return written
 
@@ -210,13 +203,62 @@ def _slice_layer(
     settings: SliceSettings,
     advance: Callable[[], None],
 ) -> Path:
-    """Select, read and write the slices of one layer; return its index.json path."""
+    """Select, read and write the slices of one layer; return its index.json path.
+
+    The layer folder is locked while it is written; a complete folder from the same run, concept map and
+    settings (its index.json says so and its files exist) is kept, so a second run waits, then skips it.
+    """
     records = metadata.layer_shards(layer)
-    selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
-    outputs = _read_selected(records, selections, locations, metadata.run.width, settings, advance)
+    target = output_dir / layer_dir(layer)
+    header = {
+        "format_version": SLICE_FORMAT_VERSION,
+        "layer": layer,
+        "width": metadata.run.width,
+        "settings": settings.model_dump(mode="json", exclude={"layers", "device"}),
+        "run_dir": str(run_dir.resolve()),
+        "run_fingerprint": metadata.run_fingerprint,
+        "concept_map": str(map_path.resolve()),
+        "concept_map_sha256": sha256_file(map_path),
+        "token_selection": {"token_type": metadata.run.token_type, "tasks": metadata.tasks},
+    }
+    with output_lock(target):
+        if _complete_layer(target, header):
+            logger.info("layer %d: %s already holds these slices; kept", layer, target)
+            for _ in records:
+                advance()
+            return target / SLICE_INDEX_FILE
+        selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
+        outputs = _read_selected(records, selections, locations, metadata.run.width, settings, advance)
+        _write_layer(target, header, outputs, concept_map)
+    logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), target)
+    return target / SLICE_INDEX_FILE
+
+
+def _complete_layer(target: Path, header: dict[str, Any]) -> bool:
+    """Return True if `target` holds the slices `header` describes, every listed file present."""
+    index_path = target / SLICE_INDEX_FILE
+    if not index_path.is_file():
+        return False
+    try:
+        index = read_json(index_path)
+    except ValueError:
+        return False
+    if not isinstance(index, dict) or {k: index.get(k) for k in header} != header:
+        return False
+    entries = index.get("concepts")
+    return isinstance(entries, dict) and all(
+        isinstance(entry, dict) and (target / str(entry.get("pt"))).is_file()
+        and (target / str(entry.get("safetensors"))).is_file() for entry in entries.values())
+
+
+def _write_layer(
+    target: Path, header: dict[str, Any], outputs: dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]],
+    concept_map: ConceptMap,
+) -> None:
+    """Write one layer's slice files and index.json into a staging folder, then swap it onto `target`."""
     names = slice_file_names(list(concept_map.concepts))
     index_entries: dict[str, Any] = {}
-    with atomic_dir(output_dir / layer_dir(layer), overwrite=True) as staging:
+    with atomic_dir(target, overwrite=True) as staging:
         staging.mkdir(parents=True)
         for concept, (residuals, columns) in outputs.items():
             stem = names[concept]
@@ -229,23 +271,7 @@ def _slice_layer(
                 "frames": int(np.unique(columns["index"].numpy()).size),
                 "segments": [segment.model_dump(mode="json") for segment in concept_map.concepts[concept]],
             }
-        write_json(
-            staging / SLICE_INDEX_FILE,
-            {
-                "format_version": SLICE_FORMAT_VERSION,
-                "layer": layer,
-                "width": metadata.run.width,
-                "settings": settings.model_dump(mode="json", exclude={"layers", "device"}),
-                "run_dir": str(run_dir.resolve()),
-                "run_fingerprint": metadata.run_fingerprint,
-                "concept_map": str(map_path.resolve()),
-                "concept_map_sha256": sha256_file(map_path),
-                "token_selection": {"token_type": metadata.run.token_type, "tasks": metadata.tasks},
-                "concepts": index_entries,
-            },
-        )
-    logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), output_dir / layer_dir(layer))
-    return output_dir / layer_dir(layer) / SLICE_INDEX_FILE
+        write_json(staging / SLICE_INDEX_FILE, {**header, "concepts": index_entries})
 
 
 def _select_rows(
@@ -293,7 +319,7 @@ def _select_rows(
         for concept, hit in per_concept.items():
             rows = np.flatnonzero(hit)
             selections[concept].rows[position] = rows
-            selections[concept].columns[position] = {name: values[rows] for name, values in cols.items()}
+            selections[concept].keys[position] = np.stack([cols["index"][rows], _within_frame(cols)[rows]], axis=1)
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             expected = set(range(segment.frame_start, segment.frame_end + 1))
@@ -387,27 +413,30 @@ def _read_selected(
 def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[str, np.ndarray]]:
     """Return one concept's parts per shard position and its output columns, in dataset order.
 
-    Output units are rows (reduce=token, ordered by index, then token position) or frames
-    (reduce=frame, ordered by index; columns index, episode_index, frame_index and `tokens`,
-    the number of rows averaged).
-    """
-    positions = sorted(selection.rows)
-    units: list[dict[str, np.ndarray]] = []
-    frame_of_row: dict[int, np.ndarray | None] = {}
-    for p in positions:
-        columns = selection.columns[p]
-        if reduce == "frame":
-            _, first, inverse, counts = np.unique(
-                columns["index"], return_index=True, return_inverse=True, return_counts=True
-            )
-            units.append({name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
-                         | {"tokens": counts.astype(np.int64)})
-            frame_of_row[p] = inverse
-        else:
-            units.append(columns)
-            frame_of_row[p] = None
-    columns = {name: np.concatenate([unit[name] for unit in units]) for name in units[0]}
-    secondary = columns["token_position"] if reduce == "token" else np.zeros_like(columns["index"])
+
+def _frame_means(
+    residuals: torch.Tensor, columns: dict[str, np.ndarray], device: str
+) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
+    """Return one mean row per frame (rows grouped by global index) and that frame's columns."""
+    frames, first, inverse = np.unique(columns["index"], return_index=True, return_inverse=True)
+    inverse_t = torch.from_numpy(inverse).to(device)
+    sums = torch.zeros(len(frames), residuals.shape[1], dtype=torch.float64, device=device)
+    sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
+    counts = torch.bincount(inverse_t, minlength=len(frames)).to(torch.float64)
+    means = (sums / counts[:, None]).to("cpu", torch.float32)
+    kept = {name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
+    kept["tokens"] = counts.to("cpu", torch.int64).numpy()
+    return means, kept
+
+
+def _concatenate(
+    parts: list[tuple[torch.Tensor, dict[str, np.ndarray]]], reduce: str
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Return one concept's rows in dataset order (index, then step or token position) with their columns."""
+    residuals = torch.cat([p[0] for p in parts])
+    names = parts[0][1].keys()
+    columns = {name: np.concatenate([p[1][name] for p in parts]) for name in names}
+    secondary = _within_frame(columns) if reduce == "token" else np.zeros_like(columns["index"])
     order = np.lexsort((secondary, columns["index"]))
     dest = np.empty_like(order)
     dest[order] = np.arange(len(order))
@@ -433,6 +462,11 @@ def _frame_means(residuals: torch.Tensor, frame_of_row: np.ndarray, frames: int,
     sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
     counts = torch.bincount(inverse_t, minlength=frames).to(torch.float64)
     return (sums / counts[:, None]).to("cpu", torch.float32)
+
+
+def _within_frame(columns: dict[str, np.ndarray]) -> np.ndarray:
+    """Return the order of rows within a frame: the denoising step (action token types), else the token position."""
+    return columns[STEP] if STEP in columns else columns["token_position"]
 
 
 def _describe(values: Sequence[int]) -> str:
