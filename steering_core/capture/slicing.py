@@ -29,7 +29,6 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.capture.shards import (
-    ROW_COLUMNS,
     STEP,
     RunMetadata,
     ShardRecord,
@@ -74,7 +73,7 @@ class _Selection:
     """Rows of one concept found in the first pass, per shard position: row numbers and their columns."""
 
     rows: dict[int, np.ndarray] = field(default_factory=dict)  # shard position -> (n,) ascending row numbers
-    columns: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # shard position -> ROW_COLUMNS, (n,)
+    columns: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # shard position -> row columns, (n,)
 
 
 @dataclass
@@ -319,7 +318,7 @@ def _select_rows(
         for concept, hit in per_concept.items():
             rows = np.flatnonzero(hit)
             selections[concept].rows[position] = rows
-            selections[concept].keys[position] = np.stack([cols["index"][rows], _within_frame(cols)[rows]], axis=1)
+            selections[concept].columns[position] = {name: values[rows] for name, values in cols.items()}
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             expected = set(range(segment.frame_start, segment.frame_end + 1))
@@ -353,10 +352,10 @@ def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
     positions = sorted(selection.rows)
     if not positions:
         return
-    columns = {name: np.concatenate([selection.columns[p][name] for p in positions]) for name in ROW_COLUMNS}
+    columns = {name: np.concatenate([selection.columns[p][name] for p in positions]) for name in selection.columns[positions[0]]}
     owner = np.concatenate([np.full(len(selection.rows[p]), p) for p in positions])
     local = np.concatenate([selection.rows[p] for p in positions])
-    order = np.lexsort((columns["token_position"], columns["index"]))
+    order = np.lexsort((_within_frame(columns), columns["index"]))
     units = columns["index"][order] if by_frame else np.arange(len(order))
     unique_units, unit_of_row = np.unique(units, return_inverse=True)
     if unique_units.size <= limit:
@@ -413,29 +412,26 @@ def _read_selected(
 def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[str, np.ndarray]]:
     """Return one concept's parts per shard position and its output columns, in dataset order.
 
-
-def _frame_means(
-    residuals: torch.Tensor, columns: dict[str, np.ndarray], device: str
-) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
-    """Return one mean row per frame (rows grouped by global index) and that frame's columns."""
-    frames, first, inverse = np.unique(columns["index"], return_index=True, return_inverse=True)
-    inverse_t = torch.from_numpy(inverse).to(device)
-    sums = torch.zeros(len(frames), residuals.shape[1], dtype=torch.float64, device=device)
-    sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
-    counts = torch.bincount(inverse_t, minlength=len(frames)).to(torch.float64)
-    means = (sums / counts[:, None]).to("cpu", torch.float32)
-    kept = {name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
-    kept["tokens"] = counts.to("cpu", torch.int64).numpy()
-    return means, kept
-
-
-def _concatenate(
-    parts: list[tuple[torch.Tensor, dict[str, np.ndarray]]], reduce: str
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Return one concept's rows in dataset order (index, then step or token position) with their columns."""
-    residuals = torch.cat([p[0] for p in parts])
-    names = parts[0][1].keys()
-    columns = {name: np.concatenate([p[1][name] for p in parts]) for name in names}
+    Output units are rows (reduce=token, ordered by index, then token position) or frames
+    (reduce=frame, ordered by index; columns index, episode_index, frame_index and `tokens`,
+    the number of rows averaged).
+    """
+    positions = sorted(selection.rows)
+    units: list[dict[str, np.ndarray]] = []
+    frame_of_row: dict[int, np.ndarray | None] = {}
+    for p in positions:
+        columns = selection.columns[p]
+        if reduce == "frame":
+            _, first, inverse, counts = np.unique(
+                columns["index"], return_index=True, return_inverse=True, return_counts=True
+            )
+            units.append({name: columns[name][first] for name in ("index", "episode_index", "frame_index")}
+                         | {"tokens": counts.astype(np.int64)})
+            frame_of_row[p] = inverse
+        else:
+            units.append(columns)
+            frame_of_row[p] = None
+    columns = {name: np.concatenate([unit[name] for unit in units]) for name in units[0]}
     secondary = _within_frame(columns) if reduce == "token" else np.zeros_like(columns["index"])
     order = np.lexsort((secondary, columns["index"]))
     dest = np.empty_like(order)
