@@ -175,7 +175,8 @@ def slice_command(
         None, "--max-samples-per-concept", min=1, help="Keep at most N rows (or frames), evenly spaced."
     ),
     verify_checksums: bool = typer.Option(
-        False, "--verify-checksums", help="Re-hash every shard against metadata.json before reading it."
+        True, "--verify-checksums/--no-verify-checksums",
+        help="Re-hash every shard against metadata.json before reading it (a damaged shard stops the slice).",
     ),
 ) -> None:
     """Write <output-dir>/layerNN/<concept>.pt (+ .safetensors, index.json) for each concept."""

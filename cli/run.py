@@ -15,6 +15,7 @@ import typer
 from cli.app import app, input_errors
 from steering_core import demo
 from steering_core.config import load_run_config
+from steering_core.preflight import check_run
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.
 EPHEMERAL_STARTUP_SECONDS = "90"
@@ -43,6 +44,7 @@ def run_command(
     prefect_environment()
     with input_errors():
         run_config = load_run_config(config)
+        check_run(run_config, capture_device=run_config.orchestration.capture != "deployment")  # before Prefect starts
     from flows.pipeline import latent_steering
 
     result = latent_steering(str(config))

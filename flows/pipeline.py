@@ -1,7 +1,9 @@
 """The parent flow `latent-steering`: the seed's three phases over every concept pair and layer.
 
+0. Preflight: every input checked (sources or the existing dataset, checkpoint, tokenizer, SAEs,
+   output folders, devices).
 1. Phase 1 (CPU): filter demo files, convert them to one LeRobot dataset (or, with
-   `dataset.existing`, check an existing dataset and read it in place), then a contrast manifest
+   `dataset.existing`, read an existing dataset in place), then a contrast manifest
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
    in-process (`flows.capture.run_capture`), then the run metadata.
@@ -24,7 +26,7 @@ from prefect.futures import PrefectFuture
 from prefect.settings import get_current_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from flows.capture import run_capture
+from flows.capture import capture_mode, run_capture
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
@@ -38,6 +40,7 @@ from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report
 from tasks.cache import rooted
+from tasks.preflight import preflight
 
 PIPELINE_FLOW = "latent-steering"
 # CPU tasks running at once (PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS overrides): each SAE task
@@ -51,6 +54,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     logger = get_run_logger()
     config_path = str(Path(config_path).resolve())
     config = load_run_config(config_path)
+    preflight(config_path, capture_device=capture_mode(config) == "local")  # minutes before the GPU hours
     record_path = config.output_root / SOURCES_RECORD_FILE
     sources = scan_inputs(config, previous=read_sources_record(record_path))
 

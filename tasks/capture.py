@@ -27,7 +27,9 @@ from tasks.cache import (
     OUTPUTS,
     RESULTS,
     content_key,
-    retry_on,
+    retry_if,
+    transient_gpu,
+    transient_io,
 )
 
 GPU_TAG = "gpu"  # a tag concurrency limit of this name caps running GPU tasks (latent-steering deploy)
@@ -103,7 +105,7 @@ def shard_files(run_dir: str, settings: CaptureSettings, episodes: list[int]) ->
     tags=[GPU_TAG],
     cache_policy=content_key("steering_core.capture.loop", settings=model_inputs,
                              derived={"episodes": episode_sources}, ignore=("label",)),
-    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_on(OSError, RuntimeError),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )
 def capture_episodes(
@@ -115,15 +117,18 @@ def capture_episodes(
     result = capture.capture(dataset_root, repo_id, run_dir, settings, episodes=episodes, progress=progress)
     get_run_logger().info("%s: %d shard group(s) written, %d already complete, %d frames",
                           label, len(result.written), len(result.skipped), result.frames)
+    if result.reduced_batch_size is not None:
+        get_run_logger().warning("%s: CUDA ran out of memory; captured %d frame(s) per pass instead of %d",
+                                 label, result.reduced_batch_size, settings.batch_size)
     return {OUTPUTS: shard_files(run_dir, settings, episodes), "written": list(result.written),
-            "skipped": list(result.skipped), "frames": result.frames}
+            "skipped": list(result.skipped), "frames": result.frames, "reduced_batch_size": result.reduced_batch_size}
 
 
 @task(
     name="write-run-metadata",
     task_run_name="run metadata {run_dir}",
     cache_policy=content_key("steering_core.capture.shards", derived={"sidecars": run_sidecars}),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def write_run_metadata(run_dir: str) -> dict:
@@ -138,7 +143,7 @@ def write_run_metadata(run_dir: str) -> dict:
     task_run_name="slice {pair} layer {layer}",
     cache_policy=content_key("steering_core.capture.slicing", concept_map_path=concept_rows,
                              derived={"shards": sliced_shards}),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def slice_layer(pair: str, layer: int, run_dir: str, concept_map_path: str, output_dir: str, settings: SliceSettings) -> dict:

@@ -19,7 +19,8 @@ from tasks.cache import (
     OUTPUTS,
     RESULTS,
     content_key,
-    retry_on,
+    retry_if,
+    transient_io,
 )
 
 
@@ -32,7 +33,7 @@ def selection_digest(folder: str) -> str:
     name="filter-demos",
     task_run_name="filter demos into {output_dir}",
     cache_policy=content_key("steering_core.data.filtering", sources=tree_listing),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) -> dict:
@@ -46,7 +47,7 @@ def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) 
     name="convert-dataset",
     task_run_name="convert to LeRobot {settings.repo_id}",
     cache_policy=content_key("steering_core.data.convert", filtered_dir=selection_digest),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def convert_dataset(filtered_dir: str, dataset_root: str, settings: ConvertSettings) -> dict:

@@ -21,7 +21,8 @@ from tasks.cache import (
     OUTPUTS,
     RESULTS,
     content_key,
-    retry_on,
+    retry_if,
+    transient_io,
 )
 
 _SAE_FIELDS = ("layer", "device", "batch_size")  # settings that change concept statistics besides the SAE
@@ -65,7 +66,7 @@ def stats_files(path: str) -> dict[str, str]:
     name="write-pairs-config",
     task_run_name="pairs config layer {layer}",
     cache_policy=content_key("steering_core.sae.steering"),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:

@@ -25,6 +25,7 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
 from bench import (  # noqa: E402
     capture_throughput,
     concept_map_speed,
+    policy_sweep,
     run_all,
     sae_encoding,
     slicing_memory,
@@ -41,14 +42,15 @@ def cache(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module", autouse=True)
-def refresh_run(tmp_path_factory):
+def refresh_run(tmp_path_factory, prefect_server):
     """Start the refresh benchmark's quick run in its own process before the first test of this module.
 
     Its Prefect server start and two pipeline runs then overlap the other tests; the last test waits for it.
     """
     folder = tmp_path_factory.mktemp("bench-refresh")
     output = folder / "result.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])),
+           "PREFECT_API_URL": prefect_server}  # the session's server: no embedded server to start under load
     process = subprocess.Popen(
         [sys.executable, "-m", "bench.incremental_refresh", "--quick",
          f"--cache-dir={folder}", f"--json={output}"],
@@ -95,6 +97,27 @@ def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
     result = run_quick(sae_encoding, cache, tmp_path)
     assert result.checks["latent_mean_max_abs_difference"] < 1e-5
     assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
+
+
+def test_policy_sweep_equals_separate_calls(cache, tmp_path):
+    result = run_quick(policy_sweep, cache, tmp_path)
+    assert result.checks["max_abs_difference"] < 1e-5 < result.checks["alpha_spread"]
+    assert [row["case"] for row in result.table] == ["measured cpu, lm layer 1, 8 alphas",
+                                                     "real pi0.5, lm layer 12 (analytic)",
+                                                     "real pi0.5, expert stream (analytic)"]
+
+
+def test_policy_sweep_flop_model():
+    real = Pi05Arch()
+    separate = policy_sweep.separate_flops(real, 8, 16)
+    # 8 alphas at layer 12 share SigLIP and layers 0..12: about a third of eight full calls
+    assert 0.3 < policy_sweep.sweep_flops(real, 8, 16, 12) / separate < 0.4
+    # one entry shares nothing, whatever the layer
+    assert policy_sweep.sweep_flops(real, 1, 16, 12) == pytest.approx(policy_sweep.separate_flops(real, 1, 16))
+    # steering the expert only shares the whole prefix: 1 prefix + 8 expert loops
+    expert_loop = policy_sweep.STEPS * capture_throughput.expert_step_flops(real, 2 * 256 + 16)
+    one_call = policy_sweep.separate_flops(real, 1, 16)
+    assert policy_sweep.sweep_flops(real, 8, 16, None) == pytest.approx(one_call + 7 * expert_loop)
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

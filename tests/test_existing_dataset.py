@@ -42,6 +42,7 @@ from steering_core.data.convert import SOURCES_FILE, ConvertSettings, convert_li
 from steering_core.data.dataset import read_meta
 from steering_core.fileio import read_json
 from steering_core.layout import layer_dir
+from steering_core.preflight import PreflightError
 from steering_core.synthetic.libero import write_libero_file
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
@@ -203,6 +204,6 @@ def test_refresh_on_an_unchanged_dataset_runs_nothing(v21_run, inputs):
 
 def test_a_missing_dataset_is_named_before_anything_runs(inputs, tmp_path):
     path = write_config(tmp_path, inputs, sources=None, dataset=DatasetSection(existing=tmp_path / "nowhere"))
-    with pytest.raises(FileNotFoundError, match=r"nowhere: LeRobot dataset folder not found"):
+    with pytest.raises(PreflightError, match=r"nowhere: LeRobot dataset folder not found"):
         latent_steering(str(path))
     assert not (tmp_path / "data" / "manifests").exists()

@@ -12,6 +12,7 @@ One module-wide sequence, each step a fixture building on the previous one:
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import threading
@@ -34,11 +35,11 @@ from prefect.client.schemas.filters import (
 )
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.states import Failed
-from prefect.testing.utilities import prefect_test_harness
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
 from cli import app
+from helpers_pipeline import run_cli_steps
 from flows.pipeline import PIPELINE_FLOW
 from flows.refresh import refresh
 from steering_core import fileio
@@ -58,15 +59,15 @@ from steering_core.synthetic.libero import (
     SyntheticTask,
     write_libero_file,
 )
-from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_on, rooted
+from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_if, rooted, transient_gpu, transient_io
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module", autouse=True)
-def prefect_backend():
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
+def prefect_backend(prefect_server):
+    """Every test here talks to the session's Prefect test server (tests/conftest.py)."""
+    return prefect_server
 
 
 @pytest.fixture(scope="module")
@@ -141,10 +142,14 @@ def test_code_version_follows_project_imports_only():
 
 
 def test_retry_only_on_transient_errors():
-    transient = retry_on(OSError)
-    assert transient(double, None, Failed(data=OSError("disk")))
-    assert transient(double, None, Failed(data=FileNotFoundError("gone")))  # an OSError too
-    assert not transient(double, None, Failed(data=ValueError("bad content")))
+    io, gpu = retry_if(transient_io), retry_if(transient_gpu)
+    assert io(double, None, Failed(data=OSError(errno.EIO, "disk")))
+    assert io(double, None, Failed(data=TimeoutError("network mount")))
+    assert not io(double, None, Failed(data=FileNotFoundError(errno.ENOENT, "gone")))  # a bad path stays bad
+    assert not io(double, None, Failed(data=ValueError("bad content")))
+    assert gpu(double, None, Failed(data=torch.cuda.OutOfMemoryError("held by a neighbour")))
+    assert not gpu(double, None, Failed(data=RuntimeError("shape mismatch")))  # a bug: never retried
+    assert not io(double, None, Failed(data=torch.cuda.OutOfMemoryError("x")))
 
 
 # ----------------------------------------------------------------------------- reading runs back
@@ -198,7 +203,7 @@ def first_run(demo_dir):
             calls.append(args[2])
             first = len(calls) == 1
         if first:
-            raise OSError("injected: shared file system hiccup")
+            raise OSError(errno.EIO, "injected: shared file system hiccup")
         return real(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
@@ -282,50 +287,9 @@ def test_artifacts_are_published(first_run):
 def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
     """Run the seed's steps one by one through the CLI on the same inputs; every output must be equal."""
     config = load_run_config(demo_config)
-    out, repo = tmp_path / "cli", config.dataset.repo_id
-    dataset, run_dir = out / "libero_lerobot" / repo, out / "residuals" / "demo"
-    arch_file = tmp_path / "arch.json"
-    arch_file.write_text(config.model.arch.model_dump_json())
-    layers = ",".join(map(str, config.layers))
-    tasks = [text for pair in config.pairs for text in (pair.positive, pair.negative)]
-    steps = [
-        ["filter", "--input-dir", str(config.sources.folders[0]), "--output-dir", str(out / "filtered"),
-         *[arg for task in tasks for arg in ("--task", task)]],
-        ["convert", "--input-dir", str(out / "filtered"), "--repo-id", repo, "--output-dir", str(dataset),
-         "--image-size", str(config.dataset.image_size)],
-    ]
-    for pair in config.pairs:
-        manifest, concept_map = out / "manifests" / f"{pair.name}.json", out / "manifests" / f"{pair.name}_map.json"
-        steps += [
-            ["manifest", "--lerobot-root", str(dataset), "--task-a-text", pair.positive, "--task-b-text",
-             pair.negative, "--output", str(manifest), "--repo-id", repo],
-            ["concept-map", "--manifest-path", str(manifest), "--output-path", str(concept_map),
-             "--lerobot-root", str(dataset), "--repo-id", repo],
-        ]
-    steps.append(["capture", "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path",
-                  str(config.model.tokenizer), "--lerobot-root", str(dataset), "--repo-id", repo, "--output-dir",
-                  str(run_dir), "--layers", layers, "--batch-size", str(config.capture.batch_size), "--device", "cpu",
-                  "--num-workers", "0", "--arch-file", str(arch_file)])
-    steps += [["slice", "--run-dir", str(run_dir), "--concept-map-path", str(out / "manifests" / f"{p.name}_map.json"),
-               "--output-dir", str(out / "residuals" / f"{p.name}_slices"), "--layers", layers] for p in config.pairs]
-    runner = CliRunner()
-    for step in steps:
-        result = runner.invoke(app, step)
-        assert result.exit_code == 0, (step[0], result.output, result.exception)
-    for layer in config.layers:
-        pairs = {"pairs": [{
-            "name": p.name,
-            "positive_label": p.positive, "negative_label": p.negative,
-            "positive_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.positive}.pt"),
-            "negative_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.negative}.pt"),
-        } for p in config.pairs]}
-        pairs_file = out / f"layer{layer}_pairs.json"
-        pairs_file.write_text(json.dumps(pairs))
-        result = runner.invoke(app, [
-            "steer", "--pairs-config", str(pairs_file), "--output-root", str(out / "latent_steering"),
-            "--layer", str(layer), "--device", "cpu", "--batch-size", str(config.steering.batch_size),
-            "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k)])
-        assert result.exit_code == 0, (result.output, result.exception)
+    out = tmp_path / "cli"
+    run_dir = out / "residuals" / "demo"
+    run_cli_steps(config, out)
 
     for pair in config.pairs:
         ours, theirs = read_manifest(config.manifest_path(pair)), read_manifest(out / "manifests" / f"{pair.name}.json")

@@ -25,6 +25,7 @@ from tqdm import tqdm
 from steering_core.capture.slicing import safe_file_name
 from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, read_json, sha256_json, write_json
+from steering_core.identity import file_digest
 from steering_core.sae.model import Sae
 
 logger = logging.getLogger(__name__)
@@ -231,11 +232,14 @@ class _Sums:
 
 
 def _concept_identity(source: ConceptSource, sae: Sae | None) -> dict[str, Any]:
-    """Return what a concept's statistics depend on: the file (path, size, mtime) and the SAE."""
-    stat = source.path.stat()
+    """Return what a concept's statistics depend on: the file (path, content) and the SAE.
+
+    The content counts by its sha256 (remembered per file version), not its mtime: outputs are the
+    same bytes for the same inputs.
+    """
     return {
         "path": str(source.path.resolve()),
-        "bytes": stat.st_size,
-        "mtime_ns": stat.st_mtime_ns,
+        "bytes": source.path.stat().st_size,
+        "sha256": file_digest(source.path),
         "sae": sae.fingerprint() if sae is not None else None,
     }
