@@ -82,14 +82,6 @@ def _root(call):
     return Path(call["dataset_root"])
 
 
-@pytest.mark.parametrize("change", CAPTURE_CHANGES)
-def test_capture_key(capture_call, change):
-    before = key_of(capture_episodes, **capture_call)
-    mutate, moves = CAPTURE_CHANGES[change]
-    mutate(capture_call)
-    assert (key_of(capture_episodes, **capture_call) != before) is moves
-
-
 @pytest.fixture
 def encode_call(tmp_path):
     slice_path = tmp_path / "concept.safetensors"
@@ -115,9 +107,16 @@ def _edit_cfg(call):
     cfg_path.write_text(json.dumps(cfg))
 
 
-@pytest.mark.parametrize("change", ENCODE_CHANGES)
-def test_encode_key(encode_call, change):
-    before = key_of(encode_concept, **encode_call)
-    mutate, moves = ENCODE_CHANGES[change]
-    mutate(encode_call)
-    assert (key_of(encode_concept, **encode_call) != before) is moves
+STEPS = {"capture": (capture_episodes, "capture_call", CAPTURE_CHANGES),
+         "encode": (encode_concept, "encode_call", ENCODE_CHANGES)}
+
+
+@pytest.mark.parametrize(("step", "change"), [(step, change) for step, (_, _, changes) in STEPS.items()
+                                              for change in changes])
+def test_key_moves_with_exactly_the_inputs_that_matter(request, step, change):
+    task, fixture, changes = STEPS[step]
+    call = request.getfixturevalue(fixture)
+    before = key_of(task, **call)
+    mutate, moves = changes[change]
+    mutate(call)
+    assert (key_of(task, **call) != before) is moves

@@ -48,7 +48,7 @@ from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
-from steering_core.demo import DEMO_STEPS, format_summary, summarise
+from steering_core.demo import DEMO_STEPS, build_demo, format_summary, summarise
 from steering_core.fileio import read_json, sha256_file
 from steering_core.identity import code_modules, code_version, file_digest
 from steering_core.layout import layer_dir
@@ -62,6 +62,7 @@ from steering_core.synthetic.libero import (
 from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_if, rooted, transient_gpu, transient_io
 
 pytestmark = pytest.mark.slow
+PREFLIGHT = "check the run's inputs"  # the parent flow's first task, never cached
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -327,7 +328,8 @@ def test_second_run_on_unchanged_inputs_is_all_cached(second_run, demo_config):
     tasks = task_runs_under(run_id)
     assert f"report: {load_run_config(demo_config).layer_path(1) / 'summary.md'}" in output
     assert len(tasks) >= 25
-    assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {}
+    # every step cached; only the preflight checks run again (files, folders and devices can change)
+    assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {PREFLIGHT: "Completed"}
 
 
 @pytest.fixture(scope="module")
@@ -374,7 +376,7 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     assert recomputed == {
         f"filter demos into {config.filtered_dir}", f"convert to LeRobot {config.dataset.repo_id}",
         "manifest open_vs_close", "manifest on_vs_off", "concept map open_vs_close", "concept map on_vs_off",
-        "capture episodes 8-8", f"run metadata {config.run_dir}", *steps,
+        "capture episodes 8-8", f"run metadata {config.run_dir}", PREFLIGHT, *steps,
     }
     assert all(tasks[name].state.name == "Completed" for name in recomputed)
     assert tasks["capture episodes 0-7"].state.name == "Cached"
@@ -390,3 +392,20 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     index = read_json(config.slices_dir(config.pair("open_vs_close")) / "layer01" / "index.json")
     assert counts["positive"] == index["concepts"][DRAWER_OPEN]["rows"]
     assert len(index["concepts"][DRAWER_OPEN]["segments"]) == 3
+
+
+def test_bad_input_fails_the_flow_in_its_preflight_task(tmp_path):
+    """Before any step: the flow fails with the preflight task's one-line problems, and nothing is written."""
+    from flows.pipeline import latent_steering
+    from steering_core.config import write_run_config
+
+    config = load_run_config(build_demo(tmp_path / "demo", demos_per_task=2))
+    text = tmp_path / "model.safetensors"
+    text.write_text("not tensors\n")
+    bad = config.model_copy(update={"model": config.model.model_copy(update={"checkpoint": text})})
+    state = latent_steering(str(write_run_config(bad, tmp_path / "bad.yaml")), return_state=True)
+    assert state.is_failed()
+    tasks = task_runs_under(state.state_details.flow_run_id)
+    assert list(tasks) == [PREFLIGHT] and tasks[PREFLIGHT].state.is_failed()
+    assert f"{text}: not a safetensors file" in tasks[PREFLIGHT].state.message
+    assert not config.output_root.exists()
