@@ -8,7 +8,7 @@ sources:
   select: {match: ignore_case}    # FilterSettings; no tasks/globs = the pairs' task texts
 dataset: {repo_id: libero_drawer_stove_lerobot}   # ConvertSettings fields (+ optional root)
 # or, instead of `sources`, an existing LeRobot dataset (v2.0/v2.1/v3.0) read in place, never written:
-# dataset: {existing: ~/.cache/huggingface/lerobot/physical-intelligence/libero}
+# dataset: {existing: /data/physical-intelligence/libero, repo_id: physical-intelligence/libero}
 pairs:
   - {name: open_vs_close, positive: open the top drawer of the cabinet,
      negative: close the top drawer of the cabinet}
