@@ -20,6 +20,8 @@ from bench.common import REPO_ROOT, Result, cache_dir, machine, markdown_table, 
 
 BENCHMARKS = (
     "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
+    "cli_startup",
+    "serve_latency",
 )
 REPORT = REPO_ROOT / "BENCHMARKS.md"
 QUICK_REPORT = "BENCHMARKS.quick.md"  # under the cache folder

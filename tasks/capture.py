@@ -18,7 +18,7 @@ from steering_core.fileio import read_json
 from steering_core.identity import file_digest, plain
 from steering_core.layout import layer_dir
 from steering_core.pi05.checkpoint import resolve_model_file
-from tasks.artifacts import artifact_key, progress_artifact
+from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     GPU_RETRIES,
     GPU_RETRY_DELAYS,
@@ -112,9 +112,10 @@ def capture_episodes(
     label: str, dataset_root: str, repo_id: str, run_dir: str, settings: CaptureSettings, episodes: list[int]
 ) -> dict:
     """Capture the residuals of `episodes` (whole shard groups) into the run; return what was written."""
-    progress = progress_artifact(artifact_key("capture", Path(run_dir).name, label), "frames",
+    progress = ProgressArtifact(artifact_key("capture", Path(run_dir).name, label), "frames",
                                  f"capture {label} into {run_dir}")
     result = capture.capture(dataset_root, repo_id, run_dir, settings, episodes=episodes, progress=progress)
+    progress.finish()
     get_run_logger().info("%s: %d shard group(s) written, %d already complete, %d frames",
                           label, len(result.written), len(result.skipped), result.frames)
     if result.reduced_batch_size is not None:
@@ -148,7 +149,10 @@ def write_run_metadata(run_dir: str) -> dict:
 )
 def slice_layer(pair: str, layer: int, run_dir: str, concept_map_path: str, output_dir: str, settings: SliceSettings) -> dict:
     """Write one pair's per-concept residual tensors for one layer; return concept -> .pt path."""
-    index_path = slicing.slice_concepts(run_dir, concept_map_path, output_dir, settings)[layer]
+    progress = ProgressArtifact(artifact_key("slice", pair, layer_dir(layer)), "shards",
+                                 f"slice {pair} {layer_dir(layer)} into {output_dir}")
+    index_path = slicing.slice_concepts(run_dir, concept_map_path, output_dir, settings, progress=progress)[layer]
+    progress.finish()
     folder = Path(output_dir) / layer_dir(layer)
     concepts = {name: str(folder / entry["pt"]) for name, entry in read_json(index_path)["concepts"].items()}
     return {OUTPUTS: [str(index_path), *concepts.values()], "concepts": concepts, "index": str(index_path)}

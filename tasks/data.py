@@ -13,6 +13,7 @@ from steering_core.data.dataset import dataset_fingerprint
 from steering_core.data.filtering import FilterSettings
 from steering_core.identity import file_digest, tree_listing
 from steering_core.layout import SELECTION_FILE
+from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     IO_RETRIES,
     IO_RETRY_DELAYS,
@@ -52,7 +53,10 @@ def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) 
 )
 def convert_dataset(filtered_dir: str, dataset_root: str, settings: ConvertSettings) -> dict:
     """Convert (or append new episodes to) the LeRobot dataset; return what was done."""
-    result = convert.convert_libero([filtered_dir], dataset_root, settings)
+    progress = ProgressArtifact(artifact_key("convert", settings.repo_id), "episodes",
+                                 f"convert {filtered_dir} into {dataset_root}")
+    result = convert.convert_libero([filtered_dir], dataset_root, settings, progress=progress)
+    progress.finish()
     get_run_logger().info("%s: %s, %d episode(s) added, %d in total",
                           dataset_root, result.action, result.episodes_added, result.episodes_total)
     return {OUTPUTS: [dataset_root], "action": result.action, "episodes_added": result.episodes_added,

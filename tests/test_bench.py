@@ -24,10 +24,12 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
 
 from bench import (  # noqa: E402
     capture_throughput,
+    cli_startup,
     concept_map_speed,
     policy_sweep,
     run_all,
     sae_encoding,
+    serve_latency,
     slicing_memory,
 )
 from bench.common import Result  # noqa: E402
@@ -118,6 +120,23 @@ def test_policy_sweep_flop_model():
     expert_loop = policy_sweep.STEPS * capture_throughput.expert_step_flops(real, 2 * 256 + 16)
     one_call = policy_sweep.separate_flops(real, 1, 16)
     assert policy_sweep.sweep_flops(real, 8, 16, None) == pytest.approx(one_call + 7 * expert_loop)
+
+
+def test_cli_startup_measures_light_commands_without_heavy_libraries(cache, tmp_path):
+    result = run_quick(cli_startup, cache, tmp_path)
+    heavy = result.checks["heavy"]
+    assert heavy["latent-steering --help"] == heavy["latent-steering filter (2 of 4 files)"] == "none"
+    assert heavy["latent-steering steer --help (needs torch)"] == "torch"  # the check can tell them apart
+    assert [row["command"] for row in result.table][-1] == "python -c pass (baseline)"
+    assert (cache / "cli-startup-filtered" / "selection.json").is_file()  # filter did its work
+
+def test_served_actions_equal_direct_infer(cache, tmp_path):
+    result = run_quick(serve_latency, cache, tmp_path)
+    assert result.checks["served_equals_direct"] is True
+    calls = [row["call"] for row in result.table]
+    assert calls[:4] == ["tiny model: direct", "tiny model: server", "tiny model: direct steered",
+                         "tiny model: server steered"]
+    assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:4])
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

@@ -245,19 +245,39 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
 def test_demo_prints_summary_and_locations(first_run, demo_config):
     config = load_run_config(demo_config)
     output = first_run[1]
-    rows = summarise(config)
-    assert format_summary(rows) in output
+    summary = summarise(config)
+    assert format_summary(summary, random_sae=True) in output
+    rows = summary["pairs"]
     assert [(r["layer"], r["pair"]) for r in rows] == [(1, "open_vs_close"), (1, "on_vs_off"),
                                                        (2, "open_vs_close"), (2, "on_vs_off")]
-    for row in rows:  # counts are the slice rows; the cosine is the one pairwise entry of the layer
+    for row in rows:  # counts are the slice rows; the cosine and FVU are the pair's own
         index = read_json(config.slices_dir(config.pair(row["pair"])) / layer_dir(row["layer"]) / "index.json")
         pair = config.pair(row["pair"])
         assert (row["positive_rows"], row["negative_rows"]) == (
             index["concepts"][pair.positive]["rows"], index["concepts"][pair.negative]["rows"])
+        directions = read_json(config.layer_path(row["layer"]) / row["pair"] / "directions.json")
+        assert row["decoded_cosine"] == directions["decoded_vs_mean_difference_cosine"]
+        assert row["fvu"] == (directions["concepts"]["positive"]["fvu"], directions["concepts"]["negative"]["fvu"])
+    for row in summary["between"]:  # the one pairwise entry of each layer, in its own table
         entry = read_json(config.layer_path(row["layer"]) / "pairwise_stats.json")["entries"]["open_vs_close__on_vs_off"]
-        assert row["residual_cosine"] == {"open_vs_close__on_vs_off": entry["residual_cosine"]}
+        assert row["pairs"] == ("open_vs_close", "on_vs_off") and row["residual_cosine"] == entry["residual_cosine"]
+    assert [r["layer"] for r in summary["between"]] == [1, 2]
+    assert "The demo's SAEs are random" in output
     assert f"outputs: {config.output_root}" in output
     assert f"report:  {config.layer_path(2) / 'summary.md'}" in output
+
+
+def test_closing_table_names_every_task_run_with_its_state(first_run, demo_config):
+    output, root = first_run[1], load_run_config(demo_config).output_root
+    tasks = task_runs_under(first_run[0])
+    assert f"{len(tasks)} task runs: {len(tasks)} ran" in output
+    lines = output.splitlines()
+    assert any(line.split()[:2] == ["step", "pair"] and line.endswith(f"output (under {root})") for line in lines)
+    slices = [line.split() for line in lines if line.startswith("slice-concepts ")]
+    assert len(slices) == 4 and sum(line[3:6] == ["ran", "(2", "attempts)"] for line in slices) == 1  # the fault
+    encode = next(words for words in map(str.split, lines) if words[:4] == ["encode-concept", "on_vs_off", "negative", "2"])
+    assert encode[-1] == "latent_steering/layer02/concepts/"
+    assert any(line.split()[:3] == ["capture-residuals", "episodes", "0-7"] for line in lines)
 
 
 def test_injected_fault_is_retried_and_recorded(first_run):
@@ -272,17 +292,21 @@ def test_injected_fault_is_retried_and_recorded(first_run):
 
 
 def test_artifacts_are_published(first_run):
-    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", "demo-layer01-summary-md",
-            "demo-layer02-plot-pairwise-cosine", "capture-demo-episodes-0-7"]
+    progress = ["capture-demo-episodes-0-7", "convert-libero-demo-lerobot", "slice-on-vs-off-layer02",
+                "encode-open-vs-close-negative-layer01"]
+    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress]
     with get_client(sync_client=True) as client:
         artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)))
     by_key = {a.key: a for a in artifacts}
     assert set(by_key) == set(keys)
-    assert by_key["capture-demo-episodes-0-7"].data == 100.0
-    assert by_key["demo-report-layer01"].data.startswith("# Steering vectors, layer01")
-    assert by_key["demo-layer01-summary-md"].type == "markdown" and "file://" in by_key["demo-layer01-summary-md"].data
+    assert {key: by_key[key].data for key in progress} == dict.fromkeys(progress, 100.0)
+    report = by_key["demo-report-layer01"].data
+    assert report.startswith("# Steering vectors, layer01")
+    # readable in the UI on its own: plots inline, no relative images or file:// links
+    assert report.count("](data:image/png;base64,") == 3 and "](pairwise_cosine.png)" not in report
+    assert "file://" not in report and "## Files" in report
     assert by_key["demo-pairwise-cosines-layer02"].type == "table"
-    assert "open_vs_close__on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
+    assert "open_vs_close vs on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
 
 
 def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
@@ -330,6 +354,8 @@ def test_second_run_on_unchanged_inputs_is_all_cached(second_run, demo_config):
     assert len(tasks) >= 25
     # every step cached; only the preflight checks run again (files, folders and devices can change)
     assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {PREFLIGHT: "Completed"}
+    assert f"{len(tasks)} task runs: 1 ran, {len(tasks) - 1} cached" in output
+    assert any(line.split()[:2] == ["preflight", "-"] and line.split()[3] == "ran" for line in output.splitlines())
 
 
 @pytest.fixture(scope="module")

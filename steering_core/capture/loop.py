@@ -13,16 +13,20 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
+from steering_core.capture.frames import (
+    FRAME_KEYS,
+    batch_plan,
+    frame_loader,
+    frame_source,
+)
 from steering_core.capture.identity import episode_records, run_spec
 from steering_core.capture.locks import group_locks
 from steering_core.capture.settings import (
@@ -49,13 +53,13 @@ from steering_core.data.dataset import DatasetMeta, read_meta
 from steering_core.devices import resolve_device
 from steering_core.fileio import check_output_dir, sha256_json
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
+from steering_core.progress import Progress, ProgressCallback
 
 if TYPE_CHECKING:
     from steering_core.pi05.model import Pi05Prefix
 
 logger = logging.getLogger(__name__)
 
-Progress = Callable[[int, int], None]  # (frames done, frames in total)
 
 
 @dataclass(frozen=True)
@@ -101,7 +105,7 @@ def capture(
     run_dir: str | os.PathLike,
     settings: CaptureSettings,
     episodes: Sequence[int] | None = None,
-    progress: Progress | None = None,
+    progress: ProgressCallback | None = None,
     max_frames: int | None = None,
 ) -> CaptureResult:
     """Capture the residuals of every frame (or of `episodes`) into `run_dir`; return what was done.
@@ -135,7 +139,7 @@ def capture(
 
 def _capture_missing(
     meta: DatasetMeta, repo_id: str, run_dir: Path, spec: RunSpec, settings: CaptureSettings, inputs: CaptureInputs,
-    groups: dict[str, tuple[int, ...]], progress: Progress | None,
+    groups: dict[str, tuple[int, ...]], progress: ProgressCallback | None,
 ) -> tuple[dict[str, tuple[int, ...]], tuple[str, ...], int, int | None]:
     """Capture the groups without a complete shard; return (groups computed, skipped, frames, reduced batch size)."""
     records = episode_records(meta, [e for members in groups.values() for e in members])
@@ -200,7 +204,7 @@ def _first_groups(
     return kept
 
 
-def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
+def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     """Run the model over the groups' frames and write each group's shards as soon as it is complete."""
     from steering_core.pi05.model import Pi05Prefix
 
@@ -219,20 +223,15 @@ def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}
     prompts: dict[str, TokenizedPrompt] = {}
-    done = 0
     buffers: dict[str, _GroupRows] = {}
-    with tqdm(total=job.frames, desc="capture", unit="frame", disable=None) as bar:
+    with Progress(job.frames, "capture", "frame", callback=progress, logger=logger) as bar:
         for (key, _), batch in zip(plan, batches, strict=True):
             buffer = buffers.setdefault(key, _GroupRows(per_layer={layer: [] for layer in settings.layers}))
             _capture_batch(model, batch, job, prompts, buffer)
             remaining[key] -= 1
             if remaining[key] == 0:
                 _write_group(job, key, buffers.pop(key))
-            size = len(batch["task"])
-            done += size
-            bar.update(size)
-            if progress is not None:
-                progress(done, job.frames)
+            bar.update(len(batch["task"]))
 
 
 def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[str, TokenizedPrompt]) -> TokenizedPrompt:

@@ -26,7 +26,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from safetensors.torch import save_file
-from tqdm import tqdm
 
 from steering_core.capture.shards import (
     RunMetadata,
@@ -39,6 +38,7 @@ from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
 from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
+from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel
 
 logger = logging.getLogger(__name__)
@@ -101,7 +101,7 @@ def slice_concepts(
     concept_map_path: str | os.PathLike,
     output_dir: str | os.PathLike,
     settings: SliceSettings = SliceSettings(),
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> dict[int, Path]:
     """Write per-concept residual tensors for every requested layer; return layer -> index.json path.
 
@@ -114,20 +114,11 @@ def slice_concepts(
     _check_request(run_dir, metadata, concept_map, concept_map_path, settings)
     layers = list(settings.layers)
     total = sum(len(metadata.layer_shards(layer)) for layer in layers)
-    done = 0
     written: dict[int, Path] = {}
-    with tqdm(total=total, desc="slice", unit="shard", disable=None) as bar:
-
-        def advance() -> None:
-            nonlocal done
-            done += 1
-            bar.update(1)
-            if progress is not None:
-                progress(done, total)
-
+    with Progress(total, f"slice {Path(output_dir).name}", "shard", callback=progress, logger=logger) as bar:
         for layer in layers:
             written[layer] = _slice_layer(
-                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, advance
+                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, bar.update
             )
     return written
 

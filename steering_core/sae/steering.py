@@ -22,7 +22,6 @@ import contextlib
 import functools
 import json
 import logging
-import math
 import os
 from pathlib import Path
 from typing import Any, Literal
@@ -40,11 +39,11 @@ from steering_core.layout import (
     STEERING_ROOT,
     layer_dir,
 )
+from steering_core.progress import ProgressCallback
 from steering_core.sae.concept_stats import (
     FORMAT_VERSION,
     ConceptReader,
     ConceptSource,
-    Progress,
     encode_concept,
     read_concept_stats,
 )
@@ -338,7 +337,7 @@ def check_sae_layer(sae: Sae, layer: int) -> None:
         )
 
 
-def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: Progress | None = None) -> Path:
+def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: ProgressCallback | None = None) -> Path:
     """Run every step for one layer; return the layer folder.
 
     Steps: concept statistics, pair directions, pairwise stats, report.
@@ -353,8 +352,8 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    batches = {path: math.ceil(reader.rows / settings.batch_size) for path, reader in readers.items()}
-    total, done = sum(batches.values()), 0
+    rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
+    total, done = sum(rows.values()), 0
     stats_files = {}
     for path, source in sources.items():
         def advance(step: int, _: int, before: int = done) -> None:
@@ -364,7 +363,7 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         stats_files[path] = encode_concept(
             source, layer_path, sae, batch_size=settings.batch_size, reader=readers[path], progress=advance
         )
-        done += batches[path]
+        done += rows[path]
         advance(0, total, before=done)
     for pair in config.pairs:
         positive, negative = pairs[pair.name]
