@@ -28,6 +28,7 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.capture.shards import (
+    STEP,
     RunMetadata,
     ShardRecord,
     TokenType,
@@ -266,7 +267,7 @@ def _select_rows(
         for concept, hit in per_concept.items():
             rows = np.flatnonzero(hit)
             selections[concept].rows[position] = rows
-            selections[concept].keys[position] = np.stack([cols["index"][rows], cols["token_position"][rows]], axis=1)
+            selections[concept].keys[position] = np.stack([cols["index"][rows], _within_frame(cols)[rows]], axis=1)
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             expected = set(range(segment.frame_start, segment.frame_end + 1))
@@ -374,15 +375,20 @@ def _frame_means(
 def _concatenate(
     parts: list[tuple[torch.Tensor, dict[str, np.ndarray]]], reduce: str
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Return one concept's rows in dataset order (index, then token position) with their columns."""
+    """Return one concept's rows in dataset order (index, then step or token position) with their columns."""
     residuals = torch.cat([p[0] for p in parts])
     names = parts[0][1].keys()
     columns = {name: np.concatenate([p[1][name] for p in parts]) for name in names}
-    secondary = columns["token_position"] if reduce == "token" else np.zeros_like(columns["index"])
+    secondary = _within_frame(columns) if reduce == "token" else np.zeros_like(columns["index"])
     order = np.lexsort((secondary, columns["index"]))
     return residuals[torch.from_numpy(order)].contiguous(), {
         name: torch.from_numpy(np.ascontiguousarray(values[order])) for name, values in columns.items()
     }
+
+
+def _within_frame(columns: dict[str, np.ndarray]) -> np.ndarray:
+    """Return the order of rows within a frame: the denoising step (action token types), else the token position."""
+    return columns[STEP] if STEP in columns else columns["token_position"]
 
 
 def _describe(values: Sequence[int]) -> str:
