@@ -157,7 +157,7 @@ def _capture_from_config(ctx: typer.Context, config: Path) -> None:
                                  param_hint="--config")
     with input_errors():
         run = load_run_config(config)
-        result = capture(run.dataset_root, run.dataset.repo_id, run.run_dir, run.capture_settings())
+        result = capture(run.dataset_root, run.repo_id, run.run_dir, run.capture_settings())
     _echo_result(run.run_dir, result)
 
 
