@@ -111,7 +111,7 @@ def test_planted_direction_reproduces_the_swap_and_random_ones_do_not(tmp_path):
     # one sweep per (batch, seed) with the α = 0 entry shared: 1 + directions x nonzero alphas entries
     frames = len(record["frames"])
     batches = sum(-(-sum(f["side"] == s for f in record["frames"]) // 3) for s in ("positive", "negative"))
-    assert policy.calls == {"sweep_calls": batches * 2, "sweep_entries": batches * 2 * (1 + 10 * 8),
+    assert policy.calls == {"sweep_calls": batches * 2 * 2, "sweep_entries": batches * 2 * (1 + 10 * 8),
                             "sample_actions": batches * 2}
     assert frames == 8
     tensors = load_file(out / "dose_response.safetensors")

@@ -65,7 +65,9 @@ def select_frames(
     return frames
 
 
-def load_frames(dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], image_size: int) -> dict[str, Any]:
+def load_frames(
+    dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], image_size: int, video_backend: str | None = None
+) -> dict[str, Any]:
     """Return the frames' cameras in pi0.5's three slots: {"images": [...], "image_masks": [...]} in `frames` order.
 
     Reads only the frames' episodes; cameras are preprocessed exactly as capture does (libero_camera_slots).
@@ -76,7 +78,7 @@ def load_frames(dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], i
     from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 
     episodes = sorted({f.episode_index for f in frames})
-    dataset = LeRobotDataset(repo_id, root=dataset_root, episodes=episodes)
+    dataset = LeRobotDataset(repo_id, root=dataset_root, episodes=episodes, video_backend=video_backend)
     index_column = np.asarray(dataset.hf_dataset.select_columns(["index"]).with_format("numpy")[:]["index"])
     position = {int(index): p for p, index in enumerate(index_column)}
     missing = [f.index for f in frames if f.index not in position]

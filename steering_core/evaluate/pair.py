@@ -90,7 +90,8 @@ def evaluate_pair(
     actions = run_sweep(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
         residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
-        num_steps=settings.num_steps, batch_size=settings.batch_size, progress=progress,
+        num_steps=settings.num_steps, batch_size=settings.batch_size, entries_per_call=settings.entries_per_call,
+        progress=progress,
     )
     axis = pair.manifest.axis
     means = axis.mean_delta_per_task

@@ -83,12 +83,14 @@ def run_sweep(
     seed: int,
     num_steps: int,
     batch_size: int,
+    entries_per_call: int,
     progress: Progress | None = None,
 ) -> SweepActions:
     """Return the robot actions of every (direction, α, frame, seed) and the instruction-swap reference.
 
     `make_steering(layer=, vector=, alpha=, token_mask=)` builds one `Steering`; `load(frames)` returns
-    {"images", "image_masks"} of a batch of frames; `prompts` maps "positive"/"negative" to their prompt.
+    {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device); `prompts` maps
+    "positive"/"negative" to their prompt. At most `entries_per_call` steered entries go into one sweep call.
     """
     names = list(directions)
     unit = {name: directions[name].float() / directions[name].float().norm() * residual_norm for name in names}
@@ -101,34 +103,46 @@ def run_sweep(
     steered = torch.zeros(len(names), len(alphas), len(frames), noise_seeds, horizon, 7, dtype=torch.float64)
     own = torch.zeros(len(frames), noise_seeds, horizon, 7, dtype=torch.float64)
     other = torch.zeros_like(own)
-    total, done = len(batches) * noise_seeds, 0
+    chunks = [nonzero[i : i + entries_per_call] for i in range(0, len(nonzero), entries_per_call)] or [[]]
+    device = getattr(policy, "device", torch.device("cpu"))
+    everything = load(frames)
+    total, done = len(batches) * noise_seeds * len(chunks), 0
     for side, members in batches:
         batch_frames = [frames[i] for i in members]
-        inputs = load(batch_frames)
+        index = torch.tensor(members)
+        inputs = {key: [t[index].to(device) for t in tensors] for key, tensors in everything.items()}
         mine, theirs = prompts[side], prompts["negative" if side == "positive" else "positive"]
         size = len(members)
-        tokens, token_mask = mine.tokens.expand(size, -1), mine.token_mask.expand(size, -1)
-        steer_mask = mine.instruction_mask.expand(size, -1)
-        entries = [None] + [make_steering(layer=layer, vector=unit[names[d]], alpha=alphas[a], token_mask=steer_mask)
-                            for d, a in nonzero]
+        tokens, token_mask = mine.tokens.expand(size, -1).to(device), mine.token_mask.expand(size, -1).to(device)
+        steer_mask = mine.instruction_mask.expand(size, -1).to(device)
+        theirs = Prompt(*(t.to(device) for t in (theirs.tokens, theirs.token_mask, theirs.instruction_mask)))
         for s in range(noise_seeds):
-            noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames])
-            actions = policy.sample_actions_sweep(inputs["images"], inputs["image_masks"], tokens, token_mask, entries,
-                                                  noise=noise, num_steps=num_steps)    # (E, B, H, 32)
+            noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
+            for number, chunk in enumerate(chunks):
+                # the unsteered entry rides with the first chunk only: it is shared by every direction
+                entries = ([None] if number == 0 else []) + [
+                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=alphas[a], token_mask=steer_mask)
+                    for d, a in chunk]
+                actions = policy.sample_actions_sweep(inputs["images"], inputs["image_masks"], tokens, token_mask,
+                                                      entries, noise=noise, num_steps=num_steps)  # (E, B, H, 32)
+                robot = _robot(policy, actions)
+                if number == 0:
+                    own[index, s] = steered[:, zero, index, s] = robot[0]
+                    robot = robot[1:]
+                for e, (d, a) in enumerate(chunk):
+                    steered[d, a, index, s] = robot[e]
+                done += 1
+                if progress is not None:
+                    progress(done, total)
             swapped = policy.sample_actions(inputs["images"], inputs["image_masks"], theirs.tokens.expand(size, -1),
                                             theirs.token_mask.expand(size, -1), noise=noise, num_steps=num_steps)
-            robot = torch.from_numpy(np.asarray(policy.robot_actions(actions.float().cpu()), dtype=np.float64))
-            index = torch.tensor(members)
-            own[index, s] = robot[0]
-            steered[:, zero, index, s] = robot[0]
-            for e, (d, a) in enumerate(nonzero, start=1):
-                steered[d, a, index, s] = robot[e]
-            other[index, s] = torch.from_numpy(
-                np.asarray(policy.robot_actions(swapped.float().cpu()), dtype=np.float64))
-            done += 1
-            if progress is not None:
-                progress(done, total)
+            other[index, s] = _robot(policy, swapped)
     sign = torch.tensor([1.0 if f.side == "negative" else -1.0 for f in frames], dtype=torch.float64)
     swap = (other - own) * sign[:, None, None, None]  # positive-instruction actions minus negative-instruction ones
     logger.info("sweep: %d frames x %d seeds x %d entries", len(frames), noise_seeds, 1 + len(nonzero))
     return SweepActions(steered=steered, swap=swap, own=own)
+
+
+def _robot(policy: SweepPolicy, actions: torch.Tensor) -> torch.Tensor:
+    """Return the policy's robot actions (..., H, 7) of model actions as float64 on the CPU."""
+    return torch.from_numpy(np.asarray(policy.robot_actions(actions.float().cpu()), dtype=np.float64))
