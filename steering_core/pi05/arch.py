@@ -62,3 +62,31 @@ class Pi05Arch(StrictModel):
     def prefix_length(self, n_images: int, n_tokens: int) -> int:
         """Return the prefix length for `n_images` cameras and `n_tokens` language slots (3, 200 -> 968)."""
         return n_images * self.tokens_per_image + n_tokens
+
+
+class ExpertArch(StrictModel):
+    """Action expert dimensions; the defaults are openpi's gemma_300m, pi0.5's expert (spec 10.1).
+
+    Depth, heads, KV heads and head_dim must equal the language model's: the expert's attention reads the
+    language model's per-layer keys and values (`check_pairs_with`).
+    """
+
+    width: PositiveInt = 1024
+    depth: PositiveInt = 18
+    mlp_dim: PositiveInt = 4096
+    num_heads: PositiveInt = 8
+    num_kv_heads: PositiveInt = 1
+    head_dim: PositiveInt = 256
+    action_dim: PositiveInt = 32  # pi0.5 pads actions (and state) to 32
+
+    def check_pairs_with(self, arch: Pi05Arch) -> None:
+        """Raise unless this expert can attend to the KV cache of a language model of `arch`."""
+        mismatched = [
+            f"{name} {getattr(self, name)} (language model: {getattr(arch, name)})"
+            for name in ("depth", "num_heads", "num_kv_heads", "head_dim")
+            if getattr(self, name) != getattr(arch, name)
+        ]
+        if mismatched:
+            raise ValueError(
+                "action expert does not pair with the language model layer by layer: " + ", ".join(mismatched)
+            )

@@ -1,7 +1,8 @@
 """openpi PyTorch pi0.5 checkpoints: parameter names, expected shapes and lazy, validated reading.
 
-Only the prefix is ever read: the SigLIP tower, the projector, the token embedding and language-model
-layers 0..max_layer. The action expert, later layers, the final norm and the heads stay on disk.
+The prefix (SigLIP tower, projector, token embedding, language-model layers 0..max_layer) and the action
+expert with its heads are read separately, each after checking its names and shapes in the file header.
+The language model's final norm and the expert's lm_head are never read: no output depends on them.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from safetensors import safe_open
 from tqdm.auto import tqdm
 
 from steering_core.fileio import read_json
-from steering_core.pi05.arch import Pi05Arch
+from steering_core.pi05.arch import ExpertArch, Pi05Arch
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +34,10 @@ EXPERT_PREFIX = "paligemma_with_expert.gemma_expert."
 # The embedding table is tied to PaliGemma's lm_head; safetensors keeps only the alphabetically first
 # name of a shared group, so the file stores it as lm_head.weight and has no embed_tokens (spec 1.3).
 EMBEDDING_KEY = PALIGEMMA + "lm_head.weight"
+EXPERT_LAYERS = EXPERT_PREFIX + "model.layers."
+ACTION_IN_KEY = "action_in_proj.weight"  # (expert width, action_dim): its presence marks a full checkpoint
+HEADS = ("action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")
+ADARMS_NORMS = ("input_layernorm", "post_attention_layernorm")
 
 _FLOAT_DTYPES = {"BF16", "F16", "F32", "F64"}  # a converted file is uniform, a training file mixed (spec 1.4)
 
@@ -143,34 +148,143 @@ def _problems(handle: Any, expected: dict[str, Shape]) -> list[tuple[str, str, s
     return sorted(problems)
 
 
+def expert_tensor_shapes(expert: ExpertArch) -> dict[str, Shape]:
+    """Return checkpoint name -> shape of the action expert, its adaRMS norms and the four pi0.5 heads.
+
+    adaRMS norms have no scale weight: a dense map of the time conditioning gives scale, shift and gate
+    (3 x width rows, spec 10.2). The expert's dead lm_head is not listed.
+    """
+    w, mlp, a = expert.width, expert.mlp_dim, expert.action_dim
+    q, kv = expert.num_heads * expert.head_dim, expert.num_kv_heads * expert.head_dim
+    shapes: dict[str, Shape] = {
+        EXPERT_PREFIX + "model.norm.dense.weight": (3 * w, w),
+        EXPERT_PREFIX + "model.norm.dense.bias": (3 * w,),
+        "action_in_proj.weight": (w, a),
+        "action_in_proj.bias": (w,),
+        "action_out_proj.weight": (a, w),
+        "action_out_proj.bias": (a,),
+        "time_mlp_in.weight": (w, w),
+        "time_mlp_in.bias": (w,),
+        "time_mlp_out.weight": (w, w),
+        "time_mlp_out.bias": (w,),
+    }
+    for layer in range(expert.depth):
+        prefix = f"{EXPERT_LAYERS}{layer}."
+        shapes.update({
+            prefix + "self_attn.q_proj.weight": (q, w),
+            prefix + "self_attn.k_proj.weight": (kv, w),
+            prefix + "self_attn.v_proj.weight": (kv, w),
+            prefix + "self_attn.o_proj.weight": (w, q),
+            prefix + "mlp.gate_proj.weight": (mlp, w),
+            prefix + "mlp.up_proj.weight": (mlp, w),
+            prefix + "mlp.down_proj.weight": (w, mlp),
+        })
+        for norm in ADARMS_NORMS:
+            shapes[f"{prefix}{norm}.dense.weight"] = (3 * w, w)
+            shapes[f"{prefix}{norm}.dense.bias"] = (3 * w,)
+    return shapes
+
+
+def expert_arch_from_checkpoint(model_file: Path, arch: Pi05Arch) -> ExpertArch:
+    """Return the expert's dimensions: gemma_300m beside the real language model, else read from the header.
+
+    Width and action_dim come from `action_in_proj`, the MLP size from layer 0, the depth from the layer
+    names; heads and head_dim are the language model's (the two must pair, `ExpertArch.check_pairs_with`).
+    """
+    if arch == Pi05Arch():
+        return ExpertArch()
+    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
+        names = set(handle.keys())
+        if ACTION_IN_KEY not in names:
+            raise ValueError(
+                f"{model_file}: no action expert ({ACTION_IN_KEY} missing): this looks like a prefix-only "
+                "checkpoint; sampling actions needs the whole converted openpi pi0.5 checkpoint"
+            )
+        width, action_dim = handle.get_slice(ACTION_IN_KEY).get_shape()
+        gate = f"{EXPERT_LAYERS}0.mlp.gate_proj.weight"
+        mlp_dim = handle.get_slice(gate).get_shape()[0] if gate in names else 1
+    depth = len({name[len(EXPERT_LAYERS) :].split(".")[0] for name in names if name.startswith(EXPERT_LAYERS)})
+    return ExpertArch(
+        width=width, depth=max(depth, 1), mlp_dim=mlp_dim, num_heads=arch.num_heads,
+        num_kv_heads=arch.num_kv_heads, head_dim=arch.head_dim, action_dim=action_dim,
+    )
+
+
+def check_tensors(model_file: Path, expected: dict[str, Shape], what: str, hint: str) -> None:
+    """Raise one ValueError listing every tensor of `expected` that is missing or malformed in the header.
+
+    `what` names the part ("action expert tensors"), `hint` says how to fix it.
+    """
+    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
+        problems = _problems(handle, expected)
+    if problems:
+        lines = "\n".join(
+            f"  {name}: {'' if found == 'missing' else 'found '}{found}, expected {want}"
+            for name, found, want in problems
+        )
+        raise ValueError(
+            f"{model_file}: {len(problems)} of {len(expected)} {what} are missing or do not match:\n{lines}\n{hint}"
+        )
+
+
+def read_tensors(
+    model_file: Path,
+    expected: dict[str, Shape],
+    convert: Callable[[str, torch.Tensor], torch.Tensor],
+    what: str,
+    hint: str,
+) -> dict[str, torch.Tensor]:
+    """Return checkpoint name -> tensor for the names of `expected`, read lazily after `check_tensors`.
+
+    `convert(name, tensor)` moves each tensor to its run-time device and dtype as soon as it is read, so
+    peak memory is the converted part plus one stored tensor.
+    """
+    check_tensors(model_file, expected, what, hint)
+    tensors = {}
+    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
+        for name in tqdm(expected, desc="loading pi0.5 tensors", unit="tensor", leave=False, disable=None):
+            tensors[name] = convert(name, handle.get_tensor(name))
+    logger.info("%s: read %d %s", model_file, len(tensors), what)
+    return tensors
+
+
 def read_prefix_tensors(
     model_file: Path,
     arch: Pi05Arch,
     max_layer: int,
     convert: Callable[[str, torch.Tensor], torch.Tensor],
 ) -> dict[str, torch.Tensor]:
-    """Return checkpoint name -> tensor for the prefix up to `max_layer`, read lazily and validated first.
+    """Return checkpoint name -> tensor for the prefix up to `max_layer` (`read_tensors`)."""
+    return read_tensors(
+        model_file,
+        prefix_tensor_shapes(arch, max_layer),
+        convert,
+        f"prefix tensors (up to decoder layer {max_layer})",
+        f"They do not match {arch!r}. Pass the Pi05Arch this checkpoint was built with, or re-convert it "
+        "with openpi's convert_jax_model_to_pytorch.py.",
+    )
 
-    Every needed tensor's presence, shape and dtype is checked from the file header before any data is
-    read; all problems are reported in one error. `convert(name, tensor)` moves each tensor to its run-time
-    device and dtype as soon as it is read, so peak memory is the converted prefix plus one stored tensor.
-    """
-    expected = prefix_tensor_shapes(arch, max_layer)
-    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
-        problems = _problems(handle, expected)
-        if problems:
-            lines = "\n".join(
-                f"  {name}: {'' if found == 'missing' else 'found '}{found}, expected {want}"
-                for name, found, want in problems
-            )
-            raise ValueError(
-                f"{model_file}: {len(problems)} of {len(expected)} prefix tensors (up to decoder layer "
-                f"{max_layer}) are missing or do not match {arch!r}:\n{lines}\n"
-                "Pass the Pi05Arch this checkpoint was built with, or re-convert it with openpi's "
-                "convert_jax_model_to_pytorch.py."
-            )
-        tensors = {}
-        for name in tqdm(expected, desc="loading pi0.5 prefix", unit="tensor", leave=False, disable=None):
-            tensors[name] = convert(name, handle.get_tensor(name))
-    logger.info("%s: read %d prefix tensors (decoder layers 0..%d)", model_file, len(tensors), max_layer)
-    return tensors
+
+EXPERT_WHAT = "action expert tensors"
+
+
+def expert_hint(expert: ExpertArch) -> str:
+    """Return how to fix an expert that does not match the file."""
+    return (
+        f"They do not match {expert!r}. Sampling actions needs the whole converted openpi pi0.5 checkpoint "
+        "(a prefix-only file has no expert)."
+    )
+
+
+def check_expert_tensors(model_file: Path, expert: ExpertArch) -> None:
+    """Raise unless the file holds the action expert and heads of `expert` (header only, no data read)."""
+    check_tensors(model_file, expert_tensor_shapes(expert), EXPERT_WHAT, expert_hint(expert))
+
+
+def read_expert_tensors(
+    model_file: Path,
+    expert: ExpertArch,
+    convert: Callable[[str, torch.Tensor], torch.Tensor],
+) -> dict[str, torch.Tensor]:
+    """Return checkpoint name -> tensor for the action expert and the heads (`read_tensors`)."""
+    return read_tensors(model_file, expert_tensor_shapes(expert), convert, EXPERT_WHAT, expert_hint(expert))

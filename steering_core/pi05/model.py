@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -299,14 +299,21 @@ class Pi05Prefix(nn.Module):
         pad: torch.Tensor,
         layers: Iterable[int],
         attention: Attention = "sdpa",
+        *,
+        start: int = 0,
+        cache: KeyValueRecorder | None = None,
+        additions: Mapping[int, torch.Tensor] | None = None,
     ) -> dict[int, torch.Tensor]:
         """Return {layer: residual stream (B, S, width) after that decoder layer} for prefix embeddings.
 
         Args:
-            hidden: prefix embeddings (B, S, width).
+            hidden: prefix embeddings (B, S, width), or the output of layer `start - 1`.
             pad: (B, S) bool, True for valid tokens; valid tokens attend bidirectionally to valid tokens.
             layers: decoder layers to return; the loop stops after the deepest.
             attention: "sdpa" (fused, key-padding mask) or "eager" (openpi's explicit additive (S, S) mask).
+            start: first decoder layer to run (the layers before it were run by an earlier call).
+            cache: records every run layer's post-RoPE keys and values (the action expert's KV cache).
+            additions: {layer: tensor broadcastable to (B, S, width)} added to that layer's output (steering).
         """
         wanted = set(layers)
         deepest = max(wanted)
@@ -316,14 +323,18 @@ class Pi05Prefix(nn.Module):
         hidden = hidden.to(self.layers[0].self_attn.q_proj.weight.dtype)
         position_embeddings = self.rotary_emb(hidden, position_ids)  # cos, sin: (B, S, head_dim)
         captured = {}
-        for index, layer in enumerate(self.layers):
-            hidden = layer(
-                hidden, attention_mask=mask, position_ids=position_ids, position_embeddings=position_embeddings
+        for index in range(start, deepest + 1):
+            hidden = self.layers[index](
+                hidden,
+                attention_mask=mask,
+                position_ids=position_ids,
+                position_embeddings=position_embeddings,
+                past_key_values=cache,
             )
+            if additions and index in additions:
+                hidden = hidden + additions[index]
             if index in wanted:
                 captured[index] = hidden
-            if index == deepest:
-                break
         return captured
 
     def residuals(
@@ -427,6 +438,18 @@ class Pi05Prefix(nn.Module):
                 )
         if problems:
             raise ValueError("Pi05Prefix.residuals: " + "; ".join(problems))
+
+
+class KeyValueRecorder:
+    """Stands in for a transformers Cache in the prefix forward: keeps each layer's post-RoPE keys and
+    values (B, kv_heads, S, head_dim) and returns them unchanged, so attention sees exactly the prefix."""
+
+    def __init__(self) -> None:
+        self.layers: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def update(self, keys: torch.Tensor, values: torch.Tensor, layer_idx: int, cache_kwargs: Any = None):
+        self.layers[layer_idx] = (keys, values)
+        return keys, values
 
 
 def attention_mask(pad: torch.Tensor, attention: Attention) -> torch.Tensor:

@@ -109,3 +109,19 @@ def quantile_normalize(values: np.ndarray, stats: NormStats) -> np.ndarray:
 def discretize_state(normalized: np.ndarray) -> np.ndarray:
     """Return the 256-bin index of each value as int64: floor((x + 1) * 128), -1 below -1, 255 from 0.9921875."""
     return np.digitize(np.asarray(normalized, dtype=np.float64), STATE_BIN_EDGES).astype(np.int64) - 1
+
+
+def quantile_unnormalize(values: np.ndarray, stats: NormStats) -> np.ndarray:
+    """Return (x + 1) / 2 * (q99 - q01 + 1e-6) + q01 as float64 on x's leading len(q01) dims (spec 10.8).
+
+    `values` is (..., D); dims beyond the stats pass through unchanged (openpi's model actions are 32 wide,
+    LIBERO's stats 7). Stats longer than D are an error, as in openpi.
+    """
+    if stats.q01 is None or stats.q99 is None:
+        raise ValueError("norm stats have no q01/q99: pi0.5 un-normalises with quantiles; re-compute the norm stats")
+    values = np.asarray(values, dtype=np.float64)
+    dim, stats_dim = values.shape[-1], len(stats.q01)
+    if stats_dim > dim:
+        raise ValueError(f"values have {dim} dimensions but the norm stats {stats_dim}; expected at most {dim}")
+    head = (values[..., :stats_dim] + 1.0) / 2.0 * (stats.q99 - stats.q01 + QUANTILE_EPS) + stats.q01
+    return np.concatenate([head, values[..., stats_dim:]], axis=-1)

@@ -67,9 +67,16 @@ def libero_camera_slots(
         problems.append(f"batch sizes differ: image {image.shape[0]}, wrist_image {wrist_image.shape[0]}")
     if problems:
         raise ValueError("libero_camera_slots: " + "; ".join(problems))
+    return camera_slots(to_uint8(image), to_uint8(wrist_image), image_size)
+
+
+def camera_slots(
+    image: torch.Tensor, wrist_image: torch.Tensor, image_size: int = IMAGE_SIZE
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Return the three camera slots and masks (as `libero_camera_slots`) from uint8 (B, 3, H, W) frames."""
     batch = image.shape[0]
-    base = to_model_range(resize_with_pad(to_uint8(image), image_size))
-    wrist = to_model_range(resize_with_pad(to_uint8(wrist_image), image_size))
+    base = to_model_range(resize_with_pad(image, image_size))
+    wrist = to_model_range(resize_with_pad(wrist_image, image_size))
     absent = torch.full_like(base, -1.0)  # to_model_range of an all-zero uint8 image
     present = torch.ones(batch, dtype=torch.bool)
     return [base, wrist, absent], [present, present.clone(), torch.zeros(batch, dtype=torch.bool)]

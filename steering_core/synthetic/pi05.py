@@ -17,13 +17,14 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.fileio import atomic_dir
-from steering_core.pi05.arch import Pi05Arch
+from steering_core.pi05.arch import ExpertArch, Pi05Arch
 from steering_core.pi05.checkpoint import (
     CONFIG_FILE,
     EXPERT_PREFIX,
     LM_PREFIX,
     MODEL_FILE,
     Shape,
+    expert_tensor_shapes,
     prefix_tensor_shapes,
 )
 from steering_core.pi05.norm_stats import ASSETS_DIR, LIBERO_ASSET_ID, NORM_STATS_FILE
@@ -53,49 +54,25 @@ def tiny_arch(vocab_size: int = 512) -> Pi05Arch:
     )
 
 
-def expert_tensor_shapes(arch: Pi05Arch, action_dim: int = ACTION_DIM) -> dict[str, Shape]:
-    """Return name -> shape of the action expert, its adaRMS norms and lm_head, and the pi0.5 heads.
+def tiny_expert_arch(arch: Pi05Arch, action_dim: int = ACTION_DIM) -> ExpertArch:
+    """Return the expert that pairs with `arch` the way gemma_300m pairs with gemma_2b: half the width, a
+    quarter of the MLP, the same depth and attention layout."""
+    return ExpertArch(
+        width=arch.width // 2, depth=arch.depth, mlp_dim=arch.mlp_dim // 4, num_heads=arch.num_heads,
+        num_kv_heads=arch.num_kv_heads, head_dim=arch.head_dim, action_dim=action_dim,
+    )
 
-    The expert is half as wide as the language model with a quarter of its MLP (gemma_300m: 1024, 4096)
-    and shares its heads and head_dim, so its queries are as wide as the LM's (spec 1.2).
+
+def checkpoint_tensor_shapes(arch: Pi05Arch, expert: ExpertArch | None = None) -> dict[str, Shape]:
+    """Return name -> shape of a whole converted pi0.5 checkpoint (812 tensors at the real size).
+
+    Includes the two tensors no inference reads: the language model's final norm and the expert's lm_head.
     """
-    width, mlp = arch.width // 2, arch.mlp_dim // 4
-    q, kv = arch.num_heads * arch.head_dim, arch.num_kv_heads * arch.head_dim
-    shapes: dict[str, Shape] = {
-        EXPERT_PREFIX + "model.norm.dense.weight": (3 * width, width),
-        EXPERT_PREFIX + "model.norm.dense.bias": (3 * width,),
-        EXPERT_PREFIX + "lm_head.weight": (arch.vocab_size, width),
-        "action_in_proj.weight": (width, action_dim),
-        "action_in_proj.bias": (width,),
-        "action_out_proj.weight": (action_dim, width),
-        "action_out_proj.bias": (action_dim,),
-        "time_mlp_in.weight": (width, width),
-        "time_mlp_in.bias": (width,),
-        "time_mlp_out.weight": (width, width),
-        "time_mlp_out.bias": (width,),
-    }
-    for layer in range(arch.depth):
-        prefix = f"{EXPERT_PREFIX}model.layers.{layer}."
-        shapes.update({
-            prefix + "self_attn.q_proj.weight": (q, width),
-            prefix + "self_attn.k_proj.weight": (kv, width),
-            prefix + "self_attn.v_proj.weight": (kv, width),
-            prefix + "self_attn.o_proj.weight": (width, q),
-            prefix + "mlp.gate_proj.weight": (mlp, width),
-            prefix + "mlp.up_proj.weight": (mlp, width),
-            prefix + "mlp.down_proj.weight": (width, mlp),
-        })
-        for norm in ("input_layernorm", "post_attention_layernorm"):
-            shapes[f"{prefix}{norm}.dense.weight"] = (3 * width, width)
-            shapes[f"{prefix}{norm}.dense.bias"] = (3 * width,)
-    return shapes
-
-
-def checkpoint_tensor_shapes(arch: Pi05Arch, action_dim: int = ACTION_DIM) -> dict[str, Shape]:
-    """Return name -> shape of a whole converted pi0.5 checkpoint (812 tensors at the real size)."""
+    expert = expert or (ExpertArch() if arch == Pi05Arch() else tiny_expert_arch(arch))
     shapes = prefix_tensor_shapes(arch, arch.depth - 1)
     shapes[LM_PREFIX + "norm.weight"] = (arch.width,)
-    shapes.update(expert_tensor_shapes(arch, action_dim))
+    shapes.update(expert_tensor_shapes(expert))
+    shapes[EXPERT_PREFIX + "lm_head.weight"] = (arch.vocab_size, expert.width)
     return shapes
 
 

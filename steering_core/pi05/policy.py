@@ -1,0 +1,388 @@
+"""The whole pi0.5 policy: prefix KV cache, action expert, flow-matching Euler sampler, with steering.
+
+`Pi05Policy.sample_actions` computes what openpi's `PI0Pytorch.sample_actions` computes (spec 10.4): one
+prefix forward fills a per-layer KV cache, then `num_steps` Euler steps from noise at t = 1 run the action
+tokens through the expert. The prefix keeps `Pi05Prefix`'s exact savings (a camera masked for the whole
+batch is skipped, language padding after the longest prompt is trimmed): those columns are invalid, and
+invalid prefix keys are masked for every action token too.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from steering_core.devices import resolve_device, resolve_dtype
+from steering_core.pi05.arch import ExpertArch, Pi05Arch
+from steering_core.pi05.checkpoint import (
+    check_expert_tensors,
+    expert_arch_from_checkpoint,
+    read_expert_tensors,
+    resolve_model_file,
+)
+from steering_core.pi05.expert import (
+    ActionExpert,
+    euler_times,
+    expert_checkpoint_key,
+    expert_parameter_dtype,
+)
+from steering_core.pi05.model import MASKED_LOGIT, Attention, KeyValueRecorder, Pi05Prefix
+from steering_core.pi05.norm_stats import (
+    LIBERO_ASSET_ID,
+    NormStats,
+    norm_stats_path as default_norm_stats_path,
+    quantile_normalize,
+    quantile_unnormalize,
+    read_norm_stats,
+)
+from steering_core.pi05.observation import observation_batch
+from steering_core.pi05.steering import (
+    Steering,
+    SteeringArg,
+    as_list,
+    check_steerings,
+    expert_additions,
+    lm_additions,
+    stack_entries,
+)
+from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer
+
+logger = logging.getLogger(__name__)
+
+ROBOT_ACTION_DIM = 7  # LiberoOutputs keeps the first 7 of the 32 model action dimensions
+DEFAULT_STEPS = 10  # sample_actions' default number of Euler steps
+
+
+class Pi05Policy(nn.Module):
+    """pi0.5 (prefix + action expert + sampler) with residual-stream steering; build with `from_checkpoint`."""
+
+    def __init__(
+        self,
+        prefix: Pi05Prefix,
+        expert: ActionExpert,
+        action_horizon: int,
+        tokenizer: PromptTokenizer | None,
+        norm_stats_file: Path,
+    ):
+        super().__init__()
+        self.prefix = prefix
+        self.expert = expert
+        self.action_horizon = action_horizon
+        self.tokenizer = tokenizer
+        self.norm_stats_file = norm_stats_file
+        self.attention: Attention = "sdpa"  # the prefix's fused attention; "eager" is openpi's explicit mask
+        self._norm_stats: dict[str, NormStats] | None = None
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike,
+        arch: Pi05Arch | None = None,
+        device: str | torch.device | None = None,
+        dtype: str | torch.dtype | None = None,
+        action_horizon: int = 10,
+        tokenizer_path: str | os.PathLike | None = None,
+        prompt_format: PromptFormat = PromptFormat.LIBERO,
+        norm_stats_path: str | os.PathLike | None = None,
+        asset_id: str = LIBERO_ASSET_ID,
+        expert_arch: ExpertArch | None = None,
+    ) -> Pi05Policy:
+        """Return the policy of a converted openpi PyTorch pi0.5 checkpoint (folder or model.safetensors).
+
+        Args:
+            arch: language model and SigLIP dimensions; default the real pi0.5.
+            device, dtype: default CUDA with openpi's bfloat16 policy (float32 norms, adaRMS and heads)
+                when available, else CPU float32.
+            action_horizon: actions per chunk (pi05_libero: 10).
+            tokenizer_path: PaliGemma SentencePiece model; needed by `infer` and `instruction_mask` only.
+            prompt_format: how the checkpoint reads its prompt (pi05_libero: libero, no state).
+            norm_stats_path, asset_id: norm stats for `robot_actions` (and the discrete-state prompt);
+                default `<checkpoint>/assets/<asset_id>/norm_stats.json`, read on first use.
+            expert_arch: expert dimensions; default gemma_300m beside the real language model, else read
+                from the checkpoint's shapes.
+        """
+        arch = arch or Pi05Arch()
+        if isinstance(action_horizon, bool) or not isinstance(action_horizon, int) or action_horizon < 1:
+            raise ValueError(f"action_horizon {action_horizon!r} must be a positive integer")
+        model_file = resolve_model_file(path)
+        expert_arch = expert_arch or expert_arch_from_checkpoint(model_file, arch)
+        expert_arch.check_pairs_with(arch)
+        # the expert's names and shapes fail a prefix-only or mismatched file before any data is read
+        check_expert_tensors(model_file, expert_arch)
+        tokenizer = None
+        if tokenizer_path is not None:
+            tokenizer = PromptTokenizer(tokenizer_path, prompt_format=prompt_format)
+            if tokenizer.vocab_size > arch.vocab_size:
+                raise ValueError(
+                    f"{tokenizer_path}: {tokenizer.vocab_size} pieces, more than the model's vocab_size "
+                    f"{arch.vocab_size}; pass the tokenizer the checkpoint was trained with"
+                )
+        device = resolve_device(device)
+        dtype = resolve_dtype(dtype, device)
+        prefix = Pi05Prefix.from_checkpoint(model_file, arch, device=device, dtype=dtype)
+        with torch.device("meta"):
+            expert = ActionExpert(expert_arch)
+        local = {expert_checkpoint_key(name): name for name, _ in expert.named_parameters()}
+        tensors = read_expert_tensors(
+            model_file,
+            expert_arch,
+            lambda key, tensor: tensor.to(device=device, dtype=expert_parameter_dtype(key, dtype)),
+        )
+        expert.load_state_dict({local[key]: tensor for key, tensor in tensors.items()}, strict=True, assign=True)
+        expert.requires_grad_(False).eval()
+        stats_file = Path(norm_stats_path) if norm_stats_path is not None else default_norm_stats_path(model_file, asset_id)
+        policy = cls(prefix, expert, action_horizon, tokenizer, stats_file)
+        policy.eval()
+        logger.info("pi0.5 policy from %s on %s in %s (expert %s)", model_file, device, dtype, expert_arch)
+        return policy
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def arch(self) -> Pi05Arch:
+        return self.prefix.arch
+
+    @property
+    def expert_arch(self) -> ExpertArch:
+        return self.expert.expert_arch
+
+    @property
+    def device(self) -> torch.device:
+        return self.prefix.device
+
+    @property
+    def action_dim(self) -> int:
+        """Return the model's action width (32: LIBERO's 7 padded)."""
+        return self.expert_arch.action_dim
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """Return a JSON-ready summary of the policy (served to clients)."""
+        return {
+            "model": "pi05",
+            "action_horizon": self.action_horizon,
+            "action_dim": self.action_dim,
+            "robot_action_dim": ROBOT_ACTION_DIM,
+            "image_size": self.arch.image_size,
+            "max_token_len": self.tokenizer.max_len if self.tokenizer else None,
+            "prompt_format": self.tokenizer.prompt_format.value if self.tokenizer else None,
+            "checkpoint": str(self.prefix.model_file),
+            "norm_stats": str(self.norm_stats_file),
+            "device": str(self.device),
+            "dtype": str(self.prefix.compute_dtype).removeprefix("torch."),
+            "lm": self.arch.model_dump(),
+            "expert": self.expert_arch.model_dump(),
+            "steerable": {
+                "lm": {"width": self.arch.width, "layers": self.arch.depth},
+                "expert": {"width": self.expert_arch.width, "layers": self.expert_arch.depth},
+            },
+        }
+
+    # ------------------------------------------------------------------ sampling
+
+    def sample_actions(
+        self,
+        images: Sequence[torch.Tensor],
+        image_masks: Sequence[torch.Tensor],
+        tokens: torch.Tensor,
+        token_mask: torch.Tensor,
+        noise: torch.Tensor | None = None,
+        num_steps: int = DEFAULT_STEPS,
+        steering: SteeringArg = None,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Return model actions (B, action_horizon, action_dim) float32, as openpi's `sample_actions`.
+
+        images / image_masks: per camera slot (B, 3, S, S) float in [-1, 1] and (B,) bool, in openpi's
+        order (`libero_camera_slots`); tokens (B, T) int64, token_mask (B, T) bool. noise: (B, H, A) float32,
+        default N(0, 1) from `generator`. steering: one Steering, a list applied together, or None.
+        """
+        entries = [as_list(steering)]
+        return self._sample(images, image_masks, tokens, token_mask, entries, noise, num_steps, generator)[0]
+
+    def sample_actions_sweep(
+        self,
+        images: Sequence[torch.Tensor],
+        image_masks: Sequence[torch.Tensor],
+        tokens: torch.Tensor,
+        token_mask: torch.Tensor,
+        steerings: Sequence[SteeringArg],
+        noise: torch.Tensor | None = None,
+        num_steps: int = DEFAULT_STEPS,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Return (len(steerings), B, action_horizon, action_dim): `sample_actions` once per entry, same noise.
+
+        The prefix up to the shallowest steered language-model layer is computed once; the deeper layers
+        and the denoising loop run every entry in one batch.
+        """
+        if isinstance(steerings, Steering) or not len(steerings):
+            raise ValueError("steerings must be a non-empty list of entries (each a Steering, a list, or None)")
+        entries = [as_list(entry) for entry in steerings]
+        return self._sample(images, image_masks, tokens, token_mask, entries, noise, num_steps, generator)
+
+    @torch.no_grad()
+    def _sample(
+        self,
+        images: Sequence[torch.Tensor],
+        image_masks: Sequence[torch.Tensor],
+        tokens: torch.Tensor,
+        token_mask: torch.Tensor,
+        entries: list[list[Steering]],
+        noise: torch.Tensor | None,
+        num_steps: int,
+        generator: torch.Generator | None,
+    ) -> torch.Tensor:
+        """Return (len(entries), B, H, A) actions; each entry's steerings apply to its own copy of the batch."""
+        self.prefix._check_inputs(images, image_masks, tokens, token_mask)
+        batch, n_tokens = tokens.shape
+        check_steerings([s for entry in entries for s in entry], self.arch, self.expert_arch, batch, n_tokens,
+                        len(images))
+        dt, times = euler_times(num_steps, self.device)
+        noise = self._noise(noise, batch, generator)
+        tokens, token_mask = tokens.to(self.device, torch.long), token_mask.to(self.device)
+        image_masks = [mask.to(self.device) for mask in image_masks]
+        n = len(entries)
+
+        hidden, pad, columns = self.prefix.embed_prefix(images, image_masks, tokens, token_mask)
+        image_columns = len(images) * self.arch.tokens_per_image
+        dtype = self.prefix.compute_dtype
+        lm = [lm_additions(entry, token_mask, columns, image_columns, dtype) for entry in entries]
+        keys_values = self._prefix_cache(hidden, pad, lm, batch)
+
+        # action tokens: positions continue after the valid prefix tokens; they see every valid prefix key
+        # and each other (one bidirectional block, spec 10.4)
+        horizon = self.action_horizon
+        positions = (pad.sum(dim=1, keepdim=True) + torch.arange(horizon, device=self.device)).repeat(n, 1)
+        rotary = self.prefix.rotary_emb(hidden.new_empty(0, dtype=self.expert.compute_dtype), positions)
+        allowed = torch.cat([pad, pad.new_ones(batch, horizon)], dim=1).repeat(n, 1)
+        mask = torch.where(allowed, 0.0, MASKED_LOGIT).to(torch.float32)[:, None, None, :]
+        steer = stack_entries([expert_additions(entry, self.expert.compute_dtype, self.device) for entry in entries],
+                              batch)
+        actions = noise.repeat(n, 1, 1)
+        for t in times:
+            cond = self.expert.condition(t.expand(n * batch))
+            velocity = self.expert.velocity(actions, cond, rotary, keys_values, mask, steer)
+            actions = actions + dt * velocity
+        return actions.view(n, batch, horizon, self.action_dim)
+
+    def _prefix_cache(
+        self, hidden: torch.Tensor, pad: torch.Tensor, lm: list[dict[int, torch.Tensor]], batch: int
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Return each language-model layer's keys and values for the entries stacked along the batch.
+
+        Layers up to the shallowest steered one run once for the batch: steering a layer's output leaves
+        its own keys and values unchanged. The deeper layers run once over all entries together.
+        """
+        last = self.arch.depth - 1
+        steered = [layer for entry in lm for layer in entry]
+        split = min(steered) if steered else last
+        n = len(lm)
+        shared = KeyValueRecorder()
+        out = self.prefix.decode(hidden, pad, [split], self.attention, cache=shared)[split]
+        keys_values = [tuple(t.repeat(n, 1, 1, 1) for t in shared.layers[i]) for i in range(split + 1)]
+        if split < last:
+            additions = stack_entries(lm, batch)
+            out = out.repeat(n, 1, 1) + additions.pop(split, 0)
+            rest = KeyValueRecorder()
+            self.prefix.decode(out, pad.repeat(n, 1), [last], self.attention, start=split + 1, cache=rest,
+                               additions=additions)
+            keys_values += [rest.layers[i] for i in range(split + 1, last + 1)]
+        return keys_values
+
+    def _noise(self, noise: torch.Tensor | None, batch: int, generator: torch.Generator | None) -> torch.Tensor:
+        """Return the initial noise (B, H, A) float32 on the device: `noise` checked, or N(0, 1) draws."""
+        shape = (batch, self.action_horizon, self.action_dim)
+        if noise is None:
+            device = generator.device if generator is not None else self.device
+            return torch.randn(shape, generator=generator, device=device, dtype=torch.float32).to(self.device)
+        if not isinstance(noise, torch.Tensor) or tuple(noise.shape) != shape or not noise.is_floating_point():
+            found = f"{tuple(noise.shape)} {noise.dtype}" if isinstance(noise, torch.Tensor) else type(noise).__name__
+            raise ValueError(f"noise: found {found}, expected {shape} float32 (batch, action_horizon, action_dim)")
+        return noise.to(self.device, torch.float32)
+
+    # ------------------------------------------------------------------ robot side
+
+    @property
+    def norm_stats(self) -> dict[str, NormStats]:
+        """Return the checkpoint's norm stats, read on first use."""
+        if self._norm_stats is None:
+            self._norm_stats = read_norm_stats(self.norm_stats_file)
+        return self._norm_stats
+
+    def robot_actions(self, actions: torch.Tensor | np.ndarray) -> np.ndarray:
+        """Return (..., action_horizon, 7) float32 robot actions: pi05_libero's output transform (spec 10.8).
+
+        Quantile un-normalisation of the model actions with the `actions` norm stats, then the first 7 dims.
+        """
+        if isinstance(actions, torch.Tensor):
+            actions = actions.detach().float().cpu().numpy()
+        actions = np.asarray(actions)
+        if actions.ndim < 1 or actions.shape[-1] != self.action_dim:
+            raise ValueError(f"actions: found shape {actions.shape}, expected (..., {self.action_dim})")
+        stats = self.norm_stats.get("actions")
+        if stats is None:
+            raise ValueError(f"{self.norm_stats_file}: no `actions` entry; found {sorted(self.norm_stats)}")
+        return quantile_unnormalize(actions, stats)[..., :ROBOT_ACTION_DIM].astype(np.float32)
+
+    def _require_tokenizer(self) -> PromptTokenizer:
+        if self.tokenizer is None:
+            raise ValueError("this policy has no tokenizer: pass tokenizer_path= to Pi05Policy.from_checkpoint")
+        return self.tokenizer
+
+    def instruction_mask(self, prompt: str) -> torch.Tensor:
+        """Return (1, T) bool: True at the language positions of the prompt's instruction tokens."""
+        span = self._require_tokenizer().tokenize(prompt).instruction
+        mask = torch.zeros(1, self.tokenizer.max_len, dtype=torch.bool)
+        mask[0, span[0] : span[1]] = True
+        return mask
+
+    def tokenize(self, prompts: Sequence[str], states: np.ndarray | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return tokens (B, T) int64 and token_mask (B, T) bool of the prompts, as capture builds them.
+
+        The state (B, D) enters the prompt only in the discrete-state format (quantile-normalised, binned).
+        """
+        tokenizer = self._require_tokenizer()
+        if tokenizer.prompt_format is PromptFormat.DISCRETE_STATE:
+            stats = self.norm_stats.get("state")
+            if stats is None:
+                raise ValueError(f"{self.norm_stats_file}: no `state` entry for the discrete-state prompt")
+            encoded = [tokenizer.tokenize(p, quantile_normalize(s, stats)) for p, s in zip(prompts, states)]
+        else:
+            encoded = [tokenizer.tokenize(p) for p in prompts]
+        tokens = torch.from_numpy(np.stack([e.ids for e in encoded]))
+        return tokens, torch.from_numpy(np.stack([e.mask for e in encoded]))
+
+    def infer(
+        self,
+        observation: Mapping[str, Any],
+        steering: SteeringArg = None,
+        noise: torch.Tensor | np.ndarray | None = None,
+        num_steps: int = DEFAULT_STEPS,
+    ) -> dict[str, Any]:
+        """Return {"actions": (H, 7) float32 (or (B, H, 7) when batched), "policy_timing": {"infer_ms"}}.
+
+        `observation` is openpi's LIBERO dict: "observation/image" and "observation/wrist_image" (H, W, 3)
+        uint8, "observation/state" (8,), "prompt" str; a leading batch dim (and a list of prompts) is allowed.
+        """
+        start = time.perf_counter()
+        batch = observation_batch(observation, self.arch.image_size)
+        tokens, token_mask = self.tokenize(batch.prompts, batch.states)
+        if noise is not None:
+            noise = torch.as_tensor(noise, dtype=torch.float32)
+            noise = noise if batch.batched else noise[None]
+        actions = self.sample_actions(batch.images, batch.image_masks, tokens, token_mask, noise=noise,
+                                      num_steps=num_steps, steering=steering)
+        robot = self.robot_actions(actions)
+        return {
+            "actions": robot if batch.batched else robot[0],
+            "policy_timing": {"infer_ms": (time.perf_counter() - start) * 1000.0},
+        }
