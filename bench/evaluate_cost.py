@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> Result:
         table=rows,
         checks={"max_abs_difference": max(differences), "naive_calls": calls},
         notes=[
-            f"mid-size model (the capture benchmark's): LM width {arch.width} x depth {arch.depth}, SigLIP width "
+            f"model{'' if args.quick else ' (the capture benchmark mid-size pi0.5)'}: LM width {arch.width} x depth {arch.depth}, SigLIP width "
             f"{arch.vision_width} x depth {arch.vision_depth}; {NUM_STEPS} denoising steps; naive: {calls} full "
             f"sample_actions calls; best of {ROUNDS} round(s) after a warm-up.",
             f"same actions on both sides: max |ours - naive| over every robot action = {max(differences):.2e}.",

@@ -9,11 +9,12 @@ from prefect import get_run_logger, task
 
 from steering_core import layout
 from steering_core.capture import CaptureSettings
+from steering_core.data.contrast import read_manifest
 from steering_core.data.split import read_split
 from steering_core.evaluate import report
 from steering_core.evaluate import run as evaluate_run
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.identity import file_digest
+from steering_core.identity import file_digest, plain
 from steering_core.sae import steering
 from steering_core.sae.steering import SteeringSettings
 from tasks.artifacts import artifact_key, progress_artifact
@@ -30,6 +31,12 @@ def folder_digests(path: Path) -> dict[str, str]:
     return {p.name: file_digest(p) for p in sorted(path.iterdir()) if p.is_file()}
 
 
+def manifest_content(path: Path) -> Any:
+    """Return a manifest's axis and segments: not its dataset record, whose fingerprint follows every new demo."""
+    manifest = read_manifest(path)
+    return {"axis": plain(manifest.axis), "segments": [plain(segment) for segment in manifest.segments]}
+
+
 def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
     """Return what one evaluation reads, by content: its pair's vectors, slices, windows, split and frames.
 
@@ -42,7 +49,7 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
                                                     "negative_slice", "directions", "dataset_root"}),
         "directions": folder_digests(job.directions),
         "slices": [file_digest(job.positive_slice), file_digest(job.negative_slice)],
-        "manifest": file_digest(job.manifest),
+        "manifest": manifest_content(job.manifest),
         "windows": concept_rows(str(job.concept_map)),
         "split": file_digest(job.split),
         "frames": episode_sources({"dataset_root": str(job.dataset_root), "episodes": episodes}),
