@@ -44,9 +44,9 @@ from steering_core.synthetic.pi05 import tiny_arch
 # ----------------------------------------------------------------------------- settings
 
 LAYER = 12                      # the seed's SAE layer
-FRAMES = 2                      # frames of the negative task
+FRAMES = 1                      # frames of the negative task
 NOISE_SEEDS = 1
-DIRECTIONS = 4                  # e.g. residual, mean difference, top-k, one random: the per-direction cost is equal
+DIRECTIONS = 3                  # e.g. residual, mean difference, top-k: every direction costs the same
 ALPHAS = (-4.0, -2.0, 0.0, 2.0, 4.0)
 NUM_STEPS = 10                  # openpi's denoising steps
 ROUNDS = 1

@@ -209,3 +209,22 @@ def test_bad_input(tmp_path):
         evaluate_pair(pair, wrong, FakePolicy(WIDTH, planted(), GAP), FakeSteering, load, prompts(), layer=LAYER,
                       width=WIDTH, settings=EvaluateSettings(), output_dir=out)
     assert not out.exists()
+
+
+def test_model_checks_name_the_problem(tmp_path):
+    from steering_core.capture import CaptureSettings
+    from steering_core.evaluate.run import check_model
+    from steering_core.pi05 import PromptFormat
+    from steering_core.synthetic.pi05 import tiny_arch
+
+    arch = tiny_arch()
+    model = CaptureSettings(checkpoint_path=tmp_path / "missing", tokenizer_path=tmp_path / "tok", layers=(1,), arch=arch)
+    with pytest.raises(FileNotFoundError, match="missing: policy checkpoint not found"):
+        check_model(model, 1)
+    (tmp_path / "ckpt").mkdir()
+    model = model.model_copy(update={"checkpoint_path": tmp_path / "ckpt"})
+    with pytest.raises(ValueError, match=rf"layer {arch.depth} is not a layer of the policy: it has {arch.depth}"):
+        check_model(model, arch.depth)
+    with pytest.raises(ValueError, match="needs the libero format"):
+        check_model(model.model_copy(update={"prompt_format": PromptFormat.DISCRETE_STATE}), 1)
+    check_model(model, arch.depth - 1)

@@ -472,4 +472,7 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     counts = read_json(config.layer_path(1) / "open_vs_close" / "directions.json")["counts"]
     index = read_json(config.slices_dir(config.pair("open_vs_close")) / "layer01" / "index.json")
     assert counts["positive"] == index["concepts"][DRAWER_OPEN]["rows"]
-    assert len(index["concepts"][DRAWER_OPEN]["segments"]) == 3
+    # three drawer-opening episodes now: the split holds one out, the slices hold the other two
+    split = read_json(config.split_path(config.pair("open_vs_close")))["tasks"][DRAWER_OPEN]
+    assert len(split["train"]) + len(split["holdout"]) == 3 and len(split["holdout"]) == 1
+    assert [s["episode_index"] for s in index["concepts"][DRAWER_OPEN]["segments"]] == split["train"]

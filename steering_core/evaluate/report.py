@@ -133,13 +133,15 @@ def _plot_shift(path: Path, record: dict[str, Any]) -> None:
 
 
 def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
-    """x, y, z over the horizon of frame 0, seed 0: unsteered, residual_direction at its best α, and the swap."""
+    """x, y, z over the horizon of the first negative-task frame, seed 0: unsteered (its own instruction),
+    residual_direction at its best α, and with the positive task's instruction (the swap)."""
     names, direction = list(record["directions"]), 0  # the first direction is residual_direction
     best = record["alphas"].index(record["directions"][names[0]]["best"]["alpha"])
     zero = record["alphas"].index(0.0)
+    f = next(i for i, frame in enumerate(record["frames"]) if frame["side"] == "negative")
     steered, swap = tensors["actions"], tensors["swap_actions"]
-    curves = {"α = 0": steered[direction, zero, 0, 0], f"{names[0]}, α = {record['alphas'][best]:g}":
-              steered[direction, best, 0, 0], "instruction swap": steered[direction, zero, 0, 0] + swap[0, 0]}
+    curves = {"α = 0": steered[direction, zero, f, 0], f"{names[0]}, α = {record['alphas'][best]:g}":
+              steered[direction, best, f, 0], "positive instruction (swap)": steered[direction, zero, f, 0] + swap[f, 0]}
     fig = figure((9.0, 3.0))
     for axis, label in enumerate(_AXIS_NAMES):
         ax = fig.add_subplot(1, 3, axis + 1)
@@ -147,7 +149,7 @@ def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torc
             ax.plot(actions[:, axis].tolist(), marker=".", label=name)
         ax.set(xlabel="action step", ylabel=f"Δ{label}")
     fig.axes[0].legend(fontsize=7)
-    frame = record["frames"][0]
+    frame = record["frames"][f]
     fig.suptitle(f"episode {frame['episode_index']} frame {frame['frame_index']} ({frame['side']} task)", fontsize=9)
     save_png(fig, path)
 
