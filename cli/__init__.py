@@ -1,6 +1,6 @@
 """`latent-steering`: one subcommand per step of the seed pipeline."""
 
-from cli import capture, contrast, evaluate, prepare, run, steer  # noqa: F401  (register commands)
+from cli import capture, contrast, evaluate, prepare, run, serve, steer  # noqa: F401  (register commands)
 from cli.app import app
 
 __all__ = ["app"]

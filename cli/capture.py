@@ -40,7 +40,9 @@ def capture_command(
         None, "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
     ),
     output_dir: Path | None = typer.Option(None, "--output-dir", help="Run folder, e.g. data/residuals/open_close_run."),
-    lerobot_root: Path | None = typer.Option(None, "--lerobot-root", help="LeRobot v3.0 dataset folder."),
+    lerobot_root: Path | None = typer.Option(
+        None, "--lerobot-root", help="LeRobot dataset folder (v3.0, v2.1 or v2.0; read in place)."
+    ),
     tokenizer_path: Path | None = typer.Option(
         None, "--tokenizer-path", help="PaliGemma SentencePiece model (paligemma_tokenizer.model)."
     ),
@@ -88,6 +90,10 @@ def capture_command(
     arch_file: Path | None = typer.Option(
         None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
     ),
+    max_samples_per_layer: int | None = typer.Option(
+        None, "--max-samples-per-layer", min=1,
+        help="The seed's cap: capture only the first episodes until they hold N frames (whole episode groups).",
+    ),
 ) -> None:
     """Capture pi0.5 residuals of every dataset frame at the given layers into resumable shards.
 
@@ -126,7 +132,8 @@ def capture_command(
             num_workers=num_workers,
             video_backend=video_backend,
         )
-        result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings)
+        result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings,
+                         max_frames=max_samples_per_layer)
     _echo_result(output_dir, result)
 
 

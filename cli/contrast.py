@@ -13,6 +13,8 @@ from steering_core.data.concept_map import (
     write_concept_map,
 )
 from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
+from steering_core.data.contrast_hdf5 import build_hdf5_manifest
+from steering_core.data.convert import DemoOrder
 
 _DEFAULTS = ContrastSettings()
 
@@ -38,11 +40,39 @@ def _episode_list(values: list[str] | None, flag: str) -> tuple[int, ...] | None
     return tuple(indices)
 
 
+def _task(text: str | None, index: int | None, letter: str) -> str | int:
+    """Return task A's or B's text or index from its two flags (exactly one must be given)."""
+    if (text is None) == (index is None):
+        raise typer.BadParameter(
+            f"give exactly one of --task-{letter}-text and --task-{letter}-index", param_hint=f"--task-{letter}-text"
+        )
+    return text if text is not None else index
+
+
 @app.command("manifest")
 def manifest_command(
-    lerobot_root: Path = typer.Option(..., "--lerobot-root", help="LeRobot v3.0 dataset folder."),
-    task_a_text: str = typer.Option(..., "--task-a-text", help="Task A's instruction (e.g. the 'open' task)."),
-    task_b_text: str = typer.Option(..., "--task-b-text", help="Task B's instruction (e.g. the 'close' task)."),
+    lerobot_root: Path | None = typer.Option(
+        None, "--lerobot-root", help="LeRobot dataset folder (v3.0, v2.1 or v2.0); the lerobot backend."
+    ),
+    task_a_text: str | None = typer.Option(None, "--task-a-text", help="Task A's instruction (e.g. the 'open' task)."),
+    task_b_text: str | None = typer.Option(None, "--task-b-text", help="Task B's instruction (e.g. the 'close' task)."),
+    task_a_index: int | None = typer.Option(None, "--task-a-index", help="Task A by its dataset task_index."),
+    task_b_index: int | None = typer.Option(None, "--task-b-index", help="Task B by its dataset task_index."),
+    task_a_label: str | None = typer.Option(
+        None, "--task-a-label", help="Name recorded for task A (segments, concepts); default its instruction."
+    ),
+    task_b_label: str | None = typer.Option(None, "--task-b-label", help="Name recorded for task B."),
+    backend: str = typer.Option(
+        "lerobot", "--backend", help="lerobot (a converted dataset) or hdf5 (two LIBERO task files, as the seed could)."
+    ),
+    task_a_file: Path | None = typer.Option(None, "--task-a-file", help="hdf5 backend: task A's LIBERO .hdf5 file."),
+    task_b_file: Path | None = typer.Option(None, "--task-b-file", help="hdf5 backend: task B's LIBERO .hdf5 file."),
+    search_root: Path | None = typer.Option(
+        None, "--search-root", help="hdf5 backend: folder the task files are looked up in (by path, then by name)."
+    ),
+    demo_order: DemoOrder = typer.Option(
+        "numeric", "--demo-order", help="hdf5 backend: numeric, or lexicographic (the seed's: demo_10 before demo_2)."
+    ),
     output: Path = typer.Option(..., "--output", help="Manifest JSON to write (data/manifests/<pair>.json)."),
     repo_id: str | None = typer.Option(None, "--repo-id", help="Recorded repo id (default: the dataset folder name)."),
     min_abs_delta: float = typer.Option(
@@ -66,6 +96,12 @@ def manifest_command(
     ),
 ) -> None:
     """Find the state axis two tasks move along in opposite directions and each demo's window on it."""
+    if backend not in ("lerobot", "hdf5"):
+        raise typer.BadParameter(f"{backend!r}: expected lerobot or hdf5", param_hint="--backend")
+    if backend == "hdf5" and (task_a_file is None or task_b_file is None):
+        raise typer.BadParameter("the hdf5 backend needs --task-a-file and --task-b-file", param_hint="--task-a-file")
+    if backend == "lerobot" and lerobot_root is None:
+        raise typer.BadParameter("the lerobot backend needs --lerobot-root", param_hint="--lerobot-root")
     with input_errors():
         settings = ContrastSettings(
             min_abs_delta=min_abs_delta,
@@ -75,8 +111,15 @@ def manifest_command(
             task_a_episodes=_episode_list(task_a_episodes, "--task-a-episodes"),
             task_b_episodes=_episode_list(task_b_episodes, "--task-b-episodes"),
             segments_per_class=segments_per_class,
+            task_a_label=task_a_label,
+            task_b_label=task_b_label,
         )
-        manifest = build_manifest(lerobot_root, task_a_text, task_b_text, settings, repo_id=repo_id)
+        if backend == "hdf5":
+            manifest = build_hdf5_manifest(task_a_file, task_b_file, settings, search_root=search_root,
+                                           demo_order=demo_order)
+        else:
+            task_a, task_b = _task(task_a_text, task_a_index, "a"), _task(task_b_text, task_b_index, "b")
+            manifest = build_manifest(lerobot_root, task_a, task_b, settings, repo_id=repo_id)
         write_manifest(manifest, output)
     means = ", ".join(f"{task!r} {mean:+.4f}" for task, mean in manifest.axis.mean_delta_per_task.items())
     typer.echo(f"wrote {output}")

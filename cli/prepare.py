@@ -7,9 +7,18 @@ from pathlib import Path
 import typer
 
 from cli.app import app, input_errors
-from steering_core.data.convert import ConvertSettings, Orientation, convert_libero
+from steering_core.data.convert import (
+    CodebaseVersion,
+    ConvertSettings,
+    DemoOrder,
+    Orientation,
+    ResizeFilter,
+    convert_libero,
+)
 from steering_core.data.filtering import FilterSettings, filter_demos
 from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
+
+_CONVERT_DEFAULTS = ConvertSettings(repo_id="-")
 
 
 @app.command("filter")
@@ -55,10 +64,25 @@ def convert_command(
     append: bool = typer.Option(
         True, "--append/--rebuild", help="Append only new demos to an existing dataset when possible, or rebuild it."
     ),
+    fps: int = typer.Option(_CONVERT_DEFAULTS.fps, "--fps", min=1, help="Declared frame rate (openpi's LIBERO: 10)."),
+    codebase_version: CodebaseVersion = typer.Option(
+        _CONVERT_DEFAULTS.codebase_version, "--codebase-version",
+        help="v3.0 (lerobot 0.4) or v2.1 (openpi's pinned lerobot, laid out as openpi's LIBERO conversion).",
+    ),
+    resize_filter: ResizeFilter = typer.Option(
+        _CONVERT_DEFAULTS.resize_filter, "--resize-filter",
+        help="antialiased_bilinear (openpi's resize) or bicubic (PIL, as the seed's converter upsampled 128 -> 256).",
+    ),
+    demo_order: DemoOrder = typer.Option(
+        _CONVERT_DEFAULTS.demo_order, "--demo-order",
+        help="numeric (demo_2 before demo_10) or lexicographic (the seed's sorted(keys): demo_10 before demo_2).",
+    ),
 ) -> None:
-    """Convert LIBERO demos into a LeRobot v3.0 dataset (openpi's physical-intelligence/libero schema)."""
+    """Convert LIBERO demos into a LeRobot dataset (openpi's physical-intelligence/libero schema)."""
     with input_errors():
-        settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation)
+        settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation, fps=fps,
+                                   codebase_version=codebase_version, resize_filter=resize_filter,
+                                   demo_order=demo_order)
         result = convert_libero(input_dir, output_dir, settings, rebuild=not append)
     typer.echo(
         f"{result.action}: {result.root} holds {result.episodes_total} episodes ({result.frames_total} frames), "

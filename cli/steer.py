@@ -43,7 +43,12 @@ def steer_command(
     top_k: int = typer.Option(_DEFAULTS.top_k, "--top-k", min=1, help="Latents listed per direction in the report."),
     paths_relative_to: PathsRelativeTo = typer.Option(
         _DEFAULTS.paths_relative_to, "--paths-relative-to",
-        help="Resolve relative concept paths against the current directory (the seed's behaviour) or the config's folder.",
+        help="Base of relative concept paths: auto (the current directory when the file exists there, as the seed's "
+        "pairs files expect, else the pairs file's folder, as the pipeline writes them), cwd or config.",
+    ),
+    save_pairwise_stats: bool = typer.Option(
+        True, "--save-pairwise-stats", hidden=True,
+        help="The seed's flag, accepted: pairwise_stats.pt/.json are always written (the report reads them).",
     ),
 ) -> None:
     """Encode concept residuals with the SAE and write latent means, directions, pairwise stats and a report."""

@@ -10,6 +10,7 @@ MANIFEST_FILE = "manifests/{pair}.json"
 CONCEPT_MAP_FILE = "manifests/{pair}_concept_map.json"
 RESIDUALS_RUN_DIR = "residuals/{run}"
 SLICES_DIR = "residuals/{pair}_slices"
+SLICE_INDEX_FILE = "index.json"                     # beside the slices of one layer: settings, concepts
 SPLIT_FILE = "manifests/{pair}_split.json"   # held-out episodes per task (phase 4 evaluates on them)
 STEERING_ROOT = "latent_steering"
 STEERING_EVAL_ROOT = "steering_eval"       # phase 4: steering_eval/layerNN/<pair>/ and per-layer summaries

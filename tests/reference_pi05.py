@@ -42,7 +42,7 @@ def gelu_tanh(x):
 
 
 def softmax(scores):
-    exp = torch.exp(scores - scores.max(dim=-1, keepdim=True).values)
+    exp = torch.exp(scores - scores.amax(dim=-1, keepdim=True))  # amax: max(dim) is slow on busy CPUs
     return exp / exp.sum(dim=-1, keepdim=True)
 
 
@@ -87,8 +87,11 @@ def image_tokens(w, arch, image):
     return h @ w[proj + "weight"].T + w[proj + "bias"]
 
 
-def decoder_layer(w, arch, layer, h, positions):
-    """Return the output of PaliGemma decoder layer `layer` for valid tokens h (n, width)."""
+def decoder_layer(w, arch, layer, h, positions, cache=None):
+    """Return the output of PaliGemma decoder layer `layer` for valid tokens h (n, width).
+
+    With a `cache` list, appends this layer's rotated keys and values, each (kv_heads, n, head_dim).
+    """
     L = f"{LM}layers.{layer}."
     hd, group = arch.head_dim, arch.num_heads // arch.num_kv_heads
     a = rms_norm(h, w[L + "input_layernorm.weight"])
@@ -101,31 +104,41 @@ def decoder_layer(w, arch, layer, h, positions):
         qn = rope(q[:, n * hd : (n + 1) * hd], positions)
         kn = rope(k[:, kv], positions)
         heads.append(softmax(qn @ kn.T / math.sqrt(hd)) @ v[:, kv])
+    if cache is not None:
+        kv_heads = range(arch.num_kv_heads)
+        cache.append((
+            torch.stack([rope(k[:, j * hd : (j + 1) * hd], positions) for j in kv_heads]),
+            torch.stack([v[:, j * hd : (j + 1) * hd] for j in kv_heads]),
+        ))
     h = h + torch.cat(heads, dim=1) @ w[L + "self_attn.o_proj.weight"].T
     b = rms_norm(h, w[L + "post_attention_layernorm.weight"])
     gated = gelu_tanh(b @ w[L + "mlp.gate_proj.weight"].T) * (b @ w[L + "mlp.up_proj.weight"].T)
     return h + gated @ w[L + "mlp.down_proj.weight"].T
 
 
+def valid_prefix(w, arch, images, image_masks, tokens, token_mask, b):
+    """Return sample b's valid prefix embeddings (n, width) and their columns in the full prefix."""
+    n_img, per_image = len(images), arch.tokens_per_image
+    rows, columns = [], []
+    for slot in range(n_img):
+        if image_masks[slot][b]:
+            rows.append(image_tokens(w, arch, images[slot][b].to(torch.float64)))
+            columns.extend(range(slot * per_image, (slot + 1) * per_image))
+    for t in range(tokens.shape[1]):
+        if token_mask[b, t]:
+            rows.append(w[P + "lm_head.weight"][int(tokens[b, t])][None] * math.sqrt(arch.width))
+            columns.append(n_img * per_image + t)
+    return torch.cat(rows), columns
+
+
 def reference_residuals(model_file, arch, images, image_masks, tokens, token_mask, layers):
     """Return {layer: (B, n_images*tokens_per_image + T, width) float64}, NaN at invalid positions."""
     w = read_weights(model_file)
-    n_img, per_image = len(images), arch.tokens_per_image
     batch, n_tokens = tokens.shape
-    total = n_img * per_image + n_tokens
+    total = len(images) * arch.tokens_per_image + n_tokens
     out = {layer: torch.full((batch, total, arch.width), math.nan, dtype=torch.float64) for layer in layers}
-    embedding = w[P + "lm_head.weight"]
     for b in range(batch):
-        rows, columns = [], []
-        for slot in range(n_img):
-            if image_masks[slot][b]:
-                rows.append(image_tokens(w, arch, images[slot][b].to(torch.float64)))
-                columns.extend(range(slot * per_image, (slot + 1) * per_image))
-        for t in range(n_tokens):
-            if token_mask[b, t]:
-                rows.append(embedding[int(tokens[b, t])][None] * math.sqrt(arch.width))
-                columns.append(n_img * per_image + t)
-        h = torch.cat(rows)
+        h, columns = valid_prefix(w, arch, images, image_masks, tokens, token_mask, b)
         positions = list(range(len(columns)))
         for layer in range(max(layers) + 1):
             h = decoder_layer(w, arch, layer, h, positions)

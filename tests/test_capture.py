@@ -297,6 +297,31 @@ def test_capture_command(inputs, tmp_path):
     assert "layers [9] out of range" in result.output
 
 
+def test_seed_command_with_max_samples_per_layer(inputs, full_run, tmp_path):
+    """The seed's spellings (`--layers 1 3`, underscores) and its cap: the first episodes until 4 frames (3 + 2)."""
+    from typer.testing import CliRunner
+
+    from cli import app
+
+    checkpoint, tokenizer, dataset = inputs
+    arch_file = tmp_path / "arch.json"
+    arch_file.write_text(ARCH.model_dump_json())
+    result = CliRunner().invoke(app, [
+        "capture", "--checkpoint_path", str(checkpoint), "--output_dir", str(tmp_path / "run"), "--layers", "1", "3",
+        "--batch_size", "2", "--capture_instructions", "--skip_norm_stats", "--device", "cpu", "--lerobot_root",
+        str(dataset), "--repo_id", REPO_ID, "--tokenizer_path", str(tokenizer), "--num_workers", "0",
+        "--arch_file", str(arch_file), "--max_samples_per_layer", "4"])
+    assert result.exit_code == 0, result.output
+    metadata = shards.read_run_metadata(tmp_path / "run")
+    assert metadata.episodes == (0, 1) and metadata.run.layers == (1, 3)
+    for layer in (1, 3):
+        paths = sorted((tmp_path / "run" / "instructions" / f"layer{layer:02d}").glob("*.safetensors"))
+        assert len(paths) == 2  # one shard per episode
+        for path in paths:
+            ours, full = load_file(path), load_file(full_run / "instructions" / f"layer{layer:02d}" / path.name)
+            assert all(torch.equal(ours[k], full[k]) for k in full)
+
+
 def test_checkpoint_fingerprint_tells_same_layout_checkpoints_apart(inputs, tmp_path):
     model_file = inputs[0] / "model.safetensors"
     other = write_pi05_checkpoint(tmp_path / "other", ARCH, seed=1) / "model.safetensors"

@@ -189,7 +189,8 @@ def test_bad_segments(root, manifest_path, tmp_path):
     assert f"segments[0] (episode_000000): frames {start}..33 outside episode 0's frames 0..29" in message
     assert "segments[1] (episode_000003): episode 99 is not in the dataset (7 episodes)" in message
     assert f"segments[2] (episode_000005): task '{OPEN}', but episode 1 shows '{CLOSE}'" in message
-    assert "segments[3] (episode_000001): no episode_index (a manifest built from hdf5 files)" in message
+    assert "segments[3] (episode_000001): no episode_index and data/chunk-000/file-000.parquet:episode_000001 is " \
+        "not in the dataset's meta/libero_sources.json" in message
 
     empty = edit_manifest(manifest_path, tmp_path / "empty.json", lambda p: p.update(segments=[]))
     with pytest.raises(ValueError, match="empty.json: the manifest has no segments; rebuild it"):

@@ -212,28 +212,24 @@ def _legacy_folder(root, version):
     (root / "meta").mkdir(parents=True)
     (root / "meta/info.json").write_text(json.dumps({
         "codebase_version": version, "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
-        "total_chunks": 1, "chunks_size": 1000, "features": {},
+        "total_chunks": 1, "chunks_size": 1000, "features": {}, "total_frames": 3,
     }))
     (root / "meta/tasks.jsonl").write_text('{"task_index": 0, "task": "open the drawer"}\n')
     (root / "meta/episodes.jsonl").write_text('{"episode_index": 0, "tasks": ["open the drawer"], "length": 3}\n')
     return root
 
 
-def test_v2_datasets_get_the_conversion_command(tmp_path):
+def test_v2_metadata_is_read_from_jsonl(tmp_path):
     old = _legacy_folder(tmp_path / "lab" / "libero_old", "v2.1")
-    with pytest.raises(ValueError) as err:
-        read_meta(old)
-    assert str(err.value) == (
-        f"{old}/meta/info.json: `codebase_version` is 'v2.1', expected 'v3.0'; this LeRobot v2.1 dataset must be "
-        "converted to v3.0: convert it with lerobot's converter (in place, the old copy is kept as libero_old_old): "
-        "python -m lerobot.datasets.v30.convert_dataset_v21_to_v30 --repo-id=libero_old "
-        f"--root={tmp_path / 'lab'} --push-to-hub=false"
-    )
-    older = _legacy_folder(tmp_path / "older", "v2.0")
-    with pytest.raises(ValueError, match="the converter reads v2.1 only: it needs meta/episodes_stats.jsonl"):
-        read_meta(older)
+    meta = read_meta(old)
+    assert (meta.version, meta.tasks, meta.tasks_file) == ("v2.1", {0: "open the drawer"}, old / "meta/tasks.jsonl")
+    assert [(e.episode_index, e.tasks, e.length, e.from_index, e.to_index, e.data_file) for e in meta.episodes] == [
+        (0, ("open the drawer",), 3, 0, 3, "data/chunk-000/episode_000000.parquet")]
+    with pytest.raises(FileNotFoundError, match=r"\['data/chunk-000/episode_000000.parquet'\] listed in "
+                                                r"meta/episodes.jsonl are missing"):
+        read_index_columns(old)
     future = _legacy_folder(tmp_path / "future", "v4.0")
-    with pytest.raises(ValueError, match=r"'v4.0', expected 'v3.0'; write the dataset with lerobot 0.4.x"):
+    with pytest.raises(ValueError, match=r"'v4.0', expected one of \['v2.0', 'v2.1', 'v3.0'\]; re-create"):
         read_meta(future)
 
 

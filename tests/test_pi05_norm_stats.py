@@ -11,6 +11,7 @@ from steering_core.pi05.norm_stats import (
     discretize_state,
     norm_stats_path,
     quantile_normalize,
+    quantile_unnormalize,
     read_norm_stats,
 )
 from steering_core.synthetic.pi05 import (
@@ -83,6 +84,22 @@ def test_quantile_normalize_by_hand(tmp_path):
     )["state"]
     with pytest.raises(ValueError, match="norm stats have no q01/q99"):
         quantile_normalize(np.zeros(1), no_quantiles)
+
+
+def test_quantile_unnormalize_by_hand(tmp_path):
+    stats = read_norm_stats(
+        write_stats(tmp_path / "a.json", {"norm_stats": {"actions": {
+            "mean": [0, 0], "std": [1, 1], "q01": [0.0, -1.0], "q99": [2.0, 1.0]}}})
+    )["actions"]
+    # (x + 1) / 2 * (q99 - q01 + 1e-6) + q01 on the stats' 2 leading dims; the third passes through
+    out = quantile_unnormalize(np.array([[0.5, -1.0, 7.0]], dtype=np.float32), stats)
+    assert out.dtype == np.float64 and out.shape == (1, 3)
+    assert out[0].tolist() == pytest.approx([0.75 * 2.000001, -1.0, 7.0], rel=1e-12)
+    # the inverse of quantile_normalize on the leading dims
+    values = np.array([0.3, -0.2])
+    assert quantile_unnormalize(quantile_normalize(values, stats), stats) == pytest.approx(values, abs=1e-12)
+    with pytest.raises(ValueError, match="values have 1 dimensions but the norm stats 2; expected at most 1"):
+        quantile_unnormalize(np.zeros(1), stats)
 
 
 def test_discretize_state_by_hand():

@@ -43,3 +43,23 @@ def test_python_api_example_runs(tmp_path, monkeypatch):
     assert scope["rows"].shape == (n_instruction, arch.width)
     assert scope["latents"].shape == (n_instruction, 96)
     assert torch.isfinite(scope["latents"]).all()
+
+
+def test_policy_example_runs(tmp_path, monkeypatch):
+    arch = tiny_arch()
+    checkpoint = write_pi05_checkpoint(tmp_path / "pi05_libero_pytorch", arch, seed=0)
+    tokenizer = write_tokenizer(tmp_path / "paligemma_tokenizer.model")
+    torch.save({"residual_direction": torch.randn(arch.width)}, tmp_path / "residual_direction.pt")
+    substitutions = {
+        '"pi05_libero_pytorch", tokenizer_path': f"{str(checkpoint)!r}, arch=ARCH, device='cpu', tokenizer_path",
+        '"paligemma_tokenizer.model"': repr(str(tokenizer)),
+        "layer=12": "layer=2",
+    }
+    (block,) = [b for b in python_blocks() if "Pi05Policy" in b]
+    for text, tiny in substitutions.items():
+        assert text in block, f"README example changed: {text!r} no longer in it; update this test"
+        block = block.replace(text, tiny)
+    monkeypatch.chdir(tmp_path)
+    scope = {"ARCH": arch}
+    exec(compile(block, str(README), "exec"), scope)
+    assert scope["actions"].shape == (10, 7)

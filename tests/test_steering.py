@@ -38,6 +38,7 @@ SEED_KEYS = {
     "latent_direction": {"pair", "positive_concept", "negative_concept", "latent_direction", "latent_norm", "counts"},
     "residual_direction": {"pair", "positive_concept", "negative_concept", "residual_direction", "residual_norm", "counts"},
 }
+OUR_DIRECTION_KEYS = {"reduce"}  # added to the seed's direction dicts: how the concept rows were cut
 PAIRWISE_KEYS = {"latent_cosine", "residual_cosine", "latent_norm_a", "latent_norm_b", "residual_norm_a", "residual_norm_b"}
 
 
@@ -79,7 +80,7 @@ def reference(sae_folder: Path) -> ReferenceSae:
 def test_reference_pairs_config_loads_unchanged():
     config = read_pairs_config(REFERENCE_PAIRS)
     assert [pair.name for pair in config.pairs] == ["open_drawer_main", "on_stove", "open_drawer_subset", "back_plate"]
-    sources, pairs = concept_sources(config, Path("/base"))
+    sources, pairs = concept_sources(config, Path("/base/pairs.json"), "config")
     assert len(sources) == 8  # same labels, different slice folders: eight files
     assert pairs["on_stove"] == (
         Path("/base/data/residuals/on_vs_off_slices/layer12/turn on the stove.pt"),
@@ -132,7 +133,7 @@ def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     np.testing.assert_allclose(positive["mean"].numpy(), pos_mean, rtol=1e-5, atol=1e-6)
 
     latent = torch.load(pair_dir / "latent_direction.pt", weights_only=True)
-    assert set(latent) == SEED_KEYS["latent_direction"]
+    assert set(latent) == SEED_KEYS["latent_direction"] | OUR_DIRECTION_KEYS
     assert (latent["pair"], latent["positive_concept"], latent["negative_concept"]) == (
         "on_stove", "turn on the stove", "turn off the stove")
     assert latent["counts"] == {"positive": len(pos_x), "negative": len(neg_x)}
@@ -140,7 +141,7 @@ def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     assert latent["latent_norm"] == pytest.approx(float(np.linalg.norm(pos_mean - neg_mean)), rel=1e-5)
 
     residual = torch.load(pair_dir / "residual_direction.pt", weights_only=True)
-    assert set(residual) == SEED_KEYS["residual_direction"]
+    assert set(residual) == SEED_KEYS["residual_direction"] | OUR_DIRECTION_KEYS
     expected = (pos_mean - neg_mean) @ ref.W_dec  # no b_dec
     np.testing.assert_allclose(residual["residual_direction"].numpy(), expected, rtol=1e-5, atol=1e-5)
     assert residual["residual_norm"] == pytest.approx(float(np.linalg.norm(expected)), rel=1e-5)
@@ -226,7 +227,7 @@ def test_without_sae_directions_are_mean_differences(project):
     assert sorted(p.name for p in pair_dir.iterdir()) == [
         "directions.json", "residual_direction.pt", "residual_direction.safetensors"]
     residual = torch.load(pair_dir / "residual_direction.pt", weights_only=True)
-    assert set(residual) == SEED_KEYS["residual_direction"]
+    assert set(residual) == SEED_KEYS["residual_direction"] | OUR_DIRECTION_KEYS
     pos = torch.load(project / "data/residuals/open_vs_close_slices/layer12/open the top drawer of the cabinet.pt", weights_only=True)
     neg = torch.load(project / "data/residuals/open_vs_close_slices/layer12/close the top drawer of the cabinet.pt", weights_only=True)
     np.testing.assert_allclose(residual["residual_direction"].numpy(), (pos.double().mean(0) - neg.double().mean(0)).numpy(),
@@ -244,12 +245,40 @@ def test_rerun_replaces_a_pair_folder_whole(project, sae_folder):
     assert not (layer_path / "on_stove" / "latent_direction.pt").exists()
 
 
-def test_paths_relative_to_config_folder(project, sae_folder, tmp_path, monkeypatch):
+def test_paths_relative_to_config_folder(project, sae_folder, tmp_path, monkeypatch, caplog):
     monkeypatch.chdir(tmp_path.parent)
     with pytest.raises(FileNotFoundError):
-        compute_steering(settings(project, sae_folder))
+        compute_steering(settings(project, sae_folder, paths_relative_to="cwd"))
     layer_path = compute_steering(settings(project, sae_folder, paths_relative_to="config"))
     assert (layer_path / "back_plate" / "residual_direction.pt").is_file()
+    with caplog.at_level("INFO"):  # auto: not found from here, so the pairs file's folder, and it says so
+        layer_path = compute_steering(settings(project, sae_folder, output_root=tmp_path / "auto"))
+    assert (layer_path / "back_plate" / "residual_direction.pt").is_file()
+    assert f"resolved against the pairs file's folder {project}" in caplog.text
+
+
+def test_auto_paths_prefer_the_working_directory(project, tmp_path):
+    """The seed's files are cwd-relative: a same-named file beside the pairs file must not win."""
+    config = read_pairs_config(project / "layer12_pairs.json")
+    nested = project / "nested"
+    nested.mkdir()
+    relative = config.pairs[0].positive_path
+    (nested / relative).parent.mkdir(parents=True)
+    (nested / relative).write_bytes(b"")
+    _, pairs = concept_sources(config, nested / "pairs.json")
+    assert pairs[config.pairs[0].name][0] == project / relative
+    assert concept_sources(config, nested / "pairs.json", "config")[1][config.pairs[0].name][0] == nested / relative
+
+
+def test_the_slices_reduction_is_recorded(project, sae_folder):
+    slices = project / "data/residuals/on_vs_off_slices/layer12"
+    (slices / "index.json").write_text(json.dumps({"settings": {"reduce": "frame", "token_type": "instructions"}}))
+    pair_dir = compute_steering(settings(project, sae_folder)) / "on_stove"
+    assert json.loads((pair_dir / "directions.json").read_text())["reduce"] == {"positive": "frame", "negative": "frame"}
+    assert torch.load(pair_dir / "residual_direction.pt", weights_only=True)["reduce"] == {
+        "positive": "frame", "negative": "frame"}
+    other = torch.load(pair_dir.parent / "back_plate" / "latent_direction.pt", weights_only=True)
+    assert other["reduce"] == {"positive": None, "negative": None}  # no index.json: unknown (e.g. the seed's slices)
 
 
 def test_progress_reaches_the_total(project, sae_folder):

@@ -1,4 +1,4 @@
-"""Frames for capture: LeRobot frames batched by a DataLoader whose workers decode and resize the cameras."""
+"""Frames for capture: LeRobot frames (v3.0 through lerobot, v2.x through `V2Frames`) batched by a DataLoader whose workers decode and resize the cameras."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 from torch.utils.data import DataLoader, Dataset, default_collate
 
+from steering_core.data.dataset import DatasetMeta
+from steering_core.data.v2_frames import V2Frames
 from steering_core.pi05 import libero_camera_slots
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 
@@ -41,10 +43,26 @@ def _collate(items: list[dict[str, Any]], image_size: int) -> dict[str, Any]:
     return batch
 
 
+def frame_source(meta: DatasetMeta, repo_id: str, episodes: Sequence[int], video_backend: str | None) -> Any:
+    """Return the frames of `episodes`: lerobot's LeRobotDataset for v3.0, `V2Frames` for v2.x (same items)."""
+    if meta.is_v2:
+        return V2Frames(meta, episodes, video_backend)
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset  # slow import (torchvision, datasets)
+
+    return LeRobotDataset(repo_id, root=meta.root, episodes=list(episodes), video_backend=video_backend)
+
+
+def _position_columns(frames: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Return the (frames,) episode index and global index of every position of a frame source."""
+    if isinstance(frames, V2Frames):
+        return frames.episode_index, frames.index
+    columns = frames.hf_dataset.select_columns(["episode_index", "index"]).with_format("numpy")[:]
+    return columns["episode_index"], columns["index"]
+
+
 def batch_plan(frames: Any, groups: dict[str, tuple[int, ...]], batch_size: int) -> list[tuple[str, list[int]]]:
     """Return (shard key, dataset positions) per batch: groups in order, each from its first frame."""
-    columns = frames.hf_dataset.select_columns(["episode_index", "index"]).with_format("numpy")[:]
-    episode_of, index_of = columns["episode_index"], columns["index"]
+    episode_of, index_of = _position_columns(frames)
     plan = []
     for key, members in groups.items():
         positions = np.flatnonzero(np.isin(episode_of, members))

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader
+from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
 from steering_core.capture.identity import episode_records, run_spec
 from steering_core.capture.settings import (
     N_CAMERAS,
@@ -99,17 +99,22 @@ def capture(
     settings: CaptureSettings,
     episodes: Sequence[int] | None = None,
     progress: Progress | None = None,
+    max_frames: int | None = None,
 ) -> CaptureResult:
     """Capture the residuals of every frame (or of `episodes`) into `run_dir`; return what was done.
 
     Complete, checksum-valid shards computed from the same inputs are skipped. With `episodes`, only
     those episode groups are captured (whole groups only) and `metadata.json` is left to
-    `write_run_metadata`, so several workers can split one run.
+    `write_run_metadata`, so several workers can split one run. `max_frames` (the seed's
+    `--max-samples-per-layer`) keeps the first episode groups until they hold that many frames: whole
+    groups, so the last one may go past it and a later run with a larger limit reuses every shard.
     """
     run_dir = Path(run_dir)
     meta = read_meta(dataset_root)
     inputs = check_inputs(meta, settings)
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
+    if max_frames is not None:
+        groups = _first_groups(groups, {e.episode_index: e.length for e in meta.episodes}, max_frames)
     spec = run_spec(meta, repo_id, inputs, settings)
     check_run_spec(run_dir, spec)
 
@@ -159,17 +164,31 @@ def _episode_groups(
     return {key: members for key, members in groups.items() if wanted & set(members)}
 
 
+def _first_groups(
+    groups: dict[str, tuple[int, ...]], lengths: dict[int, int], max_frames: int
+) -> dict[str, tuple[int, ...]]:
+    """Return the leading groups, in order, up to the first one that brings their frames to `max_frames`."""
+    if max_frames < 1:
+        raise ValueError(f"max_frames is {max_frames}, expected a positive number of frames")
+    kept: dict[str, tuple[int, ...]] = {}
+    frames = 0
+    for key, members in groups.items():
+        if frames >= max_frames:
+            break
+        kept[key] = members
+        frames += sum(lengths[e] for e in members)
+    logger.info("max %d frames: capturing %d of %d episode group(s), %d frames", max_frames, len(kept), len(groups),
+                frames)
+    return kept
+
+
 def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
     """Run the model over the groups' frames and write each group's shards as soon as it is complete."""
-    from lerobot.datasets.lerobot_dataset import (
-        LeRobotDataset,  # slow import (torchvision, datasets)
-    )
-
     from steering_core.pi05.model import Pi05Prefix
 
     settings = job.settings
     episodes = sorted(e for members in job.groups.values() for e in members)
-    frames = LeRobotDataset(job.repo_id, root=job.meta.root, episodes=episodes, video_backend=settings.video_backend)
+    frames = frame_source(job.meta, job.repo_id, episodes, settings.video_backend)
     plan = batch_plan(frames, job.groups, settings.batch_size)
     keys = [*FRAME_KEYS, *([STATE_KEY] if job.inputs.norm_stats is not None else [])]
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork

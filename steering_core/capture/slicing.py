@@ -37,12 +37,11 @@ from steering_core.capture.shards import (
 )
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
-from steering_core.layout import layer_dir
+from steering_core.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.schema import StrictModel
 
 logger = logging.getLogger(__name__)
 
-INDEX_FILE = "index.json"
 SLICE_PT = "{name}.pt"
 SLICE_SAFETENSORS = "{name}.safetensors"
 SLICE_FORMAT_VERSION = 1
@@ -196,7 +195,7 @@ def _slice_layer(
                 "segments": [segment.model_dump(mode="json") for segment in concept_map.concepts[concept]],
             }
         write_json(
-            staging / INDEX_FILE,
+            staging / SLICE_INDEX_FILE,
             {
                 "format_version": SLICE_FORMAT_VERSION,
                 "layer": layer,
@@ -211,7 +210,7 @@ def _slice_layer(
             },
         )
     logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), output_dir / layer_dir(layer))
-    return output_dir / layer_dir(layer) / INDEX_FILE
+    return output_dir / layer_dir(layer) / SLICE_INDEX_FILE
 
 
 def _select_rows(

@@ -105,7 +105,8 @@ def build_concept_map(
     if not manifest.segments:
         raise ValueError(f"{manifest_path}: the manifest has no segments; rebuild it with `latent-steering manifest`")
     meta = read_meta(lerobot_root)
-    problems = _dataset_problems(manifest, meta)
+    manifest, from_sources = _locate_hdf5_demos(manifest, meta)
+    problems = _dataset_problems(manifest, meta, from_sources)
     if problems:
         raise ValueError(
             f"{manifest_path} does not match the dataset {lerobot_root}: " + "; ".join(problems)
@@ -138,8 +139,33 @@ def build_concept_map(
     )
 
 
-def _dataset_problems(manifest: ContrastManifest, meta: DatasetMeta) -> list[str]:
-    """Return why the manifest cannot belong to this dataset (fingerprint, episodes, tasks, frame ranges)."""
+def _locate_hdf5_demos(manifest: ContrastManifest, meta: DatasetMeta) -> tuple[ContrastManifest, set[int]]:
+    """Return the manifest with the episode of each hdf5 segment (file, demo_k) filled in, and their positions.
+
+    A manifest built from hdf5 files names demos, not episodes; a dataset written by `convert` records
+    which demo of which file became which episode (meta/libero_sources.json), so the two can be joined.
+    """
+    from steering_core.data.convert import SOURCES_FILE, read_sources  # only for hdf5 manifests
+
+    pending = [i for i, seg in enumerate(manifest.segments) if seg.episode_index is None]
+    if not pending or not (meta.root / SOURCES_FILE).is_file():
+        return manifest, set()
+    episode_of = {(source.file, source.demo): source.episode_index for source in read_sources(meta.root).episodes}
+    segments = list(manifest.segments)
+    found = set()
+    for i in pending:
+        episode = episode_of.get((Path(segments[i].file).name, segments[i].demo))
+        if episode is not None:
+            segments[i] = segments[i].model_copy(update={"episode_index": episode})
+            found.add(i)
+    return manifest.model_copy(update={"segments": tuple(segments)}), found
+
+
+def _dataset_problems(manifest: ContrastManifest, meta: DatasetMeta, from_sources: set[int]) -> list[str]:
+    """Return why the manifest cannot belong to this dataset (fingerprint, episodes, tasks, frame ranges).
+
+    Segments in `from_sources` were matched by file and demo, so their (possibly relabelled) task is not compared.
+    """
     problems = []
     if manifest.dataset is not None:
         found = dataset_fingerprint(meta.root)
@@ -149,14 +175,19 @@ def _dataset_problems(manifest: ContrastManifest, meta: DatasetMeta) -> list[str
                 f"this one has {found[:12]}... (another dataset, or this one changed since)"
             )
     episodes = {e.episode_index: e for e in meta.episodes}
+    texts = (manifest.dataset.task_texts if manifest.dataset is not None else None) or {}
     for i, seg in enumerate(manifest.segments):
         where = f"segments[{i}] ({seg.demo})"
         episode = episodes.get(seg.episode_index)
         if seg.episode_index is None:
-            problems.append(f"{where}: no episode_index (a manifest built from hdf5 files)")
+            problems.append(
+                f"{where}: no episode_index and {seg.file}:{seg.demo} is not in the dataset's "
+                "meta/libero_sources.json (a manifest built from hdf5 files maps only onto a dataset that "
+                "`latent-steering convert` made from the same files)"
+            )
         elif episode is None:
             problems.append(f"{where}: episode {seg.episode_index} is not in the dataset ({len(episodes)} episodes)")
-        elif seg.task not in episode.tasks:
+        elif i not in from_sources and texts.get(seg.task, seg.task) not in episode.tasks:
             problems.append(f"{where}: task {seg.task!r}, but episode {seg.episode_index} shows {episode.task!r}")
         elif seg.end_step >= episode.length:
             problems.append(

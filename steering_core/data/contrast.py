@@ -1,7 +1,7 @@
 """Contrast manifests: the state axis two tasks move along in opposite directions, and each demo's window on it.
 
 Generalises the seed's `build_contrasting_pairs.py` (LeRobot backend) to any two tasks of a
-LeRobot v3.0 dataset. For every selected demo the terminal displacement (last - first
+LeRobot dataset (v3.0 or v2.x). For every selected demo the terminal displacement (last - first
 frame) of each state dimension is taken; per task its mean and population std. The axis
 is the one with the largest |mean_a - mean_b| whose two means have opposite signs and
 both reach `min_abs_delta`; its effect size is (mean_a - mean_b) / pooled std. Each demo
@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,9 @@ class ContrastSettings(StrictModel):
     # Keep only this many segments per task: those progressing furthest in the task's
     # direction. The axis is still chosen from every selected demo.
     segments_per_class: int | None = Field(None, gt=0)
+    # Names written as the segments' `task` (and so the concepts); default: the task text.
+    task_a_label: str | None = Field(None, min_length=1)
+    task_b_label: str | None = Field(None, min_length=1)
 
 
 class AxisSummary(StrictModel):
@@ -93,6 +97,7 @@ class ManifestDataset(BaseModel):
     repo_id: str
     fingerprint: str
     settings: ContrastSettings
+    task_texts: dict[str, str] | None = None  # label -> the dataset's task text, when labels were given
 
 
 class ContrastManifest(StrictModel):
@@ -207,50 +212,90 @@ def interaction_window(series: np.ndarray, progress_frac: float, pad: int) -> tu
     return start, end
 
 
+@dataclass(frozen=True)
+class DemoStates:
+    """One demo's state trajectory and where it lives: (frames, state_dim) float64."""
+
+    file: str                  # data file (relative to the dataset root) or LIBERO hdf5 file
+    demo: str                  # episode_000042 or demo_7
+    episode_index: int | None  # None for a demo read from an hdf5 file
+    states: np.ndarray
+
+
+def contrast(
+    label_a: str, label_b: str, demos_a: Sequence[DemoStates], demos_b: Sequence[DemoStates],
+    settings: ContrastSettings,
+) -> tuple[AxisSummary, tuple[Segment, ...]]:
+    """Return the axis two demo sets move along in opposite directions and the kept segments, A's first."""
+    if label_a == label_b:
+        raise ValueError(f"task A and task B are both labelled {label_a!r}; a contrast needs two different labels")
+    axis = select_axis(
+        terminal_displacements([d.states for d in demos_a]),
+        terminal_displacements([d.states for d in demos_b]),
+        label_a,
+        label_b,
+        settings.min_abs_delta,
+    )
+    segments = []
+    for label, demos in ((label_a, demos_a), (label_b, demos_b)):
+        task_segments = [_segment(label, demo, axis.index, settings) for demo in demos]
+        segments += _keep_furthest(task_segments, axis.mean_delta_per_task[label], settings.segments_per_class)
+    return axis, tuple(segments)
+
+
 def build_manifest(
     root: str | os.PathLike,
-    task_a: str,
-    task_b: str,
+    task_a: str | int,
+    task_b: str | int,
     settings: ContrastSettings | None = None,
     *,
     repo_id: str | None = None,
 ) -> ContrastManifest:
     """Return the contrast manifest of two tasks of the LeRobot dataset at `root`.
 
-    Task texts match exactly, else ignoring case and spacing. `settings` default to the
-    seed's; `repo_id` is recorded in the manifest's `dataset` record (default: the dataset
-    folder's name).
+    A task is its text (matched exactly, else ignoring case and spacing) or its `task_index`.
+    `settings` default to the seed's; `repo_id` is recorded in the manifest's `dataset`
+    record (default: the dataset folder's name).
     """
     settings = settings or ContrastSettings()
     meta = read_meta(root)
-    text_a, text_b = resolve_task(meta, task_a), resolve_task(meta, task_b)
+    text_a, text_b = _task_text(meta, task_a, "A"), _task_text(meta, task_b, "B")
     if text_a == text_b:
         raise ValueError(f"task A and task B are both {text_a!r}; a contrast needs two different tasks")
     cap = settings.max_demos_per_task
     episodes_a = _select_episodes(meta, text_a, settings.task_a_episodes, cap, "--task-a-episodes")
     episodes_b = _select_episodes(meta, text_b, settings.task_b_episodes, cap, "--task-b-episodes")
     states = read_episode_columns(meta.root, [e.episode_index for e in episodes_a + episodes_b], STATE_COLUMN)
-    axis = select_axis(
-        terminal_displacements([states[e.episode_index] for e in episodes_a]),
-        terminal_displacements([states[e.episode_index] for e in episodes_b]),
-        text_a,
-        text_b,
-        settings.min_abs_delta,
-    )
-    segments = []
-    for task, episodes in ((text_a, episodes_a), (text_b, episodes_b)):
-        task_segments = [_segment(task, e, states[e.episode_index], axis.index, settings) for e in episodes]
-        segments += _keep_furthest(task_segments, axis.mean_delta_per_task[task], settings.segments_per_class)
+
+    def demos(episodes: list[EpisodeInfo]) -> list[DemoStates]:
+        return [DemoStates(e.data_file, DEMO_NAME.format(episode_index=e.episode_index), e.episode_index,
+                           states[e.episode_index]) for e in episodes]
+
+    label_a, label_b = settings.task_a_label or text_a, settings.task_b_label or text_b
+    axis, segments = contrast(label_a, label_b, demos(episodes_a), demos(episodes_b), settings)
+    labelled = settings.task_a_label is not None or settings.task_b_label is not None
     return ContrastManifest(
         axis=axis,
-        segments=tuple(segments),
+        segments=segments,
         dataset=ManifestDataset(
             root=str(root),
             repo_id=repo_id or meta.root.name,
             fingerprint=dataset_fingerprint(meta.root),
             settings=settings,
+            task_texts={label_a: text_a, label_b: text_b} if labelled else None,
         ),
     )
+
+
+def _task_text(meta: DatasetMeta, task: str | int, which: str) -> str:
+    """Return the dataset's text of a task given by text or by `task_index`."""
+    if isinstance(task, str):
+        return resolve_task(meta, task)
+    if task not in meta.tasks:
+        raise ValueError(
+            f"{meta.tasks_file}: task {which} index {task} is not in the dataset; task indices are {sorted(meta.tasks)}"
+        )
+    return meta.tasks[task]
 
 
 def _select_episodes(
@@ -259,7 +304,7 @@ def _select_episodes(
     """Return the task's demos to use, by episode index: all or `explicit`, then the first `max_demos`."""
     available = meta.episodes_for_task(task)
     if not available:
-        raise ValueError(f"{meta.root}: task {task!r} has no episodes (it is listed in meta/tasks.parquet only)")
+        raise ValueError(f"{meta.root}: task {task!r} has no episodes (it is listed in {meta.tasks_file.name} only)")
     if explicit is not None:
         by_index = {e.episode_index: e for e in available}
         foreign = sorted({i for i in explicit if i not in by_index})
@@ -277,19 +322,19 @@ def _select_episodes(
     return selected
 
 
-def _segment(task: str, episode: EpisodeInfo, states: np.ndarray, axis: int, settings: ContrastSettings) -> Segment:
-    """Return one demo's segment; `states` is its (frames, state_dim) float64 trajectory."""
-    start, end = interaction_window(states[:, axis], settings.progress_frac, settings.pad)
-    values = states[start : end + 1, axis]
+def _segment(task: str, demo: DemoStates, axis: int, settings: ContrastSettings) -> Segment:
+    """Return one demo's segment on `axis`."""
+    start, end = interaction_window(demo.states[:, axis], settings.progress_frac, settings.pad)
+    values = demo.states[start : end + 1, axis]
     return Segment(
         task=task,
-        file=episode.data_file,
-        demo=DEMO_NAME.format(episode_index=episode.episode_index),
+        file=demo.file,
+        demo=demo.demo,
         start_step=start,
         end_step=end,
         axis_delta=float(values[-1] - values[0]),
         axis_values=tuple(float(v) for v in values),
-        episode_index=episode.episode_index,
+        episode_index=demo.episode_index,
     )
 
 

@@ -1,4 +1,7 @@
-"""LIBERO hdf5 demos -> LeRobot v3.0 dataset, written with lerobot's own `LeRobotDataset`.
+"""LIBERO hdf5 demos -> LeRobot v3.0 dataset (lerobot's own `LeRobotDataset`) or v2.1 (`v21_writer`).
+
+v2.1 is the layout openpi's pinned lerobot reads and its LIBERO conversion writes, so openpi can
+train or evaluate on the converted demos; v3.0 (default) is what lerobot 0.4 reads.
 
 The schema is that of openpi's `physical-intelligence/libero`, which pi05_libero was
 trained on: `image` and `wrist_image` (PNG, image_size^2 x 3 uint8), `state` float32 (8) =
@@ -13,7 +16,9 @@ for models trained on raw renders.
 
 Resizing: LIBERO stores 128x128 frames; they are resized to `image_size` with bilinear
 interpolation, antialiased, half-pixel centres (torch `interpolate(antialias=True)`, which
-matches openpi's JAX resize), rounded and clipped to uint8.
+matches openpi's JAX resize), rounded and clipped to uint8. `bicubic` (PIL's) reproduces the
+seed's converter; so does `demo_order="lexicographic"` (the seed iterated `sorted(keys)`, which
+puts demo_10 before demo_2) with `orientation="as_stored"` (the seed did not flip).
 
 Every episode's source (file name, demo key, file sha256, task, length) goes to
 `meta/libero_sources.json`; when every source in that record is still present, a
@@ -38,6 +43,7 @@ from pydantic import Field
 from tqdm import tqdm
 
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
+from steering_core.data.v21_writer import V21Writer
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
 from steering_core.schema import StrictModel, read_model
 
@@ -49,11 +55,17 @@ logger = logging.getLogger(__name__)
 SOURCES_FILE = "meta/libero_sources.json"
 SOURCES_FORMAT_VERSION = 1
 DEMO_FILE_GLOB = "*.hdf5"
-# Files a finalized v3.0 dataset must have; without them lerobot would try the hub.
-REQUIRED_DATASET_FILES = ("meta/info.json", "meta/tasks.parquet", "meta/episodes", "data")
+# Files a complete dataset of each version must have; without them lerobot would try the hub.
+REQUIRED_DATASET_FILES = {
+    "v3.0": ("meta/info.json", "meta/tasks.parquet", "meta/episodes", "data"),
+    "v2.1": ("meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl", "meta/episodes_stats.jsonl", "data"),
+}
 _RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for long demos
 
 Orientation = Literal["rotate180", "as_stored"]
+CodebaseVersion = Literal["v3.0", "v2.1"]
+ResizeFilter = Literal["antialiased_bilinear", "bicubic"]
+DemoOrder = Literal["numeric", "lexicographic"]
 Action = Literal["created", "appended", "rebuilt", "unchanged"]
 ProgressCallback = Callable[[int, int], None]
 
@@ -66,6 +78,9 @@ class ConvertSettings(StrictModel):
     orientation: Orientation = "rotate180"           # what pi05_libero saw in training (module docstring)
     fps: int = Field(default=10, gt=0)               # openpi declares 10 although LIBERO controls at 20 Hz
     robot_type: str = "panda"
+    codebase_version: CodebaseVersion = "v3.0"       # v2.1: openpi's pinned lerobot (module docstring)
+    resize_filter: ResizeFilter = "antialiased_bilinear"  # bicubic: the seed's converter
+    demo_order: DemoOrder = "numeric"                # lexicographic: the seed's sorted(keys)
 
 
 class EpisodeSource(StrictModel):
@@ -92,6 +107,10 @@ class SourcesRecord(StrictModel):
     image_size: int
     fps: int
     robot_type: str
+    # Defaults: what records written before these settings existed were converted with.
+    codebase_version: CodebaseVersion = "v3.0"
+    resize_filter: ResizeFilter = "antialiased_bilinear"
+    demo_order: DemoOrder = "numeric"
     episodes: tuple[EpisodeSource, ...]
 
 
@@ -118,7 +137,9 @@ def lerobot_features(image_size: int) -> dict[str, dict]:
     }
 
 
-def prepare_frames(frames: np.ndarray, orientation: Orientation, image_size: int) -> np.ndarray:
+def prepare_frames(
+    frames: np.ndarray, orientation: Orientation, image_size: int, resize_filter: ResizeFilter = "antialiased_bilinear"
+) -> np.ndarray:
     """Return (T, image_size, image_size, 3) uint8 frames, oriented then resized (see module docstring).
 
     `frames` is (T, H, W, 3) uint8 as stored in LIBERO files.
@@ -127,6 +148,11 @@ def prepare_frames(frames: np.ndarray, orientation: Orientation, image_size: int
         frames = frames[:, ::-1, ::-1]
     if frames.shape[1:3] == (image_size, image_size):
         return np.ascontiguousarray(frames)
+    if resize_filter == "bicubic":
+        from PIL import Image
+
+        size = (image_size, image_size)
+        return np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(f)).resize(size, Image.BICUBIC)) for f in frames])
     import torch  # deferred: torch is heavy and only conversion needs it
     import torch.nn.functional as F
 
@@ -139,8 +165,8 @@ def prepare_frames(frames: np.ndarray, orientation: Orientation, image_size: int
     return out
 
 
-def plan_sources(input_dirs: Sequence[str | Path]) -> list[tuple[Path, EpisodeSource]]:
-    """Return every episode to convert, in dataset order: files by name, demos by number.
+def plan_sources(input_dirs: Sequence[str | Path], demo_order: DemoOrder = "numeric") -> list[tuple[Path, EpisodeSource]]:
+    """Return every episode to convert, in dataset order: files by name, demos by number (or as strings).
 
     Every file is validated on the way; problems in several files are reported together.
     """
@@ -154,7 +180,8 @@ def plan_sources(input_dirs: Sequence[str | Path]) -> list[tuple[Path, EpisodeSo
             problems.append(str(err))
             continue
         digest = sha256_file(path)
-        for key, length in info.demo_lengths.items():
+        keys = sorted(info.demo_lengths) if demo_order == "lexicographic" else info.demo_keys
+        for key, length in ((k, info.demo_lengths[k]) for k in keys):
             source = EpisodeSource(
                 episode_index=len(planned),
                 file=path.name,
@@ -197,7 +224,7 @@ def convert_libero(
     sibling and moved into place only when complete.
     """
     output_dir = Path(output_dir)
-    planned = plan_sources(input_dirs)
+    planned = plan_sources(input_dirs, settings.demo_order)
     if not planned:
         raise ValueError(f"no demos found in {', '.join(map(str, input_dirs))}")
     new_sources = [source for _, source in planned]
@@ -241,14 +268,18 @@ def _create(
 ) -> None:
     """Write a new dataset of every planned episode in a staging folder, then move it onto `output_dir`."""
     with atomic_dir(output_dir, overwrite=True) as tmp:
-        dataset = _lerobot_class().create(
-            repo_id=settings.repo_id,
-            root=tmp,
-            fps=settings.fps,
-            robot_type=settings.robot_type,
-            features=lerobot_features(settings.image_size),
-            use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
-        )
+        features = lerobot_features(settings.image_size)
+        if settings.codebase_version == "v2.1":
+            dataset = V21Writer.create(tmp, fps=settings.fps, robot_type=settings.robot_type, features=features)
+        else:
+            dataset = _lerobot_class().create(
+                repo_id=settings.repo_id,
+                root=tmp,
+                fps=settings.fps,
+                robot_type=settings.robot_type,
+                features=features,
+                use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
+            )
         _write_episodes(dataset, planned, settings, progress)
         write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
 
@@ -263,7 +294,10 @@ def _append(
     """Add planned[done:] to a copy of the existing dataset, then swap the copy in."""
     with atomic_dir(output_dir, overwrite=True) as tmp:
         shutil.copytree(output_dir, tmp, symlinks=True)
-        dataset = _lerobot_class()(settings.repo_id, root=tmp)
+        if settings.codebase_version == "v2.1":
+            dataset = V21Writer.open(tmp)
+        else:
+            dataset = _lerobot_class()(settings.repo_id, root=tmp)
         _write_episodes(dataset, planned[done:], settings, progress)
         write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
 
@@ -320,7 +354,8 @@ def _rebuild_reason(
     changed = [f"{k} {found[k]!r} -> {wanted[k]!r}" for k in wanted if found[k] != wanted[k]]
     if changed:
         return "settings changed: " + ", ".join(changed)
-    missing = [name for name in REQUIRED_DATASET_FILES if not (output_dir / name).exists()]
+    required = REQUIRED_DATASET_FILES[settings.codebase_version]
+    missing = [name for name in required if not (output_dir / name).exists()]
     if missing:
         return f"dataset files missing: {', '.join(missing)}"
     info = read_json(output_dir / "meta/info.json")
@@ -357,32 +392,29 @@ def _record(settings: ConvertSettings, sources: list[EpisodeSource]) -> SourcesR
         image_size=settings.image_size,
         fps=settings.fps,
         robot_type=settings.robot_type,
+        codebase_version=settings.codebase_version,
+        resize_filter=settings.resize_filter,
+        demo_order=settings.demo_order,
         episodes=tuple(sources),
     )
 
 
 def _write_episodes(
-    dataset: LeRobotDataset,
+    dataset: LeRobotDataset | V21Writer,
     planned: list[tuple[Path, EpisodeSource]],
     settings: ConvertSettings,
     progress: ProgressCallback | None,
 ) -> None:
-    """Add every planned episode to `dataset` in order, then finalize it (mandatory in lerobot 0.4)."""
+    """Add every planned episode to `dataset` in order, then finalize a lerobot one (mandatory in lerobot 0.4)."""
+    if isinstance(dataset, V21Writer):
+        _add_all(dataset, planned, settings, progress)
+        return
     from lerobot.utils.utils import SuppressProgressBars  # lerobot is imported by now
 
-    total = len(planned)
-    done = 0
     try:
         # our bar counts episodes; the per-episode `datasets` bars lerobot triggers are noise
-        with SuppressProgressBars(), tqdm(total=total, desc="convert", unit="episode", file=sys.stderr) as bar:
-            for path, group in groupby(planned, key=lambda item: item[0]):
-                sources = [source for _, source in group]
-                for demo, source in zip(iter_demos(path, [s.demo for s in sources]), sources, strict=True):
-                    _add_episode(dataset, demo, source, settings)
-                    done += 1
-                    bar.update(1)
-                    if progress is not None:
-                        progress(done, total)
+        with SuppressProgressBars():
+            _add_all(dataset, planned, settings, progress)
     except BaseException:
         with contextlib.suppress(Exception):
             dataset.finalize()  # close the parquet writers; the staging folder is discarded anyway
@@ -392,21 +424,49 @@ def _write_episodes(
     shutil.rmtree(Path(dataset.root) / "images", ignore_errors=True)
 
 
-def _add_episode(dataset: LeRobotDataset, demo: LiberoDemo, source: EpisodeSource, settings: ConvertSettings) -> None:
+def _add_all(
+    dataset: LeRobotDataset | V21Writer,
+    planned: list[tuple[Path, EpisodeSource]],
+    settings: ConvertSettings,
+    progress: ProgressCallback | None,
+) -> None:
+    """Add the planned episodes in order, reading each source file once."""
+    total = len(planned)
+    done = 0
+    with tqdm(total=total, desc="convert", unit="episode", file=sys.stderr) as bar:
+        for path, group in groupby(planned, key=lambda item: item[0]):
+            sources = [source for _, source in group]
+            for demo, source in zip(iter_demos(path, [s.demo for s in sources]), sources, strict=True):
+                _add_episode(dataset, demo, source, settings)
+                done += 1
+                bar.update(1)
+                if progress is not None:
+                    progress(done, total)
+
+
+def _add_episode(
+    dataset: LeRobotDataset | V21Writer, demo: LiberoDemo, source: EpisodeSource, settings: ConvertSettings
+) -> None:
     """Add one demo's frames and save it as the next episode."""
-    if dataset.meta.total_episodes != source.episode_index:
+    written = dataset.info["total_episodes"] if isinstance(dataset, V21Writer) else dataset.meta.total_episodes
+    if written != source.episode_index:
         raise ValueError(
-            f"{source.file}:{source.demo}: would become episode {dataset.meta.total_episodes}, "
+            f"{source.file}:{source.demo}: would become episode {written}, "
             f"expected {source.episode_index}; re-run with --rebuild"
         )
-    image = prepare_frames(demo.agentview_rgb, settings.orientation, settings.image_size)
-    wrist = prepare_frames(demo.eye_in_hand_rgb, settings.orientation, settings.image_size)
-    state = demo.state8()
-    actions = demo.actions.astype(np.float32)
+    columns = {
+        "image": prepare_frames(demo.agentview_rgb, settings.orientation, settings.image_size, settings.resize_filter),
+        "wrist_image": prepare_frames(
+            demo.eye_in_hand_rgb, settings.orientation, settings.image_size, settings.resize_filter
+        ),
+        "state": demo.state8(),
+        "actions": demo.actions.astype(np.float32),
+    }
+    if isinstance(dataset, V21Writer):
+        dataset.add_episode(columns, source.task)
+        return
     for t in range(demo.num_steps):
-        dataset.add_frame(
-            {"image": image[t], "wrist_image": wrist[t], "state": state[t], "actions": actions[t], "task": source.task}
-        )
+        dataset.add_frame({**{key: values[t] for key, values in columns.items()}, "task": source.task})
     dataset.save_episode()
 
 

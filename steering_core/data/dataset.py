@@ -1,9 +1,10 @@
-"""Reading a LeRobot v3.0 dataset without decoding a single frame.
+"""Reading a LeRobot dataset (v3.0, v2.1 or v2.0) without decoding a single frame.
 
-Metadata comes from `meta/` (info, tasks, episodes); frame-level values come from the
-data parquet files through pyarrow, one requested column at a time, so image columns
-(PNG bytes) are never read. Contrast manifests, concept maps, capture and slicing all
-read datasets through this module.
+Metadata comes from `meta/` (info, tasks, episodes: parquet in v3.0, jsonl in v2.x, see
+`lerobot_v2`); frame-level values come from the data parquet files through pyarrow, one
+requested column at a time, so image columns (PNG bytes) are never read. Datasets are read
+in place and never written. Contrast manifests, concept maps, capture and slicing all read
+datasets through this module.
 """
 
 from __future__ import annotations
@@ -21,19 +22,16 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from steering_core.data import lerobot_v2
 from steering_core.fileio import read_json, sha256_file, sha256_json
 
 logger = logging.getLogger(__name__)
 
 CODEBASE_VERSION = "v3.0"
+SUPPORTED_VERSIONS = (*lerobot_v2.V2_VERSIONS, CODEBASE_VERSION)
 INFO_FILE = "meta/info.json"
 TASKS_FILE = "meta/tasks.parquet"
 EPISODES_DIR = "meta/episodes"
-# lerobot's converter works in place on <root>/<repo_id>, so the parent folder is its --root.
-V21_CONVERTER_COMMAND = (
-    "python -m lerobot.datasets.v30.convert_dataset_v21_to_v30 "
-    "--repo-id={name} --root={parent} --push-to-hub=false"
-)
 INDEX_COLUMNS = ("episode_index", "frame_index", "index", "task_index")
 _EPISODE_COLUMNS = (
     "episode_index",
@@ -75,6 +73,26 @@ class DatasetMeta:
     episodes: tuple[EpisodeInfo, ...]   # sorted by episode_index
 
     @property
+    def version(self) -> str:
+        """Return the codebase version of info.json: "v2.0", "v2.1" or "v3.0"."""
+        return str(self.info["codebase_version"])
+
+    @property
+    def is_v2(self) -> bool:
+        """Return True for a v2.x dataset (one parquet per episode, jsonl metadata)."""
+        return self.version in lerobot_v2.V2_VERSIONS
+
+    @property
+    def tasks_file(self) -> Path:
+        """Return the file the task texts were read from."""
+        return self.root / (lerobot_v2.TASKS_JSONL if self.is_v2 else TASKS_FILE)
+
+    @property
+    def episodes_source(self) -> str:
+        """Return where the episode rows were read from, relative to the root."""
+        return lerobot_v2.EPISODES_JSONL if self.is_v2 else EPISODES_DIR
+
+    @property
     def total_frames(self) -> int:
         """Return the number of frames declared by info.json."""
         return int(self.info["total_frames"])
@@ -112,14 +130,18 @@ class IndexColumns:
 
 
 def read_meta(root: str | os.PathLike) -> DatasetMeta:
-    """Return the validated metadata of the LeRobot v3.0 dataset at `root`."""
+    """Return the validated metadata of the LeRobot dataset (v3.0, v2.1 or v2.0) at `root`."""
     root = Path(root)
     info = read_info(root)
-    return DatasetMeta(root=root, info=info, tasks=read_tasks(root), episodes=tuple(_read_episodes(root, info)))
+    if info["codebase_version"] in lerobot_v2.V2_VERSIONS:
+        tasks = lerobot_v2.read_tasks(root)
+    else:
+        tasks = read_tasks(root)
+    return DatasetMeta(root=root, info=info, tasks=tasks, episodes=tuple(_read_episodes(root, info)))
 
 
 def read_info(root: str | os.PathLike) -> dict[str, Any]:
-    """Return `meta/info.json` after checking it describes a v3.0 dataset."""
+    """Return `meta/info.json` after checking it describes a dataset of a supported version."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: LeRobot dataset folder not found")
@@ -133,30 +155,22 @@ def read_info(root: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(info, dict):
         raise ValueError(f"{info_path}: expected a JSON object, found {type(info).__name__}")
     version = info.get("codebase_version")
-    if version != CODEBASE_VERSION:
-        raise ValueError(_version_message(root, info_path, version))
-    missing = [key for key in ("data_path", "features", "total_frames") if key not in info]
+    if version not in SUPPORTED_VERSIONS:
+        raise ValueError(
+            f"{info_path}: `codebase_version` is {version!r}, expected one of {list(SUPPORTED_VERSIONS)}; "
+            "re-create the dataset with lerobot 0.4.x or openpi's pinned lerobot"
+        )
+    required = ["data_path", "features", "total_frames"]
+    if version in lerobot_v2.V2_VERSIONS:
+        required.append("chunks_size")  # v2.x data paths are grouped in chunks of this many episodes
+    missing = [key for key in required if key not in info]
     if missing:
         raise ValueError(f"{info_path}: missing field(s) {missing}; the dataset is incomplete, re-create it")
     return info
 
 
-def _version_message(root: Path, info_path: Path, version: Any) -> str:
-    """Return the error text for a dataset of another codebase version, with the way out."""
-    found = f"`codebase_version` is {version!r}, expected {CODEBASE_VERSION!r}"
-    if isinstance(version, str) and version.startswith("v2"):
-        command = V21_CONVERTER_COMMAND.format(name=root.name, parent=root.resolve().parent)
-        advice = (
-            f"convert it with lerobot's converter (in place, the old copy is kept as {root.name}_old): {command}"
-        )
-        if version != "v2.1":
-            advice += " (the converter reads v2.1 only: it needs meta/episodes_stats.jsonl, which v2.0 lacks)"
-        return f"{info_path}: {found}; this LeRobot {version} dataset must be converted to v3.0: {advice}"
-    return f"{info_path}: {found}; write the dataset with lerobot 0.4.x (LeRobotDataset.create)"
-
-
 def read_tasks(root: str | os.PathLike) -> dict[int, str]:
-    """Return task_index -> task text from `meta/tasks.parquet`."""
+    """Return task_index -> task text from a v3.0 dataset's `meta/tasks.parquet`."""
     path = Path(root) / TASKS_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found; the dataset is incomplete (was finalize() called?)")
@@ -171,11 +185,32 @@ def read_tasks(root: str | os.PathLike) -> dict[int, str]:
 
 
 def read_episodes(root: str | os.PathLike) -> list[EpisodeInfo]:
-    """Return every episode of `meta/episodes/**.parquet`, sorted by episode index."""
+    """Return every episode (`meta/episodes/**.parquet`, or v2.x `meta/episodes.jsonl`), by episode index."""
     return _read_episodes(Path(root), read_info(root))
 
 
 def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
+    """Return the episode rows of either version."""
+    if info["codebase_version"] in lerobot_v2.V2_VERSIONS:
+        return _read_v2_episodes(root, info)
+    return _read_v3_episodes(root, info)
+
+
+def _read_v2_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
+    """Return the episodes of `meta/episodes.jsonl`; global indices follow episode order, as lerobot assigns them."""
+    episodes = []
+    start = 0
+    for episode_index, tasks, length in lerobot_v2.read_episode_rows(root):
+        episodes.append(EpisodeInfo(
+            episode_index=episode_index, tasks=tasks, length=length, from_index=start, to_index=start + length,
+            data_file=lerobot_v2.episode_data_file(info, episode_index),
+        ))
+        start += length
+    _check_episodes(root / lerobot_v2.EPISODES_JSONL, episodes)
+    return episodes
+
+
+def _read_v3_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
     """Return the episode rows, with data file paths from info.json's `data_path` template."""
     files = sorted((root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
     if not files:
@@ -233,7 +268,9 @@ def data_files(meta: DatasetMeta) -> list[Path]:
     paths = sorted({meta.root / e.data_file for e in meta.episodes})
     missing = [str(p.relative_to(meta.root)) for p in paths if not p.is_file()]
     if missing:
-        raise FileNotFoundError(f"{meta.root}: data file(s) {missing} listed in {EPISODES_DIR} are missing")
+        raise FileNotFoundError(
+            f"{meta.root}: data file(s) {_describe_strings(missing)} listed in {meta.episodes_source} are missing"
+        )
     return paths
 
 
@@ -301,7 +338,7 @@ def read_episode_columns(
                 raise ValueError(
                     f"{path}: episode {episode.episode_index} has frame_index "
                     f"{_describe_ints(frames[rows].tolist())}, expected 0..{episode.length - 1} "
-                    f"(length {episode.length} in {EPISODES_DIR}); the dataset is corrupt, re-create it"
+                    f"(length {episode.length} in {meta.episodes_source}); the dataset is corrupt, re-create it"
                 )
             result[episode.episode_index] = values[rows]
     return {e.episode_index: result[e.episode_index] for e in wanted}
@@ -345,15 +382,20 @@ def _column_as_matrix(column: pa.ChunkedArray, dim: int, path: Path, name: str) 
 def dataset_fingerprint(root: str | os.PathLike) -> str:
     """Return a sha256 identifying the dataset's content: cheap (no frame data is hashed) and stable.
 
-    Covers the bytes of info.json, tasks.parquet and every episode metadata file, plus the
-    name and size of each data file. Frame values are not hashed, but the episode metadata
-    holds each episode's per-feature statistics, which move with them in practice.
+    Covers the bytes of info.json, the tasks file and every episode metadata file (v2.x: episodes.jsonl
+    and, when present, episodes_stats.jsonl or stats.json), plus the name and size of each data file.
+    Frame values are not hashed, but the episode metadata holds each episode's per-feature statistics
+    (v2.0 without stats: only lengths and tasks), which move with them in practice.
     """
     meta = read_meta(root)
-    episode_files = sorted((meta.root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
+    if meta.is_v2:
+        candidates = (lerobot_v2.EPISODES_JSONL, *lerobot_v2.OPTIONAL_META_FILES)
+        episode_files = [meta.root / name for name in candidates if (meta.root / name).is_file()]
+    else:
+        episode_files = sorted((meta.root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
     record = {
         "info": sha256_file(meta.root / INFO_FILE),
-        "tasks": sha256_file(meta.root / TASKS_FILE),
+        "tasks": sha256_file(meta.tasks_file),
         "episodes": {p.relative_to(meta.root).as_posix(): sha256_file(p) for p in episode_files},
         "data": {p.relative_to(meta.root).as_posix(): p.stat().st_size for p in data_files(meta)},
     }
@@ -372,12 +414,12 @@ def resolve_task(meta: DatasetMeta, text: str) -> str:
     if len(folded) == 1:
         return folded[0]
     if len(folded) > 1:
-        raise ValueError(f"{meta.root / TASKS_FILE}: task {text!r} matches {folded} ignoring case; pass the exact text")
+        raise ValueError(f"{meta.tasks_file}: task {text!r} matches {folded} ignoring case; pass the exact text")
     by_folded = {_fold(t): t for t in known}
     matches = difflib.get_close_matches(_fold(text), list(by_folded), n=_CLOSEST_TASKS, cutoff=0)
     closest = [by_folded[m] for m in matches]
     raise ValueError(
-        f"{meta.root / TASKS_FILE}: task {text!r} is not in the dataset ({len(known)} tasks); "
+        f"{meta.tasks_file}: task {text!r} is not in the dataset ({len(known)} tasks); "
         f"closest task texts: {closest}"
     )
 
@@ -385,6 +427,12 @@ def resolve_task(meta: DatasetMeta, text: str) -> str:
 def _fold(text: str) -> str:
     """Return `text` lower-cased with runs of whitespace collapsed, for forgiving task lookup."""
     return " ".join(text.lower().split())
+
+
+def _describe_strings(values: Sequence[str]) -> str:
+    """Return a short description of a list of names, eliding all but the first few."""
+    values = list(values)
+    return str(values) if len(values) <= 5 else f"{values[:5]} and {len(values) - 5} more"
 
 
 def _describe_ints(values: Sequence[int]) -> str:

@@ -38,6 +38,11 @@ def _frames(name: str, value: Any, problems: list[str]) -> np.ndarray | None:
     return array if array.ndim == 4 else array[None]
 
 
+def _channels_first(frames: np.ndarray) -> torch.Tensor:
+    """Return uint8 (B, 3, H, W) from (B, H, W, 3)."""
+    return torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
+
+
 def observation_batch(observation: Mapping[str, Any], image_size: int) -> ObservationBatch:
     """Return the model inputs of an openpi LIBERO observation; one ValueError names every bad key."""
     if not isinstance(observation, Mapping):
@@ -62,6 +67,5 @@ def observation_batch(observation: Mapping[str, Any], image_size: int) -> Observ
         problems.append(f"`{PROMPT_KEY}` gives {len(prompts)} prompts for a batch of {batch}; expected a str per frame")
     if problems:
         raise ValueError("observation: " + "; ".join(problems))
-    to_chw = lambda frames: torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)  # noqa: E731
-    images, image_masks = camera_slots(to_chw(image), to_chw(wrist), image_size)
+    images, image_masks = camera_slots(_channels_first(image), _channels_first(wrist), image_size)
     return ObservationBatch(images, image_masks, prompts, states, batched)

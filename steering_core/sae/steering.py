@@ -36,6 +36,7 @@ from steering_core.fileio import atomic_dir, atomic_path, read_json, write_json
 from steering_core.layout import (
     PAIR_SUMMARY_FILE,
     PAIRWISE_STATS_FILE,
+    SLICE_INDEX_FILE,
     STEERING_ROOT,
     layer_dir,
 )
@@ -92,7 +93,9 @@ class PairsConfig(StrictModel):
         return self
 
 
-PathsRelativeTo = Literal["cwd", "config"]
+# auto: the current directory when the path exists there (the seed's files), else the config's folder
+# (the pairs files the pipeline writes); cwd / config force one base.
+PathsRelativeTo = Literal["auto", "cwd", "config"]
 
 
 class SteeringSettings(StrictModel):
@@ -109,7 +112,7 @@ class SteeringSettings(StrictModel):
     batch_size: int = Field(512, gt=0)
     include_decoder_bias: bool = False  # seed compatibility: residual_direction = decode(delta), with b_dec
     top_k: int = Field(20, gt=0)  # latents listed per direction in the report
-    paths_relative_to: PathsRelativeTo = "cwd"  # base of relative concept paths; the seed used cwd
+    paths_relative_to: PathsRelativeTo = "auto"  # base of relative concept paths (see PathsRelativeTo)
 
 
 def read_pairs_config(path: str | os.PathLike) -> PairsConfig:
@@ -117,17 +120,35 @@ def read_pairs_config(path: str | os.PathLike) -> PairsConfig:
     return read_model(path, PairsConfig, what="pairs config")
 
 
+def resolve_concept_path(path: str, config_path: Path, relative_to: PathsRelativeTo = "auto") -> Path:
+    """Return a pairs file's concept path: absolute as given, else against cwd or the config's folder.
+
+    `auto` takes the current directory when the file exists there (the seed's cwd-relative files), else
+    the config's folder (pairs files written by the pipeline), and logs which base it used.
+    """
+    given = Path(path).expanduser()
+    if given.is_absolute():
+        return given
+    if relative_to == "cwd" or (relative_to == "auto" and given.exists()):
+        base = Path.cwd()
+    else:
+        base = config_path.parent
+    if relative_to == "auto":
+        logger.info("%s: %s resolved against %s", config_path, path, "the current directory" if base == Path.cwd()
+                    else f"the pairs file's folder {base}")
+    return base / given
+
+
 def concept_sources(
-    config: PairsConfig, base_dir: Path
+    config: PairsConfig, config_path: Path, relative_to: PathsRelativeTo = "auto"
 ) -> tuple[dict[Path, ConceptSource], dict[str, tuple[Path, Path]]]:
-    """Return (unique concept files, pair -> (positive file, negative file)), relative paths under `base_dir`."""
+    """Return (unique concept files, pair -> (positive file, negative file)), see `resolve_concept_path`."""
     sources: dict[Path, ConceptSource] = {}
     pairs: dict[str, tuple[Path, Path]] = {}
     for pair in config.pairs:
         files = []
         for side in SIDES:
-            path = Path(getattr(pair, f"{side}_path")).expanduser()
-            path = path if path.is_absolute() else base_dir / path
+            path = resolve_concept_path(getattr(pair, f"{side}_path"), config_path, relative_to)
             sources.setdefault(path, ConceptSource(getattr(pair, f"{side}_label"), path))
             files.append(path)
         pairs[pair.name] = (files[0], files[1])
@@ -188,7 +209,8 @@ def compute_pair(
 ) -> Path:
     """Write one pair's direction files from its two concept statistics; return the pair folder."""
     stats = dict(zip(SIDES, (read_concept_stats(positive_stats), read_concept_stats(negative_stats)), strict=True))
-    head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label}
+    head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label,
+            "reduce": {side: slice_reduction(stats[side].path) for side in SIDES}}
     counts = {side: stats[side].count for side in SIDES}
     mean_difference = (stats["positive"].residual_mean - stats["negative"].residual_mean).float()
     summary: dict[str, Any] = {
@@ -240,6 +262,21 @@ def compute_pair(
         write_json(staging / PAIR_SUMMARY_FILE, summary)
     logger.info("%s: wrote %s", pair.name, ", ".join(sorted(summary["files"])))
     return layer_path / pair.name
+
+
+def slice_reduction(concept_file: Path) -> str | None:
+    """Return how a concept file's rows were cut: "token" (one per instruction token) or "frame" (the seed's).
+
+    Read from the slices' index.json beside the file; None when there is none (e.g. slices made by the seed).
+    """
+    index = Path(concept_file).parent / SLICE_INDEX_FILE
+    if not index.is_file():
+        return None
+    try:
+        reduce = read_json(index).get("settings", {}).get("reduce")
+    except (ValueError, AttributeError):
+        return None
+    return reduce if isinstance(reduce, str) else None
 
 
 def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
@@ -305,12 +342,10 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
 
     Steps: concept statistics, pair directions, pairwise stats, report.
 
-    Relative concept paths resolve against the current directory (the seed's behaviour) or, with
-    `paths_relative_to="config"`, against the pairs config's folder. A preloaded `sae` overrides `settings.sae`.
+    Relative concept paths resolve as `resolve_concept_path` says. A preloaded `sae` overrides `settings.sae`.
     """
     config = read_pairs_config(settings.pairs_config)
-    base_dir = Path.cwd() if settings.paths_relative_to == "cwd" else settings.pairs_config.parent
-    sources, pairs = concept_sources(config, base_dir)
+    sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
     if sae is None:
         sae = load_steering_sae(settings)
     else:

@@ -1,0 +1,91 @@
+"""`latent-steering serve`: a steered pi0.5 policy server for openpi clients (e.g. openpi's LIBERO example)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from cli.app import app, input_errors
+from steering_core.fileio import read_json
+from steering_core.layout import STEERING_ROOT
+from steering_core.pi05 import Pi05Arch, PromptFormat
+from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
+from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog, parse_steering, parse_steering_option
+from steering_core.serve.server import DEFAULT_MAX_MESSAGE_BYTES
+
+DEFAULT_VECTORS = Path("data") / STEERING_ROOT
+TOKENIZER_FILE = "paligemma_tokenizer.model"
+
+
+@app.command("serve")
+def serve_command(
+    checkpoint_path: Path = typer.Option(
+        ..., "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
+    ),
+    tokenizer_path: Path | None = typer.Option(
+        None, "--tokenizer-path",
+        help=f"PaliGemma SentencePiece model (default: {TOKENIZER_FILE} in the checkpoint folder).",
+    ),
+    vectors: Path = typer.Option(
+        DEFAULT_VECTORS, "--vectors", help="The steer step's output root (layerNN/<pair>/ folders) to offer clients."
+    ),
+    steer: list[str] = typer.Option(
+        [], "--steer", help="Default steering for requests without a `steering` entry: pair:layer:alpha[:direction], "
+        "e.g. open_vs_close:12:4.0 (repeat to combine)."
+    ),
+    host: str = typer.Option("127.0.0.1", "--host", help="Interface to listen on (0.0.0.0: every interface)."),
+    port: int = typer.Option(8000, "--port", min=0, max=65535, help="Port (openpi's default 8000; 0: a free port)."),
+    device: str | None = typer.Option(None, "--device", help="cuda, cuda:1 or cpu (default: CUDA when available)."),
+    dtype: str | None = typer.Option(
+        None, "--dtype", help="Compute dtype (default: openpi's bfloat16 policy on CUDA, float32 on CPU)."
+    ),
+    arch_file: Path | None = typer.Option(
+        None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
+    ),
+    prompt_format: PromptFormat = typer.Option(
+        PromptFormat.LIBERO, "--prompt-format", help="libero (pi05_libero: no state) or discrete_state."
+    ),
+    norm_stats: Path | None = typer.Option(
+        None, "--norm-stats", help="norm_stats.json (default: the checkpoint's assets/<asset-id>/norm_stats.json)."
+    ),
+    asset_id: str = typer.Option(LIBERO_ASSET_ID, "--asset-id", help="Asset folder of the checkpoint norm stats."),
+    action_horizon: int = typer.Option(10, "--action-horizon", min=1, help="Actions per chunk (pi05_libero: 10)."),
+    noise_seed: int | None = typer.Option(
+        None, "--noise-seed", help="Use the same initial noise for every request (paired steered/plain comparisons); "
+        "default: fresh noise per request, as openpi."
+    ),
+    max_message_mb: float = typer.Option(
+        DEFAULT_MAX_MESSAGE_BYTES / 2**20, "--max-message-mb", min=0.001, help="Largest observation message accepted."
+    ),
+) -> None:
+    """Serve steered pi0.5 over openpi's websocket protocol until Ctrl-C or SIGTERM.
+
+    Clients add an optional `steering` entry to the observation, e.g. {"pair": "open_vs_close", "layer": 12,
+    "alpha": 4.0}; the server's metadata lists the vectors it offers.
+    """
+    from steering_core.pi05.policy import Pi05Policy  # deferred: loads transformers
+
+    with input_errors():
+        # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
+        catalog = VectorCatalog.scan(vectors) if vectors != DEFAULT_VECTORS or vectors.exists() else VectorCatalog()
+        default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer")
+        arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
+        policy = Pi05Policy.from_checkpoint(
+            checkpoint_path, arch, device=device, dtype=dtype, action_horizon=action_horizon,
+            tokenizer_path=tokenizer_path or _tokenizer_beside(checkpoint_path), prompt_format=prompt_format,
+            norm_stats_path=norm_stats, asset_id=asset_id,
+        )
+        served = SteeredPi05Policy(policy, noise_seed=noise_seed)
+        served.check_catalog(catalog)
+        server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,
+                              max_message_bytes=int(max_message_mb * 2**20))
+    server.run()
+
+
+def _tokenizer_beside(checkpoint_path: Path) -> Path:
+    folder = checkpoint_path if checkpoint_path.is_dir() else checkpoint_path.parent
+    path = folder / TOKENIZER_FILE
+    if not path.is_file():
+        raise typer.BadParameter(f"no {TOKENIZER_FILE} in {folder}; pass the tokenizer", param_hint="--tokenizer-path")
+    return path

@@ -1,0 +1,18 @@
+"""A steered pi0.5 policy server speaking openpi's websocket protocol (codec, vector catalog, requests, server)."""
+
+from steering_core.serve.catalog import SteeringVector, VectorCatalog
+from steering_core.serve.policy import ServedPolicy, SteeredPi05Policy
+from steering_core.serve.request import AppliedSteering, RequestError, parse_steering, parse_steering_option
+from steering_core.serve.server import PolicyServer
+
+__all__ = [
+    "AppliedSteering",
+    "PolicyServer",
+    "RequestError",
+    "ServedPolicy",
+    "SteeredPi05Policy",
+    "SteeringVector",
+    "VectorCatalog",
+    "parse_steering",
+    "parse_steering_option",
+]

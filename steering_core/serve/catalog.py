@@ -1,0 +1,128 @@
+"""The steering vectors a server offers: every residual-space direction under the steer step's output root.
+
+Layout read (steering_core.sae.steering): `<root>/layerNN/<pair>/directions.json` lists the pair's files;
+`residual_direction.safetensors` (the SAE-decoded direction, or the mean difference when no SAE was used) and,
+with an SAE, `mean_difference_direction.safetensors`. Direction kinds served: "residual" and "mean_difference".
+`latent_direction` lives in the SAE's latent space, not the residual stream, so it cannot be added and is not
+offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file
+
+from steering_core.fileio import read_json
+from steering_core.layout import PAIR_SUMMARY_FILE
+from steering_core.sae.steering import MEAN_DIFFERENCE_FILE, RESIDUAL_DIRECTION_FILE
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_DIRECTION = "residual"
+DIRECTION_FILES = {"residual": RESIDUAL_DIRECTION_FILE, "mean_difference": MEAN_DIFFERENCE_FILE}
+_LAYER_FOLDER = re.compile(r"layer(\d+)")
+
+
+@dataclass(frozen=True)
+class SteeringVector:
+    """One stored direction: float32 (width,) `vector`, its L2 `norm`, and where it came from."""
+
+    pair: str
+    layer: int
+    direction: str
+    vector: torch.Tensor
+    norm: float
+    path: Path
+    direction_space: str
+
+    def describe(self) -> dict:
+        """Return the JSON-ready entry a client sees in the server metadata."""
+        return {"pair": self.pair, "layer": self.layer, "direction": self.direction, "norm": self.norm,
+                "width": int(self.vector.numel()), "direction_space": self.direction_space}
+
+
+class VectorCatalog:
+    """Steering vectors by (pair, layer, direction)."""
+
+    def __init__(self, vectors: list[SteeringVector] | None = None) -> None:
+        self._vectors = {(v.pair, v.layer, v.direction): v for v in vectors or []}
+
+    @classmethod
+    def scan(cls, root: str | os.PathLike) -> VectorCatalog:
+        """Return every servable direction under `root` (the steer step's output root).
+
+        Raises FileNotFoundError for a missing root and ValueError naming the file for an unreadable pair folder.
+        """
+        root = Path(root)
+        if not root.is_dir():
+            raise FileNotFoundError(f"steering vectors folder {root} not found; pass the steer step's output root "
+                                    f"(holding layerNN/<pair>/ folders) with --vectors")
+        vectors = []
+        for layer_path in sorted(root.iterdir()):
+            match = _LAYER_FOLDER.fullmatch(layer_path.name)
+            if match is None or not layer_path.is_dir():
+                continue
+            for pair_path in sorted(layer_path.iterdir()):
+                if (pair_path / PAIR_SUMMARY_FILE).is_file():
+                    vectors.extend(_read_pair(pair_path, int(match.group(1))))
+        logger.info("%s: %d steering vector(s)", root, len(vectors))
+        return cls(vectors)
+
+    def __len__(self) -> int:
+        return len(self._vectors)
+
+    def __iter__(self):
+        return iter(self._vectors.values())
+
+    def get(self, pair: str, layer: int, direction: str = DEFAULT_DIRECTION) -> SteeringVector | None:
+        """Return the vector, or None when the catalog has no such entry."""
+        return self._vectors.get((pair, layer, direction))
+
+    @property
+    def pairs(self) -> list[str]:
+        return sorted({pair for pair, _, _ in self._vectors})
+
+    def layers(self, pair: str) -> list[int]:
+        """Return the layers holding vectors of `pair`."""
+        return sorted({layer for p, layer, _ in self._vectors if p == pair})
+
+    def directions(self, pair: str, layer: int) -> list[str]:
+        """Return the direction kinds stored for `pair` at `layer`."""
+        return sorted(kind for p, at, kind in self._vectors if (p, at) == (pair, layer))
+
+    def describe(self) -> list[dict]:
+        """Return the metadata entries, sorted by pair, layer and direction."""
+        return [self._vectors[key].describe() for key in sorted(self._vectors)]
+
+
+def _read_pair(pair_path: Path, layer: int) -> list[SteeringVector]:
+    summary_path = pair_path / PAIR_SUMMARY_FILE
+    summary = read_json(summary_path)
+    files = summary.get("files") if isinstance(summary, dict) else None
+    if not isinstance(files, dict):
+        raise ValueError(f"{summary_path}: no `files` table; expected the steer step's directions.json")
+    vectors = []
+    for direction, stem in DIRECTION_FILES.items():
+        entry = files.get(stem)
+        if entry is None:
+            continue
+        path = pair_path / entry["safetensors"]
+        try:
+            vector = load_file(path)[entry["tensor"]]
+        except (OSError, KeyError) as err:
+            raise ValueError(f"{path}: cannot read tensor {entry.get('tensor')!r} ({err})") from None
+        if vector.ndim != 1 or not vector.is_floating_point():
+            raise ValueError(f"{path}: direction is {vector.dtype} {tuple(vector.shape)}, "
+                             "expected a float (width,) vector")
+        vector = vector.float()
+        vectors.append(SteeringVector(
+            pair=summary.get("pair", pair_path.name), layer=layer, direction=direction, vector=vector,
+            norm=float(vector.norm()), path=path, direction_space=str(summary.get("direction_space", "residual")),
+        ))
+    return vectors

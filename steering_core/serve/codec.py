@@ -1,0 +1,105 @@
+"""openpi-client's wire format: msgpack with numpy arrays and scalars as tagged maps (spec "Serving protocol").
+
+An ndarray travels as `{b"__ndarray__": True, b"data": C-order bytes, b"dtype": dtype.str, b"shape": [...]}`
+and a numpy scalar as `{b"__npgeneric__": True, b"data": item(), b"dtype": dtype.str}`, with msgpack >= 1.0
+defaults (bin type for bytes, str keys decoded to str, map keys limited to str/bytes). Object, void and complex
+dtypes are refused both ways. Decoding walks the message itself, rather than through an object hook, so a
+malformed array names its key (`observation/image: ...`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import msgpack
+import numpy as np
+
+NDARRAY_TAG = b"__ndarray__"
+NPGENERIC_TAG = b"__npgeneric__"
+REFUSED_KINDS = "VOc"  # structured/void, object, complex: openpi's pack_array refuses them too
+
+
+class WireError(ValueError):
+    """A message that is not a valid openpi-client message; `key` names where (None: the whole message)."""
+
+    def __init__(self, key: str | None, message: str) -> None:
+        super().__init__(f"{key}: {message}" if key else message)
+        self.key = key
+
+
+def pack(obj: Any) -> bytes:
+    """Return the msgpack bytes of `obj` exactly as `openpi_client.msgpack_numpy.packb` writes them."""
+    return msgpack.packb(obj, default=_encode_numpy)
+
+
+def unpack(data: bytes) -> Any:
+    """Return the object in `data`, numpy maps turned into arrays (read-only views) and scalars.
+
+    Raises WireError for bytes that are not one msgpack object or hold a malformed array.
+    """
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise WireError(None, f"expected a binary msgpack message, got {type(data).__name__}")
+    try:
+        obj = msgpack.unpackb(data)
+    except (ValueError, msgpack.UnpackException) as err:
+        raise WireError(None, f"message is not msgpack ({type(err).__name__}: {err})") from None
+    return _decode(obj, None)
+
+
+def _encode_numpy(obj: Any) -> dict[bytes, Any]:
+    if isinstance(obj, np.ndarray | np.generic):
+        if obj.dtype.kind in REFUSED_KINDS:
+            raise ValueError(f"Unsupported dtype: {obj.dtype}")
+        if isinstance(obj, np.ndarray):
+            return {NDARRAY_TAG: True, b"data": obj.tobytes(), b"dtype": obj.dtype.str, b"shape": obj.shape}
+        return {NPGENERIC_TAG: True, b"data": obj.item(), b"dtype": obj.dtype.str}
+    raise TypeError(f"cannot serialize {type(obj).__name__} object")
+
+
+def _decode(obj: Any, key: str | None) -> Any:
+    if isinstance(obj, dict):
+        if NDARRAY_TAG in obj:
+            return _decode_array(obj, key)
+        if NPGENERIC_TAG in obj:
+            return _decode_scalar(obj, key)
+        return {k: _decode(v, _child(key, k)) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_decode(v, f"{key or ''}[{i}]") for i, v in enumerate(obj)]
+    return obj
+
+
+def _child(key: str | None, name: Any) -> str:
+    name = name.decode(errors="replace") if isinstance(name, bytes) else str(name)
+    return f"{key}.{name}" if key else name
+
+
+def _dtype(obj: dict, key: str | None) -> np.dtype:
+    spec = obj.get(b"dtype")
+    try:
+        dtype = np.dtype(spec)
+    except (TypeError, ValueError):
+        raise WireError(key, f"array dtype {spec!r} is not a numpy dtype string like '<f4' or '|u1'") from None
+    if dtype.kind in REFUSED_KINDS:
+        raise WireError(key, f"array dtype {dtype} is not supported (object, void and complex dtypes are refused)")
+    return dtype
+
+
+def _decode_array(obj: dict, key: str | None) -> np.ndarray:
+    dtype, data, shape = _dtype(obj, key), obj.get(b"data"), obj.get(b"shape")
+    if not isinstance(data, bytes):
+        raise WireError(key, f"array data must be bytes, got {type(data).__name__}")
+    if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 0 for n in shape):
+        raise WireError(key, f"array shape must be a list of non-negative integers, got {shape!r}")
+    if len(data) != math.prod(shape) * dtype.itemsize:
+        raise WireError(key, f"array of shape {tuple(shape)} and dtype {dtype} needs "
+                             f"{math.prod(shape) * dtype.itemsize} bytes, got {len(data)}")
+    return np.ndarray(buffer=data, dtype=dtype, shape=tuple(shape))
+
+
+def _decode_scalar(obj: dict, key: str | None) -> np.generic:
+    dtype = _dtype(obj, key)
+    try:
+        return dtype.type(obj.get(b"data"))
+    except (TypeError, ValueError, OverflowError) as err:
+        raise WireError(key, f"numpy scalar of dtype {dtype}: {err}") from None

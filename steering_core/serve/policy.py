@@ -1,0 +1,83 @@
+"""The policy a server serves: anything with `metadata` and `infer(observation, steering) -> dict`.
+
+`SteeredPi05Policy` adapts `Pi05Policy`: each selected vector becomes a `Steering` on the language model's
+residual stream at the prompt's instruction tokens (where the steer step measured the concepts).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+import torch
+
+from steering_core.serve.catalog import SteeringVector, VectorCatalog
+from steering_core.serve.request import PROMPT_KEY, AppliedSteering
+
+
+class ServedPolicy(Protocol):
+    """What the server needs of a policy. `infer` may run in a worker thread, never two calls at once."""
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """JSON-ready facts about the policy, sent to every client on connect."""
+
+    def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:
+        """Return at least `{"actions": np.ndarray (action_horizon, 7)}` for one checked observation."""
+
+
+class SteeredPi05Policy:
+    """A `Pi05Policy` steered at the instruction tokens; `noise_seed` fixes the initial noise of every request.
+
+    With a seed, equal observations give equal actions, so steered and plain requests differ only by the
+    steering (paired comparisons); without one, each request draws fresh noise as openpi does.
+    """
+
+    def __init__(self, policy: Any, noise_seed: int | None = None) -> None:
+        self.policy = policy
+        self.noise_seed = noise_seed
+        self._vectors: dict[tuple, torch.Tensor] = {}  # (pair, layer, direction) -> the vector on the device
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        return {**self.policy.metadata, "noise_seed": self.noise_seed}
+
+    def check_catalog(self, catalog: VectorCatalog) -> None:
+        """Raise ValueError listing vectors whose layer or width this model cannot take."""
+        arch = self.policy.arch
+        problems = [
+            f"{v.path}: layer {v.layer}, width {v.vector.numel()}" for v in catalog
+            if not 0 <= v.layer < arch.depth or v.vector.numel() != arch.width
+        ]
+        if problems:
+            raise ValueError(f"steering vectors that do not fit this model (layers 0..{arch.depth - 1}, width "
+                             f"{arch.width}); use vectors computed from this model's residuals:\n  "
+                             + "\n  ".join(problems))
+
+    def noise(self) -> torch.Tensor | None:
+        """Return the fixed initial noise (action_horizon, action_dim) float32 of one unbatched observation, drawn
+        on the CPU from `noise_seed` (the same on every device), or None for fresh noise."""
+        if self.noise_seed is None:
+            return None
+        generator = torch.Generator().manual_seed(self.noise_seed)
+        return torch.randn(self.policy.action_horizon, self.policy.action_dim, generator=generator)
+
+    def steerings(self, prompt: str, steering: Sequence[AppliedSteering]) -> list:
+        """Return the `Steering`s adding each vector times alpha at the instruction tokens of `prompt`."""
+        from steering_core.pi05.steering import Steering
+
+        if not steering:
+            return []
+        mask = self.policy.instruction_mask(prompt)
+        return [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.alpha,
+                         token_mask=mask) for s in steering]
+
+    def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:
+        steerings = self.steerings(observation[PROMPT_KEY], steering)
+        return self.policy.infer(observation, steering=steerings or None, noise=self.noise())
+
+    def _on_device(self, vector: SteeringVector) -> torch.Tensor:
+        key = (vector.pair, vector.layer, vector.direction)
+        if key not in self._vectors:
+            self._vectors[key] = vector.vector.to(self.policy.device)
+        return self._vectors[key]

@@ -1,0 +1,133 @@
+"""One request's contents checked before inference: the observation's LIBERO keys and the `steering` entry.
+
+Every problem raises RequestError naming the key (`observation/image`, `steering[1].alpha`), what was found and
+what was expected; the server sends that text back and keeps the connection.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from steering_core.pi05.observation import IMAGE_KEY, PROMPT_KEY, STATE_KEY, WRIST_IMAGE_KEY
+from steering_core.serve.catalog import DEFAULT_DIRECTION, SteeringVector, VectorCatalog
+
+STEERING_KEY = "steering"
+IMAGE_KEYS = (IMAGE_KEY, WRIST_IMAGE_KEY)
+ENTRY_KEYS = ("pair", "layer", "alpha", "direction")
+
+
+class RequestError(ValueError):
+    """A request the server refuses; `key` names the offending observation key."""
+
+    def __init__(self, key: str | None, message: str) -> None:
+        super().__init__(f"{key}: {message}" if key else message)
+        self.key = key
+
+
+@dataclass(frozen=True)
+class AppliedSteering:
+    """One steering vector of a request: `alpha` times the stored direction."""
+
+    vector: SteeringVector
+    alpha: float
+
+    def describe(self) -> dict:
+        """Return the JSON-ready record reported back in the result's `steering` list."""
+        v = self.vector
+        return {"pair": v.pair, "layer": v.layer, "direction": v.direction, "alpha": self.alpha, "norm": v.norm}
+
+
+def check_observation(observation: Any) -> None:
+    """Raise RequestError unless `observation` is what openpi's LIBERO client sends (one frame, unbatched).
+
+    Expected: the two images uint8 (H, W, 3), the state a real-valued (D,) array, the prompt a str.
+    """
+    if not isinstance(observation, dict):
+        raise RequestError(None, f"the message must be an observation dict, got {type(observation).__name__}")
+    for key in IMAGE_KEYS:
+        image = _required(observation, key)
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[-1] != 3:
+            raise RequestError(key, f"expected a uint8 (H, W, 3) array, got {_describe(image)}")
+    state = _required(observation, STATE_KEY)
+    if not isinstance(state, np.ndarray) or state.dtype.kind not in "fiu" or state.ndim != 1:
+        raise RequestError(STATE_KEY, f"expected a real-valued (D,) array, got {_describe(state)}")
+    prompt = _required(observation, PROMPT_KEY)
+    if not isinstance(prompt, str):
+        raise RequestError(PROMPT_KEY, f"expected a str, got {_describe(prompt)}")
+
+
+def parse_steering(value: Any, catalog: VectorCatalog, key: str = STEERING_KEY) -> tuple[AppliedSteering, ...]:
+    """Return the vectors a `steering` entry selects: None or [] selects none.
+
+    An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str}` (direction default "residual");
+    `value` is one entry or a list of them.
+    """
+    if value is None:
+        return ()
+    if isinstance(value, Mapping):
+        return (_parse_entry(value, catalog, key),)
+    if isinstance(value, list | tuple):
+        return tuple(_parse_entry(entry, catalog, f"{key}[{i}]") for i, entry in enumerate(value))
+    raise RequestError(key, f"expected a dict like {{'pair': 'open_vs_close', 'layer': 12, 'alpha': 4.0}} "
+                            f"or a list of them, got {_describe(value)}")
+
+
+def parse_steering_option(text: str) -> dict:
+    """Return the steering entry of a command-line spec `pair:layer:alpha[:direction]`."""
+    parts = text.split(":")
+    if len(parts) not in (3, 4):
+        raise ValueError(f"steering {text!r} must look like pair:layer:alpha[:direction], e.g. open_vs_close:12:4.0")
+    try:
+        entry = {"pair": parts[0], "layer": int(parts[1]), "alpha": float(parts[2])}
+    except ValueError:
+        raise ValueError(f"steering {text!r}: layer must be an integer and alpha a number") from None
+    return entry | ({"direction": parts[3]} if len(parts) == 4 else {})
+
+
+def _parse_entry(entry: Any, catalog: VectorCatalog, key: str) -> AppliedSteering:
+    if not isinstance(entry, Mapping):
+        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction), "
+                                f"got {_describe(entry)}")
+    unknown = sorted(str(k) for k in entry if k not in ENTRY_KEYS)
+    if unknown:
+        raise RequestError(key, f"unknown key(s) {unknown}; expected {list(ENTRY_KEYS)}")
+    pair, layer, alpha = (_required(entry, name, f"{key}.{name}") for name in ENTRY_KEYS[:3])
+    direction = entry.get("direction", DEFAULT_DIRECTION)
+    if not isinstance(pair, str):
+        raise RequestError(f"{key}.pair", f"expected a str, got {_describe(pair)}")
+    if isinstance(layer, bool) or not isinstance(layer, int | np.integer):
+        raise RequestError(f"{key}.layer", f"expected an integer, got {_describe(layer)}")
+    if isinstance(alpha, bool) or not isinstance(alpha, int | float | np.integer | np.floating) \
+            or not math.isfinite(alpha):
+        raise RequestError(f"{key}.alpha", f"expected a finite number, got {_describe(alpha)}")
+    if not isinstance(direction, str):
+        raise RequestError(f"{key}.direction", f"expected a str, got {_describe(direction)}")
+    if pair not in catalog.pairs:
+        raise RequestError(f"{key}.pair", f"unknown pair {pair!r}; the server has {catalog.pairs}")
+    if int(layer) not in catalog.layers(pair):
+        raise RequestError(f"{key}.layer", f"pair {pair!r} has no vectors at layer {int(layer)}; "
+                                           f"it has layers {catalog.layers(pair)}")
+    vector = catalog.get(pair, int(layer), direction)
+    if vector is None:
+        raise RequestError(f"{key}.direction", f"pair {pair!r} at layer {int(layer)} has no {direction!r} direction; "
+                                               f"it has {catalog.directions(pair, int(layer))}")
+    return AppliedSteering(vector, float(alpha))
+
+
+def _required(mapping: Mapping, name: str, key: str | None = None) -> Any:
+    if name not in mapping:
+        present = sorted(str(k) for k in mapping)
+        raise RequestError(key or name, f"missing; the request has {present}")
+    return mapping[name]
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, np.ndarray):
+        return f"{value.dtype} array of shape {value.shape}"
+    text = repr(value)
+    return f"{type(value).__name__} {text[:60] + '...' if len(text) > 60 else text}"

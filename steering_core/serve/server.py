@@ -1,0 +1,214 @@
+"""A websocket policy server speaking openpi's protocol, with per-request steering (spec "Serving protocol").
+
+On connect the client gets the metadata; each binary msgpack observation gets one binary msgpack result
+(`actions`, `policy_timing`, `server_timing`, and the `steering` applied). Unlike openpi's server, a bad request
+gets a text frame naming the key and the connection stays open for the next request. `GET /healthz` answers
+200 "OK\\n" on the same port. One model serves every connection: requests run in order per connection and one
+at a time overall (an asyncio lock), in a worker thread so the event loop keeps answering pings.
+SIGINT/SIGTERM (or `request_stop`) stop accepting connections, let the request in flight finish and be
+answered, then close every connection with 1001 (going away).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import http
+import logging
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+from websockets.frames import CloseCode
+from websockets.http11 import Request, Response
+
+from steering_core.serve import codec
+from steering_core.serve.catalog import VectorCatalog
+from steering_core.serve.policy import ServedPolicy
+from steering_core.serve.request import (
+    STEERING_KEY,
+    AppliedSteering,
+    RequestError,
+    check_observation,
+    parse_steering,
+)
+
+logger = logging.getLogger(__name__)
+
+HEALTH_PATH = "/healthz"
+DEFAULT_MAX_MESSAGE_BYTES = 16 * 2**20  # a LIBERO observation (two 224x224 RGB images) is ~0.3 MB
+TRANSPORT_LIMIT_FACTOR = 4  # messages above limit x factor are cut off by websockets itself (close 1009)
+
+
+class PolicyServer:
+    """Serve `policy` with the vectors of `catalog` on host:port (port 0: a free port, see `port` once ready)."""
+
+    def __init__(
+        self,
+        policy: ServedPolicy,
+        catalog: VectorCatalog | None = None,
+        *,
+        default_steering: Sequence[AppliedSteering] = (),
+        host: str = "127.0.0.1",
+        port: int = 8000,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    ) -> None:
+        self.policy = policy
+        self.catalog = catalog or VectorCatalog()
+        self.default_steering = tuple(default_steering)
+        self.host, self.port = host, port
+        self.max_message_bytes = max_message_bytes
+        self.metadata = self._metadata()
+        self._encoded_metadata = codec.pack(self.metadata)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._connections: set[ServerConnection] = set()
+        self._busy: set[ServerConnection] = set()
+        self._inference: asyncio.Lock | None = None
+
+    def run(self) -> None:
+        """Serve until SIGINT or SIGTERM (blocking; call from the main thread)."""
+        asyncio.run(self.serve(install_signal_handlers=True))
+
+    async def serve(self, *, ready: Callable[[], None] | None = None, install_signal_handlers: bool = False) -> None:
+        """Serve until `request_stop`; call `ready()` once listening."""
+        self._loop, self._stop, self._inference = asyncio.get_running_loop(), asyncio.Event(), asyncio.Lock()
+        if install_signal_handlers:
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._loop.add_signal_handler(signum, self._stop.set)
+        async with serve(
+            self._handle, self.host, self.port, compression=None, process_request=self._health,
+            max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR,
+        ) as server:
+            self.port = server.sockets[0].getsockname()[1]
+            logger.info("serving on ws://%s:%d (health: http://%s:%d%s)", self.host, self.port, self.host,
+                        self.port, HEALTH_PATH)
+            if ready is not None:
+                ready()
+            await self._stop.wait()
+            await self._shutdown(server)
+
+    def request_stop(self) -> None:
+        """Ask a running server to shut down (thread-safe); `serve` returns once it has."""
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+
+    async def _shutdown(self, server: Server) -> None:
+        logger.info("shutting down: %d connection(s), %d request(s) in flight", len(self._connections), len(self._busy))
+        server.close(close_connections=False)  # stop listening; busy handlers close after replying
+        await asyncio.gather(*(ws.close(CloseCode.GOING_AWAY, "server shutting down")
+                               for ws in self._connections - self._busy))
+        await server.wait_closed()
+
+    def _health(self, connection: ServerConnection, request: Request) -> Response | None:
+        if request.path == HEALTH_PATH:
+            return connection.respond(http.HTTPStatus.OK, "OK\n")
+        return None
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        self._connections.add(ws)
+        try:
+            await ws.send(self._encoded_metadata)
+            previous_total_ms = None
+            while not self._stop.is_set():
+                message = await ws.recv()
+                start = time.monotonic()
+                self._busy.add(ws)
+                try:
+                    await ws.send(await self._answer(message, previous_total_ms))
+                finally:
+                    self._busy.discard(ws)
+                previous_total_ms = (time.monotonic() - start) * 1000
+            await ws.close(CloseCode.GOING_AWAY, "server shutting down")
+        except ConnectionClosed:
+            pass
+        finally:
+            self._connections.discard(ws)
+
+    async def _answer(self, message: str | bytes, previous_total_ms: float | None) -> str | bytes:
+        """Return the encoded result, or the text of the error (the connection stays usable either way)."""
+        try:
+            observation, steering = self._read(message)
+            queued = time.monotonic()
+            async with self._inference:
+                started = time.monotonic()
+                result = await asyncio.to_thread(self.policy.infer, observation, steering)
+                finished = time.monotonic()
+            result = dict(result)
+            result[STEERING_KEY] = [s.describe() for s in steering]
+            result["server_timing"] = {"infer_ms": (finished - started) * 1000, "queue_ms": (started - queued) * 1000}
+            if previous_total_ms is not None:
+                result["server_timing"]["prev_total_ms"] = previous_total_ms
+            return codec.pack(result)
+        except (codec.WireError, RequestError) as err:
+            logger.warning("bad request: %s", err)
+            return f"bad request: {err}"
+        except Exception:
+            logger.exception("inference failed")
+            return f"inference failed (the server keeps serving):\n{traceback.format_exc()}"
+
+    def _read(self, message: str | bytes) -> tuple[dict[str, Any], tuple[AppliedSteering, ...]]:
+        if isinstance(message, str):
+            raise RequestError(None, "got a text frame; send the observation as binary msgpack (openpi-client does)")
+        if len(message) > self.max_message_bytes:
+            raise RequestError("message", f"{len(message)} bytes is over the server's limit of "
+                                          f"{self.max_message_bytes} bytes (--max-message-mb)")
+        observation = codec.unpack(message)
+        check_observation(observation)
+        if STEERING_KEY in observation:
+            return observation, parse_steering(observation.pop(STEERING_KEY), self.catalog)
+        return observation, self.default_steering
+
+    def _metadata(self) -> dict[str, Any]:
+        return {
+            **self.policy.metadata,
+            "steering": {
+                "request_key": STEERING_KEY,
+                "entry": {"pair": "str", "layer": "int", "alpha": "float", "direction": "str (default residual)"},
+                "applied_at": "language-model residual stream, the prompt's instruction tokens",
+                "default": [s.describe() for s in self.default_steering],
+                "vectors": self.catalog.describe(),
+            },
+            "server": {
+                "inference": "serialised: one model, one request at a time across all connections",
+                "errors": "a text frame naming the key; the connection stays open",
+                "max_message_bytes": self.max_message_bytes,
+            },
+        }
+
+
+@contextlib.contextmanager
+def serving_in_thread(server: PolicyServer, timeout: float = 60) -> Iterator[PolicyServer]:
+    """Run `server` in a background thread (its own event loop) while the block runs; stop and join it after.
+
+    For tests, benchmarks and notebooks; `server.port` is the bound port inside the block.
+    """
+    ready, failure = threading.Event(), []
+
+    def main() -> None:
+        try:
+            asyncio.run(server.serve(ready=ready.set))
+        except BaseException as err:  # re-raised in the caller's thread
+            failure.append(err)
+            ready.set()
+
+    thread = threading.Thread(target=main, name="policy-server", daemon=True)
+    thread.start()
+    if not ready.wait(timeout):
+        raise TimeoutError(f"policy server did not start listening within {timeout} s")
+    if failure:
+        raise failure[0]
+    try:
+        yield server
+    finally:
+        server.request_stop()
+        thread.join(timeout)
+    if failure:
+        raise failure[0]
+    if thread.is_alive():
+        raise TimeoutError(f"policy server did not stop within {timeout} s")

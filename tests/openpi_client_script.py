@@ -1,0 +1,55 @@
+"""Replay requests through the real openpi-client (PyPI 0.1.2), in its own environment (numpy < 2).
+
+Usage: uv run --isolated --no-project --with openpi-client==0.1.2 --with typing_extensions \
+           python openpi_client_script.py PLAN OUT
+PLAN (written with the project's codec, read here with openpi_client.msgpack_numpy):
+    {"host": str, "port": int, "clients": [[request, ...], ...]}   one list of requests per concurrent client
+    request: {"obs": observation dict} sent with WebsocketClientPolicy.infer, or {"raw": bytes} sent as is on the
+    client's own connection (for bytes that infer could not produce).
+OUT: {"clients": [{"metadata": ..., "results": [{"reply": dict} | {"error": "Type: message"}, ...]}, ...]}
+"""
+
+import sys
+import threading
+
+from openpi_client import msgpack_numpy
+from openpi_client.websocket_client_policy import WebsocketClientPolicy
+
+
+def send(client, request):
+    if "raw" in request:  # the same handling as WebsocketClientPolicy.infer, for bytes it would not pack
+        client._ws.send(request["raw"])
+        response = client._ws.recv()
+        if isinstance(response, str):
+            raise RuntimeError(f"Error in inference server:\n{response}")
+        return msgpack_numpy.unpackb(response)
+    return client.infer(request["obs"])
+
+
+def run(host, port, requests, out, index):
+    client = WebsocketClientPolicy(host, port)
+    results = []
+    for request in requests:
+        try:
+            results.append({"reply": send(client, request)})
+        except Exception as err:  # recorded for the test to check, then the next request goes on the same client
+            results.append({"error": f"{type(err).__name__}: {err}"})
+    out[index] = {"metadata": client.get_server_metadata(), "results": results}
+
+
+def main(plan_path, out_path):
+    with open(plan_path, "rb") as f:
+        plan = msgpack_numpy.unpackb(f.read())
+    out = [None] * len(plan["clients"])
+    threads = [threading.Thread(target=run, args=(plan["host"], plan["port"], requests, out, i))
+               for i, requests in enumerate(plan["clients"])]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    with open(out_path, "wb") as f:
+        f.write(msgpack_numpy.packb({"clients": out}))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2])

@@ -1,0 +1,250 @@
+"""The policy server over real loopback sockets: the real openpi client (its own environment), steering per
+request, errors that keep the connection, concurrency, health check, keepalive during inference, shutdown."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers_serve import (
+    FakePolicy,
+    fake_actions,
+    libero_observations,
+    port_from_log,
+    run_openpi_client,
+    running,
+    write_vectors,
+)
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from steering_core.serve import PolicyServer, RequestError, VectorCatalog, parse_steering, parse_steering_option
+from steering_core.serve.codec import pack, unpack
+
+WIDTH = 64
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory) -> VectorCatalog:
+    return VectorCatalog.scan(write_vectors(tmp_path_factory.mktemp("steer") / "latent_steering", WIDTH))
+
+
+@pytest.fixture(scope="module")
+def observations(tmp_path_factory) -> list[dict]:
+    return libero_observations(tmp_path_factory.mktemp("demo"), frames=4)
+
+
+def expected(catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
+    """The fake policy's actions computed directly, steering entries given as (pair, layer, alpha[, direction])."""
+    return fake_actions(observation, [(catalog.get(*entry[:2], *entry[3:]).vector, entry[2]) for entry in entries])
+
+
+# ---------------------------------------------------------------- catalog and request parsing (no sockets)
+
+def test_catalog_offers_the_residual_space_directions_the_steer_step_wrote(catalog, tmp_path):
+    from safetensors.torch import load_file
+
+    keys = {(e["pair"], e["layer"], e["direction"]) for e in catalog.describe()}
+    pairs = ("open_vs_close", "on_vs_off")
+    assert keys == {(pair, 1, kind) for pair in pairs for kind in ("residual", "mean_difference")} \
+        | {(pair, 2, "residual") for pair in pairs}  # latent directions are not residuals: not offered
+    vector = catalog.get("open_vs_close", 1, "mean_difference")
+    stored = load_file(vector.path)["residual_direction"]
+    assert vector.vector.dtype == stored.dtype and bool((vector.vector == stored).all())
+    assert vector.norm == pytest.approx(float(np.linalg.norm(stored.double().numpy())), rel=1e-6)
+    with pytest.raises(FileNotFoundError, match="--vectors"):
+        VectorCatalog.scan(tmp_path / "absent")
+
+
+def test_steering_entry_forms(catalog):
+    one = parse_steering({"pair": "open_vs_close", "layer": 2, "alpha": 4}, catalog)
+    assert [(s.vector.pair, s.vector.layer, s.vector.direction, s.alpha) for s in one] == \
+        [("open_vs_close", 2, "residual", 4.0)]
+    two = parse_steering([{"pair": "on_vs_off", "layer": np.int64(1), "alpha": np.float32(-0.5),
+                           "direction": "mean_difference"}, {"pair": "open_vs_close", "layer": 1, "alpha": 1.0}],
+                         catalog)
+    assert [(s.vector.pair, s.vector.direction, s.alpha) for s in two] == \
+        [("on_vs_off", "mean_difference", -0.5), ("open_vs_close", "residual", 1.0)]
+    assert parse_steering(None, catalog) == () and parse_steering([], catalog) == ()
+    assert parse_steering_option("open_vs_close:12:4.0") == {"pair": "open_vs_close", "layer": 12, "alpha": 4.0}
+    assert parse_steering_option("a:3:-1:mean_difference")["direction"] == "mean_difference"
+    with pytest.raises(ValueError, match="pair:layer:alpha"):
+        parse_steering_option("open_vs_close:12")
+
+
+@pytest.mark.parametrize("value, key, problem", [
+    ({"pair": "nope", "layer": 1, "alpha": 1.0}, "steering.pair", "unknown pair 'nope'"),
+    ({"pair": "open_vs_close", "layer": 7, "alpha": 1.0}, "steering.layer", r"layers \[1, 2\]"),
+    ({"pair": "open_vs_close", "layer": 1.0, "alpha": 1.0}, "steering.layer", "integer"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": "4"}, "steering.alpha", "finite number, got str"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": float("nan")}, "steering.alpha", "finite number"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": True}, "steering.alpha", "finite number, got bool"),
+    ({"pair": "open_vs_close", "layer": 1}, "steering.alpha", "missing"),
+    ({"pair": "open_vs_close", "layer": 2, "alpha": 1, "direction": "mean_difference"}, "steering.direction",
+     r"has \['residual'\]"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "scale": 2}, "steering", r"unknown key\(s\) \['scale'\]"),
+    ([{"pair": "open_vs_close", "layer": 1, "alpha": 1}, 3], "steering[1]", "expected a dict"),
+    ("open_vs_close", "steering", "expected a dict"),
+])
+def test_bad_steering_entries_name_the_key(catalog, value, key, problem):
+    with pytest.raises(RequestError, match=problem) as err:
+        parse_steering(value, catalog)
+    assert err.value.key == key and str(err.value).startswith(f"{key}: ")
+
+
+# ---------------------------------------------------------------- the real openpi client
+
+def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, tmp_path):
+    steer = {"pair": "open_vs_close", "layer": 1, "alpha": 4.0}
+    both = [steer, {"pair": "on_vs_off", "layer": 2, "alpha": -2.5}]
+    requests = [{"obs": obs} for obs in observations] + [
+        {"obs": observations[0] | {"steering": steer}},
+        {"obs": observations[1] | {"steering": both}},
+        {"obs": observations[2] | {"steering": {**steer, "direction": "mean_difference"}}},
+    ]
+    with running(PolicyServer(FakePolicy(), catalog)) as server:
+        [client] = run_openpi_client(tmp_path, server.port, [requests])
+    replies = [result["reply"] for result in client["results"]]
+    wanted = [expected(catalog, obs) for obs in observations] + [
+        expected(catalog, observations[0], ("open_vs_close", 1, 4.0)),
+        expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5)),
+        expected(catalog, observations[2], ("open_vs_close", 1, 4.0, "mean_difference")),
+    ]
+    for reply, actions in zip(replies, wanted, strict=True):
+        assert reply["actions"].dtype == np.float32 and reply["actions"].shape == (10, 7)
+        assert reply["actions"].tobytes() == actions.tobytes()  # bit for bit
+    assert not np.array_equal(replies[4]["actions"], replies[0]["actions"])  # steering changes the actions
+    assert replies[0]["steering"] == []
+    assert [(s["pair"], s["layer"], s["direction"], s["alpha"]) for s in replies[5]["steering"]] == \
+        [("open_vs_close", 1, "residual", 4.0), ("on_vs_off", 2, "residual", -2.5)]
+    assert replies[5]["steering"][0]["norm"] == pytest.approx(catalog.get("open_vs_close", 1).norm)
+    assert set(replies[0]["server_timing"]) == {"infer_ms", "queue_ms"}  # prev_total_ms from the 2nd request on
+    assert set(replies[1]["server_timing"]) == {"infer_ms", "queue_ms", "prev_total_ms"}
+    assert replies[0]["policy_timing"] == {"infer_ms": 0.0}
+    metadata = client["metadata"]
+    assert metadata["policy"] == "fake" and metadata["steering"]["vectors"] == catalog.describe()
+    assert "serialised" in metadata["server"]["inference"]
+
+
+def test_bad_requests_get_an_error_naming_the_key_and_the_connection_keeps_serving(catalog, observations, tmp_path):
+    good = observations[0]
+    image = good["observation/image"]
+    bad = [
+        ({"raw": b"\xc1\x00 this is not msgpack"}, "not msgpack"),
+        ({"obs": {k: v for k, v in good.items() if k != "observation/image"}}, "observation/image: missing"),
+        ({"obs": good | {"observation/wrist_image": image[:, :, :2].copy()}}, "observation/wrist_image: expected"),
+        ({"obs": good | {"observation/image": image.astype(np.float32)}}, "observation/image: expected a uint8"),
+        ({"obs": good | {"steering": {"pair": "nope", "layer": 1, "alpha": 1.0}}}, "steering.pair: unknown pair"),
+        ({"obs": good | {"steering": {"pair": "on_vs_off", "layer": 9, "alpha": 1.0}}}, "steering.layer: pair"),
+        ({"obs": good | {"steering": {"pair": "on_vs_off", "layer": 1, "alpha": "big"}}}, "steering.alpha: expected"),
+        ({"obs": good | {"padding": np.zeros(300_000, np.uint8)}}, "message: "),
+    ]
+    requests = [request for b, _ in bad for request in (b, {"obs": good})]
+    policy = FakePolicy()
+    with running(PolicyServer(policy, catalog, max_message_bytes=200_000)) as server:
+        first, other = run_openpi_client(tmp_path, server.port, [requests, [{"obs": good}] * 3])
+    want = expected(catalog, good).tobytes()
+    for i, (_, problem) in enumerate(bad):
+        error, after = first["results"][2 * i], first["results"][2 * i + 1]
+        assert "error" in error and error["error"].startswith("RuntimeError: Error in inference server:"), error
+        assert problem in error["error"], (problem, error["error"])
+        assert after["reply"]["actions"].tobytes() == want  # the same connection serves the next request
+    assert all(result["reply"]["actions"].tobytes() == want for result in other["results"])
+    assert policy.calls == len(bad) + 3  # bad requests never reached the policy
+
+
+def test_ten_concurrent_clients_twenty_requests_each(catalog, observations, tmp_path):
+    def request(client: int, i: int) -> dict:
+        obs = observations[(client + i) % len(observations)]
+        return obs | {"steering": {"pair": "open_vs_close", "layer": 1 + i % 2, "alpha": client + i / 10}}
+
+    clients = [[{"obs": request(c, i)} for i in range(20)] for c in range(10)]
+    policy = FakePolicy(delay_s=0.002)
+    with running(PolicyServer(policy, catalog)) as server:
+        results = run_openpi_client(tmp_path, server.port, clients)
+    for c, client in enumerate(results):
+        assert len(client["results"]) == 20
+        for i, result in enumerate(client["results"]):
+            obs = observations[(c + i) % len(observations)]
+            want = expected(catalog, obs, ("open_vs_close", 1 + i % 2, c + i / 10))
+            assert result["reply"]["actions"].tobytes() == want.tobytes(), (c, i)
+    assert policy.calls == 200 and policy.max_concurrent == 1  # one inference at a time
+
+
+# ---------------------------------------------------------------- health, keepalive, default steering, shutdown
+
+def test_health_check_and_default_steering(catalog, observations):
+    default = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 3.0}, catalog)
+    with running(PolicyServer(FakePolicy(), catalog, default_steering=default)) as server:
+        with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=10) as response:
+            assert response.status == 200 and response.read() == b"OK\n"
+        with connect(f"ws://127.0.0.1:{server.port}", max_size=None) as ws:
+            assert unpack(ws.recv())["steering"]["default"] == [s.describe() for s in default]
+            ws.send(pack(observations[0]))
+            defaulted = unpack(ws.recv())
+            ws.send(pack(observations[0] | {"steering": None}))
+            plain = unpack(ws.recv())
+    assert defaulted["actions"].tobytes() == expected(catalog, observations[0], ("on_vs_off", 2, 3.0)).tobytes()
+    assert plain["actions"].tobytes() == expected(catalog, observations[0]).tobytes() and plain["steering"] == []
+
+
+def test_pings_are_answered_while_inference_runs(catalog, observations):
+    # a client pinging every 0.1 s with a 0.2 s timeout gives up during a 1.5 s inference on the event loop
+    with running(PolicyServer(FakePolicy(delay_s=1.5), catalog)) as server:
+        with connect(f"ws://127.0.0.1:{server.port}", ping_interval=0.1, ping_timeout=0.2, max_size=None) as ws:
+            ws.recv()
+            ws.send(pack(observations[0]))
+            assert unpack(ws.recv())["actions"].shape == (10, 7)
+
+
+def test_stop_finishes_the_request_in_flight_then_closes_every_connection(catalog, observations):
+    server = PolicyServer(FakePolicy(delay_s=1.0), catalog)
+    with running(server):
+        url = f"ws://127.0.0.1:{server.port}"
+        with connect(url, max_size=None) as busy, connect(url, max_size=None) as idle:
+            busy.recv(), idle.recv()
+            busy.send(pack(observations[0]))
+            time.sleep(0.3)  # inference is running
+            server.request_stop()
+            reply = unpack(busy.recv(timeout=10))
+            assert reply["actions"].tobytes() == expected(catalog, observations[0]).tobytes()
+            for ws in (busy, idle):
+                with pytest.raises(ConnectionClosed) as closed:
+                    ws.recv(timeout=10)
+                assert closed.value.rcvd.code == 1001
+
+
+@pytest.mark.slow
+def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observations, tmp_path):
+    vectors = next(iter(catalog)).path.parents[2]
+    script = textwrap.dedent(f"""
+        import logging, sys
+        logging.basicConfig(level=logging.INFO)
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from helpers_serve import FakePolicy
+        from steering_core.serve import PolicyServer, VectorCatalog
+        server = PolicyServer(FakePolicy(delay_s=1.0), VectorCatalog.scan({str(vectors)!r}), port=0)
+        server.run()
+    """)
+    process = subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True)
+    try:
+        port = port_from_log(process)
+        with connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
+            ws.recv()
+            ws.send(pack(observations[1]))
+            time.sleep(0.3)
+            process.send_signal(signal.SIGTERM)
+            assert unpack(ws.recv(timeout=10))["actions"].tobytes() == expected(catalog, observations[1]).tobytes()
+            with pytest.raises(ConnectionClosed):
+                ws.recv(timeout=10)
+        assert process.wait(timeout=20) == 0
+    finally:
+        process.kill()
+

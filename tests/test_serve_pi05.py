@@ -1,0 +1,114 @@
+"""The served pi0.5 policy (tiny checkpoint) through the real openpi client equals `Pi05Policy.infer` bit for
+bit, plain and steered at the instruction tokens; `latent-steering serve` starts, serves and stops on a signal."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers_serve import libero_observations, port_from_log, run_openpi_client, running, write_vectors
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from steering_core.fileio import write_json
+from steering_core.pi05.policy import Pi05Policy
+from steering_core.pi05.steering import Steering
+from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog
+from steering_core.serve.codec import pack, unpack
+from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.tokenizer import write_tokenizer
+
+ARCH = tiny_arch()
+LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
+SEED = 7
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pi05")
+    checkpoint = write_pi05_checkpoint(folder / "ckpt", ARCH, seed=3)
+    tokenizer = write_tokenizer(folder / "tokenizer.model")
+    vectors = write_vectors(folder / "latent_steering", ARCH.width)
+    policy = Pi05Policy.from_checkpoint(checkpoint, ARCH, device="cpu", tokenizer_path=tokenizer)
+    return checkpoint, tokenizer, vectors, policy
+
+
+@pytest.fixture(scope="module")
+def observations(tmp_path_factory):
+    return libero_observations(tmp_path_factory.mktemp("demo"), frames=3, image_size=32)
+
+
+def direct(policy: Pi05Policy, catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
+    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha) at the instruction tokens."""
+    noise = torch.randn(policy.action_horizon, policy.action_dim, generator=torch.Generator().manual_seed(SEED))
+    mask = policy.instruction_mask(observation["prompt"])
+    steering = [Steering(layer, catalog.get(pair, layer).vector, alpha, token_mask=mask)
+                for pair, layer, alpha in entries]
+    return policy.infer(observation, steering=steering or None, noise=noise)["actions"]
+
+
+def test_openpi_client_gets_pi05_infer_bit_for_bit(model, observations, tmp_path):
+    _, _, vectors, policy = model
+    catalog = VectorCatalog.scan(vectors)
+    steer = [{"pair": "open_vs_close", "layer": 1, "alpha": 6.0}, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}]
+    requests = [{"obs": obs} for obs in observations] + [{"obs": obs | {"steering": steer}} for obs in observations]
+    served = SteeredPi05Policy(policy, noise_seed=SEED)
+    served.check_catalog(catalog)
+    with running(PolicyServer(served, catalog)) as server:
+        [client] = run_openpi_client(tmp_path, server.port, [requests])
+    replies = [result["reply"]["actions"] for result in client["results"]]
+    wanted = [direct(policy, catalog, obs) for obs in observations] + \
+        [direct(policy, catalog, obs, ("open_vs_close", 1, 6.0), ("on_vs_off", 2, -3.0)) for obs in observations]
+    for reply, actions in zip(replies, wanted, strict=True):
+        assert reply.shape == (10, 7) and reply.dtype == actions.dtype
+        assert reply.tobytes() == actions.tobytes()
+    for plain, steered in zip(replies[:3], replies[3:], strict=True):
+        assert np.abs(plain - steered).max() > 1e-4  # steering changes the actions
+    metadata = client["metadata"]
+    assert metadata["model"] == "pi05" and metadata["noise_seed"] == SEED
+    assert metadata["steering"]["vectors"] == catalog.describe()
+
+
+def test_vectors_that_do_not_fit_the_model_are_refused(model, tmp_path):
+    _, _, _, policy = model
+    catalog = VectorCatalog.scan(write_vectors(tmp_path / "wide", ARCH.width + 1, sae_layer=1, plain_layer=9))
+    with pytest.raises(ValueError, match=r"do not fit this model \(layers 0..3, width 64\)") as err:
+        SteeredPi05Policy(policy).check_catalog(catalog)
+    assert "layer 9, width 65" in str(err.value)
+
+
+@pytest.mark.slow
+def test_serve_command_serves_until_sigint(model, observations, tmp_path):
+    checkpoint, tokenizer, vectors, policy = model
+    arch_file = write_json(tmp_path / "arch.json", ARCH.model_dump())
+    command = [LATENT_STEERING, "serve", "--checkpoint-path", str(checkpoint), "--tokenizer-path", str(tokenizer),
+               "--arch-file", str(arch_file), "--vectors", str(vectors), "--port", "0", "--device", "cpu",
+               "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0"]
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    try:
+        port = port_from_log(process)
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10) as response:
+            assert response.read() == b"OK\n"
+        with connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
+            metadata = unpack(ws.recv())
+            assert [(s["pair"], s["layer"], s["alpha"]) for s in metadata["steering"]["default"]] == \
+                [("open_vs_close", 2, 5.0)]
+            ws.send(pack(observations[0]))
+            reply = unpack(ws.recv(timeout=60))
+            catalog = VectorCatalog.scan(vectors)
+            assert reply["actions"].tobytes() == direct(policy, catalog, observations[0],
+                                                        ("open_vs_close", 2, 5.0)).tobytes()
+            process.send_signal(signal.SIGINT)
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv(timeout=20)
+            assert closed.value.rcvd.code == 1001
+        assert process.wait(timeout=20) == 0
+    finally:
+        process.kill()
+
