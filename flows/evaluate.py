@@ -52,7 +52,7 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[int, str]
     targets = evaluation_targets(config)
     if capture_mode(config) == "deployment":
         started = [run_deployment(config.orchestration.evaluate_deployment,
-                                  parameters={"config_path": str(config_path), "targets": [list(t)]},
+                                  parameters={"config_path": str(config_path), "targets": [[name, layer]]},
                                   flow_run_name=f"evaluate {name} {layer_dir(layer)}", timeout=0)
                    for name, layer in targets]
         logger.info("started %d evaluation run(s); waiting", len(started))
