@@ -109,19 +109,27 @@ def ours_flops_selected_queries(arch: Pi05Arch, deepest: int, prompt_tokens: int
     return ours_flops(arch, deepest - 1, prompt_tokens) + last
 
 
+def expert_step_flops(arch: Pi05Arch, prefix_keys: float) -> float:
+    """Return the FLOPs of one denoising step of the action expert paired with `arch` (gemma_300m-shaped:
+    half the width, a quarter of the MLP) whose action tokens attend to `prefix_keys` cached keys."""
+    from bench.seed_pi05 import ACTION_DIM, ACTION_HORIZON, expert_arch
+
+    expert = expert_arch(arch)
+    width = expert.width
+    keys = prefix_keys + ACTION_HORIZON
+    per_layer = decoder_layer_flops(expert, ACTION_HORIZON, keys) + 2 * _linear(1, width, 3 * width)
+    actions = _linear(ACTION_HORIZON, ACTION_DIM, width) + _linear(ACTION_HORIZON, width, ACTION_DIM)
+    heads = actions + 2 * _linear(1, width, width)  # action in/out, time MLP
+    return arch.depth * per_layer + _linear(1, width, 3 * width) + heads
+
+
 def seed_flops(arch: Pi05Arch, passes: int) -> float:
     """Return per-frame FLOPs of `passes` full sample_actions calls (all slots, all layers, 10 expert steps)."""
-    from bench.seed_pi05 import ACTION_DIM, ACTION_HORIZON, DENOISE_STEPS, expert_arch
+    from bench.seed_pi05 import DENOISE_STEPS
 
     tokens = CAMERA_SLOTS * arch.tokens_per_image + LANGUAGE_SLOTS
     prefix = siglip_flops(arch, CAMERA_SLOTS) + arch.depth * decoder_layer_flops(arch, tokens, tokens)
-    expert = expert_arch(arch)
-    width = expert.width
-    per_layer = decoder_layer_flops(expert, ACTION_HORIZON, tokens + ACTION_HORIZON) + 2 * _linear(1, width, 3 * width)
-    actions = _linear(ACTION_HORIZON, ACTION_DIM, width) + _linear(ACTION_HORIZON, width, ACTION_DIM)
-    heads = actions + 2 * _linear(1, width, width)  # action in/out, time MLP
-    step = arch.depth * per_layer + _linear(1, width, 3 * width) + heads
-    return passes * (prefix + DENOISE_STEPS * step)
+    return passes * (prefix + DENOISE_STEPS * expert_step_flops(arch, tokens))
 
 
 def h100_frames_per_second(flops_per_frame: float) -> float:

@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> Result:
     ]
     result = Result(
         name="evaluate",
-        title="6. Steering evaluation cost (one pair, one layer)",
+        title="9. Steering evaluation cost (one pair, one layer)",
         command=command("evaluate_cost", args),
         measured=f"{min(ours_times):.1f} s",
         baseline=f"{min(naive_times):.1f} s",

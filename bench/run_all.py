@@ -18,8 +18,12 @@ from pathlib import Path
 
 from bench.common import REPO_ROOT, Result, cache_dir, machine, markdown_table, parser
 
-BENCHMARKS = ("capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh",
-              "evaluate_cost")
+BENCHMARKS = (
+    "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
+    "cli_startup",
+    "serve_latency",
+    "evaluate_cost",
+)
 REPORT = REPO_ROOT / "BENCHMARKS.md"
 QUICK_REPORT = "BENCHMARKS.quick.md"  # under the cache folder
 BUDGET_MINUTES = 10  # the whole set on a 2-core machine

@@ -1,6 +1,9 @@
-"""`latent-steering`: one subcommand per step of the seed pipeline."""
+"""`latent-steering`: one subcommand per step of the seed pipeline.
 
-from cli import capture, contrast, evaluate, prepare, run, serve, steer  # noqa: F401  (register commands)
+Command modules are imported only when their command runs (`cli.lazy`), so `--help` and the light
+commands start without torch, lerobot or Prefect.
+"""
+
 from cli.app import app
 
 __all__ = ["app"]

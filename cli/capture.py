@@ -176,7 +176,8 @@ def slice_command(
         None, "--max-samples-per-concept", min=1, help="Keep at most N rows (or frames), evenly spaced."
     ),
     verify_checksums: bool = typer.Option(
-        False, "--verify-checksums", help="Re-hash every shard against metadata.json before reading it."
+        True, "--verify-checksums/--no-verify-checksums",
+        help="Re-hash every shard against metadata.json before reading it (a damaged shard stops the slice).",
     ),
     split: Path | None = typer.Option(
         None, "--split", help="Held-out split JSON (manifests/<pair>_split.json): its held-out episodes are not sliced."

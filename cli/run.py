@@ -1,12 +1,12 @@
 """CLI commands that run the Prefect flows: `run`, `demo` and `deploy`.
 
 Prefect is imported inside the commands (after its environment is set), so the library and the
-other commands never load it.
+other commands never load it. One rule for Prefect's state (its database and run history), for `run`
+and `demo` alike: `.prefect/` beside the run config, unless PREFECT_HOME is set.
 """
 
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
@@ -14,15 +14,16 @@ import typer
 
 from cli.app import app, input_errors
 from steering_core import demo
-from steering_core.config import load_run_config
+from steering_core.config import RunConfig, load_run_config
+from steering_core.preflight import check_run
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.
 EPHEMERAL_STARTUP_SECONDS = "90"
+PREFECT_HOME_DIR = ".prefect"  # beside the run config, unless PREFECT_HOME is set
 
 
 def prefect_environment(home: Path | None = None) -> None:
     """Set Prefect's environment for an in-process run (unless already set): startup, telemetry, logs, offline hub."""
-    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per API call otherwise
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", EPHEMERAL_STARTUP_SECONDS)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -31,22 +32,40 @@ def prefect_environment(home: Path | None = None) -> None:
         os.environ.setdefault("PREFECT_HOME", str(home))
 
 
+def run_pipeline(config_path: Path, run_config: RunConfig) -> None:
+    """Run the `latent-steering` flow in this process; print what each task did; exit 1 if the run failed."""
+    from flows.pipeline import latent_steering
+    from flows.summary import format_task_rows, task_rows, task_runs_of
+
+    state = latent_steering(str(config_path), return_state=True)
+    typer.echo("")
+    typer.echo(format_task_rows(task_rows(task_runs_of(state.state_details.flow_run_id), run_config),
+                                run_config.output_root))
+    if not state.is_completed():
+        typer.secho(f"error: the run ended {state.name}: {state.message}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(1)
+
+
 @app.command("run")
 def run_command(
     config: Path = typer.Option(..., "--config", help="Run config (YAML): sources, pairs, layers, model, SAE."),
 ) -> None:
     """Run the whole pipeline (the `latent-steering` flow) in this process.
 
-    Uses PREFECT_API_URL when set, else Prefect's embedded server. Re-runs reuse every step whose
-    inputs did not change.
+    Uses PREFECT_API_URL when set, else Prefect's embedded server.
+    Prefect's state (database, run history) is kept in .prefect/ beside the run config, unless PREFECT_HOME is set.
+    Re-runs reuse every step whose inputs did not change.
+    Ends with a table of every task run: ran, cached or failed, time, output.
     """
-    prefect_environment()
     with input_errors():
         run_config = load_run_config(config)
-    from flows.pipeline import latent_steering
-
-    result = latent_steering(str(config))
-    typer.echo(f"outputs under {result['output_root']}")
+        prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
+        check_run(run_config, capture_device=run_config.orchestration.capture != "deployment")  # before Prefect starts
+    run_pipeline(config, run_config)
+    typer.echo("")
+    typer.echo(demo.format_summary(demo.summarise(run_config), random_sae=False))
+    typer.echo("")
+    typer.echo(f"outputs under {run_config.output_root}")
     for path in demo.report_paths(run_config):
         typer.echo(f"report: {path}")
 
@@ -58,19 +77,18 @@ def demo_command(
 ) -> None:
     """Generate demos for two concept pairs, a tiny pi0.5, tokenizer and SAEs; run the whole flow; summarise.
 
-    Runs offline on Prefect's embedded server (PREFECT_HOME inside the output folder unless set).
+    Runs offline on Prefect's embedded server.
+    Prefect's state is kept in <output-dir>/.prefect (beside the run config, as for `run`), unless PREFECT_HOME is set.
     Running it again reuses every cached step.
     """
     output_dir = output_dir.resolve()
-    prefect_environment(home=output_dir / ".prefect")
+    prefect_environment(home=output_dir / PREFECT_HOME_DIR)
     config_path = demo.build_demo(output_dir, demos_per_task=demos_per_task)
     typer.echo(f"inputs written under {output_dir / demo.INPUTS_DIR}; run config {config_path}")
-    from flows.pipeline import latent_steering
-
-    latent_steering(str(config_path))
     run_config = load_run_config(config_path)
+    run_pipeline(config_path, run_config)
     typer.echo("")
-    typer.echo(demo.format_summary(demo.summarise(run_config)))
+    typer.echo(demo.format_summary(demo.summarise(run_config), random_sae=True))
     typer.echo("")
     typer.echo(f"outputs: {run_config.output_root}")
     for path in demo.report_paths(run_config):

@@ -16,8 +16,9 @@ from typing import Any
 
 from prefect import flow, get_run_logger, runtime
 from prefect.client.orchestration import get_client
-from prefect.client.schemas.objects import FlowRun
+from prefect.client.schemas.objects import FlowRun, WorkerStatus
 from prefect.deployments import run_deployment
+from prefect.states import Cancelled
 
 from steering_core.capture import shards
 from steering_core.config import RunConfig, load_run_config
@@ -81,7 +82,7 @@ def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
         for members in capture_plan(config)
     ]
     logger.info("started %d capture run(s) of %s; waiting", len(started), deployment)
-    finished = wait_for_runs(started, config.orchestration.poll_seconds)
+    finished = wait_for_runs(started, config.orchestration.poll_seconds, config.orchestration.worker_wait_seconds)
     failed = [f"{run.name} ({run.state.name if run.state else 'no state'})" for run in finished
               if run.state is None or not run.state.is_completed()]
     if failed:
@@ -91,20 +92,46 @@ def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
     return finished
 
 
-def wait_for_runs(runs: Sequence[FlowRun], poll_seconds: float) -> list[FlowRun]:
-    """Return `runs` re-read once each has reached a final state (polling the API every `poll_seconds`)."""
+def wait_for_runs(runs: Sequence[FlowRun], poll_seconds: float, worker_wait_seconds: float | None = None) -> list[FlowRun]:
+    """Return `runs` re-read once each has reached a final state (polling the API every `poll_seconds`).
+
+    If after `worker_wait_seconds` none of the runs has started and no worker of their pool is online,
+    they are cancelled and a RuntimeError names the pool: nothing would ever run them.
+    """
     pending = {run.id: run for run in runs}
     finished: dict[Any, FlowRun] = {}
+    deadline = None if worker_wait_seconds is None else time.monotonic() + worker_wait_seconds
     with get_client(sync_client=True) as client:
         while pending:
             for run_id in list(pending):
-                run = client.read_flow_run(run_id)
+                run = pending[run_id] = client.read_flow_run(run_id)
                 if run.state is not None and run.state.is_final():
                     del pending[run_id]
                     finished[run_id] = run
+            if pending and deadline is not None and time.monotonic() > deadline:
+                _fail_if_nobody_polls(client, list(pending.values()), worker_wait_seconds)
+                deadline = None  # a worker is there: wait as long as the runs take
             if pending:
                 time.sleep(poll_seconds)
     return [finished[run.id] for run in runs]
+
+
+def _fail_if_nobody_polls(client: Any, pending: list[FlowRun], waited: float) -> None:
+    """Cancel `pending` and raise if none has started and their work pool has no online worker."""
+    if any(run.state is None or not run.state.is_scheduled() for run in pending):
+        return  # a worker picked one up
+    pools = sorted({run.work_pool_name for run in pending if run.work_pool_name})
+    online = [pool for pool in pools
+              if any(worker.status == WorkerStatus.ONLINE for worker in client.read_workers_for_work_pool(pool))]
+    if online:
+        return
+    for run in pending:
+        client.set_flow_run_state(run.id, Cancelled(message=f"no worker polled pool {', '.join(pools)}"), force=True)
+    raise RuntimeError(
+        f"no worker is polling pool {', '.join(repr(p) for p in pools) or '(none)'}: {len(pending)} capture run(s) "
+        f"still scheduled after {waited:.0f} s were cancelled; start one with "
+        f"`prefect worker start --pool {pools[0] if pools else 'gpu'}` and re-run (complete shards are kept)"
+    )
 
 
 def run_capture(config: RunConfig, config_path: str | Path) -> str:

@@ -1,5 +1,6 @@
 """The parent flow `latent-steering`: the seed's three phases over every concept pair and layer.
 
+0. Preflight: every input checked (sources, checkpoint, tokenizer, SAEs, output folders, devices).
 1. Phase 1 (CPU): filter demo files, convert them to one LeRobot dataset, then a contrast manifest
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
@@ -25,7 +26,7 @@ from prefect.futures import PrefectFuture
 from prefect.settings import get_current_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from flows.capture import run_capture
+from flows.capture import capture_mode, run_capture
 from flows.evaluate import run_evaluation
 from steering_core.config import RunConfig, load_run_config
 from steering_core.refresh import (
@@ -39,6 +40,7 @@ from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report
 from tasks.cache import rooted
+from tasks.preflight import preflight
 
 PIPELINE_FLOW = "latent-steering"
 # CPU tasks running at once (PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS overrides): each SAE task
@@ -52,6 +54,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     logger = get_run_logger()
     config_path = str(Path(config_path).resolve())
     config = load_run_config(config_path)
+    preflight(config_path, capture_device=capture_mode(config) == "local")  # minutes before the GPU hours
     record_path = config.output_root / SOURCES_RECORD_FILE
     sources = scan_sources(config.sources.folders, previous=read_sources_record(record_path))
 

@@ -3,7 +3,7 @@
 `build_demo` writes, under one folder, LIBERO demo files for two concept pairs (open/close the top
 drawer of the cabinet, turn on/off the stove), a tiny random pi0.5 checkpoint, a tiny SentencePiece
 tokenizer, one tiny SAE per layer, and the run config (`run.yaml`) that ties them together; the
-CLI then runs the Prefect flow on it. `summarise` reads the per-layer reports back into a table.
+CLI then runs the Prefect flow on it. `summarise` reads the per-layer reports back into tables.
 Sizes are tiny on purpose; the real defaults stay in each step's settings.
 """
 
@@ -29,6 +29,7 @@ from steering_core.config import (
 )
 from steering_core.fileio import read_json, write_json
 from steering_core.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
+from steering_core.sae.report import FVU_LIMIT
 from steering_core.synthetic.libero import (
     DRAWER_CLOSE,
     DRAWER_OPEN,
@@ -40,6 +41,7 @@ from steering_core.synthetic.libero import (
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
+from steering_core.tables import text_table
 
 logger = logging.getLogger(__name__)
 
@@ -98,43 +100,76 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
     return write_run_config(config, folder / CONFIG_FILE)
 
 
-def summarise(config: RunConfig) -> list[dict[str, Any]]:
-    """Return one row per (layer, pair) from the layer reports: rows, norms and the cosine to the other pairs."""
-    rows = []
+def summarise(config: RunConfig) -> dict[str, list[dict[str, Any]]]:
+    """Return the layer reports as rows: `pairs`, one per (layer, pair); `between`, one per two pairs of a layer."""
+    pairs, between = [], []
     for layer in config.layers:
         summary = read_json(config.layer_path(layer) / SUMMARY_JSON)
         for pair in summary["pairs"]:
-            others = {key: entry for key, entry in summary["pairwise"].items() if pair["pair"] in key.split("__")}
-            rows.append({
+            fidelity = pair["fidelity"]
+            pairs.append({
                 "layer": layer,
                 "pair": pair["pair"],
                 "positive_rows": pair["counts"]["positive"],
                 "negative_rows": pair["counts"]["negative"],
                 "latent_norm": pair["latent_norm"],
                 "residual_norm": pair["residual_norm"],
-                "residual_cosine": {key: entry["residual_cosine"] for key, entry in others.items()},
-                "latent_cosine": {key: entry.get("latent_cosine") for key, entry in others.items()},
+                "decoded_cosine": pair["decoded_vs_mean_difference_cosine"],
+                "fvu": (fidelity["positive"]["fvu"], fidelity["negative"]["fvu"]),
             })
-    return rows
+        for key, entry in summary["pairwise"].items():
+            between.append({
+                "layer": layer,
+                "pairs": tuple(key.split("__")),
+                "residual_cosine": entry["residual_cosine"],
+                "latent_cosine": entry.get("latent_cosine"),
+                "mean_difference_cosine": entry.get("mean_difference_cosine"),
+            })
+    return {"pairs": pairs, "between": between}
 
 
-def format_summary(rows: list[dict[str, Any]]) -> str:
-    """Return the summary rows as an aligned text table (cosines: with every other pair of the layer)."""
-    header = ("layer", "pair", "rows +/-", "latent norm", "residual norm", "cos residual", "cos latent")
-    table = [header]
-    for row in rows:
-        table.append((
+def format_summary(summary: dict[str, list[dict[str, Any]]], *, random_sae: bool) -> str:
+    """Return the summary as text: a table per pair, a table between pairs, and what the FVU says.
+
+    `random_sae`: the SAEs are the demo's random ones, so FVU > 1 is expected and explained rather
+    than flagged.
+    """
+    poor = set()
+    per_pair = []
+    for row in summary["pairs"]:
+        bad = any(fvu is not None and fvu > FVU_LIMIT for fvu in row["fvu"])
+        if bad and not random_sae:
+            poor.add(f"{row['pair']} ({layer_dir(row['layer'])})")
+        per_pair.append((
             layer_dir(row["layer"]),
             row["pair"],
             f"{row['positive_rows']}/{row['negative_rows']}",
             _number(row["latent_norm"]),
             _number(row["residual_norm"]),
-            ", ".join(_number(v) for v in row["residual_cosine"].values()) or "-",
-            ", ".join(_number(v) for v in row["latent_cosine"].values()) or "-",
+            _number(row["decoded_cosine"]),
+            " / ".join(_number(v) for v in row["fvu"]) + (" !" if bad and not random_sae else ""),
         ))
-    widths = [max(len(line[i]) for line in table) for i in range(len(header))]
-    return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip()
-                     for line in table)
+    lines = ["Steering vectors, per pair:",
+             text_table(("layer", "pair", "rows +/-", "latent norm", "residual norm", "cos(decoded, mean diff)",
+                         "FVU +/-"), per_pair)]
+    if summary["between"]:
+        lines += ["", "Between pairs (cosine of the two pairs' directions):",
+                  text_table(("layer", "pairs", "residual", "latent", "mean diff"), [
+                      (layer_dir(row["layer"]), " vs ".join(row["pairs"]), _number(row["residual_cosine"]),
+                       _number(row["latent_cosine"]), _number(row["mean_difference_cosine"]))
+                      for row in summary["between"]])]
+    lines.append("")
+    if random_sae:
+        lines.append("The demo's SAEs are random (untrained, tiny), so they do not reconstruct the residuals: an FVU "
+                     "(fraction of variance unexplained) of 4-7 is expected here and nothing is broken. "
+                     "On a real SAE an FVU above 1 is flagged.")
+    elif poor:
+        lines.append(f"! FVU > {FVU_LIMIT:g} for {', '.join(sorted(poor))}: the SAE does not reconstruct these "
+                     "residuals, so its latent directions say little about them (the residual-space "
+                     "mean difference still holds).")
+    else:
+        lines.append(f"FVU (fraction of variance unexplained by the SAE) is at most {FVU_LIMIT:g} everywhere.")
+    return "\n".join(lines)
 
 
 def report_paths(config: RunConfig) -> list[Path]:

@@ -7,10 +7,16 @@ crash never leaves a half-written file where a reader (or a resume) would trust 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
+import glob
 import hashlib
 import json
 import os
 import shutil
+import socket
+import stat
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,11 +25,25 @@ from typing import Any
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 
 
-def _default_file_mode() -> int:
-    """Return 0o666 less the process umask: the mode `open()` would give a new file."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+def _umask() -> int:
+    """Return the process umask without setting it: `os.umask` changes it process-wide, racing threads that create files."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():  # Linux 4.7+
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    with tempfile.TemporaryDirectory() as folder:  # elsewhere: the mode a new file gets is the answer
+        probe = os.path.join(folder, "probe")
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o777))
+        return 0o777 & ~os.stat(probe).st_mode & 0o777
+
+
+def _share(path: Path, umask: int) -> None:
+    """Give `path` the mode a plain `open()`/`mkdir()` would (0666/0777 less the umask; executables keep x)."""
+    mode = os.lstat(path).st_mode
+    if stat.S_ISLNK(mode):
+        return
+    full = 0o777 if stat.S_ISDIR(mode) or mode & 0o111 else 0o666
+    os.chmod(path, full & ~umask)
 
 
 @contextlib.contextmanager
@@ -31,12 +51,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary sibling path; rename it onto `path` only if the block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    remove_stale_staging(path)
+    fd, tmp = tempfile.mkstemp(prefix=_staging_prefix(path), suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
-    tmp_path.chmod(_default_file_mode())  # mkstemp makes 0600; outputs are meant to be shared
     try:
         yield tmp_path
+        _share(tmp_path, _umask())  # mkstemp (and some writers, like safetensors) make 0600; outputs are shared
         os.replace(tmp_path, path)
     finally:
         tmp_path.unlink(missing_ok=True)
@@ -48,22 +69,117 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
 
     The yielded folder does not exist yet (some writers, like LeRobotDataset.create,
     insist on creating it themselves). With `overwrite`, an existing `path` is replaced
-    only after the new folder is complete.
+    only after the new folder is complete, by one atomic exchange where the file system
+    supports it (Linux renameat2); elsewhere by two renames, undone if the second fails
+    and finished by the next call if the process dies between them.
     """
     path = Path(path)
+    remove_stale_staging(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path}: already exists; remove it or pass overwrite=True")
     path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(path), suffix=".tmp", dir=path.parent))
     tmp_path = staging / path.name
     try:
         yield tmp_path
-        if path.exists():
-            old = staging / f"{path.name}.old"
-            os.replace(path, old)
-        os.replace(tmp_path, path)
+        umask = _umask()
+        for folder, _, names in os.walk(tmp_path):
+            _share(Path(folder), umask)
+            for name in names:
+                _share(Path(folder) / name, umask)
+        if not path.exists() or not _exchange(tmp_path, path):  # after an exchange, tmp_path holds the old copy
+            _swap_by_renames(tmp_path, path, staging / f"{path.name}{_OLD}")
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+_OLD = ".old"  # inside a staging folder: the previous copy of the target while two renames swap them
+_RENAME_EXCHANGE, _AT_FDCWD = 2, -100  # linux/fs.h, fcntl.h
+_LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
+
+
+def _exchange(new: Path, target: Path) -> bool:
+    """Swap two existing paths atomically (renameat2 RENAME_EXCHANGE); False where unsupported."""
+    renameat2 = getattr(_LIBC, "renameat2", None)
+    if renameat2 is None:
+        return False
+    if renameat2(_AT_FDCWD, os.fsencode(new), _AT_FDCWD, os.fsencode(target), _RENAME_EXCHANGE) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):  # file system or kernel without exchange
+        return False
+    raise OSError(code, os.strerror(code), str(target))
+
+
+def _swap_by_renames(new: Path, target: Path, old: Path) -> None:
+    """Move `target` aside to `old`, then `new` into place; put `target` back if the second rename fails."""
+    if target.exists():
+        os.replace(target, old)
+    try:
+        os.replace(new, target)
+    except BaseException:
+        if old.exists():
+            os.replace(old, target)
+        raise
+
+
+def _staging_prefix(path: Path) -> str:
+    """Return the name prefix of a staging file or folder for `path`: it names this host and process."""
+    return f".{path.name}.{socket.gethostname()}-{os.getpid()}."
+
+
+def remove_stale_staging(path: str | os.PathLike) -> list[Path]:
+    """Remove the staging files and folders for `path` left by dead processes of this host; return them.
+
+    A staging folder holding the previous copy (`<name>.old`) while the target is missing is a swap
+    interrupted between its two renames: the previous copy is put back first. Staging of live processes,
+    or of other hosts (whose processes cannot be checked from here), is left alone.
+    """
+    path = Path(path)
+    host = socket.gethostname()
+    removed = []
+    for candidate in path.parent.glob(f".{glob.escape(path.name)}.{glob.escape(host)}-*.tmp"):
+        pid = candidate.name[len(f".{path.name}.{host}-"):].split(".")[0]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        if candidate.is_dir() and not candidate.is_symlink():
+            old = candidate / f"{path.name}{_OLD}"
+            if old.exists() and not path.exists():
+                os.replace(old, path)
+            shutil.rmtree(candidate, ignore_errors=True)
+        else:
+            candidate.unlink(missing_ok=True)
+        removed.append(candidate)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    """Return True if a process with this id runs on this host (or cannot be checked)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. another user's process
+        return True
+    return True
+
+
+def check_output_dir(path: str | os.PathLike, what: str = "output folder") -> Path:
+    """Return `path` after checking that a folder can be made or used there; ValueError naming the culprit.
+
+    Refused: `path` or one of its parents is a file, or the deepest existing parent is not writable.
+    Nothing is created, so a check before hours of work leaves no trace.
+    """
+    path = Path(path).absolute()
+    for candidate in (path, *path.parents):
+        if candidate.exists() or candidate.is_symlink():
+            if not candidate.is_dir():
+                where = "" if candidate == path else f" (a parent of the {what} {path})"
+                raise ValueError(f"{candidate}: is a file{where}; expected a folder, or nothing there")
+            if not os.access(candidate, os.W_OK | os.X_OK):
+                raise ValueError(f"{candidate}: folder not writable; the {what} {path} cannot be written there")
+            return path
+    return path
 
 
 def write_json(path: str | os.PathLike, payload: Any) -> Path:

@@ -1,4 +1,4 @@
-"""Prefect artifacts: capture progress, pairwise cosine tables, per-layer reports, links to outputs.
+"""Prefect artifacts: progress of the long steps (convert, capture, slicing, SAE statistics), per-layer reports.
 
 Keys are stable (lowercase, digits, dashes), so every run adds a version to the same artifact and
 the UI shows its history.
@@ -6,14 +6,14 @@ the UI shows its history.
 
 from __future__ import annotations
 
+import base64
 import re
+import socket
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from prefect.artifacts import (
-    create_link_artifact,
     create_markdown_artifact,
     create_progress_artifact,
     create_table_artifact,
@@ -32,43 +32,58 @@ def artifact_key(*parts: Any) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text).strip("-")
 
 
-def progress_artifact(key: str, unit: str, description: str) -> Callable[[int, int], None]:
-    """Create a progress artifact at 0% and return a `progress(done, total)` callback that updates it."""
-    artifact_id = create_progress_artifact(0.0, key=key, description=description)
-    last = 0.0
+class ProgressArtifact:
+    """A Prefect progress artifact kept up to date by `progress(done, total)` calls (at most every few seconds)."""
 
-    def update(done: int, total: int) -> None:
-        nonlocal last
+    def __init__(self, key: str, unit: str, description: str) -> None:
+        self.unit, self.description = unit, description
+        self.id = create_progress_artifact(0.0, key=key, description=description)
+        self._last, self._percent = 0.0, 0.0
+
+    def __call__(self, done: int, total: int) -> None:
         now = time.monotonic()
-        if done < total and now - last < PROGRESS_EVERY_SECONDS:
+        if done < total and now - self._last < PROGRESS_EVERY_SECONDS:
             return
-        last = now
-        percent = 100.0 * done / total if total else 100.0
-        update_progress_artifact(artifact_id, percent, description=f"{description}: {done}/{total} {unit}")
+        self._last = now
+        self._percent = 100.0 * done / total if total else 100.0
+        update_progress_artifact(self.id, self._percent, description=f"{self.description}: {done}/{total} {self.unit}")
 
-    return update
+    def finish(self) -> None:
+        """Show 100% when the step ended without counting (its outputs were already current)."""
+        if self._percent < 100.0:
+            self._percent = 100.0
+            update_progress_artifact(self.id, 100.0, description=f"{self.description}: already up to date")
 
 
 def publish_layer_report(layer_path: Path, flow_key: str) -> None:
-    """Publish one layer's report: summary.md as markdown, pairwise cosines as a table, links to files."""
+    """Publish one layer's report for the Prefect UI: summary.md with its plots inline, and the cosines as a table.
+
+    summary.md on disk links its plots by relative path, which the UI cannot follow; the artifact carries
+    each PNG as a data URI instead, and ends with where the files are (on the machine that wrote them).
+    """
     layer = layer_path.name
     summary = read_json(layer_path / SUMMARY_JSON)
     create_markdown_artifact(
-        (layer_path / SUMMARY_MD).read_text(encoding="utf-8"),
+        ui_report(layer_path, summary),
         key=artifact_key(flow_key, "report", layer),
         description=f"Steering report for {layer} ({layer_path})",
     )
-    rows = [{"pairs": name, **{k: round(v, 6) if isinstance(v, float) else v for k, v in entry.items()}}
+    rows = [{"pairs": name.replace("__", " vs "), **{k: round(v, 6) if isinstance(v, float) else v
+                                                   for k, v in entry.items()}}
             for name, entry in summary["pairwise"].items()]
     if rows:
         create_table_artifact(
             rows, key=artifact_key(flow_key, "pairwise-cosines", layer),
             description=f"Cosines and norms between every two pairs' directions, {layer}",
         )
-    links = {"summary-md": layer_path / SUMMARY_MD, "summary-json": layer_path / SUMMARY_JSON}
-    links |= {f"plot-{name}": layer_path / file for name, file in summary["plots"].items()}
-    for name, path in links.items():
-        create_link_artifact(
-            Path(path).resolve().as_uri(), link_text=Path(path).name,
-            key=artifact_key(flow_key, layer, name), description=f"{layer}: {name}",
-        )
+
+
+def ui_report(layer_path: Path, summary: dict[str, Any]) -> str:
+    """Return summary.md with every plot inlined as a PNG data URI, followed by the files' paths and host."""
+    text = (layer_path / SUMMARY_MD).read_text(encoding="utf-8")
+    for file in summary["plots"].values():
+        encoded = base64.b64encode((layer_path / file).read_bytes()).decode("ascii")
+        text = text.replace(f"]({file})", f"](data:image/png;base64,{encoded})")
+    files = [SUMMARY_MD, SUMMARY_JSON, *summary["plots"].values()]
+    return text.rstrip() + "\n\n## Files\n\n" + f"On `{socket.gethostname()}`, in `{layer_path}`:\n\n" + "\n".join(
+        f"- `{name}`" for name in files) + "\n"

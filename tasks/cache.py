@@ -9,22 +9,26 @@ Results (small JSON summaries) and their cache records live under `<output_root>
 not in `$PREFECT_HOME`: they travel with the outputs, every worker sharing the output folder sees
 them, and deleting the outputs deletes the cache. A task's summary lists the files it wrote under
 `outputs`; a record whose outputs are gone is dropped before lookup, so the task runs again.
+The output root may be shared, so records are checked as plain JSON before Prefect reads them
+(`read_cache_record`): one naming pickle or any other serializer is refused and recomputed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import inspect
+import json
 import logging
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
 from prefect.cache_policies import CachePolicy
 from prefect.context import TaskRunContext
-from prefect.results import ResultRecord
 from prefect.states import State
 from prefect.tasks import Task
 
@@ -41,27 +45,42 @@ Fingerprint = Callable[[Any], Any]
 # Every task persists a small JSON summary: cache hits need it, and JSON is never unpickled.
 RESULTS: dict[str, Any] = {"persist_result": True, "result_serializer": "json"}
 # Retries only where a second attempt can succeed: file systems (network mounts, a full disk being
-# cleared) and GPUs (an out-of-memory from a neighbour, a lost device). Bad content fails at once.
+# cleared) and GPUs (memory held by a neighbour). Bad content, missing files and bugs fail at once.
 IO_RETRIES, IO_RETRY_DELAYS = 2, [2, 30]            # seconds
 GPU_RETRIES, GPU_RETRY_DELAYS = 2, [30, 120]        # seconds: give a crashed neighbour time to free memory
+TRANSIENT_ERRNOS = frozenset({errno.EIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.ETIMEDOUT, errno.ESTALE,
+                              errno.ENOSPC, errno.ECONNRESET, errno.ECONNABORTED, errno.ENETUNREACH,
+                              errno.EHOSTUNREACH})
 
 
 # ----------------------------------------------------------------------------- retries
 
-def retry_on(*errors: type[BaseException]) -> Callable[[Task, Any, State], bool]:
-    """Return a `retry_condition_fn` that retries only when the task raised one of `errors`."""
+def transient_io(err: BaseException) -> bool:
+    """Return True for an I/O error a later attempt may not meet: a network or disk hiccup, not a bad path."""
+    return isinstance(err, (ConnectionError, TimeoutError)) or (
+        isinstance(err, OSError) and err.errno in TRANSIENT_ERRNOS)
 
-    def transient(task: Task, task_run: Any, state: State) -> bool:
+
+def transient_gpu(err: BaseException) -> bool:
+    """Return True for a transient I/O error or CUDA out-of-memory at one frame per pass (another process's memory).
+
+    Capture halves its batch on out-of-memory by itself; only when one frame does not fit is waiting worth it.
+    """
+    return transient_io(err) or isinstance(err, torch.cuda.OutOfMemoryError)
+
+
+def retry_if(transient: Callable[[BaseException], bool]) -> Callable[[Task, Any, State], bool]:
+    """Return a `retry_condition_fn` that retries only when the task's exception satisfies `transient`."""
+
+    def condition(task: Task, task_run: Any, state: State) -> bool:
         try:
             state.result()
-        except errors:
-            return True
-        except Exception:  # noqa: BLE001  any other failure is final
-            return False
+        except Exception as err:  # noqa: BLE001  classified, not handled
+            return transient(err)
         return False
 
-    transient.__qualname__ = f"retry_on({', '.join(e.__name__ for e in errors)})"
-    return transient
+    condition.__qualname__ = f"retry_if({transient.__name__})"
+    return condition
 
 
 # ----------------------------------------------------------------------------- the cache policy
@@ -114,13 +133,16 @@ def content_key(
 
 
 def _drop_if_outputs_missing(record_path: Path) -> None:
-    """Delete a cache record whose summary lists an output that no longer exists (or that is unreadable)."""
+    """Delete a cache record that is not plain JSON of our schema, or whose summary lists a vanished output.
+
+    Runs before Prefect looks the key up, so Prefect only ever reads records checked here.
+    """
     if not record_path.is_file():
         return
     try:
-        result = ResultRecord.deserialize(record_path.read_bytes()).result
-    except Exception as err:  # noqa: BLE001  a damaged record must not block the run: recompute instead
-        logger.warning("%s: unreadable cache record (%s); the task will run again", record_path, err)
+        result = read_cache_record(record_path)
+    except ValueError as err:  # tampered or damaged: never handed to Prefect's deserializers; recompute instead
+        logger.warning("refused cache record: %s; the task will run again", err)
         record_path.unlink(missing_ok=True)
         return
     outputs = result.get(OUTPUTS, []) if isinstance(result, dict) else []
@@ -128,6 +150,69 @@ def _drop_if_outputs_missing(record_path: Path) -> None:
     if missing:
         logger.info("%s: cached outputs are gone (%s); the task will run again", record_path.name, ", ".join(missing[:3]))
         record_path.unlink(missing_ok=True)
+
+
+# The only serializer a record may name: Prefect's JSON serializer exactly as `RESULTS` writes it. Any
+# other (pickle, or JSON with another library, encoder or decoder) would import and run named code.
+_JSON_SERIALIZER = {
+    "type": "json", "jsonlib": "json", "object_encoder": "prefect.serializers.prefect_json_object_encoder",
+    "object_decoder": "prefect.serializers.prefect_json_object_decoder", "dumps_kwargs": {}, "loads_kwargs": {},
+}
+_METADATA_KEYS = {"storage_key", "expiration", "serializer", "prefect_version", "storage_block_id"}
+_CODE_KEYS = ("__class__", "__exc_type__")  # Prefect's JSON decoder imports what these name
+
+
+def read_cache_record(path: str | os.PathLike) -> Any:
+    """Return the task summary held by a cache record, read with the standard `json` module only.
+
+    The record must be `{"metadata": {...}, "result": "<JSON text>"}` with the JSON serializer above, no
+    storage block, `storage_key` naming the record itself, and a summary of plain JSON values (no key
+    that Prefect's decoder would turn into an import). ValueError naming the file otherwise.
+    """
+    path = Path(path)
+
+    def refuse(why: str) -> ValueError:
+        return ValueError(f"{path}: {why}; expected a JSON task summary written by this project")
+
+    try:
+        record = json.loads(path.read_bytes())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise refuse("not JSON") from None
+    if not isinstance(record, dict) or set(record) != {"metadata", "result"} or not isinstance(record["metadata"], dict):
+        raise refuse("not a result record")
+    metadata = record["metadata"]
+    if set(metadata) - _METADATA_KEYS:
+        raise refuse(f"unknown metadata {sorted(set(metadata) - _METADATA_KEYS)}")
+    serializer = metadata.get("serializer")
+    if serializer != _JSON_SERIALIZER:
+        kind = serializer.get("type") if isinstance(serializer, dict) else serializer
+        raise refuse(f"serializer {kind!r} with settings {serializer!r} (only Prefect's plain JSON serializer)")
+    if metadata.get("storage_block_id") is not None or metadata.get("storage_key") != str(path):
+        raise refuse(f"storage {metadata.get('storage_block_id')!r}, {metadata.get('storage_key')!r} is not this file")
+    if not isinstance(record["result"], str):
+        raise refuse("result is not JSON text")
+    try:
+        summary = json.loads(record["result"])
+    except json.JSONDecodeError:
+        raise refuse("result is not valid JSON") from None
+    if found := _code_keys(summary):
+        raise refuse(f"result holds {found!r}, which Prefect's decoder would import")
+    return summary
+
+
+def _code_keys(value: Any) -> str | None:
+    """Return the first key of `value` (nested) that Prefect's JSON decoder treats as code, or None."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key in _CODE_KEYS:
+                return key
+            if found := _code_keys(item):
+                return found
+    elif isinstance(value, list):
+        for item in value:
+            if found := _code_keys(item):
+                return found
+    return None
 
 
 def cache_store(output_root: str | os.PathLike) -> Path:

@@ -17,7 +17,7 @@ from steering_core.fileio import read_json
 from steering_core.identity import file_digest, plain
 from steering_core.layout import layer_dir
 from steering_core.pi05.checkpoint import resolve_model_file
-from tasks.artifacts import artifact_key, progress_artifact
+from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     GPU_RETRIES,
     GPU_RETRY_DELAYS,
@@ -26,7 +26,9 @@ from tasks.cache import (
     OUTPUTS,
     RESULTS,
     content_key,
-    retry_on,
+    retry_if,
+    transient_gpu,
+    transient_io,
 )
 
 GPU_TAG = "gpu"  # a tag concurrency limit of this name caps running GPU tasks (latent-steering deploy)
@@ -93,27 +95,31 @@ def shard_files(run_dir: str, settings: CaptureSettings, episodes: list[int]) ->
     tags=[GPU_TAG],
     cache_policy=content_key("steering_core.capture.loop", settings=model_inputs,
                              derived={"episodes": episode_sources}, ignore=("label",)),
-    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_on(OSError, RuntimeError),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )
 def capture_episodes(
     label: str, dataset_root: str, repo_id: str, run_dir: str, settings: CaptureSettings, episodes: list[int]
 ) -> dict:
     """Capture the residuals of `episodes` (whole shard groups) into the run; return what was written."""
-    progress = progress_artifact(artifact_key("capture", Path(run_dir).name, label), "frames",
+    progress = ProgressArtifact(artifact_key("capture", Path(run_dir).name, label), "frames",
                                  f"capture {label} into {run_dir}")
     result = capture.capture(dataset_root, repo_id, run_dir, settings, episodes=episodes, progress=progress)
+    progress.finish()
     get_run_logger().info("%s: %d shard group(s) written, %d already complete, %d frames",
                           label, len(result.written), len(result.skipped), result.frames)
+    if result.reduced_batch_size is not None:
+        get_run_logger().warning("%s: CUDA ran out of memory; captured %d frame(s) per pass instead of %d",
+                                 label, result.reduced_batch_size, settings.batch_size)
     return {OUTPUTS: shard_files(run_dir, settings, episodes), "written": list(result.written),
-            "skipped": list(result.skipped), "frames": result.frames}
+            "skipped": list(result.skipped), "frames": result.frames, "reduced_batch_size": result.reduced_batch_size}
 
 
 @task(
     name="write-run-metadata",
     task_run_name="run metadata {run_dir}",
     cache_policy=content_key("steering_core.capture.shards", derived={"sidecars": run_sidecars}),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def write_run_metadata(run_dir: str) -> dict:
@@ -128,12 +134,15 @@ def write_run_metadata(run_dir: str) -> dict:
     task_run_name="slice {pair} layer {layer}",
     cache_policy=content_key("steering_core.capture.slicing", concept_map_path=concept_rows,
                              derived={"shards": sliced_shards}),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def slice_layer(pair: str, layer: int, run_dir: str, concept_map_path: str, output_dir: str, settings: SliceSettings) -> dict:
     """Write one pair's per-concept residual tensors for one layer; return concept -> .pt path."""
-    index_path = slicing.slice_concepts(run_dir, concept_map_path, output_dir, settings)[layer]
+    progress = ProgressArtifact(artifact_key("slice", pair, layer_dir(layer)), "shards",
+                                 f"slice {pair} {layer_dir(layer)} into {output_dir}")
+    index_path = slicing.slice_concepts(run_dir, concept_map_path, output_dir, settings, progress=progress)[layer]
+    progress.finish()
     folder = Path(output_dir) / layer_dir(layer)
     concepts = {name: str(folder / entry["pt"]) for name, entry in read_json(index_path)["concepts"].items()}
     return {OUTPUTS: [str(index_path), *concepts.values()], "concepts": concepts, "index": str(index_path)}

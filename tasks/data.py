@@ -13,13 +13,15 @@ from steering_core.data.dataset import dataset_fingerprint
 from steering_core.data.filtering import FilterSettings
 from steering_core.identity import file_digest, tree_listing
 from steering_core.layout import SELECTION_FILE
+from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     IO_RETRIES,
     IO_RETRY_DELAYS,
     OUTPUTS,
     RESULTS,
     content_key,
-    retry_on,
+    retry_if,
+    transient_io,
 )
 
 
@@ -32,7 +34,7 @@ def selection_digest(folder: str) -> str:
     name="filter-demos",
     task_run_name="filter demos into {output_dir}",
     cache_policy=content_key("steering_core.data.filtering", sources=tree_listing),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) -> dict:
@@ -46,12 +48,15 @@ def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) 
     name="convert-dataset",
     task_run_name="convert to LeRobot {settings.repo_id}",
     cache_policy=content_key("steering_core.data.convert", filtered_dir=selection_digest),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def convert_dataset(filtered_dir: str, dataset_root: str, settings: ConvertSettings) -> dict:
     """Convert (or append new episodes to) the LeRobot dataset; return what was done."""
-    result = convert.convert_libero([filtered_dir], dataset_root, settings)
+    progress = ProgressArtifact(artifact_key("convert", settings.repo_id), "episodes",
+                                 f"convert {filtered_dir} into {dataset_root}")
+    result = convert.convert_libero([filtered_dir], dataset_root, settings, progress=progress)
+    progress.finish()
     get_run_logger().info("%s: %s, %d episode(s) added, %d in total",
                           dataset_root, result.action, result.episodes_added, result.episodes_total)
     return {OUTPUTS: [dataset_root], "action": result.action, "episodes_added": result.episodes_added,

@@ -15,13 +15,15 @@ from steering_core.sae import concept_stats, steering
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.registry import resolve_release
 from steering_core.sae.steering import PairsConfig, PairSpec, SteeringSettings
+from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     IO_RETRIES,
     IO_RETRY_DELAYS,
     OUTPUTS,
     RESULTS,
     content_key,
-    retry_on,
+    retry_if,
+    transient_io,
 )
 
 _SAE_FIELDS = ("layer", "device", "batch_size")  # settings that change concept statistics besides the SAE
@@ -65,7 +67,7 @@ def stats_files(path: str) -> dict[str, str]:
     name="write-pairs-config",
     task_run_name="pairs config layer {layer}",
     cache_policy=content_key("steering_core.sae.steering"),
-    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_on(OSError),
+    retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
 def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:
@@ -85,7 +87,10 @@ def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str
     sae = steering.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
     source = concept_stats.ConceptSource(label=label, path=Path(slice_path))
-    stats = concept_stats.encode_concept(source, layer_path, sae, batch_size=settings.batch_size)
+    progress = ProgressArtifact(artifact_key("encode", pair, side, layer_dir(layer)), "rows",
+                                 f"SAE statistics of {label!r} ({pair} {side}, {layer_dir(layer)})")
+    stats = concept_stats.encode_concept(source, layer_path, sae, batch_size=settings.batch_size, progress=progress)
+    progress.finish()
     return {OUTPUTS: [str(stats), str(stats.with_suffix(".safetensors"))], "stats": str(stats)}
 
 

@@ -1,8 +1,27 @@
-"""Session-wide test settings: offline hub access, quiet telemetry."""
+"""Session-wide test settings: offline hub access, quiet telemetry, a private digest cache, one Prefect server."""
 
 import os
+import tempfile
+
+import pytest
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+# large files' digests are remembered across processes; tests keep theirs out of the user cache
+os.environ.setdefault("LATENT_STEERING_DIGEST_CACHE", tempfile.mkdtemp(prefix="latent-steering-digests-"))
+
+
+@pytest.fixture(scope="session")
+def prefect_server():
+    """One Prefect test server for the whole session, started when the first test that needs it runs.
+
+    Yields its API URL, which subprocesses get as PREFECT_API_URL instead of starting their own embedded
+    server (each start took up to 90 s on a loaded 2-core machine).
+    """
+    from prefect.settings import PREFECT_API_URL
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=300):
+        yield PREFECT_API_URL.value()

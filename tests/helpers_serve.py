@@ -122,13 +122,17 @@ def running(server: PolicyServer) -> Iterator[PolicyServer]:
         yield server
 
 
-def run_openpi_client(tmp_path: Path, port: int, clients: list[list[dict]], timeout: float = 240) -> list[dict]:
+def run_openpi_client(
+    tmp_path: Path, port: int, clients: list[list[dict]], timeout: float = 240, wrapper_steering=None
+) -> list[dict]:
     """Send each client's requests through the real openpi-client (one thread per client); return per client
-    {"metadata", "results": [{"reply": ...} | {"error": "Type: message"}]}."""
+    {"metadata", "results": [{"reply": ...} | {"error": "Type: message"}]}. With `wrapper_steering`, the
+    clients are examples/libero_steered_client.py's class adding that entry."""
     uv = os.environ.get("UV") or shutil.which("uv")
     assert uv, "uv not found: the openpi client runs in its own environment made by `uv run --isolated`"
     plan, out = tmp_path / "plan.msgpack", tmp_path / "out.msgpack"
-    plan.write_bytes(codec.pack({"host": "127.0.0.1", "port": port, "clients": clients}))
+    wrapper = {} if wrapper_steering is None else {"wrapper_steering": wrapper_steering}
+    plan.write_bytes(codec.pack({"host": "127.0.0.1", "port": port, "clients": clients, **wrapper}))
     completed = subprocess.run(
         [uv, "run", "--isolated", "--no-project", *OPENPI_CLIENT, "python", str(CLIENT_SCRIPT), str(plan), str(out)],
         capture_output=True, text=True, timeout=timeout, cwd=tmp_path,

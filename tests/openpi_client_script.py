@@ -4,6 +4,7 @@ Usage: uv run --isolated --no-project --with openpi-client==0.1.2 --with typing_
            python openpi_client_script.py PLAN OUT
 PLAN (written with the project's codec, read here with openpi_client.msgpack_numpy):
     {"host": str, "port": int, "clients": [[request, ...], ...]}   one list of requests per concurrent client
+    optional "wrapper_steering": build the clients with examples/libero_steered_client.py's class for that entry
     request: {"obs": observation dict} sent with WebsocketClientPolicy.infer, or {"raw": bytes} sent as is on the
     client's own connection (for bytes that infer could not produce).
 OUT: {"clients": [{"metadata": ..., "results": [{"reply": dict} | {"error": "Type: message"}, ...]}, ...]}
@@ -11,6 +12,7 @@ OUT: {"clients": [{"metadata": ..., "results": [{"reply": dict} | {"error": "Typ
 
 import sys
 import threading
+from pathlib import Path
 
 from openpi_client import msgpack_numpy
 from openpi_client.websocket_client_policy import WebsocketClientPolicy
@@ -26,8 +28,17 @@ def send(client, request):
     return client.infer(request["obs"])
 
 
-def run(host, port, requests, out, index):
-    client = WebsocketClientPolicy(host, port)
+def client_class(plan):
+    if "wrapper_steering" not in plan:
+        return WebsocketClientPolicy
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from libero_steered_client import steered_client_class
+
+    return steered_client_class(plan["wrapper_steering"])
+
+
+def run(cls, host, port, requests, out, index):
+    client = cls(host, port)
     results = []
     for request in requests:
         try:
@@ -41,7 +52,8 @@ def main(plan_path, out_path):
     with open(plan_path, "rb") as f:
         plan = msgpack_numpy.unpackb(f.read())
     out = [None] * len(plan["clients"])
-    threads = [threading.Thread(target=run, args=(plan["host"], plan["port"], requests, out, i))
+    cls = client_class(plan)
+    threads = [threading.Thread(target=run, args=(cls, plan["host"], plan["port"], requests, out, i))
                for i, requests in enumerate(plan["clients"])]
     for thread in threads:
         thread.start()

@@ -1,5 +1,5 @@
-"""Where the research group's reference files live: `shared/` beside the repository checkout."""
+"""The research group's reference files (manifest, concept map, pair summary), copied into tests/fixtures/formats."""
 
 from pathlib import Path
 
-FORMATS = Path(__file__).resolve().parents[2] / "shared" / "reference" / "formats"
+FORMATS = Path(__file__).resolve().parent / "fixtures" / "formats"

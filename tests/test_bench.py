@@ -24,10 +24,13 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
 
 from bench import (  # noqa: E402
     capture_throughput,
+    cli_startup,
     concept_map_speed,
     evaluate_cost,
+    policy_sweep,
     run_all,
     sae_encoding,
+    serve_latency,
     slicing_memory,
 )
 from bench.common import Result  # noqa: E402
@@ -42,14 +45,15 @@ def cache(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module", autouse=True)
-def refresh_run(tmp_path_factory):
+def refresh_run(tmp_path_factory, prefect_server):
     """Start the refresh benchmark's quick run in its own process before the first test of this module.
 
     Its Prefect server start and two pipeline runs then overlap the other tests; the last test waits for it.
     """
     folder = tmp_path_factory.mktemp("bench-refresh")
     output = folder / "result.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])),
+           "PREFECT_API_URL": prefect_server}  # the session's server: no embedded server to start under load
     process = subprocess.Popen(
         [sys.executable, "-m", "bench.incremental_refresh", "--quick",
          f"--cache-dir={folder}", f"--json={output}"],
@@ -120,6 +124,44 @@ def test_evaluation_flop_model_known_answers():
     assert flops["ours"] == pytest.approx(2 * (2 * shared + 3 * per_entry + parts["full"]))
     assert flops["naive"] == pytest.approx(2 * 4 * parts["full"])
     assert evaluate_cost.h100_seconds(flops["ours"]) == pytest.approx(flops["ours"] / (0.4 * 989e12))
+
+
+def test_policy_sweep_equals_separate_calls(cache, tmp_path):
+    result = run_quick(policy_sweep, cache, tmp_path)
+    assert result.checks["max_abs_difference"] < 1e-5 < result.checks["alpha_spread"]
+    assert [row["case"] for row in result.table] == ["measured cpu, lm layer 1, 8 alphas",
+                                                     "real pi0.5, lm layer 12 (analytic)",
+                                                     "real pi0.5, expert stream (analytic)"]
+
+
+def test_policy_sweep_flop_model():
+    real = Pi05Arch()
+    separate = policy_sweep.separate_flops(real, 8, 16)
+    # 8 alphas at layer 12 share SigLIP and layers 0..12: about a third of eight full calls
+    assert 0.3 < policy_sweep.sweep_flops(real, 8, 16, 12) / separate < 0.4
+    # one entry shares nothing, whatever the layer
+    assert policy_sweep.sweep_flops(real, 1, 16, 12) == pytest.approx(policy_sweep.separate_flops(real, 1, 16))
+    # steering the expert only shares the whole prefix: 1 prefix + 8 expert loops
+    expert_loop = policy_sweep.STEPS * capture_throughput.expert_step_flops(real, 2 * 256 + 16)
+    one_call = policy_sweep.separate_flops(real, 1, 16)
+    assert policy_sweep.sweep_flops(real, 8, 16, None) == pytest.approx(one_call + 7 * expert_loop)
+
+
+def test_cli_startup_measures_light_commands_without_heavy_libraries(cache, tmp_path):
+    result = run_quick(cli_startup, cache, tmp_path)
+    heavy = result.checks["heavy"]
+    assert heavy["latent-steering --help"] == heavy["latent-steering filter (2 of 4 files)"] == "none"
+    assert heavy["latent-steering steer --help (needs torch)"] == "torch"  # the check can tell them apart
+    assert [row["command"] for row in result.table][-1] == "python -c pass (baseline)"
+    assert (cache / "cli-startup-filtered" / "selection.json").is_file()  # filter did its work
+
+def test_served_actions_equal_direct_infer(cache, tmp_path):
+    result = run_quick(serve_latency, cache, tmp_path)
+    assert result.checks["served_equals_direct"] is True
+    calls = [row["call"] for row in result.table]
+    assert calls[:4] == ["tiny model: direct", "tiny model: server", "tiny model: direct steered",
+                         "tiny model: server steered"]
+    assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:4])
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

@@ -329,3 +329,158 @@ def test_checkpoint_fingerprint_tells_same_layout_checkpoints_apart(inputs, tmp_
     assert other.stat().st_size == model_file.stat().st_size
     assert checkpoint_fingerprint(same) == checkpoint_fingerprint(model_file)
     assert checkpoint_fingerprint(other) != checkpoint_fingerprint(model_file)
+
+
+def rewrite_episode(dataset_root, episode, change):
+    """Rewrite the data parquet rows of one episode in place: `change(row)` edits each row dict."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for path in sorted((dataset_root / "data").rglob("*.parquet")):
+        table = pq.read_table(path)
+        rows = table.to_pylist()
+        for row in rows:
+            if row["episode_index"] == episode:
+                change(row)
+        pq.write_table(pa.Table.from_pylist(rows, schema=table.schema), path)
+
+
+def swap_cameras(row):
+    row["image"], row["wrist_image"] = row["wrist_image"], row["image"]
+
+
+def negate_state(row):
+    row["state"] = [-v for v in row["state"]]
+
+
+def negate_actions(row):
+    row["actions"] = [-v for v in row["actions"]]
+
+
+@pytest.mark.parametrize(("change", "recomputed"), [
+    (swap_cameras, ("00001",)),   # the frames: what the issue found reused (re-converted with another orientation)
+    (negate_state, ("00001",)),
+    (negate_actions, ()),          # capture never reads actions
+])
+def test_resume_recomputes_exactly_the_groups_whose_inputs_changed(inputs, full_run, tmp_path, change, recomputed):
+    import shutil
+
+    dataset = tmp_path / "dataset"
+    shutil.copytree(inputs[2], dataset)
+    run_dir = tmp_path / "run"
+    shutil.copytree(full_run, run_dir)
+    rewrite_episode(dataset, 1, change)
+    result = capture(dataset, REPO_ID, run_dir, settings_for(inputs))
+    assert result.written == recomputed
+    assert result.skipped == tuple(k for k in ("00000", "00001", "00002", "00003") if k not in recomputed)
+    if change is swap_cameras:  # the rewritten rows are those of a fresh capture of the changed frames
+        fresh = tmp_path / "fresh"
+        capture(dataset, REPO_ID, fresh, settings_for(inputs))
+        relative = "instructions/layer03/shard-00001.safetensors"
+        assert (run_dir / relative).read_bytes() == (fresh / relative).read_bytes()
+        assert (run_dir / relative).read_bytes() != (full_run / relative).read_bytes()
+
+
+def test_an_output_path_that_is_a_file_fails_before_the_model_loads(inputs, tmp_path, monkeypatch):
+    monkeypatch.setattr(Pi05Prefix, "from_checkpoint", lambda *a, **k: pytest.fail("the model was loaded"))
+    taken = tmp_path / "run"
+    taken.write_text("a file where the run folder goes")
+    with pytest.raises(ValueError, match=f"{taken}: is a file; expected a folder"):
+        capture(inputs[2], REPO_ID, taken, settings_for(inputs))
+    with pytest.raises(ValueError, match=rf"{taken}: is a file \(a parent of the run folder"):
+        capture(inputs[2], REPO_ID, taken / "inner", settings_for(inputs))
+
+
+@pytest.mark.parametrize("content", [b"plain text, not tensors\n", b"\x80\x04\x95 a pickle renamed"])
+def test_capture_command_refuses_a_checkpoint_that_is_not_safetensors_in_one_line(inputs, tmp_path, content):
+    from typer.testing import CliRunner
+
+    from cli.capture import app
+
+    _, tokenizer, dataset = inputs
+    bad = tmp_path / "model.safetensors"
+    bad.write_bytes(content)
+    arch_file = tmp_path / "arch.json"
+    arch_file.write_text(ARCH.model_dump_json())
+    result = CliRunner().invoke(app, [
+        "capture", "--checkpoint-path", str(bad), "--output-dir", str(tmp_path / "run"), "--layers", "1",
+        "--capture-instructions", "--skip-norm-stats", "--device", "cpu", "--lerobot-root", str(dataset),
+        "--repo-id", REPO_ID, "--tokenizer-path", str(tokenizer), "--num-workers", "0", "--arch-file", str(arch_file)])
+    assert result.exit_code == 1, result.output
+    assert f"{bad}: not a safetensors file" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "run").exists()
+
+
+def test_non_finite_residuals_stop_capture_naming_episode_and_layer(inputs, tmp_path):
+    import shutil
+
+    from safetensors.torch import save_file
+
+    checkpoint = tmp_path / "checkpoint"
+    shutil.copytree(inputs[0], checkpoint)
+    tensors = load_file(checkpoint / "model.safetensors")
+    name = "paligemma_with_expert.paligemma.model.language_model.layers.2.mlp.down_proj.weight"
+    tensors[name][0, 0] = float("nan")  # poisons layer 2's output, so layer 3 (captured) but not layer 1
+    save_file(tensors, checkpoint / "model.safetensors")
+    run_dir = tmp_path / "run"
+    with pytest.raises(ValueError, match=r"non-finite residuals \(NaN or Inf\) at layer 3 in episode 0 "
+                                         r"\(frame 0\)"):
+        capture(inputs[2], REPO_ID, run_dir, settings_for(inputs, checkpoint_path=checkpoint))
+    assert not list(run_dir.rglob("*.safetensors"))  # nothing written for the poisoned rows
+
+
+def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, full_run, tmp_path):
+    """Another process holds shard group 1 and finishes it; this capture waits, then skips it."""
+    import shutil
+    import subprocess
+    import sys
+
+    run_dir = tmp_path / "run"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from steering_core.capture.locks import group_locks\n"
+         f"with group_locks({str(run_dir)!r}, [1]):\n    print('locked', flush=True); sys.stdin.readline()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    outcome = {}
+    worker = threading.Thread(target=lambda: outcome.update(
+        result=capture(inputs[2], REPO_ID, run_dir, settings_for(inputs), episodes=[1, 2])))
+    worker.start()
+    worker.join(timeout=5)
+    assert worker.is_alive() and not list(run_dir.rglob("*.safetensors"))  # waiting, nothing computed
+    for layer in (1, 3):  # the other process finishes group 1
+        for suffix in ("safetensors", "json"):
+            relative = f"instructions/layer{layer:02d}/shard-00001.{suffix}"
+            (run_dir / relative).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(full_run / relative, run_dir / relative)
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=300)
+    assert outcome["result"].skipped == ("00001",) and outcome["result"].written == ("00002",)
+
+
+def test_cuda_out_of_memory_halves_the_batch_and_records_it(inputs, full_run, tmp_path, monkeypatch):
+    real = Pi05Prefix.residuals
+    sizes = []
+
+    def small_memory(self, images, masks, tokens, *args, **kwargs):
+        sizes.append(len(tokens))
+        if len(tokens) > 1:  # a GPU that fits one frame per pass
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
+        return real(self, images, masks, tokens, *args, **kwargs)
+
+    monkeypatch.setattr(Pi05Prefix, "residuals", small_memory)
+    result = capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2))
+    assert result.reduced_batch_size == 1
+    assert sizes[:3] == [2, 1, 1] and set(sizes[3:]) == {1}  # halved once, then kept for the rest of the run
+    ours, full = load_layer(tmp_path / "run", 3), load_layer(full_run, 3)
+    for name in full:
+        assert torch.allclose(ours[name].double(), full[name].double(), atol=1e-5), name
+
+
+def test_out_of_memory_at_one_frame_is_raised(inputs, tmp_path, monkeypatch):
+    def no_memory(self, *args, **kwargs):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
+
+    monkeypatch.setattr(Pi05Prefix, "residuals", no_memory)
+    with pytest.raises(torch.cuda.OutOfMemoryError):
+        capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2), episodes=[1])

@@ -311,11 +311,11 @@ def test_failure_midway_leaves_nothing_behind(raw, tmp_path, monkeypatch):
     real_add = convert_module._add_episode
     calls = []
 
-    def flaky(dataset, demo, source, settings):
+    def flaky(dataset, demo, path, source, settings):
         calls.append(source.episode_index)
         if len(calls) == 3:
             raise RuntimeError("disk full")
-        real_add(dataset, demo, source, settings)
+        real_add(dataset, demo, path, source, settings)
 
     parent = tmp_path / "lerobot"
     parent.mkdir()

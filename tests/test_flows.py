@@ -12,6 +12,7 @@ One module-wide sequence, each step a fixture building on the previous one:
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import threading
@@ -34,11 +35,11 @@ from prefect.client.schemas.filters import (
 )
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.states import Failed
-from prefect.testing.utilities import prefect_test_harness
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
 from cli import app
+from helpers_pipeline import run_cli_steps
 from flows.pipeline import PIPELINE_FLOW
 from flows.refresh import refresh
 from steering_core import fileio
@@ -47,7 +48,7 @@ from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
-from steering_core.demo import DEMO_STEPS, format_summary, summarise
+from steering_core.demo import DEMO_STEPS, build_demo, format_summary, summarise
 from steering_core.fileio import read_json, sha256_file
 from steering_core.identity import code_modules, code_version, file_digest
 from steering_core.layout import layer_dir
@@ -58,15 +59,16 @@ from steering_core.synthetic.libero import (
     SyntheticTask,
     write_libero_file,
 )
-from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_on, rooted
+from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_if, rooted, transient_gpu, transient_io
 
 pytestmark = pytest.mark.slow
+PREFLIGHT = "check the run's inputs"  # the parent flow's first task, never cached
 
 
 @pytest.fixture(scope="module", autouse=True)
-def prefect_backend():
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
+def prefect_backend(prefect_server):
+    """Every test here talks to the session's Prefect test server (tests/conftest.py)."""
+    return prefect_server
 
 
 @pytest.fixture(scope="module")
@@ -141,10 +143,14 @@ def test_code_version_follows_project_imports_only():
 
 
 def test_retry_only_on_transient_errors():
-    transient = retry_on(OSError)
-    assert transient(double, None, Failed(data=OSError("disk")))
-    assert transient(double, None, Failed(data=FileNotFoundError("gone")))  # an OSError too
-    assert not transient(double, None, Failed(data=ValueError("bad content")))
+    io, gpu = retry_if(transient_io), retry_if(transient_gpu)
+    assert io(double, None, Failed(data=OSError(errno.EIO, "disk")))
+    assert io(double, None, Failed(data=TimeoutError("network mount")))
+    assert not io(double, None, Failed(data=FileNotFoundError(errno.ENOENT, "gone")))  # a bad path stays bad
+    assert not io(double, None, Failed(data=ValueError("bad content")))
+    assert gpu(double, None, Failed(data=torch.cuda.OutOfMemoryError("held by a neighbour")))
+    assert not gpu(double, None, Failed(data=RuntimeError("shape mismatch")))  # a bug: never retried
+    assert not io(double, None, Failed(data=torch.cuda.OutOfMemoryError("x")))
 
 
 # ----------------------------------------------------------------------------- reading runs back
@@ -198,7 +204,7 @@ def first_run(demo_dir):
             calls.append(args[2])
             first = len(calls) == 1
         if first:
-            raise OSError("injected: shared file system hiccup")
+            raise OSError(errno.EIO, "injected: shared file system hiccup")
         return real(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
@@ -254,20 +260,40 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
 def test_demo_prints_summary_and_locations(first_run, demo_config):
     config = load_run_config(demo_config)
     output = first_run[1]
-    rows = summarise(config)
-    assert format_summary(rows) in output
+    summary = summarise(config)
+    assert format_summary(summary, random_sae=True) in output
+    rows = summary["pairs"]
     assert [(r["layer"], r["pair"]) for r in rows] == [(1, "open_vs_close"), (1, "on_vs_off"),
                                                        (2, "open_vs_close"), (2, "on_vs_off")]
-    for row in rows:  # counts are the slice rows; the cosine is the one pairwise entry of the layer
+    for row in rows:  # counts are the slice rows; the cosine and FVU are the pair's own
         index = read_json(config.slices_dir(config.pair(row["pair"])) / layer_dir(row["layer"]) / "index.json")
         pair = config.pair(row["pair"])
         assert (row["positive_rows"], row["negative_rows"]) == (
             index["concepts"][pair.positive]["rows"], index["concepts"][pair.negative]["rows"])
+        directions = read_json(config.layer_path(row["layer"]) / row["pair"] / "directions.json")
+        assert row["decoded_cosine"] == directions["decoded_vs_mean_difference_cosine"]
+        assert row["fvu"] == (directions["concepts"]["positive"]["fvu"], directions["concepts"]["negative"]["fvu"])
+    for row in summary["between"]:  # the one pairwise entry of each layer, in its own table
         entry = read_json(config.layer_path(row["layer"]) / "pairwise_stats.json")["entries"]["open_vs_close__on_vs_off"]
-        assert row["residual_cosine"] == {"open_vs_close__on_vs_off": entry["residual_cosine"]}
+        assert row["pairs"] == ("open_vs_close", "on_vs_off") and row["residual_cosine"] == entry["residual_cosine"]
+    assert [r["layer"] for r in summary["between"]] == [1, 2]
+    assert "The demo's SAEs are random" in output
     assert f"outputs: {config.output_root}" in output
     assert f"report:  {config.layer_path(2) / 'summary.md'}" in output
     assert f"report:  {config.eval_layer_path(2) / 'summary.md'}" in output
+
+
+def test_closing_table_names_every_task_run_with_its_state(first_run, demo_config):
+    output, root = first_run[1], load_run_config(demo_config).output_root
+    tasks = task_runs_under(first_run[0])
+    assert f"{len(tasks)} task runs: {len(tasks)} ran" in output
+    lines = output.splitlines()
+    assert any(line.split()[:2] == ["step", "pair"] and line.endswith(f"output (under {root})") for line in lines)
+    slices = [line.split() for line in lines if line.startswith("slice-concepts ")]
+    assert len(slices) == 4 and sum(line[3:6] == ["ran", "(2", "attempts)"] for line in slices) == 1  # the fault
+    encode = next(words for words in map(str.split, lines) if words[:4] == ["encode-concept", "on_vs_off", "negative", "2"])
+    assert encode[-1] == "latent_steering/layer02/concepts/"
+    assert any(line.split()[:3] == ["capture-residuals", "episodes", "0-7"] for line in lines)
 
 
 def test_injected_fault_is_retried_and_recorded(first_run):
@@ -282,79 +308,37 @@ def test_injected_fault_is_retried_and_recorded(first_run):
 
 
 def test_artifacts_are_published(first_run):
-    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", "demo-layer01-summary-md",
-            "demo-layer02-plot-pairwise-cosine", "capture-demo-episodes-0-7", "demo-evaluation-layer02",
-            "evaluate-on-vs-off-layer01"]
+    progress = ["capture-demo-episodes-0-7", "convert-libero-demo-lerobot", "slice-on-vs-off-layer02",
+                "encode-open-vs-close-negative-layer01",
+                "evaluate-on-vs-off-layer01"]
+    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress, "demo-evaluation-layer02"]
     with get_client(sync_client=True) as client:
         artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)))
     by_key = {a.key: a for a in artifacts}
     assert set(by_key) == set(keys)
-    assert by_key["capture-demo-episodes-0-7"].data == 100.0
-    assert by_key["demo-report-layer01"].data.startswith("# Steering vectors, layer01")
-    assert by_key["demo-layer01-summary-md"].type == "markdown" and "file://" in by_key["demo-layer01-summary-md"].data
+    assert {key: by_key[key].data for key in progress} == dict.fromkeys(progress, 100.0)
+    report = by_key["demo-report-layer01"].data
+    assert report.startswith("# Steering vectors, layer01")
+    # readable in the UI on its own: plots inline, no relative images or file:// links
+    assert report.count("](data:image/png;base64,") == 3 and "](pairwise_cosine.png)" not in report
+    assert "file://" not in report and "## Files" in report
     assert by_key["demo-pairwise-cosines-layer02"].type == "table"
     assert by_key["demo-evaluation-layer02"].data.startswith("# Steering evaluation, layer02")
-    assert by_key["evaluate-on-vs-off-layer01"].data == 100.0
-    assert "open_vs_close__on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
+    assert "open_vs_close vs on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
 
 
 def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
     """Run the seed's steps one by one through the CLI on the same inputs; every output must be equal."""
     config = load_run_config(demo_config)
-    out, repo = tmp_path / "cli", config.dataset.repo_id
-    dataset, run_dir = out / "libero_lerobot" / repo, out / "residuals" / "demo"
-    arch_file = tmp_path / "arch.json"
-    arch_file.write_text(config.model.arch.model_dump_json())
-    layers = ",".join(map(str, config.layers))
-    tasks = [text for pair in config.pairs for text in (pair.positive, pair.negative)]
-    steps = [
-        ["filter", "--input-dir", str(config.sources.folders[0]), "--output-dir", str(out / "filtered"),
-         *[arg for task in tasks for arg in ("--task", task)]],
-        ["convert", "--input-dir", str(out / "filtered"), "--repo-id", repo, "--output-dir", str(dataset),
-         "--image-size", str(config.dataset.image_size)],
-    ]
-    for pair in config.pairs:
-        manifest, concept_map = out / "manifests" / f"{pair.name}.json", out / "manifests" / f"{pair.name}_map.json"
-        steps += [
-            ["manifest", "--lerobot-root", str(dataset), "--task-a-text", pair.positive, "--task-b-text",
-             pair.negative, "--output", str(manifest), "--repo-id", repo],
-            ["concept-map", "--manifest-path", str(manifest), "--output-path", str(concept_map),
-             "--lerobot-root", str(dataset), "--repo-id", repo],
-        ]
-    steps.append(["capture", "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path",
-                  str(config.model.tokenizer), "--lerobot-root", str(dataset), "--repo-id", repo, "--output-dir",
-                  str(run_dir), "--layers", layers, "--batch-size", str(config.capture.batch_size), "--device", "cpu",
-                  "--num-workers", "0", "--arch-file", str(arch_file)])
-    steps += [["split", "--manifest", str(out / "manifests" / f"{p.name}.json"), "--output",
-               str(out / "manifests" / f"{p.name}_split.json"), "--holdout-fraction",
-               str(config.evaluate.holdout_fraction)] for p in config.pairs]
-    steps += [["slice", "--run-dir", str(run_dir), "--concept-map-path", str(out / "manifests" / f"{p.name}_map.json"),
-               "--output-dir", str(out / "residuals" / f"{p.name}_slices"), "--layers", layers,
-               "--split", str(out / "manifests" / f"{p.name}_split.json")] for p in config.pairs]
-    runner = CliRunner()
-    for step in steps:
-        result = runner.invoke(app, step)
-        assert result.exit_code == 0, (step[0], result.output, result.exception)
-    for layer in config.layers:
-        pairs = {"pairs": [{
-            "name": p.name,
-            "positive_label": p.positive, "negative_label": p.negative,
-            "positive_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.positive}.pt"),
-            "negative_path": str(out / "residuals" / f"{p.name}_slices" / layer_dir(layer) / f"{p.negative}.pt"),
-        } for p in config.pairs]}
-        pairs_file = out / f"layer{layer}_pairs.json"
-        pairs_file.write_text(json.dumps(pairs))
-        result = runner.invoke(app, [
-            "steer", "--pairs-config", str(pairs_file), "--output-root", str(out / "latent_steering"),
-            "--layer", str(layer), "--device", "cpu", "--batch-size", str(config.steering.batch_size),
-            "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k)])
-        assert result.exit_code == 0, (result.output, result.exception)
+    out = tmp_path / "cli"
+    run_dir = out / "residuals" / "demo"
+    run_cli_steps(config, out)
 
     for pair in config.pairs:
         ours, theirs = read_manifest(config.manifest_path(pair)), read_manifest(out / "manifests" / f"{pair.name}.json")
         assert (ours.axis, ours.segments) == (theirs.axis, theirs.segments)
         assert (read_json(config.concept_map_path(pair))["concepts"]
-                == read_json(out / "manifests" / f"{pair.name}_map.json")["concepts"])
+                == read_json(out / "manifests" / f"{pair.name}_concept_map.json")["concepts"])
     # shards are byte-identical: same rows, same dtype, same header
     assert ([(r.file, r.sha256) for r in read_run_metadata(config.run_dir).shards]
             == [(r.file, r.sha256) for r in read_run_metadata(run_dir).shards])
@@ -372,19 +356,8 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
         assert (read_json(config.layer_path(layer) / "pairwise_stats.json")["entries"]
                 == read_json(out / "latent_steering" / layer_dir(layer) / "pairwise_stats.json")["entries"])
 
-    # phase 4, one layer: the CLI's dose-responses are the flow's (same frames, noise, directions and actions)
-    layer, evaluated = config.layers[-1], config.evaluate
-    for pair in config.pairs:  # the seed layout under --data-root: manifests/<pair>.json, _concept_map, _split
-        (out / "manifests" / f"{pair.name}_map.json").rename(out / "manifests" / f"{pair.name}_concept_map.json")
-    result = runner.invoke(app, [
-        "evaluate", "--pairs-config", str(out / f"layer{layer}_pairs.json"), "--layer", str(layer),
-        "--data-root", str(out), "--lerobot-root", str(dataset), "--repo-id", repo,
-        "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
-        "--arch-file", str(arch_file), "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k),
-        "--max-frames", str(evaluated.max_frames), "--noise-seeds", str(evaluated.noise_seeds),
-        "--batch-size", str(evaluated.batch_size), "--device", "cpu"])
-    assert result.exit_code == 0, (result.output, result.exception)
-    assert f"summary: {out / 'steering_eval' / layer_dir(layer) / 'summary.md'}" in result.output
+    # phase 4 at the last layer (the CLI's `evaluate`): the same frames, noise, directions and actions
+    layer = config.layers[-1]
     for pair in config.pairs:
         ours = load_file(config.eval_layer_path(layer) / pair.name / "dose_response.safetensors")
         theirs = load_file(out / "steering_eval" / layer_dir(layer) / pair.name / "dose_response.safetensors")
@@ -405,7 +378,10 @@ def test_second_run_on_unchanged_inputs_is_all_cached(second_run, demo_config):
     tasks = task_runs_under(run_id)
     assert f"report: {load_run_config(demo_config).layer_path(1) / 'summary.md'}" in output
     assert len(tasks) >= 25
-    assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {}
+    # every step cached; only the preflight checks run again (files, folders and devices can change)
+    assert {name: t.state.name for name, t in tasks.items() if t.state.name != "Cached"} == {PREFLIGHT: "Completed"}
+    assert f"{len(tasks)} task runs: 1 ran, {len(tasks) - 1} cached" in output
+    assert any(line.split()[:2] == ["preflight", "-"] and line.split()[3] == "ran" for line in output.splitlines())
 
 
 @pytest.fixture(scope="module")
@@ -455,7 +431,7 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
         f"filter demos into {config.filtered_dir}", f"convert to LeRobot {config.dataset.repo_id}",
         "manifest open_vs_close", "manifest on_vs_off", "concept map open_vs_close", "concept map on_vs_off",
         "held-out split open_vs_close", "held-out split on_vs_off",
-        "capture episodes 8-8", f"run metadata {config.run_dir}", *steps,
+        "capture episodes 8-8", f"run metadata {config.run_dir}", PREFLIGHT, *steps,
     }
     assert all(tasks[name].state.name == "Completed" for name in recomputed)
     assert tasks["capture episodes 0-7"].state.name == "Cached"
@@ -476,3 +452,20 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     split = read_json(config.split_path(config.pair("open_vs_close")))["tasks"][DRAWER_OPEN]
     assert len(split["train"]) + len(split["holdout"]) == 3 and len(split["holdout"]) == 1
     assert [s["episode_index"] for s in index["concepts"][DRAWER_OPEN]["segments"]] == split["train"]
+
+
+def test_bad_input_fails_the_flow_in_its_preflight_task(tmp_path):
+    """Before any step: the flow fails with the preflight task's one-line problems, and nothing is written."""
+    from flows.pipeline import latent_steering
+    from steering_core.config import write_run_config
+
+    config = load_run_config(build_demo(tmp_path / "demo", demos_per_task=2))
+    text = tmp_path / "model.safetensors"
+    text.write_text("not tensors\n")
+    bad = config.model_copy(update={"model": config.model.model_copy(update={"checkpoint": text})})
+    state = latent_steering(str(write_run_config(bad, tmp_path / "bad.yaml")), return_state=True)
+    assert state.is_failed()
+    tasks = task_runs_under(state.state_details.flow_run_id)
+    assert list(tasks) == [PREFLIGHT] and tasks[PREFLIGHT].state.is_failed()
+    assert f"{text}: not a safetensors file" in tasks[PREFLIGHT].state.message
+    assert not config.output_root.exists()

@@ -18,6 +18,8 @@ SUBPACKAGES = (
     "steering_core.demo",
     "steering_core.refresh",
     "steering_core.identity",
+    "steering_core.preflight",
+    "steering_core.tensor_files",
 )
 
 

@@ -118,7 +118,7 @@ def test_each_corruption_has_its_message(tiny_file, change, message):
     with pytest.raises(ValueError) as err:
         libero.validate_file(tiny_file)
     text = str(err.value)
-    assert text.startswith(f"{tiny_file.name}: 1 problem(s) with the LIBERO demo schema:")
+    assert text.startswith(f"{tiny_file}: 1 problem(s) with the LIBERO demo schema:")  # the whole path
     assert message in text
     assert "fix: re-export the file with LIBERO's scripts/create_dataset.py" in text
 

@@ -74,6 +74,10 @@ def test_report_with_sae(tmp_path):
     assert f"[{expected[0]}](https://neuronpedia.org/toy/12-res/{expected[0]})" in markdown
     assert "(no b_dec)" in markdown and "![pairwise cosines](pairwise_cosine.png)" in markdown
     assert "| pair_0 vs pair_1 |" in markdown
+    poor = [f"{p['pair']} ({side})" for p in summary["pairs"] for side, fid in p["fidelity"].items() if fid["fvu"] > 1]
+    assert poor, "a random SAE does not reconstruct random residuals"
+    assert f"**FVU > 1 for {', '.join(poor)}: the SAE does not reconstruct these residuals**" in markdown
+    assert "| pair | positive (rows) | negative (rows) |" in markdown  # narrow tables: the Prefect UI clips wide ones
     for name in summary["plots"].values():
         image = matplotlib.image.imread(layer_path / name)
         assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 400

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -282,7 +281,7 @@ class _NotATensor:
 def test_state_dict_is_never_unpickled(tmp_path):
     path = tmp_path / "evil.pt"
     torch.save({"W_enc": torch.zeros(2, 2), "payload": _NotATensor()}, path)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(ValueError, match=f"{path}: holds pickled objects other than tensors, .*_NotATensor"):
         load_sae(path)
 
 

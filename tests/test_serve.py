@@ -133,6 +133,17 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
     assert "serialised" in metadata["server"]["inference"]
 
 
+def test_libero_example_wrapper_adds_the_steering_entry(catalog, observations, tmp_path):
+    entry = [{"pair": "on_vs_off", "layer": 1, "alpha": 2.0, "direction": "mean_difference"}]
+    with running(PolicyServer(FakePolicy(), catalog)) as server:
+        [client] = run_openpi_client(tmp_path, server.port, [[{"obs": obs} for obs in observations[:2]]],
+                                     wrapper_steering=entry)
+    for obs, result in zip(observations, client["results"], strict=False):
+        want = expected(catalog, obs, ("on_vs_off", 1, 2.0, "mean_difference"))
+        assert result["reply"]["actions"].tobytes() == want.tobytes()
+        assert result["reply"]["steering"][0]["direction"] == "mean_difference"
+
+
 def test_bad_requests_get_an_error_naming_the_key_and_the_connection_keeps_serving(catalog, observations, tmp_path):
     good = observations[0]
     image = good["observation/image"]
@@ -248,3 +259,20 @@ def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observ
     finally:
         process.kill()
 
+
+
+def test_readme_serve_commands_use_existing_flags():
+    import re
+
+    import typer
+
+    from cli import app
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## Steered rollouts in LIBERO", 1)[1].split("\n## ", 1)[0]
+    command = re.search(r"latent-steering serve (.*?)\ncurl", section, re.S).group(1)
+    used = set(re.findall(r"(--[a-z][a-z-]+)", command))
+    serve = typer.main.get_command(app).commands["serve"]
+    known = {opt for param in serve.params for opt in param.opts}
+    assert used and used <= known, used - known
+    assert "--steer open_vs_close:12:4.0" in section and parse_steering_option("open_vs_close:12:4.0")

@@ -103,6 +103,13 @@ class Processes:
 
 def run_deployment_and_wait(env: dict[str, str], deployment: str, worker_log: Path):
     """Start a deployment run with the CLI and return the flow run once it completed."""
+    run = run_deployment_until_final(env, deployment, worker_log)
+    assert run.state.is_completed(), worker_log.read_text()[-5000:]
+    return run
+
+
+def run_deployment_until_final(env: dict[str, str], deployment: str, worker_log: Path):
+    """Start a deployment run with the CLI and return the flow run once it reached a final state."""
     output = run_cli(env, *PREFECT, "deployment", "run", deployment)
     run_id = re.search(r"UUID: ([0-9a-f-]{36})", output).group(1)
     deadline = time.monotonic() + RUN_TIMEOUT
@@ -110,7 +117,6 @@ def run_deployment_and_wait(env: dict[str, str], deployment: str, worker_log: Pa
         while not (run := client.read_flow_run(run_id)).state.is_final():
             assert time.monotonic() < deadline, worker_log.read_text()[-3000:]
             time.sleep(2)
-    assert run.state.is_completed(), worker_log.read_text()[-5000:]
     return run
 
 
@@ -218,3 +224,24 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
             assert time.monotonic() < deadline, logs
             time.sleep(1)
     assert refreshed.work_pool_name == "cpu" and [r.id for r in pipelines] == [parent.id]
+
+
+def test_capture_runs_fail_with_a_clear_message_when_no_gpu_worker_polls(server, tmp_path):
+    """Only the cpu worker runs: the parent gives up on its capture runs after the wait, naming the pool."""
+    env, processes = server
+    config_path = build_demo(tmp_path / "demo", demos_per_task=2)
+    raw = yaml.safe_load(config_path.read_text())
+    raw["orchestration"] = {"poll_seconds": 1, "worker_wait_seconds": 10}
+    config_path.write_text(yaml.safe_dump(raw))
+    run_cli(env, LATENT_STEERING, "deploy", "--config", str(config_path))
+    with get_client(sync_client=True) as client:
+        scheduled = next(d for d in client.read_deployments() if d.name == "scheduled")
+        client.pause_deployment(scheduled.id)
+    processes.start("worker-cpu", *PREFECT, "worker", "start", "--pool", "cpu")
+
+    run = run_deployment_until_final(env, "latent-steering/pipeline", tmp_path / "logs" / "worker-cpu.log")
+    with get_client(sync_client=True) as client:
+        assert run.state.is_failed()
+        assert "no worker is polling pool 'gpu'" in run.state.message, run.state.message
+        captures = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
+        assert captures and {r.state.name for r in captures} == {"Cancelled"}  # never left to start later

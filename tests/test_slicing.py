@@ -28,10 +28,10 @@ def first_index(episode: int) -> int:
     return sum(EPISODES.get(e, (0,))[0] for e in range(episode))
 
 
-def build_run(run_dir, episodes_per_shard=2, token_type="instructions") -> None:
+def build_run(run_dir, episodes_per_shard=2, token_type="instructions", sources=None) -> None:
     """Write a run of every episode and layer with rows that encode where they come from."""
     spec = shards.RunSpec(token_type=token_type, layers=LAYERS, width=WIDTH, episodes_per_shard=episodes_per_shard,
-                          inputs={"checkpoint": "tiny"})
+                          inputs={"checkpoint": "tiny"}, sources=sources or {})
     shards.write_run_spec(run_dir, spec)
     generator = torch.Generator().manual_seed(0)
     for key, members in shards.group_episodes(EPISODES, episodes_per_shard).items():
@@ -212,9 +212,10 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
     data = bytearray(shard.read_bytes())
     data[-1] ^= 0xFF
     shard.write_bytes(bytes(data))
-    slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,)))
     with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
-        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,), verify_checksums=True))
+        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))  # by default
+    assert not (tmp_path / "checked").exists()
+    slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
 
 
 def test_slice_command(tmp_path, run_dir, concept_map):
@@ -262,3 +263,35 @@ def test_held_out_episodes_never_reach_the_slices(tmp_path, run_dir, concept_map
         stem = safe_file_name(name)
         for suffix in (".pt", ".safetensors"):
             assert (plain / "layer02" / f"{stem}{suffix}").read_bytes() == (empty / "layer02" / f"{stem}{suffix}").read_bytes()
+
+
+def test_concept_map_of_another_dataset_is_refused(tmp_path, concept_map):
+    """Same episode layout, other dataset: the map's repo_id or dataset content must be the run's."""
+    from helpers_dataset import contrast_episodes, write_dataset
+
+    from steering_core.data.dataset import dataset_fingerprint
+
+    episodes = contrast_episodes()
+    ours, theirs = tmp_path / "ours", tmp_path / "theirs"
+    write_dataset(ours, episodes)
+    write_dataset(theirs, [(task, states + 1) for task, states in episodes])
+    run_dir = tmp_path / "run"
+    build_run(run_dir, sources={"repo_id": "test", "dataset_fingerprint": dataset_fingerprint(ours)})
+    out = tmp_path / "out"
+
+    other_repo = json.loads(concept_map.read_text()) | {"repo_id": "libero_other"}
+    (tmp_path / "other_repo.json").write_text(json.dumps(other_repo))
+    with pytest.raises(ValueError, match=r"other_repo.json: the concept map is of dataset 'libero_other', but run .* "
+                                         r"captured 'test'"):
+        slice_concepts(run_dir, tmp_path / "other_repo.json", out, SliceSettings(layers=(2,)))
+
+    other_content = json.loads(concept_map.read_text()) | {"lerobot_root": str(theirs)}
+    (tmp_path / "other_content.json").write_text(json.dumps(other_content))
+    with pytest.raises(ValueError, match=r"other_content.json: its dataset .*theirs has fingerprint .*, run .* "
+                                         r"captured a dataset with fingerprint"):
+        slice_concepts(run_dir, tmp_path / "other_content.json", out, SliceSettings(layers=(2,)))
+    assert not out.exists()
+
+    same = json.loads(concept_map.read_text()) | {"lerobot_root": str(ours)}
+    (tmp_path / "same.json").write_text(json.dumps(same))
+    slice_concepts(run_dir, tmp_path / "same.json", out, SliceSettings(layers=(2,)))

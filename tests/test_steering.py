@@ -371,3 +371,21 @@ def test_cli_steer(project, sae_folder):
     assert no_sae.exit_code == 0 and not (project / "plain/layer12/on_stove/latent_direction.pt").exists()
     missing = runner.invoke(app, [*args[:-4], "--sae", "gemma-2b-it-res-jb", "--layer", "6"])
     assert missing.exit_code == 1 and "has no SAE id 'blocks.6.hook_resid_post'" in missing.output
+
+
+def test_cli_steer_refuses_pickled_or_mislabelled_sae_files_in_one_line(project, tmp_path):
+    import argparse
+    import pickle
+
+    pickled = tmp_path / "sae.pt"
+    torch.save({"W_enc": torch.ones(2, 2), "cfg": argparse.Namespace(d_in=2)}, pickled)
+    renamed = tmp_path / "sae.safetensors"
+    renamed.write_bytes(pickle.dumps({"W_enc": [1.0]}))
+    args = ["steer", "--pairs-config", "layer12_pairs.json", "--output-root", "out", "--layer", "12",
+            "--device", "cpu"]
+    for path, message in ((pickled, "holds pickled objects other than tensors"),
+                          (renamed, "not a safetensors file")):
+        result = CliRunner().invoke(app, [*args, "--sae", str(path)])
+        assert result.exit_code == 1, result.output
+        assert f"{path}: {message}" in result.output
+        assert "Traceback" not in result.output and "weights_only=False" not in result.output

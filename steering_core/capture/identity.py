@@ -4,46 +4,32 @@ from __future__ import annotations
 
 import hashlib
 import os
-import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pyarrow.parquet as pq
+
 from steering_core.capture.settings import STATE_KEY, CaptureInputs, CaptureSettings
 from steering_core.capture.shards import RunSpec
+from steering_core.data import lerobot_v2
 from steering_core.data.dataset import (
     DatasetMeta,
     dataset_fingerprint,
     read_episode_columns,
 )
 from steering_core.devices import resolve_device, resolve_dtype
-from steering_core.fileio import sha256_file
+from steering_core.fileio import sha256_file, sha256_json
+from steering_core.identity import file_digest
 from steering_core.pi05.norm_stats import norm_stats_path
 
-_FINGERPRINT_SAMPLES = 16  # data blocks hashed by checkpoint_fingerprint, evenly spaced
-_FINGERPRINT_BLOCK = 1 << 16  # 64 KiB each: 1 MiB read whatever the checkpoint size
-
-
 def checkpoint_fingerprint(model_file: str | os.PathLike) -> str:
-    """Return a sha256 over a safetensors file's header, its size and 16 evenly spaced 64 KiB data blocks.
+    """Return the sha256 of a checkpoint file's whole content (a fine-tune of one weight changes it).
 
-    The header names every tensor with its dtype, shape and offsets; the sampled blocks tell apart two
-    checkpoints of the same layout (e.g. base and fine-tuned). It reads about 1 MiB, so it cannot see
-    a change confined to a few weights; hash the file with `sha256_file` when that matters.
+    Read once per file version (`steering_core.identity.file_digest`): about 20 s for 7 GB, then remembered.
     """
-    path = Path(model_file)
-    size = path.stat().st_size
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        header_length = struct.unpack("<Q", handle.read(8))[0]  # safetensors: u64 little-endian header size
-        digest.update(handle.read(header_length))
-        start = 8 + header_length
-        span = max(size - start - _FINGERPRINT_BLOCK, 0)
-        for sample in range(_FINGERPRINT_SAMPLES):
-            handle.seek(start + span * sample // max(_FINGERPRINT_SAMPLES - 1, 1))
-            digest.update(handle.read(_FINGERPRINT_BLOCK))
-    digest.update(str(size).encode())
-    return digest.hexdigest()
+    return file_digest(model_file)
 
 
 def run_spec(
@@ -86,12 +72,13 @@ def run_spec(
 
 
 def episode_records(meta: DatasetMeta, episodes: Sequence[int]) -> dict[int, dict[str, Any]]:
-    """Return episode -> what its shard depends on: tasks, length, first global index, state hash.
+    """Return episode -> what its shard depends on: tasks, length, first global index, state and frame hashes.
 
-    The state trajectory (numeric, read without decoding frames) stands in for the episode's content:
-    a re-recorded demo changes it, an appended one leaves every other record unchanged.
+    The frames count by their stored bytes (PNG in the data parquet, never decoded), so a re-conversion
+    with another orientation or image size changes the record; an appended episode leaves the others alone.
     """
     states = read_episode_columns(meta.root, episodes, STATE_KEY) if STATE_KEY in meta.info["features"] else {}
+    frames = episode_frame_digests(meta, episodes)
     by_index = {e.episode_index: e for e in meta.episodes}
     records = {}
     for index in episodes:
@@ -103,5 +90,62 @@ def episode_records(meta: DatasetMeta, episodes: Sequence[int]) -> dict[int, dic
             "length": episode.length,
             "from_index": episode.from_index,
             "state_sha256": hashlib.sha256(state.tobytes()).hexdigest() if state is not None else None,
+            "frames_sha256": frames[index],
         }
     return records
+
+
+def episode_frame_digests(meta: DatasetMeta, episodes: Sequence[int]) -> dict[int, str]:
+    """Return episode -> sha256 of its encoded camera frames, in frame order, camera by camera.
+
+    Image features are hashed from the data parquet's stored bytes (read, never decoded). Video features
+    count by the content of every video file of that camera (memoised per file): exact, but an appended
+    episode then changes the hash of the episodes sharing its video file.
+    """
+    features = meta.info["features"]
+    images = sorted(k for k, f in features.items() if f.get("dtype") == "image")
+    videos = sorted(k for k, f in features.items() if f.get("dtype") == "video")
+    video_files = _video_files(meta, videos)
+    by_file: dict[str, list[int]] = {}
+    for index in dict.fromkeys(int(e) for e in episodes):
+        by_file.setdefault(meta.episode(index).data_file, []).append(index)
+    digests: dict[int, str] = {}
+    for rel, members in by_file.items():
+        table = pq.read_table(meta.root / rel, columns=["episode_index", "frame_index", *images],
+                              filters=[("episode_index", "in", members)])
+        episode_of, frame_of = table.column("episode_index").to_numpy(), table.column("frame_index").to_numpy()
+        encoded = {key: table.column(key).combine_chunks() for key in images}
+        for index in members:
+            rows = np.flatnonzero(episode_of == index)
+            rows = rows[np.argsort(frame_of[rows], kind="stable")]
+            digest = hashlib.sha256(sha256_json(video_files(index)).encode())
+            for key in images:
+                digest.update(key.encode())
+                for value in encoded[key].take(rows).to_pylist():
+                    data = _image_bytes(meta, value)
+                    digest.update(len(data).to_bytes(8, "little"))
+                    digest.update(data)
+            digests[index] = digest.hexdigest()
+    return digests
+
+
+def _video_files(meta: DatasetMeta, keys: Sequence[str]) -> Callable[[int], dict[str, str]]:
+    """Return episode -> {video file: sha256} of its cameras: its own files (v2.x), or every file of the camera (v3.0)."""
+    if not keys:
+        return lambda index: {}
+    if meta.info["codebase_version"] in lerobot_v2.V2_VERSIONS:  # one video per episode and camera
+        return lambda index: {rel: file_digest(meta.root / rel)
+                              for rel in (lerobot_v2.episode_video_file(meta.info, index, key) for key in keys)}
+    shared = {p.relative_to(meta.root).as_posix(): file_digest(p)
+              for key in keys for p in sorted((meta.root / "videos" / key).rglob("*")) if p.is_file()}
+    return lambda index: shared
+
+
+def _image_bytes(meta: DatasetMeta, value: Any) -> bytes:
+    """Return the encoded bytes of one image cell (`{bytes, path}`; the bytes, or the file the path names)."""
+    if isinstance(value, dict):
+        if value.get("bytes") is not None:
+            return value["bytes"]
+        if value.get("path"):
+            return (meta.root / value["path"]).read_bytes()
+    raise ValueError(f"{meta.root}: an image cell holds {type(value).__name__}, expected encoded bytes or a path")

@@ -13,17 +13,22 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
+from steering_core.capture.frames import (
+    FRAME_KEYS,
+    batch_plan,
+    frame_loader,
+    frame_source,
+)
 from steering_core.capture.identity import episode_records, run_spec
+from steering_core.capture.locks import group_locks
 from steering_core.capture.settings import (
     N_CAMERAS,
     STATE_KEY,
@@ -46,15 +51,15 @@ from steering_core.capture.shards import (
 )
 from steering_core.data.dataset import DatasetMeta, read_meta
 from steering_core.devices import resolve_device
-from steering_core.fileio import sha256_json
+from steering_core.fileio import check_output_dir, sha256_json
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
+from steering_core.progress import Progress, ProgressCallback
 
 if TYPE_CHECKING:
     from steering_core.pi05.model import Pi05Prefix
 
 logger = logging.getLogger(__name__)
 
-Progress = Callable[[int, int], None]  # (frames done, frames in total)
 
 
 @dataclass(frozen=True)
@@ -66,6 +71,7 @@ class CaptureResult:
     skipped: tuple[str, ...]
     frames: int
     metadata: RunMetadata | None  # None when only some episodes were captured (a worker of a split run)
+    reduced_batch_size: int | None = None  # frames per forward pass after CUDA ran out of memory, if it did
 
 
 @dataclass(frozen=True)
@@ -81,6 +87,7 @@ class CaptureJob:
     groups: dict[str, tuple[int, ...]]  # shard key -> episodes, only the groups to compute
     group_inputs: dict[str, str]  # shard key -> hash of what its rows depend on
     frames: int  # frames in `groups`
+    limits: dict[str, int] = field(default_factory=dict)  # "batch_size": frames per forward pass after an OOM
 
 
 @dataclass
@@ -98,7 +105,7 @@ def capture(
     run_dir: str | os.PathLike,
     settings: CaptureSettings,
     episodes: Sequence[int] | None = None,
-    progress: Progress | None = None,
+    progress: ProgressCallback | None = None,
     max_frames: int | None = None,
 ) -> CaptureResult:
     """Capture the residuals of every frame (or of `episodes`) into `run_dir`; return what was done.
@@ -110,6 +117,7 @@ def capture(
     groups, so the last one may go past it and a later run with a larger limit reuses every shard.
     """
     run_dir = Path(run_dir)
+    check_output_dir(run_dir, "run folder")  # before the model loads (~25 s on pi0.5), not after
     meta = read_meta(dataset_root)
     inputs = check_inputs(meta, settings)
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
@@ -118,6 +126,22 @@ def capture(
     spec = run_spec(meta, repo_id, inputs, settings)
     check_run_spec(run_dir, spec)
 
+    with group_locks(run_dir, (int(key) for key in groups)):  # another capture of these groups: wait, then skip
+        todo, skipped, frames, reduced = _capture_missing(meta, repo_id, run_dir, spec, settings, inputs, groups,
+                                                          progress)
+    metadata = None
+    if episodes is None:
+        write_run_metadata(run_dir)
+        metadata = read_run_metadata(run_dir)
+    return CaptureResult(run_dir=run_dir, written=tuple(todo), skipped=skipped, frames=frames, metadata=metadata,
+                         reduced_batch_size=reduced)
+
+
+def _capture_missing(
+    meta: DatasetMeta, repo_id: str, run_dir: Path, spec: RunSpec, settings: CaptureSettings, inputs: CaptureInputs,
+    groups: dict[str, tuple[int, ...]], progress: ProgressCallback | None,
+) -> tuple[dict[str, tuple[int, ...]], tuple[str, ...], int, int | None]:
+    """Capture the groups without a complete shard; return (groups computed, skipped, frames, reduced batch size)."""
     records = episode_records(meta, [e for members in groups.values() for e in members])
     group_inputs = {key: sha256_json({"run": spec.identity(), "episodes": [records[e] for e in members]})
                     for key, members in groups.items()}
@@ -129,16 +153,14 @@ def capture(
         logger.info("%d of %d shard group(s) already complete, skipped", len(skipped), len(groups))
     lengths = {e.episode_index: e.length for e in meta.episodes}
     frames = sum(lengths[e] for members in todo.values() for e in members)
+    reduced = None
     if todo:
         job = CaptureJob(meta, repo_id, run_dir, spec, settings, inputs, todo, group_inputs, frames)
         _capture_groups(job, progress)
+        reduced = job.limits.get("batch_size")
     else:
         write_run_spec(run_dir, spec)  # records this call's sources
-    metadata = None
-    if episodes is None:
-        write_run_metadata(run_dir)
-        metadata = read_run_metadata(run_dir)
-    return CaptureResult(run_dir=run_dir, written=tuple(todo), skipped=skipped, frames=frames, metadata=metadata)
+    return todo, skipped, frames, reduced
 
 
 def _episode_groups(
@@ -182,7 +204,7 @@ def _first_groups(
     return kept
 
 
-def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
+def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     """Run the model over the groups' frames and write each group's shards as soon as it is complete."""
     from steering_core.pi05.model import Pi05Prefix
 
@@ -201,20 +223,15 @@ def _capture_groups(job: CaptureJob, progress: Progress | None) -> None:
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}
     prompts: dict[str, TokenizedPrompt] = {}
-    done = 0
     buffers: dict[str, _GroupRows] = {}
-    with tqdm(total=job.frames, desc="capture", unit="frame", disable=None) as bar:
+    with Progress(job.frames, "capture", "frame", callback=progress, logger=logger) as bar:
         for (key, _), batch in zip(plan, batches, strict=True):
             buffer = buffers.setdefault(key, _GroupRows(per_layer={layer: [] for layer in settings.layers}))
             _capture_batch(model, batch, job, prompts, buffer)
             remaining[key] -= 1
             if remaining[key] == 0:
                 _write_group(job, key, buffers.pop(key))
-            size = len(batch["task"])
-            done += size
-            bar.update(size)
-            if progress is not None:
-                progress(done, job.frames)
+            bar.update(len(batch["task"]))
 
 
 def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[str, TokenizedPrompt]) -> TokenizedPrompt:
@@ -240,15 +257,15 @@ def _capture_batch(
     prompts = [_prompt(job, task, states[b] if states is not None else None, cache) for b, task in enumerate(tasks)]
     tokens = torch.from_numpy(np.stack([p.ids for p in prompts]))
     token_mask = torch.from_numpy(np.stack([p.mask for p in prompts]))
-    residuals = model.residuals(batch["images"], batch["image_masks"], tokens, token_mask, settings.layers)
     language_start = settings.arch.prefix_length(N_CAMERAS, 0)  # language follows every camera slot
     selected = [select_tokens(p, settings.token_type) for p in prompts]
     frame_of_row = np.concatenate([np.full(len(s), b, dtype=np.int64) for b, s in enumerate(selected)])
     language_index = np.concatenate(selected)
     positions = language_start + language_index
-    rows_b, rows_p = torch.from_numpy(frame_of_row), torch.from_numpy(positions)
-    for layer in settings.layers:
-        buffer.per_layer[layer].append(residuals[layer][rows_b.to(model.device), rows_p.to(model.device)].cpu())
+    kept = _kept_rows(model, batch, tokens, token_mask, frame_of_row, positions, job)
+    _check_finite(kept, batch, frame_of_row)
+    for layer, rows in kept.items():
+        buffer.per_layer[layer].append(rows.cpu())
     columns = {
         "index": batch["index"].numpy()[frame_of_row],
         "episode_index": batch["episode_index"].numpy()[frame_of_row],
@@ -260,6 +277,58 @@ def _capture_batch(
         buffer.columns.setdefault(name, []).append(values.astype(np.int64))
     for task, prompt, chosen in zip(tasks, prompts, selected):
         _record_task(buffer.tasks, task, prompt, chosen, language_start)
+
+
+def _kept_rows(
+    model: Pi05Prefix, batch: dict[str, Any], tokens: torch.Tensor, token_mask: torch.Tensor,
+    frame_of_row: np.ndarray, positions: np.ndarray, job: CaptureJob,
+) -> dict[int, torch.Tensor]:
+    """Return layer -> the kept rows (rows, width) of one batch, run in parts no larger than the job's limit.
+
+    On CUDA out-of-memory the part size is halved (down to one frame) and kept for the rest of the job,
+    which records it (`CaptureResult.reduced_batch_size`), instead of failing or retrying the same size.
+    """
+    size = len(tokens)
+    step = min(size, job.limits.get("batch_size", size))
+    while True:
+        try:
+            parts: dict[int, list[torch.Tensor]] = {layer: [] for layer in job.settings.layers}
+            for start in range(0, size, step):
+                stop = min(start + step, size)
+                residuals = model.residuals([i[start:stop] for i in batch["images"]],
+                                            [m[start:stop] for m in batch["image_masks"]],
+                                            tokens[start:stop], token_mask[start:stop], job.settings.layers)
+                inside = (frame_of_row >= start) & (frame_of_row < stop)
+                rows_b = torch.from_numpy(frame_of_row[inside] - start).to(model.device)
+                rows_p = torch.from_numpy(positions[inside]).to(model.device)
+                for layer in parts:
+                    parts[layer].append(residuals[layer][rows_b, rows_p])
+            return {layer: torch.cat(chunks) for layer, chunks in parts.items()}
+        except torch.cuda.OutOfMemoryError:
+            if step == 1:
+                raise
+            del parts
+            step = (step + 1) // 2
+            job.limits["batch_size"] = step
+            if torch.cuda.is_available():
+                torch.cuda.empty_cache()
+            logger.warning("CUDA out of memory: running %d frame(s) at a time from now on (batch_size %d)",
+                           step, job.settings.batch_size)
+
+
+def _check_finite(kept: dict[int, torch.Tensor], batch: dict[str, Any], frame_of_row: np.ndarray) -> None:
+    """Raise naming the first layer, episode and frame whose kept rows hold NaN or Inf (one device sync per batch)."""
+    finite = torch.stack([torch.isfinite(rows).all() for rows in kept.values()])
+    if bool(finite.all()):
+        return
+    layer = list(kept)[int((~finite).nonzero()[0])]
+    row = int((~torch.isfinite(kept[layer]).all(dim=-1)).nonzero()[0])
+    frame = int(frame_of_row[row])
+    raise ValueError(
+        f"non-finite residuals (NaN or Inf) at layer {layer} in episode {int(batch['episode_index'][frame])} "
+        f"(frame {int(batch['frame_index'][frame])}); the checkpoint holds non-finite weights or the compute dtype "
+        "overflows: check the checkpoint, or capture with --dtype float32"
+    )
 
 
 def _record_task(

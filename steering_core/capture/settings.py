@@ -18,7 +18,7 @@ from steering_core.pi05 import (
     TokenizedPrompt,
     read_norm_stats,
 )
-from steering_core.pi05.checkpoint import resolve_model_file
+from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID, norm_stats_path
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 from steering_core.pi05.tokenizer import MAX_TOKEN_LEN
@@ -82,12 +82,8 @@ def select_tokens(prompt: TokenizedPrompt, token_type: str) -> np.ndarray:
     raise ValueError(f"token_type {token_type!r} unknown; expected instructions, prompt or last")
 
 
-def check_inputs(
-    meta: DatasetMeta, settings: CaptureSettings
-) -> CaptureInputs:
+def check_inputs(meta: DatasetMeta, settings: CaptureSettings) -> CaptureInputs:
     """Return the checkpoint file, tokenizer and state norm stats after checking every input once (no model loaded)."""
-    model_file = resolve_model_file(settings.checkpoint_path)
-    tokenizer = PromptTokenizer(settings.tokenizer_path, settings.max_token_len, settings.prompt_format)
     discrete = settings.prompt_format is PromptFormat.DISCRETE_STATE
     problems = []
     features = meta.info["features"]
@@ -101,6 +97,20 @@ def check_inputs(
                 f"expected {'a camera (image or video)' if wanted else 'present'}; the dataset has "
                 f"{sorted(features)} (convert LIBERO with `latent-steering convert`)"
             )
+    if problems:
+        raise ValueError("\n".join(problems))
+    return check_model_inputs(settings)
+
+
+def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
+    """Return the checked checkpoint file, tokenizer and norm stats: everything but the dataset (no model loaded).
+
+    The checkpoint's header must hold every prefix tensor up to the deepest layer with the arch's shapes.
+    """
+    model_file = resolve_model_file(settings.checkpoint_path)
+    tokenizer = PromptTokenizer(settings.tokenizer_path, settings.max_token_len, settings.prompt_format)
+    discrete = settings.prompt_format is PromptFormat.DISCRETE_STATE
+    problems = []
     depth = settings.arch.depth
     bad_layers = [layer for layer in settings.layers if not 0 <= layer < depth]
     if bad_layers:
@@ -119,6 +129,7 @@ def check_inputs(
         )
     if problems:
         raise ValueError("\n".join(problems))
+    check_prefix_layout(model_file, settings.arch, max(settings.layers))
     norm_stats = None
     if discrete:
         source = settings.norm_stats_path or settings.checkpoint_path

@@ -26,7 +26,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from safetensors.torch import save_file
-from tqdm import tqdm
 
 from steering_core.capture.shards import (
     RunMetadata,
@@ -36,8 +35,10 @@ from steering_core.capture.shards import (
     read_run_metadata,
 )
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
+from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
 from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
+from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel
 
 logger = logging.getLogger(__name__)
@@ -59,7 +60,7 @@ class SliceSettings(StrictModel):
     token_type: TokenType = "instructions"
     reduce: Reduce = "token"  # one row per captured token, or their mean per frame
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
-    verify_checksums: bool = False  # re-hash every shard against metadata.json before reading it
+    verify_checksums: bool = True  # re-hash every shard against metadata.json before reading it (a damaged one stops)
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
     holdout_episodes: tuple[int, ...] = ()  # episodes held out for evaluation: their frames are never sliced
 
@@ -101,7 +102,7 @@ def slice_concepts(
     concept_map_path: str | os.PathLike,
     output_dir: str | os.PathLike,
     settings: SliceSettings = SliceSettings(),
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> dict[int, Path]:
     """Write per-concept residual tensors for every requested layer; return layer -> index.json path.
 
@@ -114,20 +115,11 @@ def slice_concepts(
     _check_request(run_dir, metadata, concept_map, concept_map_path, settings)
     layers = list(settings.layers)
     total = sum(len(metadata.layer_shards(layer)) for layer in layers)
-    done = 0
     written: dict[int, Path] = {}
-    with tqdm(total=total, desc="slice", unit="shard", disable=None) as bar:
-
-        def advance() -> None:
-            nonlocal done
-            done += 1
-            bar.update(1)
-            if progress is not None:
-                progress(done, total)
-
+    with Progress(total, f"slice {Path(output_dir).name}", "shard", callback=progress, logger=logger) as bar:
         for layer in layers:
             written[layer] = _slice_layer(
-                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, advance
+                run_dir, metadata, concept_map, Path(concept_map_path), output_dir, layer, settings, bar.update
             )
     return written
 
@@ -149,6 +141,7 @@ def _check_request(
             f"{run_dir}: the run has layers {list(run.layers)}, not {missing_layers}; "
             f"re-run capture with --layers {','.join(str(layer) for layer in missing_layers)}"
         )
+    problems += _dataset_problems(run_dir, run.sources, concept_map, map_path)
     captured = set(metadata.episodes)
     for concept, segments in concept_map.concepts.items():
         if not segments:
@@ -163,6 +156,28 @@ def _check_request(
                 )
     if problems:
         raise ValueError("\n".join(problems))
+
+
+def _dataset_problems(run_dir: Path, sources: dict[str, Any], concept_map: ConceptMap, map_path: Any) -> list[str]:
+    """Return why the concept map is of another dataset than the run's: its repo_id, or its dataset's content.
+
+    The content is compared when the map's dataset folder is still there (the fingerprint is location-free);
+    a run recorded before sources were kept, or a map whose folder moved, is compared by what remains.
+    """
+    problems = []
+    if sources.get("repo_id") and concept_map.repo_id != sources["repo_id"]:
+        problems.append(
+            f"{map_path}: the concept map is of dataset {concept_map.repo_id!r}, but run {run_dir} captured "
+            f"{sources['repo_id']!r}; build the concept map from the run's dataset"
+        )
+    root = Path(concept_map.lerobot_root)
+    recorded = sources.get("dataset_fingerprint")
+    if recorded and (root / INFO_FILE).is_file() and (found := dataset_fingerprint(root)) != recorded:
+        problems.append(
+            f"{map_path}: its dataset {root} has fingerprint {found[:12]}..., run {run_dir} captured a dataset with "
+            f"fingerprint {recorded[:12]}...; build the concept map from the run's dataset, or capture this one"
+        )
+    return problems
 
 
 def _slice_layer(

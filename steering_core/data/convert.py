@@ -31,8 +31,7 @@ import contextlib
 import logging
 import os
 import shutil
-import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import groupby
 from pathlib import Path
@@ -40,11 +39,11 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import Field
-from tqdm import tqdm
 
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.v21_writer import V21Writer
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
@@ -67,7 +66,6 @@ CodebaseVersion = Literal["v3.0", "v2.1"]
 ResizeFilter = Literal["antialiased_bilinear", "bicubic"]
 DemoOrder = Literal["numeric", "lexicographic"]
 Action = Literal["created", "appended", "rebuilt", "unchanged"]
-ProgressCallback = Callable[[int, int], None]
 
 
 class ConvertSettings(StrictModel):
@@ -313,7 +311,7 @@ def _input_files(input_dirs: Sequence[str | Path]) -> list[Path]:
         for path in folder.glob(DEMO_FILE_GLOB):
             if path.name in by_name and by_name[path.name].resolve() != path.resolve():
                 raise ValueError(
-                    f"{path.name}: found in both {by_name[path.name].parent} and {folder}; "
+                    f"{path.name}: found as {by_name[path.name]} and as {path}; "
                     "episode order follows file names, so names must be unique"
                 )
             by_name[path.name] = path
@@ -412,7 +410,7 @@ def _write_episodes(
     from lerobot.utils.utils import SuppressProgressBars  # lerobot is imported by now
 
     try:
-        # our bar counts episodes; the per-episode `datasets` bars lerobot triggers are noise
+        # we count episodes; the per-episode `datasets` bars lerobot triggers are noise
         with SuppressProgressBars():
             _add_all(dataset, planned, settings, progress)
     except BaseException:
@@ -431,27 +429,22 @@ def _add_all(
     progress: ProgressCallback | None,
 ) -> None:
     """Add the planned episodes in order, reading each source file once."""
-    total = len(planned)
-    done = 0
-    with tqdm(total=total, desc="convert", unit="episode", file=sys.stderr) as bar:
+    with Progress(len(planned), "convert", "episode", callback=progress, logger=logger) as bar:
         for path, group in groupby(planned, key=lambda item: item[0]):
             sources = [source for _, source in group]
             for demo, source in zip(iter_demos(path, [s.demo for s in sources]), sources, strict=True):
-                _add_episode(dataset, demo, source, settings)
-                done += 1
+                _add_episode(dataset, demo, path, source, settings)
                 bar.update(1)
-                if progress is not None:
-                    progress(done, total)
 
 
 def _add_episode(
-    dataset: LeRobotDataset | V21Writer, demo: LiberoDemo, source: EpisodeSource, settings: ConvertSettings
+    dataset: LeRobotDataset | V21Writer, demo: LiberoDemo, path: Path, source: EpisodeSource, settings: ConvertSettings
 ) -> None:
-    """Add one demo's frames and save it as the next episode."""
+    """Add one demo (of the file at `path`) as the next episode."""
     written = dataset.info["total_episodes"] if isinstance(dataset, V21Writer) else dataset.meta.total_episodes
     if written != source.episode_index:
         raise ValueError(
-            f"{source.file}:{source.demo}: would become episode {written}, "
+            f"{path}:{source.demo}: would become episode {written}, "
             f"expected {source.episode_index}; re-run with --rebuild"
         )
     columns = {

@@ -72,13 +72,8 @@ def filter_demos(
     available instructions) and every glob that matches nothing. Re-running with the same
     inputs and settings leaves an identical folder untouched.
     """
-    if not settings.tasks and not settings.globs:
-        raise ValueError("nothing to select: pass at least one task text (--task) or file-name glob (--glob)")
     output_dir = Path(output_dir)
-    candidates = _candidates(input_dirs, output_dir)
-    instructions = _instructions(candidates)
-    chosen = _choose(candidates, instructions, settings)
-
+    chosen, instructions = select_files(input_dirs, output_dir, settings)
     files = []
     for path in chosen:
         info = validate_file(path)
@@ -109,6 +104,21 @@ def filter_demos(
         write_json(tmp / SELECTION_FILE, selection.model_dump(mode="json"))
     logger.info("%s: selected %d file(s) (%s)", output_dir, len(files), settings.mode)
     return selection
+
+
+def select_files(
+    input_dirs: list[str | Path] | tuple[str | Path, ...], output_dir: str | Path, settings: FilterSettings
+) -> tuple[list[Path], dict[Path, tuple[str, InstructionSource]]]:
+    """Return (selected files sorted by name, readable file -> (instruction, source)); nothing is written.
+
+    Reads only each file's attributes. Raises as `filter_demos` does, naming unreadable files when a
+    task text matches nothing (a truncated demo may be the file it was meant to match).
+    """
+    if not settings.tasks and not settings.globs:
+        raise ValueError("nothing to select: pass at least one task text (--task) or file-name glob (--glob)")
+    candidates = _candidates(input_dirs, Path(output_dir))
+    instructions = _instructions(candidates)
+    return _choose(candidates, instructions, settings), instructions
 
 
 def read_selection(folder: str | Path) -> Selection:
@@ -178,6 +188,9 @@ def _choose(
             problems.append(f"glob {pattern!r} matches no file name among {len(candidates)} candidate(s)")
         chosen |= hits
     if problems:
+        if unreadable := [p.name for p in candidates if p not in instructions]:
+            problems.append(f"{len(unreadable)} file(s) could not be read, so their instructions are unknown "
+                            f"(see the warnings above): {', '.join(unreadable[:5])}")
         raise ValueError("cannot select demo files:\n" + "\n".join(f"  - {p}" for p in problems))
     return sorted(chosen, key=lambda p: p.name)
 

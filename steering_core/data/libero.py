@@ -160,7 +160,7 @@ def read_instruction_with_source(path: str | Path) -> tuple[str, InstructionSour
     path = _existing(path)
     with _open_hdf5(path) as handle:
         if DATA_GROUP not in handle:
-            raise ValueError(f"{path.name}: no `{DATA_GROUP}` group; expected a LIBERO demo file; {_FIX}")
+            raise ValueError(f"{path}: no `{DATA_GROUP}` group; expected a LIBERO demo file; {_FIX}")
         text, source, problems = _instruction(path, handle[DATA_GROUP].attrs)
     if problems:
         raise ValueError(_report(path, problems))
@@ -192,7 +192,7 @@ def iter_demos(path: str | Path, keys: Sequence[str] | None = None) -> Iterator[
         wanted = info.demo_keys if keys is None else list(keys)
         missing = [key for key in wanted if key not in info.demo_lengths]
         if missing:
-            raise ValueError(f"{path.name}: no demo(s) {missing}; available: {_preview(info.demo_keys)}")
+            raise ValueError(f"{path}: no demo(s) {missing}; available: {_preview(info.demo_keys)}")
         for key in wanted:
             yield _load_demo(handle[DATA_GROUP][key], key)
 
@@ -212,7 +212,7 @@ def _open_hdf5(path: Path) -> Iterator[h5py.File]:
     try:
         handle = h5py.File(path, "r")
     except OSError as err:
-        raise ValueError(f"{path.name}: not a readable HDF5 file ({err}); {_FIX}") from None
+        raise ValueError(f"{path}: not a readable HDF5 file ({err}); {_FIX}") from None
     with handle:
         yield handle
 
@@ -337,7 +337,7 @@ def _load_demo(group: h5py.Group, key: str) -> LiberoDemo:
 
 def _report(path: Path, problems: list[str]) -> str:
     lines = "\n".join(f"  - {p}" for p in problems)
-    return f"{path.name}: {len(problems)} problem(s) with the LIBERO demo schema:\n{lines}\nfix: {_FIX}"
+    return f"{path}: {len(problems)} problem(s) with the LIBERO demo schema:\n{lines}\nfix: {_FIX}"
 
 
 def _preview(items: list[str], limit: int = 8) -> str:

@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 
 from steering_core.fileio import read_json
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
+from steering_core.tensor_files import check_safetensors
 
 logger = logging.getLogger(__name__)
 
@@ -213,8 +214,10 @@ def expert_arch_from_checkpoint(model_file: Path, arch: Pi05Arch) -> ExpertArch:
 def check_tensors(model_file: Path, expected: dict[str, Shape], what: str, hint: str) -> None:
     """Raise one ValueError listing every tensor of `expected` that is missing or malformed in the header.
 
-    `what` names the part ("action expert tensors"), `hint` says how to fix it.
+    `what` names the part ("action expert tensors"), `hint` says how to fix it. A file that is not
+    safetensors is refused before the reader trusts its header length.
     """
+    check_safetensors(model_file)
     with safe_open(str(model_file), framework="pt", device="cpu") as handle:
         problems = _problems(handle, expected)
     if problems:
@@ -248,6 +251,18 @@ def read_tensors(
     return tensors
 
 
+def _prefix_what_hint(arch: Pi05Arch, max_layer: int) -> tuple[str, str]:
+    """Return how prefix tensor problems are named and fixed."""
+    return (f"prefix tensors (up to decoder layer {max_layer})",
+            f"They do not match {arch!r}. Pass the Pi05Arch this checkpoint was built with, or re-convert it "
+            "with openpi's convert_jax_model_to_pytorch.py.")
+
+
+def check_prefix_layout(model_file: Path, arch: Pi05Arch, max_layer: int) -> None:
+    """Raise unless the file holds every prefix tensor up to `max_layer` with the arch's shapes (header only)."""
+    check_tensors(model_file, prefix_tensor_shapes(arch, max_layer), *_prefix_what_hint(arch, max_layer))
+
+
 def read_prefix_tensors(
     model_file: Path,
     arch: Pi05Arch,
@@ -255,14 +270,7 @@ def read_prefix_tensors(
     convert: Callable[[str, torch.Tensor], torch.Tensor],
 ) -> dict[str, torch.Tensor]:
     """Return checkpoint name -> tensor for the prefix up to `max_layer` (`read_tensors`)."""
-    return read_tensors(
-        model_file,
-        prefix_tensor_shapes(arch, max_layer),
-        convert,
-        f"prefix tensors (up to decoder layer {max_layer})",
-        f"They do not match {arch!r}. Pass the Pi05Arch this checkpoint was built with, or re-convert it "
-        "with openpi's convert_jax_model_to_pytorch.py.",
-    )
+    return read_tensors(model_file, prefix_tensor_shapes(arch, max_layer), convert, *_prefix_what_hint(arch, max_layer))
 
 
 EXPERT_WHAT = "action expert tensors"

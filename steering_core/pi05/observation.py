@@ -40,7 +40,7 @@ def _frames(name: str, value: Any, problems: list[str]) -> np.ndarray | None:
 
 def _channels_first(frames: np.ndarray) -> torch.Tensor:
     """Return uint8 (B, 3, H, W) from (B, H, W, 3)."""
-    return torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2)
+    return torch.from_numpy(np.array(frames, copy=True)).permute(0, 3, 1, 2)  # a copy: inputs may be read-only
 
 
 def observation_batch(observation: Mapping[str, Any], image_size: int) -> ObservationBatch:

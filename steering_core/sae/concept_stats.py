@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,11 +19,12 @@ from typing import Any
 import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
-from tqdm import tqdm
 
 from steering_core.capture.slicing import safe_file_name
 from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, read_json, sha256_json, write_json
+from steering_core.identity import file_digest
+from steering_core.progress import Progress, ProgressCallback
 from steering_core.sae.model import Sae
 
 logger = logging.getLogger(__name__)
@@ -34,7 +34,6 @@ CONCEPTS_DIR = "concepts"
 CONCEPT_STATS = "{stem}-{digest}"  # + .safetensors / .json; digest tells apart concepts sharing a label
 RESIDUALS_KEY = "residuals"  # tensor name in the slicer's safetensors copies
 
-Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -118,7 +117,7 @@ def encode_concept(
     *,
     batch_size: int = 512,
     reader: ConceptReader | None = None,
-    progress: Progress | None = None,
+    progress: ProgressCallback | None = None,
 ) -> Path:
     """Stream one concept file through the SAE; write its statistics and return their `.json` path.
 
@@ -131,14 +130,11 @@ def encode_concept(
     if json_path.is_file() and read_json(json_path).get("identity") == identity:
         logger.info("%s: statistics are current, reusing %s", source.path, json_path)
         return json_path
-    total = math.ceil(reader.rows / batch_size)
     sums = _Sums()
-    with tqdm(total=total, desc=source.label[:40], unit="batch", disable=None) as bar:
-        for done, batch in enumerate(reader.batches(batch_size), start=1):
-            sums.add(batch, sae, source.path, start=(done - 1) * batch_size)
-            bar.update()
-            if progress is not None:
-                progress(done, total)
+    with Progress(reader.rows, f"encode {source.label[:40]}", "row", callback=progress, logger=logger) as bar:
+        for batch in reader.batches(batch_size):
+            sums.add(batch, sae, source.path, start=bar.done)
+            bar.update(len(batch))
     stats = sums.finish(source)
     tensors = {"residual_mean": stats.residual_mean}
     if sae is not None:
@@ -155,7 +151,8 @@ def encode_concept(
         "batch_size": batch_size,
         "tensors": stem.with_suffix(".safetensors").name,
     })
-    logger.info("%s: %d rows, fvu %s, mean L0 %s", source.label, stats.count, stats.fvu, stats.mean_l0)
+    fidelity = "" if stats.fvu is None else f", FVU {stats.fvu:.3f}, mean L0 {stats.mean_l0:.1f}"
+    logger.info("%s: %d rows%s", source.label, stats.count, fidelity)
     return json_path
 
 
@@ -231,11 +228,14 @@ class _Sums:
 
 
 def _concept_identity(source: ConceptSource, sae: Sae | None) -> dict[str, Any]:
-    """Return what a concept's statistics depend on: the file (path, size, mtime) and the SAE."""
-    stat = source.path.stat()
+    """Return what a concept's statistics depend on: the file (path, content) and the SAE.
+
+    The content counts by its sha256 (remembered per file version), not its mtime: outputs are the
+    same bytes for the same inputs.
+    """
     return {
         "path": str(source.path.resolve()),
-        "bytes": stat.st_size,
-        "mtime_ns": stat.st_mtime_ns,
+        "bytes": source.path.stat().st_size,
+        "sha256": file_digest(source.path),
         "sae": sae.fingerprint() if sae is not None else None,
     }

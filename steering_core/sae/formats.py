@@ -18,11 +18,11 @@ from typing import Any, Literal
 import torch
 from pydantic import Field
 from safetensors import safe_open
-from safetensors.torch import load_file
 
 from steering_core.devices import DTYPES
 from steering_core.fileio import read_json
 from steering_core.schema import StrictModel
+from steering_core.tensor_files import check_safetensors, load_safetensors, load_torch_file
 
 logger = logging.getLogger(__name__)
 
@@ -170,9 +170,10 @@ def read_sae_folder(folder: Path) -> tuple[dict[str, Any], dict[str, torch.Tenso
             f"a folder needs {' and '.join(FOLDER_FILES)} (optional {SPARSITY_FILE})"
         )
     raw = read_cfg(folder)
-    weights = load_file(folder / WEIGHTS_FILE, device="cpu")
+    weights = load_safetensors(folder / WEIGHTS_FILE)
     log_sparsity = None
     if (folder / SPARSITY_FILE).is_file():
+        check_safetensors(folder / SPARSITY_FILE)
         with safe_open(folder / SPARSITY_FILE, framework="pt", device="cpu") as handle:
             if "sparsity" not in handle.keys():
                 raise ValueError(f"{folder / SPARSITY_FILE}: no tensor `sparsity`, found {sorted(handle.keys())}")
@@ -183,9 +184,9 @@ def read_sae_folder(folder: Path) -> tuple[dict[str, Any], dict[str, torch.Tenso
 def read_state_dict_file(path: Path) -> dict[str, torch.Tensor]:
     """Return the SAE tensors of a `.pt`/`.safetensors` state dict (top level or under `state_dict`)."""
     if path.suffix == ".safetensors":
-        payload: Any = load_file(path, device="cpu")
+        payload: Any = load_safetensors(path)
     else:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        payload = load_torch_file(path)
     if isinstance(payload, dict) and not set(STATE_DICT_KEYS) <= payload.keys():
         payload = payload.get("state_dict", payload)
     if not isinstance(payload, dict) or not set(STATE_DICT_KEYS) <= payload.keys():

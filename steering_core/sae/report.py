@@ -29,6 +29,7 @@ logger = logging.getLogger(__name__)
 REPORT_FORMAT_VERSION = 1
 COSINE_PLOT = "pairwise_cosine.png"
 TOP_LATENTS_PLOT = "top_latents_{pair}.png"
+FVU_LIMIT = 1.0  # above it the SAE explains less of the residuals' variance than their mean does
 
 
 def write_report(layer_path: Path, *, top_k: int = 20) -> Path:
@@ -191,23 +192,31 @@ def _markdown(summary: dict[str, Any]) -> str:
         ]
         if summary["pairs"][0]["direction_space"] != "residual":
             lines += [f"Directions live in the SAE's {summary['pairs'][0]['direction_space']}.", ""]
+    # narrow tables rather than one wide one: the Prefect UI clips wide tables
+    lines += ["## Pairs", "", "| pair | positive (rows) | negative (rows) |", "|---|---|---|"]
+    lines += [f"| {pair['pair']} | {pair['positive_concept']} ({pair['counts']['positive']}) | "
+              f"{pair['negative_concept']} ({pair['counts']['negative']}) |" for pair in summary["pairs"]]
     lines += [
-        "## Pairs",
         "",
-        "| pair | positive (rows) | negative (rows) | residual norm | latent norm | mean-diff norm "
-        "| cos(decoded, mean diff) | FVU +/- | L0 +/- |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "## Directions",
+        "",
+        "| pair | residual norm | latent norm | mean-diff norm | cos(decoded, mean diff) |",
+        "|---|---|---|---|---|",
     ]
-    for pair in summary["pairs"]:
-        fid = pair["fidelity"]
-        lines.append(
-            f"| {pair['pair']} | {pair['positive_concept']} ({pair['counts']['positive']}) | "
-            f"{pair['negative_concept']} ({pair['counts']['negative']}) | {_number(pair['residual_norm'])} | "
-            f"{_number(pair['latent_norm'])} | {_number(pair['mean_difference_norm'])} | "
-            f"{_number(pair['decoded_vs_mean_difference_cosine'])} | "
-            f"{_number(fid['positive']['fvu'])} / {_number(fid['negative']['fvu'])} | "
-            f"{_number(fid['positive']['mean_l0'], '.1f')} / {_number(fid['negative']['mean_l0'], '.1f')} |"
-        )
+    lines += [f"| {pair['pair']} | {_number(pair['residual_norm'])} | {_number(pair['latent_norm'])} | "
+              f"{_number(pair['mean_difference_norm'])} | {_number(pair['decoded_vs_mean_difference_cosine'])} |"
+              for pair in summary["pairs"]]
+    if sae is not None:
+        lines += ["", "## SAE fidelity on the concept rows", "", "| pair | FVU + | FVU - | L0 + | L0 - |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {pair['pair']} | {_number(pair['fidelity']['positive']['fvu'])} | "
+                  f"{_number(pair['fidelity']['negative']['fvu'])} | {_number(pair['fidelity']['positive']['mean_l0'], '.1f')} | "
+                  f"{_number(pair['fidelity']['negative']['mean_l0'], '.1f')} |" for pair in summary["pairs"]]
+    poor = [f"{pair['pair']} ({side})" for pair in summary["pairs"] for side, fid in pair["fidelity"].items()
+            if fid["fvu"] is not None and fid["fvu"] > FVU_LIMIT]
+    if poor and sae is not None:
+        lines += ["", f"**FVU > {FVU_LIMIT:g} for {', '.join(poor)}: the SAE does not reconstruct these residuals**, "
+                  "so its latent directions say little about them; the residual-space mean difference still holds."]
     if summary["pairwise"]:
         lines += ["", "## Pairwise cosines", "", "| pairs | residual cosine | latent cosine | mean-diff cosine |",
                   "|---|---|---|---|"]

@@ -22,14 +22,13 @@ import contextlib
 import functools
 import json
 import logging
-import math
 import os
 from pathlib import Path
 from typing import Any, Literal
 
 import torch
 from pydantic import Field, field_validator, model_validator
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
 from steering_core.devices import resolve_device
 from steering_core.fileio import atomic_dir, atomic_path, read_json, write_json
@@ -40,11 +39,11 @@ from steering_core.layout import (
     STEERING_ROOT,
     layer_dir,
 )
+from steering_core.progress import ProgressCallback
 from steering_core.sae.concept_stats import (
     FORMAT_VERSION,
     ConceptReader,
     ConceptSource,
-    Progress,
     encode_concept,
     read_concept_stats,
 )
@@ -52,6 +51,7 @@ from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
 from steering_core.sae.report import write_report
 from steering_core.schema import StrictModel, read_model
+from steering_core.tensor_files import save_safetensors
 
 logger = logging.getLogger(__name__)
 
@@ -297,8 +297,8 @@ def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
             entry |= {"residual_norm_a": float(va["residual"].norm()), "residual_norm_b": float(vb["residual"].norm())}
             entries[PAIR_KEY.format(a=a, b=b)] = entry
     pt_path = layer_path / f"{PAIRWISE_STATS_FILE}.pt"
-    with atomic_path(pt_path) as tmp:
-        torch.save(entries, tmp)
+    with atomic_path(pt_path) as tmp, open(tmp, "wb") as handle:
+        torch.save(entries, handle)  # to a handle: torch names the archive after a path (here a random temp name)
     write_json(pt_path.with_suffix(".json"), {
         "format_version": FORMAT_VERSION,
         "pairs": pair_names,
@@ -337,7 +337,7 @@ def check_sae_layer(sae: Sae, layer: int) -> None:
         )
 
 
-def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: Progress | None = None) -> Path:
+def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: ProgressCallback | None = None) -> Path:
     """Run every step for one layer; return the layer folder.
 
     Steps: concept statistics, pair directions, pairwise stats, report.
@@ -352,8 +352,8 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    batches = {path: math.ceil(reader.rows / settings.batch_size) for path, reader in readers.items()}
-    total, done = sum(batches.values()), 0
+    rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
+    total, done = sum(rows.values()), 0
     stats_files = {}
     for path, source in sources.items():
         def advance(step: int, _: int, before: int = done) -> None:
@@ -363,7 +363,7 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         stats_files[path] = encode_concept(
             source, layer_path, sae, batch_size=settings.batch_size, reader=readers[path], progress=advance
         )
-        done += batches[path]
+        done += rows[path]
         advance(0, total, before=done)
     for pair in config.pairs:
         positive, negative = pairs[pair.name]
@@ -387,7 +387,7 @@ def _write_tensor_dict(folder: Path, files: dict[str, str], stem: str, tensor_ke
     """Write `payload` as `<stem>.pt` (the seed's dict) and its tensor as `<stem>.safetensors` with JSON metadata."""
     torch.save(payload, folder / f"{stem}.pt")
     metadata = {key: json.dumps(value) for key, value in payload.items() if key != tensor_key}
-    save_file({tensor_key: payload[tensor_key].contiguous()}, folder / f"{stem}.safetensors", metadata=metadata)
+    save_safetensors({tensor_key: payload[tensor_key].contiguous()}, folder / f"{stem}.safetensors", metadata=metadata)
     files[stem] = {"pt": f"{stem}.pt", "safetensors": f"{stem}.safetensors", "tensor": tensor_key}
 
 

@@ -1,0 +1,126 @@
+"""Checks before a run's first step: every input it will need, read cheaply, all problems at once.
+
+A whole run takes GPU hours; a bad checkpoint path or a pickled SAE must not wait for phase 1 and
+capture to finish before it is reported. `run_problems` reads headers, attributes and configs only
+(the SAEs are loaded on the CPU once), creates nothing, and returns one line per problem, each naming
+the file or setting and what was expected.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from steering_core.capture.settings import check_model_inputs
+from steering_core.config import RunConfig
+from steering_core.data.filtering import DEMO_FILE_GLOB, select_files
+from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
+from steering_core.data.libero import validate_file
+from steering_core.devices import resolve_device
+from steering_core.fileio import check_output_dir
+from steering_core.sae.steering import load_steering_sae
+
+logger = logging.getLogger(__name__)
+
+INPUT_ERRORS = (ValueError, OSError)  # what a bad input raises in the library (FileNotFoundError is an OSError)
+
+
+class PreflightError(ValueError):
+    """Every problem found before a run, one line each (`problems`); str() joins them."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = problems
+        super().__init__(f"{len(problems)} problem(s) found before the run started:\n" + "\n".join(problems))
+
+
+def check_run(config: RunConfig, *, capture_device: bool = True) -> None:
+    """Raise `PreflightError` listing every problem of the run's inputs; return quietly when there are none.
+
+    `capture_device=False` skips the capture device check where capture runs elsewhere (gpu workers).
+    """
+    problems = run_problems(config, capture_device=capture_device)
+    if problems:
+        raise PreflightError(problems)
+    logger.info("preflight: every input of run %s checked", config.name)
+
+
+def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]:
+    """Return one line per problem found in the run's inputs and output paths (empty: ready to run)."""
+    capture = config.capture_settings()
+    checks: list[Callable[[], object]] = [
+        lambda: check_prefix_layout(resolve_model_file(capture.checkpoint_path), capture.arch, max(capture.layers)),
+        lambda: check_model_inputs(config.capture_settings()),
+        *[(lambda layer=layer: load_steering_sae(config.steering_settings(layer).model_copy(update={"device": "cpu"})))
+          for layer in config.layers if config.sae_for(layer) is not None],
+        lambda: resolve_device(config.steering.device),
+    ]
+    if capture_device:
+        checks.append(lambda: resolve_device(config.capture.device))
+    problems = _source_problems(config) + _output_problems(config)
+    for check in checks:
+        try:
+            check()
+        except INPUT_ERRORS as err:
+            problems.append(one_line(err))
+    return list(dict.fromkeys(problems))
+
+
+def _source_problems(config: RunConfig) -> list[str]:
+    """Return the problems of the demo sources: missing folders, tasks matching no file, unreadable selected files."""
+    problems = []
+    try:
+        chosen, readable = select_files(config.sources.folders, config.filtered_dir, config.filter_settings())
+    except INPUT_ERRORS as err:
+        problems.append(one_line(err))
+        chosen, readable = [], {}
+    for folder in config.sources.folders:  # an unreadable file may be the one a task was meant to match
+        for path in sorted(Path(folder).glob(DEMO_FILE_GLOB)) if Path(folder).is_dir() else []:
+            if path not in readable:
+                chosen.append(path)
+    for path in dict.fromkeys(chosen):  # the files conversion will read: their demos' datasets, not only attributes
+        try:
+            validate_file(path)
+        except INPUT_ERRORS as err:
+            problems.append(one_line(err))
+    return problems
+
+
+def _output_problems(config: RunConfig) -> list[str]:
+    """Return one problem per culprit (a file where a folder goes, a read-only folder) among the output folders."""
+    problems: dict[str, str] = {}
+    for path, what in _output_dirs(config):
+        try:
+            check_output_dir(path, what)
+        except ValueError as err:
+            problems.setdefault(str(err).split(":")[0], one_line(err))  # the culprit path leads the message
+    return list(problems.values())
+
+
+def _output_dirs(config: RunConfig) -> Iterator[tuple[Path, str]]:
+    """Yield every folder the run writes into, with what it is for."""
+    yield config.output_root, "output root"
+    yield config.filtered_dir, "filtered demos folder"
+    yield config.dataset_root, "dataset folder"
+    yield config.run_dir, "residual run folder"
+    for pair in config.pairs:
+        yield config.manifest_path(pair).parent, "manifests folder"
+        yield config.slices_dir(pair), "slices folder"
+    for layer in config.layers:
+        yield config.layer_path(layer), "steering folder"
+
+
+def one_line(err: BaseException, items: int = 3) -> str:
+    """Return an error's message on one line: listed items joined by '; ', beyond `items` only counted.
+
+    A `FileNotFoundError` from `open()` names the file only in `filename`; it is put first.
+    """
+    text = str(err)
+    if isinstance(err, OSError) and err.filename and str(err.filename) not in text:
+        text = f"{err.filename}: {err.strerror or text}"
+    lines = [line.strip().removeprefix("- ").strip() for line in text.splitlines() if line.strip()] or [
+        type(err).__name__]
+    head, listed = lines[0], lines[1:]
+    if len(listed) > items + 1:  # keep the first items and the closing advice
+        listed = [*listed[:items], f"... {len(listed) - items - 1} more", listed[-1]]
+    return " ".join([head, "; ".join(listed)]) if listed else head

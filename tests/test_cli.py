@@ -1,0 +1,94 @@
+"""The command line itself: commands load lazily, help and light commands start without the heavy libraries,
+option errors read as one sentence, and log lines name the Prefect run they come from."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import logging
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from cli import app
+from cli.lazy import command_sources, load_command
+
+HEAVY = ("torch", "lerobot", "transformers", "prefect")
+
+
+def modules_loaded_by(*argv: str) -> tuple[list[str], str]:
+    """Run `latent-steering *argv` in a fresh interpreter; return the heavy top-level modules it imported, and its output."""
+    code = (
+        "import sys\n"
+        "from cli import app\n"
+        f"sys.argv = ['latent-steering', *{list(argv)!r}]\n"
+        "try:\n    app()\nexcept SystemExit:\n    pass\n"
+        f"print('LOADED', sorted({{m.split('.')[0] for m in sys.modules}} & {set(HEAVY)!r}))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    last = done.stdout.strip().splitlines()[-1]
+    assert last.startswith("LOADED"), done.stdout[-2000:] + done.stderr[-2000:]
+    return eval(last.removeprefix("LOADED "), {}), done.stdout  # noqa: S307  (our own printed list)
+
+
+@pytest.mark.parametrize("argv", [("--help",), ("filter", "--help"), ("manifest", "--help"), ("concept-map", "--help")])
+def test_help_and_light_commands_load_no_heavy_library(argv):
+    loaded, output = modules_loaded_by(*argv)
+    assert loaded == [], f"{' '.join(argv)} imported {loaded}"
+    assert "Usage" in output
+
+
+def test_help_lists_every_command_with_its_docstring():
+    loaded, output = modules_loaded_by("--help")
+    for name in ("filter", "convert", "manifest", "concept-map", "capture", "slice", "steer", "run", "demo", "deploy"):
+        assert name in command_sources() and f" {name} " in output, name
+
+
+def test_lazy_listing_matches_the_registered_commands():
+    """Names and help read from the source with ast equal what the imported modules register."""
+    for source in command_sources().values():
+        importlib.import_module(source.module)
+    from cli.app import app as shared
+
+    registered = {info.name: inspect.getdoc(info.callback) for info in shared.registered_commands}
+    assert registered == {name: source.help for name, source in command_sources().items()}
+    assert load_command("slice").name == "slice"
+
+
+def test_a_heavy_command_loads_its_libraries_when_run():
+    loaded, _ = modules_loaded_by("steer", "--help")
+    assert "torch" in loaded and "prefect" not in loaded
+
+
+def test_option_validation_error_is_one_sentence(tmp_path):
+    result = CliRunner().invoke(app, ["convert", "--input-dir", str(tmp_path), "--repo-id", "x",
+                                      "--output-dir", str(tmp_path / "out"), "--image-size", "3"])
+    assert result.exit_code == 1
+    assert result.output == "error: --image-size 3: input should be greater than or equal to 8\n"
+
+
+def test_unknown_command_is_a_usage_error():
+    result = CliRunner().invoke(app, ["no-such-step"])
+    assert result.exit_code == 2 and "No such command" in result.output
+
+
+def test_log_lines_name_the_prefect_run_and_libraries_stay_quiet():
+    configure_logging = sys.modules["cli.app"].configure_logging
+    formatter_of = sys.modules["cli.app"].RunNameFormatter
+    record = logging.LogRecord("prefect.task_runs", logging.INFO, __file__, 1, "Finished in state %s", ("Cached()",), None)
+    record.task_run_name = "slice on_vs_off layer 2"
+    text = formatter_of("%(name)s%(run)s: %(message)s").format(record)
+    assert text == "prefect.task_runs [slice on_vs_off layer 2]: Finished in state Cached()"
+    plain = logging.LogRecord("steering_core.x", logging.INFO, __file__, 1, "hello", (), None)
+    assert formatter_of("%(name)s%(run)s: %(message)s").format(plain) == "steering_core.x: hello"
+    saved = {name: logging.getLogger(name).level for name in ("httpx", "")}
+    try:
+        configure_logging(verbose=False)
+        assert not logging.getLogger("httpx").isEnabledFor(logging.INFO)
+        configure_logging(verbose=True)
+        assert logging.getLogger("httpx").isEnabledFor(logging.INFO)
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)

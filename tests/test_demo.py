@@ -1,0 +1,46 @@
+"""The demo's closing summary: every column per pair, cross-pair numbers apart, and what the FVU means."""
+
+from __future__ import annotations
+
+from steering_core.demo import format_summary
+
+
+def summary(fvu_close: float) -> dict:
+    return {
+        "pairs": [
+            {"layer": 1, "pair": "open_vs_close", "positive_rows": 441, "negative_rows": 434, "latent_norm": 2.8171,
+             "residual_norm": 5.1644, "decoded_cosine": 0.7632, "fvu": (0.41, fvu_close)},
+            {"layer": 1, "pair": "on_vs_off", "positive_rows": 441, "negative_rows": 504, "latent_norm": 3.5812,
+             "residual_norm": 5.4719, "decoded_cosine": -0.1, "fvu": (0.3, 0.2)},
+        ],
+        "between": [{"layer": 1, "pairs": ("open_vs_close", "on_vs_off"), "residual_cosine": -0.0721,
+                     "latent_cosine": 0.0583, "mean_difference_cosine": None}],
+    }
+
+
+def test_every_column_is_per_pair_and_cross_pair_numbers_have_their_own_table():
+    text = format_summary(summary(0.5), random_sae=False)
+    assert text.splitlines()[:4] == [
+        "Steering vectors, per pair:",
+        "layer    pair           rows +/-  latent norm  residual norm  cos(decoded, mean diff)  FVU +/-",
+        "layer01  open_vs_close  441/434   2.817        5.164          0.763                    0.410 / 0.500",
+        "layer01  on_vs_off      441/504   3.581        5.472          -0.100                   0.300 / 0.200",
+    ]
+    assert text.splitlines()[5:8] == [
+        "Between pairs (cosine of the two pairs' directions):",
+        "layer    pairs                       residual  latent  mean diff",
+        "layer01  open_vs_close vs on_vs_off  -0.072    0.058   -",
+    ]
+    assert text.endswith("FVU (fraction of variance unexplained by the SAE) is at most 1 everywhere.")
+
+
+def test_fvu_above_one_is_flagged_on_a_real_sae():
+    text = format_summary(summary(1.7), random_sae=False)
+    assert "0.410 / 1.700 !" in text
+    assert "! FVU > 1 for open_vs_close (layer01): the SAE does not reconstruct these residuals" in text
+
+
+def test_the_random_demo_sae_is_explained_not_flagged():
+    text = format_summary(summary(5.3), random_sae=True)
+    assert " !" not in text and "0.410 / 5.300" in text
+    assert "The demo's SAEs are random (untrained, tiny)" in text and "nothing is broken" in text

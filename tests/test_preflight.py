@@ -1,0 +1,137 @@
+"""Preflight: every input of a run checked before its first step, one line per problem naming the file."""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import shutil
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from steering_core.config import load_run_config, write_run_config
+from steering_core.demo import build_demo
+from steering_core.preflight import PreflightError, check_run, run_problems
+
+
+@pytest.fixture(scope="module")
+def demo_config(tmp_path_factory):
+    return build_demo(tmp_path_factory.mktemp("preflight") / "demo", demos_per_task=2)
+
+
+@pytest.fixture
+def config(demo_config):
+    return load_run_config(demo_config)
+
+
+def with_model(config, **update):
+    return config.model_copy(update={"model": config.model.model_copy(update=update)})
+
+
+def with_sae(config, layer, path):
+    sae = dict(config.sae)
+    sae[layer] = sae[layer].model_copy(update={"path": path})
+    return config.model_copy(update={"sae": sae})
+
+
+def text_file(path):
+    path.write_text("these are not tensors\n")
+    return path
+
+
+def pickle_file(path):
+    path.write_bytes(pickle.dumps({"W_enc": [1.0, 2.0]}))
+    return path
+
+
+def pickled_objects(path):
+    torch.save({"W_enc": torch.ones(2, 2), "cfg": argparse.Namespace(d_in=2)}, path)
+    return path
+
+
+def truncated_copy(config, tmp_path):
+    """A copy of the demo folder whose first file is cut in half (a copy interrupted midway)."""
+    folder = tmp_path / "demos"
+    shutil.copytree(config.sources.folders[0], folder)
+    first = sorted(folder.glob("*.hdf5"))[0]
+    first.write_bytes(first.read_bytes()[: first.stat().st_size // 2])
+    return config.model_copy(update={"sources": config.sources.model_copy(update={"folders": (folder,)})}), first
+
+
+def test_a_good_run_has_no_problems(config):
+    assert run_problems(config) == []
+    check_run(config)
+
+
+# each case: (make the bad config, text the single problem line must hold)
+CASES = {
+    "sources folder missing": (
+        lambda c, t: c.model_copy(update={"sources": c.sources.model_copy(update={"folders": (t / "nowhere",)})}),
+        "nowhere: input folder not found"),
+    "checkpoint is text": (lambda c, t: with_model(c, checkpoint=text_file(t / "model.safetensors")),
+                           "model.safetensors: not a safetensors file"),
+    "checkpoint is a renamed pickle": (lambda c, t: with_model(c, checkpoint=pickle_file(t / "model.safetensors")),
+                                       "it looks like a pickle"),
+    "checkpoint folder empty": (lambda c, t: with_model(c, checkpoint=t), "pi0.5 checkpoint not found"),
+    "checkpoint of another arch": (
+        lambda c, t: with_model(c, arch=c.model.arch.model_copy(update={"width": c.model.arch.width * 2})),
+        "prefix tensors (up to decoder layer"),
+    "tokenizer is text": (lambda c, t: with_model(c, tokenizer=text_file(t / "tok.model")),
+                          "tok.model: not a SentencePiece model"),
+    "SAE pickled with objects": (lambda c, t: with_sae(c, 1, pickled_objects(t / "sae.pt")),
+                                 "sae.pt: holds pickled objects other than tensors"),
+    "SAE folder without cfg": (lambda c, t: with_sae(c, 2, t), "not a SAELens SAE folder"),
+    "output root is a file": (lambda c, t: c.model_copy(update={"output_root": text_file(t / "out")}),
+                              "out: is a file; expected a folder"),
+    "a run folder's parent is a file": (
+        lambda c, t: c.model_copy(update={"output_root": text_file(t / "residuals").parent}),
+        "residuals: is a file (a parent of"),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_each_bad_input_is_one_line_naming_it(config, tmp_path, case):
+    make, expected = CASES[case]
+    problems = run_problems(make(config, tmp_path))
+    assert len(problems) == 1, problems
+    assert expected in problems[0]
+    assert "weights_only=False" not in problems[0]  # torch's advice would run the file's code
+
+
+def test_truncated_demo_is_named(config, tmp_path):
+    config, first = truncated_copy(config, tmp_path)
+    problems = run_problems(config)
+    assert problems and all(first.name in line for line in problems), problems
+    assert any("not a readable HDF5 file" in line for line in problems)
+
+
+def test_every_problem_at_once(config, tmp_path):
+    config = with_model(config, checkpoint=text_file(tmp_path / "model.safetensors"),
+                        tokenizer=text_file(tmp_path / "tok.model"))
+    config = with_sae(config, 1, pickled_objects(tmp_path / "sae.pt"))
+    with pytest.raises(PreflightError) as caught:
+        check_run(config)
+    assert len(caught.value.problems) == 3
+    assert "3 problem(s) found before the run started" in str(caught.value)
+
+
+def test_cuda_device_without_a_gpu(config):
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    config = config.model_copy(update={"capture": config.capture.model_copy(update={"device": "cuda"})})
+    assert len(problems := run_problems(config)) == 1 and "CUDA is not available" in problems[0]
+    assert run_problems(config, capture_device=False) == []  # capture runs on gpu workers
+
+
+def test_cli_run_stops_before_prefect_starts(config, tmp_path, monkeypatch):
+    import flows.pipeline
+    from cli import app
+
+    monkeypatch.setattr(flows.pipeline, "latent_steering", lambda *a: pytest.fail("the flow started"))
+    bad = with_model(config, checkpoint=pickle_file(tmp_path / "model.safetensors"))
+    path = write_run_config(bad, tmp_path / "run.yaml")
+    result = CliRunner().invoke(app, ["run", "--config", str(path)])
+    assert result.exit_code == 1, result.output
+    assert "Traceback" not in result.output
+    assert "model.safetensors: not a safetensors file" in result.output
