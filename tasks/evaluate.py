@@ -17,8 +17,8 @@ from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.identity import file_digest, plain
 from steering_core.sae import steering
 from steering_core.sae.steering import SteeringSettings
-from tasks.artifacts import artifact_key, progress_artifact
-from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_on
+from tasks.artifacts import ProgressArtifact, artifact_key
+from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
 from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs
 from tasks.sae import sae_inputs
 
@@ -61,7 +61,7 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
     task_run_name="evaluate {job.pair} layer {job.layer}",
     tags=[GPU_TAG],
     cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs, steering=sae_inputs),
-    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_on(OSError, RuntimeError),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )
 def evaluate_pair(
@@ -69,10 +69,11 @@ def evaluate_pair(
     settings: EvaluateSettings,
 ) -> dict:
     """Run one pair's dose-response on the policy at one layer; return its output files."""
-    progress = progress_artifact(artifact_key("evaluate", job.pair, layout.layer_dir(job.layer)), "policy calls",
-                                 f"evaluate {job.pair} at layer {job.layer}")
+    progress = ProgressArtifact(artifact_key("evaluate", job.pair, layout.layer_dir(job.layer)), "policy calls",
+                                f"evaluate {job.pair} at layer {job.layer}")
     sae = steering.load_steering_sae(steering_settings)
     folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress)
+    progress.finish()
     get_run_logger().info("%s layer %d: %s", job.pair, job.layer, folder)
     return {OUTPUTS: [str(folder / name) for name in _PAIR_OUTPUTS], "folder": str(folder)}
 
