@@ -40,7 +40,7 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parent.parent
 PREFECT = [sys.executable, "-m", "prefect"]
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
-RUN_TIMEOUT = 420  # seconds for the whole deployment run on a busy 2-core machine
+RUN_TIMEOUT = 900  # seconds for the whole deployment run (4 evaluation runs included) on a busy 2-core machine
 WORKER_GRACE = 5   # seconds a worker gets after SIGTERM before SIGKILL (they rarely stop by themselves)
 
 
@@ -161,6 +161,8 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
     # two capture runs (4 shard groups each) so the gpu pool has work to share
     raw = yaml.safe_load(config_path.read_text())
     raw["orchestration"] = {"shards_per_capture_run": 4, "poll_seconds": 2}
+    # the smallest evaluation: where it runs is under test here, not what it measures
+    raw["evaluate"] |= {"max_frames": 2, "noise_seeds": 1, "alphas": [-1.0, 0.0, 1.0], "bootstrap": 20}
     config_path.write_text(yaml.safe_dump(raw))
     config = load_run_config(config_path)
 
