@@ -5,10 +5,11 @@ with the same fixed noise for every call so each call does the same work. Each o
 turn, a direct `infer` call and a round trip through `PolicyServer` on 127.0.0.1 (a client in this process
 doing what openpi-client does: msgpack-numpy pack, send, receive, unpack), plain and steered, so machine
 load falls on all of them alike; direct calls run in a worker thread like the server's inference. The
-overhead is the server's median minus the direct median. Steering's added latency is measured at a
-mid-size model (width 256, 6 layers) by direct calls of the served policy, plain against one steering
-vector at the instruction tokens (the tokenizer's instruction span included); its p99 is not a target,
-the small difference sinks in the noise of a loaded machine.
+overhead is the server's median minus the direct median; a server whose policy does no work times the
+protocol alone. Steering's added latency is measured at a mid-size model (width 256, 6 layers) by direct
+calls of the served policy, plain against one steering vector at the instruction tokens (the tokenizer's
+instruction span included); its p99 is not a target, the small difference sinks in the noise of a loaded
+machine.
 
     uv run python -m bench.serve_latency [--device cuda] [--quick]
 """
@@ -130,6 +131,40 @@ def call_policy(served: Any, obs: dict, steer: tuple, device: torch.device) -> d
     return result
 
 
+class FixedActions:
+    """A served policy that does no work: its round trips time the protocol alone (codec, socket, threads)."""
+
+    metadata = {"policy": "fixed actions"}
+
+    def __init__(self, actions: np.ndarray) -> None:
+        self.actions = actions
+
+    def infer(self, observation: dict, steering: tuple) -> dict:
+        return {"actions": self.actions, "policy_timing": {"infer_ms": 0.0}}
+
+
+def protocol_cost(rounds: int) -> list[float]:
+    """Return round-trip times in ms through a server whose policy does no work."""
+    from websockets.sync.client import connect
+
+    from steering_core.serve import PolicyServer
+    from steering_core.serve.codec import pack, unpack
+    from steering_core.serve.server import serving_in_thread
+
+    obs, times = observation(), []
+    policy = FixedActions(np.zeros((10, 7), np.float32))
+    with serving_in_thread(PolicyServer(policy, host="127.0.0.1", port=0)) as server, \
+            connect(f"ws://127.0.0.1:{server.port}", compression=None, max_size=None) as ws:
+        ws.recv()
+        for index in range(rounds + 1):
+            start = time.perf_counter()
+            ws.send(pack(obs))
+            unpack(ws.recv())
+            if index:
+                times.append((time.perf_counter() - start) * 1000)
+    return times
+
+
 def steering_cost(served: Any, catalog: Any, device: torch.device, rounds: int) -> dict[str, list[float]]:
     """Return direct call times in ms of the served policy, plain and steered, alternated."""
     from steering_core.serve import parse_steering
@@ -158,6 +193,7 @@ def main(argv: list[str] | None = None) -> Result:
 
     served, catalog = build_policy(folder, tiny_arch(), device)
     times, same = round_trips(served, catalog, device, rounds)
+    protocol = protocol_cost(rounds)
     mid_served, mid_catalog = (served, catalog) if args.quick else build_policy(folder, mid_arch(), device)
     mid = steering_cost(mid_served, mid_catalog, device, mid_rounds)
     mid_label = "tiny model (--quick)" if args.quick else "mid-size model"
@@ -169,6 +205,9 @@ def main(argv: list[str] | None = None) -> Result:
     table = [
         {"call": f"tiny model: {name}", "calls": len(values), "median ms": med[name],
          "p99 ms": percentile(values, 99)} for name, values in times.items()
+    ] + [
+        {"call": "server, policy doing no work (protocol alone)", "calls": len(protocol),
+         "median ms": median(protocol), "p99 ms": percentile(protocol, 99)},
     ] + [
         {"call": f"{mid_label}: {name} (direct)", "calls": len(values), "median ms": med[f"mid {name}"],
          "p99 ms": percentile(values, 99)} for name, values in mid.items()
@@ -187,6 +226,8 @@ def main(argv: list[str] | None = None) -> Result:
             f"server overhead (median round trip - median direct infer, tiny model): {overhead:.2f} ms plain, "
             f"{steered_overhead:.2f} ms steered (p99 {percentile(times['server'], 99):.2f} ms round trip "
             f"vs {percentile(times['direct'], 99):.2f} ms direct)",
+            f"the protocol alone (pack, send, receive, check, reply, unpack of a LIBERO observation, with a "
+            f"policy doing no work): {median(protocol):.2f} ms median round trip",
             f"steering's added latency at the {mid_label}: {steering_added:+.1%} of the plain median "
             f"(tiny model, direct: {med['direct steered'] / med['direct'] - 1:+.1%})",
             f"served actions equal direct infer bit for bit: {same}",

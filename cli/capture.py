@@ -55,7 +55,17 @@ def capture_command(
         False, "--capture-instructions", help="Keep the task-instruction tokens (the seed's flag)."
     ),
     token_type: TokenType | None = typer.Option(
-        None, "--token-type", help="instructions (default), prompt (every valid token) or last (last prompt token)."
+        None, "--token-type",
+        help="instructions (default), prompt (every valid token), last (last prompt token), decision (action "
+        "expert residual at the last action token per denoising step; --layers are expert layers) or adarms "
+        "(the expert's time conditioning per step).",
+    ),
+    num_steps: int = typer.Option(
+        _CAPTURE_FIELDS["num_steps"].default, "--num-steps", min=1, help="decision/adarms: denoising steps."
+    ),
+    noise_seed: int = typer.Option(
+        _CAPTURE_FIELDS["noise_seed"].default, "--noise-seed", min=0,
+        help="decision: seed of each frame's fixed noise (with its global index).",
     ),
     prompt_format: PromptFormat = typer.Option(
         _CAPTURE_FIELDS["prompt_format"].default,
@@ -119,6 +129,8 @@ def capture_command(
             tokenizer_path=tokenizer_path,
             layers=_layer_list(layers),
             token_type=token_type or "instructions",
+            num_steps=num_steps,
+            noise_seed=noise_seed,
             prompt_format=prompt_format,
             norm_stats_path=norm_stats,
             norm_stats_asset_id=asset_id,
@@ -146,7 +158,7 @@ def _capture_from_config(ctx: typer.Context, config: Path) -> None:
                                  param_hint="--config")
     with input_errors():
         run = load_run_config(config)
-        result = capture(run.dataset_root, run.dataset.repo_id, run.run_dir, run.capture_settings())
+        result = capture(run.dataset_root, run.repo_id, run.run_dir, run.capture_settings())
     _echo_result(run.run_dir, result)
 
 

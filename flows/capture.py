@@ -64,7 +64,7 @@ def capture_flow(config_path: str, episodes: list[int] | None = None, write_meta
                           sum(map(len, plan)), len(plan), config.run_dir)
     frames = 0
     for members in plan:  # one after another: they share this worker's device
-        result = capture_task(run_label(members), str(config.dataset_root), config.dataset.repo_id,
+        result = capture_task(run_label(members), str(config.dataset_root), config.repo_id,
                               str(config.run_dir), settings, members)
         frames += result["frames"]
     if write_metadata:

@@ -1,7 +1,9 @@
 """The parent flow `latent-steering`: the seed's three phases over every concept pair and layer.
 
-0. Preflight: every input checked (sources, checkpoint, tokenizer, SAEs, output folders, devices).
-1. Phase 1 (CPU): filter demo files, convert them to one LeRobot dataset, then a contrast manifest
+0. Preflight: every input checked (sources or the existing dataset, checkpoint, tokenizer, SAEs,
+   output folders, devices).
+1. Phase 1 (CPU): filter demo files, convert them to one LeRobot dataset (or, with
+   `dataset.existing`, read an existing dataset in place), then a contrast manifest
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
    in-process (`flows.capture.run_capture`), then the run metadata.
@@ -13,7 +15,8 @@
 
 Every task is cached on the content of its inputs (`tasks.cache`): a re-run on unchanged inputs
 reads every result from the cache, and a new demo file recomputes only what depends on it. After a
-successful run the demo sources are recorded for the scheduled refresh (`flows.refresh`).
+successful run the demo sources (or the existing dataset's fingerprint) are recorded for the
+scheduled refresh (`flows.refresh`).
 """
 
 from __future__ import annotations
@@ -29,10 +32,11 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from flows.capture import capture_mode, run_capture
 from flows.evaluate import run_evaluation
 from steering_core.config import RunConfig, load_run_config
+from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
     SOURCES_RECORD_FILE,
     read_sources_record,
-    scan_sources,
+    scan_inputs,
     write_sources_record,
 )
 from steering_core.sae.steering import SIDES
@@ -56,7 +60,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     config = load_run_config(config_path)
     preflight(config_path, capture_device=capture_mode(config) == "local")  # minutes before the GPU hours
     record_path = config.output_root / SOURCES_RECORD_FILE
-    sources = scan_sources(config.sources.folders, previous=read_sources_record(record_path))
+    sources = scan_inputs(config, previous=read_sources_record(record_path))
 
     task_texts = prepare_data(config)
     holdouts = holdout_splits(config)
@@ -76,10 +80,15 @@ def latent_steering(config_path: str) -> dict[str, Any]:
 
 def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
     """Run phase 1; return pair -> (positive, negative) task texts as the dataset spells them."""
-    root, dataset_root, repo_id = config.output_root, str(config.dataset_root), config.dataset.repo_id
-    rooted(data.filter_demos, root)([str(f) for f in config.sources.folders], str(config.filtered_dir),
-                                    config.filter_settings())
-    rooted(data.convert_dataset, root)(str(config.filtered_dir), dataset_root, config.convert_settings())
+    root, dataset_root, repo_id = config.output_root, str(config.dataset_root), config.repo_id
+    if config.sources is not None:
+        rooted(data.filter_demos, root)([str(f) for f in config.sources.folders], str(config.filtered_dir),
+                                        config.filter_settings())
+        rooted(data.convert_dataset, root)(str(config.filtered_dir), dataset_root, config.convert_settings())
+    else:  # read in place: checked here, never written
+        meta = check_dataset(dataset_root)
+        get_run_logger().info("reading the existing LeRobot %s dataset %s in place (%d episodes)",
+                              meta.version, dataset_root, len(meta.episodes))
     manifests: dict[str, PrefectFuture] = {}
     maps: dict[str, PrefectFuture] = {}
     for pair in config.pairs:

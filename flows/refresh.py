@@ -1,7 +1,8 @@
 """The scheduled flow `latent-steering-refresh`: re-run the pipeline only when the demo sources changed.
 
-It compares the sha256 of every demo file (and the run config's fingerprint) with the record the
-pipeline wrote after its last successful run. Nothing changed: it ends at once, saying so.
+It compares the sha256 of every demo file (a run on an existing LeRobot dataset: the dataset's
+content fingerprint) and the run config's fingerprint with the record the pipeline wrote after its
+last successful run. Nothing changed: it ends at once, saying so.
 Something changed: it runs the pipeline, which is incremental (new episodes are appended and
 captured, cached steps whose inputs did not change are reused). As a deployment it starts the
 pipeline deployment, whose concurrency limit of 1 keeps it from overlapping a manual run; its
@@ -22,7 +23,7 @@ from steering_core.refresh import (
     SOURCES_RECORD_FILE,
     diff_sources,
     read_sources_record,
-    scan_sources,
+    scan_inputs,
 )
 
 REFRESH_FLOW = "latent-steering-refresh"
@@ -30,16 +31,17 @@ REFRESH_FLOW = "latent-steering-refresh"
 
 @flow(name=REFRESH_FLOW)
 def refresh(config_path: str, rehash: bool = False) -> dict[str, Any]:
-    """Run the pipeline if demo files were added, changed or removed (or the config changed) since its last success."""
+    """Run the pipeline if demo files (or the existing dataset, or the config) changed since its last success."""
     logger = get_run_logger()
     config_path = str(Path(config_path).resolve())
     config = load_run_config(config_path)
     previous = read_sources_record(config.output_root / SOURCES_RECORD_FILE)
-    current = scan_sources(config.sources.folders, previous=previous, rehash=rehash)
+    current = scan_inputs(config, previous=previous, rehash=rehash)
     changes = diff_sources(previous, current, config_fingerprint=config.fingerprint())
     if not changes:
-        logger.info("no demo file added, changed or removed since the last successful run (%d files checked); "
-                    "nothing to do", len(current.files))
+        checked = f"dataset {current.dataset_root}" if current.dataset_root else f"{len(current.files)} files"
+        logger.info("nothing changed since the last successful run (%s checked): %s; nothing to do",
+                    checked, changes.describe())
         return {"ran": False, "changes": changes.describe()}
     logger.info("since the last successful run: %s", changes.describe())
     if runtime.deployment.id:

@@ -7,6 +7,8 @@ sources:
   folders: [/data/libero_90]      # the *.hdf5 files directly inside
   select: {match: ignore_case}    # FilterSettings; no tasks/globs = the pairs' task texts
 dataset: {repo_id: libero_drawer_stove_lerobot}   # ConvertSettings fields (+ optional root)
+# or, instead of `sources`, an existing LeRobot dataset (v2.0/v2.1/v3.0) read in place, never written:
+# dataset: {existing: /data/physical-intelligence/libero, repo_id: physical-intelligence/libero}
 pairs:
   - {name: open_vs_close, positive: open the top drawer of the cabinet,
      negative: close the top drawer of the cabinet}
@@ -101,11 +103,36 @@ def options_model(settings: type[StrictModel], supplied: tuple[str, ...], name: 
 
 
 # Sections derived from the steps' own settings (the run config supplies the removed fields).
-DatasetSection = options_model(ConvertSettings, (), "DatasetSection", root=(ConfigPath | None, None))
+_ConvertOptions = options_model(ConvertSettings, (), "_ConvertOptions", root=(ConfigPath | None, None))
 CaptureSection = options_model(CaptureSettings, tuple(_SUPPLIED["capture"]), "CaptureSection")
 SliceSection = options_model(SliceSettings, tuple(_SUPPLIED["slicing"]), "SliceSection")
 SteeringSection = options_model(SteeringSettings, tuple(_SUPPLIED["steering"]), "SteeringSection")
 EvaluateSection = options_model(EvaluateSettings, tuple(_SUPPLIED["evaluate"]), "EvaluateSection")
+
+
+class DatasetSection(_ConvertOptions):
+    """The LeRobot dataset of the run: converted from `sources` (ConvertSettings fields, optional `root`
+    to write it elsewhere), or an `existing` dataset folder read in place, never written into."""
+
+    existing: ConfigPath | None = None   # a LeRobot v2.0/v2.1/v3.0 dataset root (a read-only HF cache is fine)
+    repo_id: str | None = Field(None, min_length=1)  # existing: defaults to the folder's name
+
+    @model_validator(mode="after")
+    def _existing_or_converted(self) -> DatasetSection:
+        if self.existing is None:
+            if self.repo_id is None:
+                raise ValueError("give `repo_id` (the name of the dataset converted from `sources`), "
+                                 "or `existing` with the path of a LeRobot dataset to read in place")
+            return self
+        if converting := sorted(self.model_fields_set - {"existing", "repo_id"}):
+            raise ValueError(f"{converting} apply only when converting hdf5 `sources`; an `existing` dataset "
+                             "is read as it is: remove them")
+        return self
+
+    @property
+    def name(self) -> str:
+        """Return the dataset's repo id: as given, else the existing folder's name."""
+        return self.repo_id or self.existing.name
 
 
 class SourcesSection(StrictModel):
@@ -185,7 +212,7 @@ class RunConfig(StrictModel):
 
     name: str = Field("run", pattern=_SAFE_NAME.pattern)  # residuals/<name>/
     output_root: ConfigPath = Field(Path("data"), validate_default=True)
-    sources: SourcesSection
+    sources: SourcesSection | None = None  # hdf5 demos to filter and convert; None with `dataset.existing`
     dataset: DatasetSection
     pairs: tuple[PairSection, ...] = Field(min_length=1)
     layers: tuple[int, ...] = Field((12,), min_length=1)  # the seed's SAE layer
@@ -222,6 +249,10 @@ class RunConfig(StrictModel):
             problems.append(f"layers {too_deep} out of range: model.arch has {depth} decoder layers (0..{depth - 1})")
         if stray := sorted(set(self.sae) - set(self.layers)):
             problems.append(f"sae has entries for layers {stray} that are not in layers {list(self.layers)}")
+        if (self.sources is None) == (self.dataset.existing is None):
+            problems.append("give exactly one of `sources` (hdf5 demo folders to filter and convert) and "
+                            f"`dataset.existing` (a LeRobot dataset to read in place); found "
+                            f"{'both' if self.sources is not None else 'neither'}")
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -229,14 +260,33 @@ class RunConfig(StrictModel):
     # ------------------------------------------------------------------ paths (the seed's layout)
 
     @property
+    def converts(self) -> bool:
+        """Return True when the run filters and converts hdf5 `sources`, False for an existing dataset."""
+        return self.dataset.existing is None
+
+    @property
+    def repo_id(self) -> str:
+        """Return the dataset's repo id (manifests and capture records name it)."""
+        return self.dataset.name
+
+    @property
     def filtered_dir(self) -> Path:
         """Return the folder of selected demo files (links) and selection.json."""
-        return self.output_root / layout.FILTERED_DIR.format(suite=self.sources.suite)
+        return self.output_root / layout.FILTERED_DIR.format(suite=self._sources().suite)
 
     @property
     def dataset_root(self) -> Path:
-        """Return the LeRobot dataset folder holding every selected task."""
+        """Return the LeRobot dataset folder: the existing one, or the one converted from `sources`."""
+        if self.dataset.existing is not None:
+            return self.dataset.existing
         return self.dataset.root or self.output_root / layout.LEROBOT_DIR.format(repo_id=self.dataset.repo_id)
+
+    def _sources(self) -> SourcesSection:
+        """Return the hdf5 sources; ValueError when the run reads an existing dataset instead."""
+        if self.sources is None:
+            raise ValueError(f"the run reads the existing dataset {self.dataset.existing} in place: "
+                             "it has no hdf5 `sources` to filter or convert")
+        return self.sources
 
     def manifest_path(self, pair: PairSection) -> Path:
         """Return `manifests/<pair>.json`."""
@@ -297,7 +347,7 @@ class RunConfig(StrictModel):
 
     def filter_settings(self) -> FilterSettings:
         """Return the demo selection; with no tasks and no globs, the task texts of every pair."""
-        select = self.sources.select
+        select = self._sources().select
         if select.tasks or select.globs:
             return select
         tasks = dict.fromkeys(text for pair in self.pairs for text in (pair.positive, pair.negative))
@@ -305,7 +355,8 @@ class RunConfig(StrictModel):
 
     def convert_settings(self) -> ConvertSettings:
         """Return the LIBERO -> LeRobot conversion settings."""
-        return ConvertSettings(**self.dataset.model_dump(exclude={"root"}))
+        self._sources()
+        return ConvertSettings(**self.dataset.model_dump(exclude={"root", "existing"}))
 
     def capture_settings(self) -> CaptureSettings:
         """Return the capture settings: the capture section plus model paths and layers."""

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from steering_core.capture.settings import check_model_inputs
 from steering_core.config import RunConfig
+from steering_core.data.dataset import check_dataset, resolve_task
 from steering_core.data.filtering import DEMO_FILE_GLOB, select_files
 from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
 from steering_core.data.libero import validate_file
@@ -68,6 +69,8 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
 
 def _source_problems(config: RunConfig) -> list[str]:
     """Return the problems of the demo sources: missing folders, tasks matching no file, unreadable selected files."""
+    if config.sources is None:
+        return _dataset_problems(config)
     problems = []
     try:
         chosen, readable = select_files(config.sources.folders, config.filtered_dir, config.filter_settings())
@@ -86,6 +89,21 @@ def _source_problems(config: RunConfig) -> list[str]:
     return problems
 
 
+def _dataset_problems(config: RunConfig) -> list[str]:
+    """Return the problems of an existing dataset: unreadable metadata, missing data files, pair tasks it lacks."""
+    try:
+        meta = check_dataset(config.dataset_root)
+    except INPUT_ERRORS as err:
+        return [one_line(err)]
+    problems = []
+    for text in dict.fromkeys(text for pair in config.pairs for text in (pair.positive, pair.negative)):
+        try:
+            resolve_task(meta, text)
+        except ValueError as err:
+            problems.append(one_line(err))
+    return problems
+
+
 def _output_problems(config: RunConfig) -> list[str]:
     """Return one problem per culprit (a file where a folder goes, a read-only folder) among the output folders."""
     problems: dict[str, str] = {}
@@ -100,8 +118,9 @@ def _output_problems(config: RunConfig) -> list[str]:
 def _output_dirs(config: RunConfig) -> Iterator[tuple[Path, str]]:
     """Yield every folder the run writes into, with what it is for."""
     yield config.output_root, "output root"
-    yield config.filtered_dir, "filtered demos folder"
-    yield config.dataset_root, "dataset folder"
+    if config.converts:  # an existing dataset is read, never written: it may well be read-only
+        yield config.filtered_dir, "filtered demos folder"
+        yield config.dataset_root, "dataset folder"
     yield config.run_dir, "residual run folder"
     for pair in config.pairs:
         yield config.manifest_path(pair).parent, "manifests folder"

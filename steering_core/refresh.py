@@ -4,7 +4,8 @@ A scheduled refresh scans the demo source folders, compares every file's sha256 
 written after the last successful pipeline run, and runs the pipeline only when something differs
 (or when the run config itself changed). Hashing gigabytes of hdf5 on every tick would be slow,
 so a file whose size and modification time match the record keeps its recorded hash: the quick
-check git and rsync use. `rehash=True` forces full hashing.
+check git and rsync use. `rehash=True` forces full hashing. A run on an existing LeRobot dataset
+has no demo files: its record holds the dataset's content fingerprint (`dataset_fingerprint`).
 """
 
 from __future__ import annotations
@@ -14,9 +15,14 @@ import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from steering_core.data.dataset import dataset_fingerprint
 from steering_core.fileio import sha256_file, write_json
 from steering_core.schema import StrictModel, read_model
+
+if TYPE_CHECKING:
+    from steering_core.config import RunConfig
 
 logger = logging.getLogger(__name__)
 
@@ -34,11 +40,16 @@ class SourceFile(StrictModel):
 
 
 class SourcesRecord(StrictModel):
-    """Every demo file under the source folders (absolute path -> file), plus the run config's hash."""
+    """Every demo file under the source folders (absolute path -> file), plus the run config's hash.
+
+    A run on an existing dataset records that dataset (absolute root, content fingerprint) instead.
+    """
 
     format_version: int = RECORD_FORMAT_VERSION
     config_fingerprint: str = ""
     files: dict[str, SourceFile] = {}
+    dataset_root: str = ""
+    dataset_fingerprint: str = ""
 
     def with_config(self, config_fingerprint: str) -> SourcesRecord:
         """Return this record stamped with the fingerprint of the run config it was used with."""
@@ -54,17 +65,22 @@ class SourceChanges:
     removed: tuple[str, ...] = ()
     config_changed: bool = False
     first_run: bool = False
+    dataset: str = ""             # an existing dataset's root, when the run reads one in place
+    dataset_changed: bool = False
 
     def __bool__(self) -> bool:
-        return bool(self.first_run or self.config_changed or self.added or self.changed or self.removed)
+        return bool(self.first_run or self.config_changed or self.dataset_changed
+                    or self.added or self.changed or self.removed)
 
     def describe(self) -> str:
         """Return a one-line account of the changes, e.g. `2 added (a.hdf5, b.hdf5), 0 changed, 0 removed`."""
         if self.first_run:
             return "no record of a successful run yet: running the whole pipeline"
-        parts = [_describe_files(label, files) for label, files in
-                 (("added", self.added), ("changed", self.changed), ("removed", self.removed))]
-        text = ", ".join(parts)
+        if self.dataset:
+            text = f"dataset {self.dataset}: content {'changed' if self.dataset_changed else 'unchanged'}"
+        else:
+            text = ", ".join(_describe_files(label, files) for label, files in
+                             (("added", self.added), ("changed", self.changed), ("removed", self.removed)))
         return f"{text}; run config changed" if self.config_changed else text
 
 
@@ -130,22 +146,40 @@ def scan_sources(
     return SourcesRecord(files=files)
 
 
+def scan_dataset(root: str | os.PathLike) -> SourcesRecord:
+    """Return the record of an existing LeRobot dataset: its absolute root and content fingerprint."""
+    root = Path(root).resolve()
+    fingerprint = dataset_fingerprint(root)
+    logger.info("dataset %s: content fingerprint %s", root, fingerprint[:12])
+    return SourcesRecord(dataset_root=str(root), dataset_fingerprint=fingerprint)
+
+
+def scan_inputs(config: RunConfig, *, previous: SourcesRecord | None = None, rehash: bool = False) -> SourcesRecord:
+    """Return the current record of what the run reads: its hdf5 demo files, or its existing dataset."""
+    if config.sources is None:
+        return scan_dataset(config.dataset_root)
+    return scan_sources(config.sources.folders, previous=previous, rehash=rehash)
+
+
 def diff_sources(
     previous: SourcesRecord | None, current: SourcesRecord, *, config_fingerprint: str = ""
 ) -> SourceChanges:
     """Return what changed from `previous` (None: no successful run yet) to `current`.
 
-    A file counts as changed when its sha256 differs; `config_fingerprint`, when given, is compared
-    with the one stored in `previous`.
+    A file counts as changed when its sha256 differs, an existing dataset when its root or content
+    fingerprint does; `config_fingerprint`, when given, is compared with the one stored in `previous`.
     """
     if previous is None:
         return SourceChanges(first_run=True)
     old, new = previous.files, current.files
+    dataset = (current.dataset_root, current.dataset_fingerprint)
     return SourceChanges(
         added=tuple(sorted(set(new) - set(old))),
         changed=tuple(sorted(p for p in set(new) & set(old) if new[p].sha256 != old[p].sha256)),
         removed=tuple(sorted(set(old) - set(new))),
         config_changed=bool(config_fingerprint) and config_fingerprint != previous.config_fingerprint,
+        dataset=current.dataset_root,
+        dataset_changed=dataset != (previous.dataset_root, previous.dataset_fingerprint),
     )
 
 

@@ -9,10 +9,11 @@ from prefect import get_run_logger, task
 
 from steering_core.capture import CaptureSettings, shards, slicing
 from steering_core.capture import loop as capture
-from steering_core.capture.identity import checkpoint_fingerprint
+from steering_core.capture.identity import checkpoint_fingerprint, episode_records
 from steering_core.capture.slicing import SliceSettings
 from steering_core.data.concept_map import read_concept_map
-from steering_core.data.convert import read_sources
+from steering_core.data.convert import SOURCES_FILE, read_sources
+from steering_core.data.dataset import INFO_FILE, read_meta
 from steering_core.fileio import read_json
 from steering_core.identity import file_digest, plain
 from steering_core.layout import layer_dir
@@ -48,8 +49,17 @@ def model_inputs(settings: CaptureSettings) -> dict[str, Any]:
 
 
 def episode_sources(inputs: dict[str, Any]) -> Any:
-    """Return where the requested episodes came from (file, demo, sha256, length) and how they were converted."""
-    record = read_sources(inputs["dataset_root"])
+    """Return where the requested episodes came from (file, demo, sha256, length) and how they were converted.
+
+    A dataset not converted by us (no `meta/libero_sources.json`, e.g. openpi's, read in place) is
+    identified by its info.json and each requested episode's tasks, length, first index and state hash.
+    """
+    root = Path(inputs["dataset_root"])
+    if not (root / SOURCES_FILE).is_file():
+        meta = read_meta(root)
+        return {"info": file_digest(root / INFO_FILE),
+                "episodes": list(episode_records(meta, sorted(set(inputs["episodes"]))).values())}
+    record = read_sources(root)
     wanted = set(inputs["episodes"])
     return {
         "conversion": plain(record.model_copy(update={"episodes": ()})),

@@ -67,10 +67,13 @@ def linear(w, name, x):
     return x @ w[name + ".weight"].T + w[name + ".bias"]
 
 
-def reference_actions(model_file, arch, images, image_masks, tokens, token_mask, noise, num_steps=10, steering=()):
+def reference_actions(model_file, arch, images, image_masks, tokens, token_mask, noise, num_steps=10, steering=(),
+                      record=None):
     """Return (B, H, A) float64 actions.
 
     steering: dicts {"stream": "lm" | "expert", "layer", "vector", "alpha", "columns": (B, P) bool (lm)}.
+    record: a dict that receives ("decision", b, step, layer) -> the layer's output at the last action row
+    and ("adarms", step) -> the conditioning vector, both float64 (W,).
     """
     w = read_weights(model_file, prefix="")
     batch, horizon, _ = noise.shape
@@ -90,17 +93,22 @@ def reference_actions(model_file, arch, images, image_masks, tokens, token_mask,
         positions = list(range(n_valid, n_valid + horizon))
         x = noise[b].double()
         t, dt = np.float32(1.0), np.float32(-1.0 / num_steps)
+        step = 0
         while t >= -dt / 2:
             features = time_features(float(t), expert_width)
             cond = silu(linear(w, "time_mlp_out", silu(linear(w, "time_mlp_in", features))))
             a = linear(w, "action_in_proj", x)
             for layer in range(depth):
                 a = expert_layer(w, arch, layer, a, cond, positions, cache[layer])
+                if record is not None:
+                    record["decision", b, step, layer] = a[-1].clone()
+                    record["adarms", step] = cond.clone()
                 for s in steering:
                     if s["stream"] == "expert" and s["layer"] == layer:
                         a = a + s["alpha"] * s["vector"].double()
             a, _ = ada_rms(w, E + "norm", a, cond)
             x = x + float(dt) * linear(w, "action_out_proj", a)
             t = np.float32(t + dt)
+            step += 1
         out[b] = x
     return out

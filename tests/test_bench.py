@@ -159,9 +159,9 @@ def test_served_actions_equal_direct_infer(cache, tmp_path):
     result = run_quick(serve_latency, cache, tmp_path)
     assert result.checks["served_equals_direct"] is True
     calls = [row["call"] for row in result.table]
-    assert calls[:4] == ["tiny model: direct", "tiny model: server", "tiny model: direct steered",
-                         "tiny model: server steered"]
-    assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:4])
+    assert calls[:5] == ["tiny model: direct", "tiny model: server", "tiny model: direct steered",
+                         "tiny model: server steered", "server, policy doing no work (protocol alone)"]
+    assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:5])
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

@@ -230,3 +230,41 @@ def test_evaluate_section_holds_out_episodes_and_takes_top_k_from_steering(tmp_p
     assert load_error(tmp_path, VALID + "evaluate: {alphas: [1, 2]}\n")[0].startswith("evaluate.alphas: alphas [1.0, 2.0] must include 0")
     assert load_error(tmp_path, VALID + "slicing: {holdout_episodes: [1]}\n") == [
         "slicing.holdout_episodes: set by the run config: use `evaluate.holdout_fraction`"]
+
+
+EXISTING = VALID.replace("sources:\n  folders: [demos, /abs/more_demos]\n", "").replace(
+    "dataset: {repo_id: libero_ds, image_size: 64}", "dataset: {existing: hf/physical-intelligence/libero}")
+
+
+def test_existing_dataset_is_read_in_place(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, EXISTING))
+    assert config.sources is None and not config.converts
+    assert config.dataset_root == tmp_path / "hf/physical-intelligence/libero"  # the folder itself, not under data/
+    assert config.repo_id == "libero"  # the folder's name unless repo_id is given
+    named = load_run_config(write_yaml(tmp_path, EXISTING.replace("libero}", "libero, repo_id: pi/libero}")))
+    assert named.repo_id == "pi/libero" and named.dataset_root == config.dataset_root
+    with pytest.raises(ValueError, match=r"reads the existing dataset .*libero in place: it has no hdf5 `sources`"):
+        config.convert_settings()
+    with pytest.raises(ValueError, match=r"no hdf5 `sources`"):
+        config.filtered_dir  # noqa: B018 (a property that must refuse)
+    again = tmp_path / "again.yaml"
+    write_run_config(config, again)
+    assert load_run_config(again) == config
+
+
+def test_existing_dataset_and_sources_are_exclusive(tmp_path):
+    both = VALID.replace("dataset: {repo_id: libero_ds, image_size: 64}", "dataset: {existing: ds}")
+    assert load_error(tmp_path, both) == [
+        "give exactly one of `sources` (hdf5 demo folders to filter and convert) and `dataset.existing` "
+        "(a LeRobot dataset to read in place); found both"]
+    neither = VALID.replace("sources:\n  folders: [demos, /abs/more_demos]\n", "")
+    assert load_error(tmp_path, neither)[0].endswith("found neither")
+    convert_keys = EXISTING.replace("{existing: hf/physical-intelligence/libero}",
+                                    "{existing: ds, image_size: 64, codebase_version: v2.1}")
+    assert load_error(tmp_path, convert_keys) == [
+        "dataset: ['codebase_version', 'image_size'] apply only when converting hdf5 `sources`; "
+        "an `existing` dataset is read as it is: remove them"]
+    no_repo = VALID.replace("{repo_id: libero_ds, image_size: 64}", "{image_size: 64}")
+    assert load_error(tmp_path, no_repo) == [
+        "dataset: give `repo_id` (the name of the dataset converted from `sources`), "
+        "or `existing` with the path of a LeRobot dataset to read in place"]

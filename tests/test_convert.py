@@ -9,6 +9,7 @@ import os
 import numpy as np
 import pytest
 from helpers_libero import TINY, edit_file, sha256_bytes, write_tiny
+from helpers_locks import hold_output_lock, start_waiting
 from typer.testing import CliRunner
 
 from cli import app
@@ -153,7 +154,7 @@ def test_round_trip_through_lerobot(raw, tmp_path):
     assert info["features"]["image"]["dtype"] == "image" and info["features"]["image"]["shape"] == [16, 16, 3]
     assert info["features"]["state"]["shape"] == [8] and info["features"]["actions"]["shape"] == [7]
     assert not (out / "images").exists()  # lerobot's PNG staging folder is gone
-    assert sorted(p.name for p in out.parent.iterdir()) == ["ds"]  # nothing left beside the output
+    assert sorted(p.name for p in out.parent.iterdir()) == [".ds.lock", "ds"]  # only its lock beside the output
 
 
 def test_sources_record_traces_every_episode(raw, tmp_path):
@@ -218,13 +219,43 @@ def test_real_size_path_128_to_256(tmp_path):
     assert back["info"]["features"]["image"]["shape"] == [256, 256, 3]
 
 
+def assert_same_bytes(one, two, expected_file):
+    """Every file under `one` and `two` has the same bytes, and `expected_file` is among them."""
+    ours, theirs = ({str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+                    for root in (one, two))
+    assert expected_file in ours
+    assert ours.keys() == theirs.keys()
+    assert [name for name in ours if ours[name] != theirs[name]] == []
+
+
 def test_converting_twice_gives_equal_data(raw, tmp_path):
     folder, _ = raw
     first = convert_libero([folder], tmp_path / "one", SETTINGS)
-    second = convert_libero([folder], tmp_path / "two", SETTINGS)
+    second = convert_libero([folder], tmp_path / "elsewhere" / "two", SETTINGS)
     assert first.frames_total == second.frames_total
-    assert_same_content(read_back(tmp_path / "one"), read_back(tmp_path / "two"))
-    assert read_sources(tmp_path / "one") == read_sources(tmp_path / "two")
+    assert_same_content(read_back(tmp_path / "one"), read_back(tmp_path / "elsewhere" / "two"))
+    assert read_sources(tmp_path / "one") == read_sources(tmp_path / "elsewhere" / "two")
+    # the same bytes, every file, although lerobot staged each in another (randomly named) folder
+    assert_same_bytes(tmp_path / "one", tmp_path / "elsewhere" / "two", "data/chunk-000/file-000.parquet")
+
+
+def test_append_is_byte_deterministic(raw, tmp_path):
+    """Two identical append sequences write the same bytes; the appended data file gets a content fingerprint."""
+    folder, _ = raw
+    extra = tmp_path / "extra"
+    write_tiny(extra, "turn off the stove", "KITCHEN_SCENE8", num_demos=2)
+    for name in ("one", "two"):
+        convert_libero([folder], tmp_path / name, SETTINGS)
+        assert convert_libero([folder, extra], tmp_path / name, SETTINGS).action == "appended"
+    assert_same_bytes(tmp_path / "one", tmp_path / "two", "data/chunk-000/file-001.parquet")  # a file per call
+
+
+def test_v21_conversion_is_byte_deterministic(raw, tmp_path):
+    folder, _ = raw
+    settings = SETTINGS.model_copy(update={"codebase_version": "v2.1"})
+    convert_libero([folder], tmp_path / "one", settings)
+    convert_libero([folder], tmp_path / "elsewhere" / "two", settings)
+    assert_same_bytes(tmp_path / "one", tmp_path / "elsewhere" / "two", "data/chunk-000/episode_000005.parquet")
 
 
 def test_incremental_append_equals_full_conversion(raw, tmp_path):
@@ -250,7 +281,7 @@ def test_incremental_append_equals_full_conversion(raw, tmp_path):
     appended, full = read_back(out), read_back(tmp_path / "scratch")
     assert_same_content(appended, full)
     assert read_sources(out) == read_sources(tmp_path / "scratch")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "extra", "raw", "scratch"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".ds.lock", ".scratch.lock", "ds", "extra", "raw", "scratch"]
 
 
 def test_append_keeps_old_indices_when_a_new_file_sorts_first(raw, tmp_path):
@@ -333,7 +364,7 @@ def test_failure_midway_leaves_nothing_behind(raw, tmp_path, monkeypatch):
     monkeypatch.setattr(convert_module, "_add_episode", flaky)
     with pytest.raises(RuntimeError, match="disk full"):
         convert_libero([folder, tmp_path / "extra"], parent / "ds", SETTINGS)
-    assert [p.name for p in parent.iterdir()] == ["ds"]
+    assert sorted(p.name for p in parent.iterdir()) == [".ds.lock", "ds"]
     assert (parent / "ds" / "meta" / "libero_sources.json").read_bytes() == record_before
     assert read_back(parent / "ds")["episodes"][-1][0] == 5
 
@@ -378,3 +409,22 @@ def test_cli_convert(raw, tmp_path):
     assert "rebuilt" in result.output and read_sources(out).orientation == "as_stored"
     result = runner.invoke(app, [*args, "--orientation", "sideways"])
     assert result.exit_code == 2
+
+
+def test_a_second_conversion_waits_for_another_process_then_finds_the_dataset_done(raw, tmp_path, monkeypatch):
+    import shutil
+
+    folder, _ = raw
+    convert_libero([folder], tmp_path / "reference", SETTINGS)
+    creates = []
+    real_create = convert_module._create
+    monkeypatch.setattr(convert_module, "_create", lambda *a, **k: creates.append(1) or real_create(*a, **k))
+    out = tmp_path / "shared" / "ds"
+    holder = hold_output_lock(out)
+    worker, outcome = start_waiting(lambda: convert_libero([folder], out, SETTINGS))
+    assert not out.exists() and creates == []  # waiting, nothing written
+    shutil.copytree(tmp_path / "reference", out)  # the other process finishes the dataset
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=120)
+    assert outcome["result"].action == "unchanged" and creates == []  # converted once, by the other process
+    assert_same_content(read_back(out), read_back(tmp_path / "reference"))

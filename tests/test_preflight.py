@@ -10,7 +10,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from steering_core.config import load_run_config, write_run_config
+from steering_core.config import DatasetSection, load_run_config, write_run_config
+from steering_core.data.convert import ConvertSettings, convert_libero
 from steering_core.demo import build_demo
 from steering_core.preflight import PreflightError, check_run, run_problems
 
@@ -135,3 +136,33 @@ def test_cli_run_stops_before_prefect_starts(config, tmp_path, monkeypatch):
     assert result.exit_code == 1, result.output
     assert "Traceback" not in result.output
     assert "model.safetensors: not a safetensors file" in result.output
+
+
+@pytest.fixture(scope="module")
+def existing_dataset(demo_config, tmp_path_factory):
+    """The demo's hdf5 files converted once to v2.1 (by `convert`), to be named by `dataset.existing`."""
+    config = load_run_config(demo_config)
+    root = tmp_path_factory.mktemp("existing") / "libero"
+    convert_libero(config.sources.folders, root, ConvertSettings(repo_id="libero", image_size=16,
+                                                                 codebase_version="v2.1"))
+    return root
+
+
+def reading(config, dataset):
+    """`config` reading `dataset` in place instead of converting its sources."""
+    return config.model_copy(update={"sources": None, "dataset": DatasetSection(existing=dataset)})
+
+
+def test_an_existing_dataset_is_checked_instead_of_sources(config, existing_dataset, tmp_path):
+    assert run_problems(reading(config, existing_dataset)) == []
+    typo = config.pairs[0].model_copy(update={"positive": "open the top drawer of the cabinett"})
+    problems = run_problems(reading(config, existing_dataset).model_copy(update={"pairs": (typo, *config.pairs[1:])}))
+    assert len(problems) == 1 and "task 'open the top drawer of the cabinett' is not in the dataset" in problems[0]
+    assert "closest task texts: ['open the top drawer of the cabinet'" in problems[0]
+    broken = tmp_path / "broken"
+    shutil.copytree(existing_dataset, broken)
+    (broken / "data/chunk-000/episode_000001.parquet").unlink()
+    problems = run_problems(reading(config, broken))
+    assert problems == [f"{broken}: data file(s) ['data/chunk-000/episode_000001.parquet'] listed in "
+                        "meta/episodes.jsonl are missing"]
+    assert "LeRobot dataset folder not found" in run_problems(reading(config, tmp_path / "nowhere"))[0]

@@ -2,11 +2,16 @@
 
 import hashlib
 import os
+import shutil
+from pathlib import Path
 
 import pytest
 
 from steering_core import refresh
-from steering_core.refresh import diff_sources, read_sources_record, scan_sources
+from steering_core.data.dataset import dataset_fingerprint
+from steering_core.refresh import diff_sources, read_sources_record, scan_dataset, scan_sources
+
+V21_DATASET = Path(__file__).parent / "fixtures" / "lerobot_v21_video"
 
 
 def _write(path, data: bytes):
@@ -85,3 +90,25 @@ def test_bad_record_and_missing_folder_errors(tmp_path):
         read_sources_record(bad)
     with pytest.raises(FileNotFoundError, match=r"demo source folder\(s\) not found: .*nowhere"):
         scan_sources([tmp_path / "nowhere"])
+
+
+def test_existing_dataset_is_keyed_on_its_content_fingerprint(tmp_path):
+    dataset = tmp_path / "ds"
+    shutil.copytree(V21_DATASET, dataset)
+    before = scan_dataset(dataset).with_config("cfg")
+    assert (before.dataset_root, before.dataset_fingerprint) == (str(dataset.resolve()), dataset_fingerprint(dataset))
+    assert before.files == {}
+    unchanged = diff_sources(before, scan_dataset(dataset), config_fingerprint="cfg")
+    assert not unchanged and unchanged.describe() == f"dataset {dataset.resolve()}: content unchanged"
+    os.utime(dataset / "meta/tasks.jsonl")  # touched, same bytes: still unchanged
+    assert not diff_sources(before, scan_dataset(dataset), config_fingerprint="cfg")
+
+    (dataset / "meta/tasks.jsonl").write_text('{"task_index": 0, "task": "a relabelled task"}\n')
+    changed = diff_sources(before, scan_dataset(dataset), config_fingerprint="cfg")
+    assert changed and changed.dataset_changed and changed.describe().endswith("content changed")
+    moved = tmp_path / "moved"
+    shutil.copytree(V21_DATASET, moved)  # same content somewhere else: a different input
+    assert diff_sources(before, scan_dataset(moved), config_fingerprint="cfg").dataset_changed
+    path = tmp_path / "out" / refresh.SOURCES_RECORD_FILE
+    refresh.write_sources_record(path, before)
+    assert read_sources_record(path) == before

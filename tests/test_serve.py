@@ -266,6 +266,7 @@ def test_readme_serve_commands_use_existing_flags():
 
     import typer
 
+    import cli.serve  # noqa: F401  (commands are imported lazily; this registers `serve`)
     from cli import app
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")

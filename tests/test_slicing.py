@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from helpers_locks import hold_output_lock, start_waiting
 from safetensors.torch import load_file
 
 from steering_core.capture import shards
@@ -295,3 +296,32 @@ def test_concept_map_of_another_dataset_is_refused(tmp_path, concept_map):
     same = json.loads(concept_map.read_text()) | {"lerobot_root": str(ours)}
     (tmp_path / "same.json").write_text(json.dumps(same))
     slice_concepts(run_dir, tmp_path / "same.json", out, SliceSettings(layers=(2,)))
+
+
+def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it(
+        tmp_path, run_dir, concept_map, monkeypatch):
+    import shutil
+
+    from steering_core.capture import slicing
+
+    reference = tmp_path / "reference"
+    slice_concepts(run_dir, concept_map, reference, SliceSettings(layers=(2,)))
+    out = tmp_path / "slices"
+    reads = []
+    real_read = slicing._read_selected
+    monkeypatch.setattr(slicing, "_read_selected", lambda *a, **k: reads.append(1) or real_read(*a, **k))
+    holder = hold_output_lock(out / "layer02")
+    worker, outcome = start_waiting(lambda: slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,))))
+    assert not (out / "layer02").exists()  # waiting, nothing computed
+    shutil.copytree(reference / "layer02", out / "layer02")  # the other process finishes the layer
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=60)
+    assert outcome["result"] == {2: out / "layer02" / "index.json"} and reads == []  # kept, not recomputed
+    assert sorted(p.name for p in (out / "layer02").iterdir()) == sorted(p.name for p in (reference / "layer02").iterdir())
+
+    # a finished layer of other inputs is not kept: another reduction recomputes, under the same lock
+    slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,), reduce="frame"))
+    assert reads == [1] and json.loads((out / "layer02" / "index.json").read_text())["settings"]["reduce"] == "frame"
+    (out / "layer02" / "open the top_drawer.pt").unlink()  # an incomplete layer is not kept either
+    slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,), reduce="frame"))
+    assert reads == [1, 1] and (out / "layer02" / "open the top_drawer.pt").is_file()

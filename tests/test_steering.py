@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers_locks import hold_output_lock, start_waiting
 from reference_formats import FORMATS
 from reference_sae import ReferenceSae
 from safetensors import safe_open
@@ -389,3 +390,47 @@ def test_cli_steer_refuses_pickled_or_mislabelled_sae_files_in_one_line(project,
         assert result.exit_code == 1, result.output
         assert f"{path}: {message}" in result.output
         assert "Traceback" not in result.output and "weights_only=False" not in result.output
+
+
+def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its_statistics(project, sae_folder):
+    sae = load_sae(sae_folder)
+    reference_root = project / "reference"
+    compute_steering(settings(project, None, output_root=reference_root), sae=sae)
+    encoded = []
+    original = sae.encode_with_norm
+    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    layer = project / "out" / "layer12"
+    holder = hold_output_lock(layer)
+    worker, outcome = start_waiting(lambda: compute_steering(settings(project, None), sae=sae))
+    assert not layer.exists() and encoded == []  # waiting, nothing encoded
+    shutil.copytree(reference_root / "layer12", layer)  # the other process finishes the layer
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=60)
+    assert outcome["result"] == layer and encoded == []  # the SAE pass was done once, by the other process
+    for name in ("latent_direction.pt", "residual_direction.pt"):
+        ours = torch.load(layer / "on_stove" / name, weights_only=True)
+        theirs = torch.load(reference_root / "layer12" / "on_stove" / name, weights_only=True)
+        assert torch.equal(ours[name.removesuffix(".pt")], theirs[name.removesuffix(".pt")])
+
+
+def test_encoding_a_concept_another_process_is_encoding_waits_then_reuses_it(tmp_path, sae_folder):
+    """The flow's per-concept step: the statistics file is locked while computed, then reused."""
+    from steering_core.sae.concept_stats import concept_stats_path
+
+    path = tmp_path / "on.pt"
+    torch.save(concept_tensor(20, seed=3, shift=1.0), path)
+    source, sae = ConceptSource("on", path), load_sae(sae_folder)
+    reference = encode_concept(source, tmp_path / "reference", sae, batch_size=8)
+    encoded = []
+    original = sae.encode_with_norm
+    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    json_path = concept_stats_path(tmp_path / "layer12", source).with_suffix(".json")
+    holder = hold_output_lock(json_path)
+    worker, outcome = start_waiting(lambda: encode_concept(source, tmp_path / "layer12", sae, batch_size=8))
+    assert not json_path.exists()  # waiting, nothing computed
+    for suffix in (".safetensors", ".json"):  # the other process finishes the statistics
+        shutil.copy(reference.with_suffix(suffix), json_path.with_suffix(suffix))
+    holder.communicate("done\n", timeout=30)
+    worker.join(timeout=60)
+    assert outcome["result"] == json_path and encoded == []
+    assert torch.equal(read_concept_stats(json_path).latent_mean, read_concept_stats(reference).latent_mean)

@@ -52,7 +52,7 @@ def frame_source(meta: DatasetMeta, repo_id: str, episodes: Sequence[int], video
     return LeRobotDataset(repo_id, root=meta.root, episodes=list(episodes), video_backend=video_backend)
 
 
-def _position_columns(frames: Any) -> tuple[np.ndarray, np.ndarray]:
+def position_columns(frames: Any) -> tuple[np.ndarray, np.ndarray]:
     """Return the (frames,) episode index and global index of every position of a frame source."""
     if isinstance(frames, V2Frames):
         return frames.episode_index, frames.index
@@ -62,7 +62,7 @@ def _position_columns(frames: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def batch_plan(frames: Any, groups: dict[str, tuple[int, ...]], batch_size: int) -> list[tuple[str, list[int]]]:
     """Return (shard key, dataset positions) per batch: groups in order, each from its first frame."""
-    episode_of, index_of = _position_columns(frames)
+    episode_of, index_of = position_columns(frames)
     plan = []
     for key, members in groups.items():
         positions = np.flatnonzero(np.isin(episode_of, members))

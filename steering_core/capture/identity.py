@@ -52,6 +52,11 @@ def run_spec(
         "tokenizer_sha256": sha256_file(tokenizer.path),
         "norm_stats_sha256": sha256_file(stats_file) if stats_file else None,
     }
+    width = settings.arch.width
+    if inputs.expert_arch is not None:  # decision / adarms: the expert's stream, from the full sampler
+        width = inputs.expert_arch.width
+        depends_on |= {"expert_arch": inputs.expert_arch.model_dump(mode="json"), "num_steps": settings.num_steps,
+                       "noise_seed": settings.noise_seed, "action_horizon": settings.action_horizon}
     sources = {  # absolute, so the record still points at its inputs when read from elsewhere
         "checkpoint": str(model_file.resolve()),
         "tokenizer": str(tokenizer.path.resolve()),
@@ -63,7 +68,7 @@ def run_spec(
     return RunSpec(
         token_type=settings.token_type,
         layers=settings.layers,
-        width=settings.arch.width,
+        width=width,
         storage_dtype=settings.storage_dtype,
         episodes_per_shard=settings.episodes_per_shard,
         inputs=depends_on,

@@ -2,7 +2,8 @@
 
 Frames come from `steering_core.capture.frames`; each frame's task is tokenised in the checkpoint's
 prompt format; the model runs once per batch for all requested layers, and only the selected prompt
-tokens' rows are kept. Rows are written per episode group (`steering_core.capture.shards`), so an
+tokens' rows are kept. The action token types (`decision`, `adarms`) run the whole policy instead and
+keep one row per frame and denoising step (`steering_core.capture.action_rows`). Rows are written per episode group (`steering_core.capture.shards`), so an
 interrupted run resumes where it stopped and several workers can split one run by `episodes`.
 
 Batches never cross an episode group and always start at its first frame, so recomputing a group
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,7 +29,7 @@ from steering_core.capture.frames import (
     frame_source,
 )
 from steering_core.capture.identity import episode_records, run_spec
-from steering_core.capture.locks import group_locks
+from steering_core.locks import group_locks
 from steering_core.capture.settings import (
     N_CAMERAS,
     STATE_KEY,
@@ -37,7 +38,10 @@ from steering_core.capture.settings import (
     check_inputs,
     select_tokens,
 )
+from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
 from steering_core.capture.shards import (
+    ACTION_TOKEN_TYPES,
+    STEP,
     RunMetadata,
     RunSpec,
     ShardRows,
@@ -57,6 +61,7 @@ from steering_core.progress import Progress, ProgressCallback
 
 if TYPE_CHECKING:
     from steering_core.pi05.model import Pi05Prefix
+    from steering_core.pi05.policy import Pi05Policy
 
 logger = logging.getLogger(__name__)
 
@@ -206,8 +211,6 @@ def _first_groups(
 
 def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     """Run the model over the groups' frames and write each group's shards as soon as it is complete."""
-    from steering_core.pi05.model import Pi05Prefix
-
     settings = job.settings
     episodes = sorted(e for members in job.groups.values() for e in members)
     frames = frame_source(job.meta, job.repo_id, episodes, settings.video_backend)
@@ -217,9 +220,7 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     # before CUDA is initialised.
     batches = iter(frame_loader(frames, plan, keys, settings.arch.image_size, settings.num_workers,
                                 pin_memory=resolve_device(settings.device).type == "cuda"))
-    model = Pi05Prefix.from_checkpoint(
-        settings.checkpoint_path, settings.arch, max(settings.layers), settings.device, settings.dtype
-    )
+    model = _load_model(settings, job.inputs)
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}
     prompts: dict[str, TokenizedPrompt] = {}
@@ -232,6 +233,20 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
             if remaining[key] == 0:
                 _write_group(job, key, buffers.pop(key))
             bar.update(len(batch["task"]))
+
+
+def _load_model(settings: CaptureSettings, inputs: CaptureInputs) -> Pi05Prefix | Pi05Policy:
+    """Return the prefix up to the deepest layer, or the whole policy for the action token types."""
+    if settings.token_type in ACTION_TOKEN_TYPES:
+        from steering_core.pi05.policy import Pi05Policy
+
+        return Pi05Policy.from_checkpoint(settings.checkpoint_path, settings.arch, settings.device, settings.dtype,
+                                          action_horizon=settings.action_horizon, expert_arch=inputs.expert_arch)
+    from steering_core.pi05.model import Pi05Prefix
+
+    return Pi05Prefix.from_checkpoint(
+        settings.checkpoint_path, settings.arch, max(settings.layers), settings.device, settings.dtype
+    )
 
 
 def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[str, TokenizedPrompt]) -> TokenizedPrompt:
@@ -247,8 +262,12 @@ def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[
     return cache[task]
 
 
+RowsOf = Callable[[int, int], dict[int, torch.Tensor]]  # frames [start, stop) of a batch -> layer -> rows
+
+
 def _capture_batch(
-    model: Pi05Prefix, batch: dict[str, Any], job: CaptureJob, cache: dict[str, TokenizedPrompt], buffer: _GroupRows
+    model: Pi05Prefix | Pi05Policy, batch: dict[str, Any], job: CaptureJob, cache: dict[str, TokenizedPrompt],
+    buffer: _GroupRows,
 ) -> None:
     """Run one batch and append its selected rows (all layers) and their columns to `buffer`."""
     settings = job.settings
@@ -259,10 +278,19 @@ def _capture_batch(
     token_mask = torch.from_numpy(np.stack([p.mask for p in prompts]))
     language_start = settings.arch.prefix_length(N_CAMERAS, 0)  # language follows every camera slot
     selected = [select_tokens(p, settings.token_type) for p in prompts]
-    frame_of_row = np.concatenate([np.full(len(s), b, dtype=np.int64) for b, s in enumerate(selected)])
-    language_index = np.concatenate(selected)
-    positions = language_start + language_index
-    kept = _kept_rows(model, batch, tokens, token_mask, frame_of_row, positions, job)
+    if settings.token_type in ACTION_TOKEN_TYPES:
+        frame_of_row = np.repeat(np.arange(len(prompts), dtype=np.int64), settings.num_steps)
+        rows_of = _action_rows_of(model, batch, tokens, token_mask, settings)
+        positions = np.full(len(frame_of_row), _action_position(settings), dtype=np.int64)
+        token_ids = np.full(len(frame_of_row), -1, dtype=np.int64)  # the action tokens have no vocabulary id
+        steps = {STEP: np.tile(np.arange(settings.num_steps, dtype=np.int64), len(prompts))}
+    else:
+        frame_of_row = np.concatenate([np.full(len(s), b, dtype=np.int64) for b, s in enumerate(selected)])
+        positions = language_start + np.concatenate(selected)
+        rows_of = _token_rows_of(model, batch, tokens, token_mask, frame_of_row, positions, settings.layers)
+        token_ids = np.concatenate([p.ids[s] for p, s in zip(prompts, selected)])
+        steps = {}
+    kept = _kept_rows(rows_of, len(prompts), job)
     _check_finite(kept, batch, frame_of_row)
     for layer, rows in kept.items():
         buffer.per_layer[layer].append(rows.cpu())
@@ -271,7 +299,8 @@ def _capture_batch(
         "episode_index": batch["episode_index"].numpy()[frame_of_row],
         "frame_index": batch["frame_index"].numpy()[frame_of_row],
         "token_position": positions,
-        "token_id": np.concatenate([p.ids[s] for p, s in zip(prompts, selected)]),
+        "token_id": token_ids,
+        **steps,
     }
     for name, values in columns.items():
         buffer.columns.setdefault(name, []).append(values.astype(np.int64))
@@ -279,30 +308,61 @@ def _capture_batch(
         _record_task(buffer.tasks, task, prompt, chosen, language_start)
 
 
-def _kept_rows(
+def _action_position(settings: CaptureSettings) -> int:
+    """Return the `token_position` of action rows: the decision token's index in the chunk, -1 for adarms."""
+    return settings.action_horizon - 1 if settings.token_type == "decision" else -1
+
+
+def _action_rows_of(
+    policy: Pi05Policy, batch: dict[str, Any], tokens: torch.Tensor, token_mask: torch.Tensor,
+    settings: CaptureSettings,
+) -> RowsOf:
+    """Return the row function of the action token types: frame-major, num_steps rows per frame."""
+    indices = batch["index"].tolist()
+
+    def rows_of(start: int, stop: int) -> dict[int, torch.Tensor]:
+        if settings.token_type == "adarms":
+            return adarms_rows(policy, stop - start, settings.layers, settings.num_steps)
+        noise = frame_noise(indices[start:stop], settings.action_horizon, policy.action_dim, settings.noise_seed)
+        return decision_rows(policy, [i[start:stop] for i in batch["images"]],
+                             [m[start:stop] for m in batch["image_masks"]], tokens[start:stop],
+                             token_mask[start:stop], noise, settings.layers, settings.num_steps)
+
+    return rows_of
+
+
+def _token_rows_of(
     model: Pi05Prefix, batch: dict[str, Any], tokens: torch.Tensor, token_mask: torch.Tensor,
-    frame_of_row: np.ndarray, positions: np.ndarray, job: CaptureJob,
-) -> dict[int, torch.Tensor]:
-    """Return layer -> the kept rows (rows, width) of one batch, run in parts no larger than the job's limit.
+    frame_of_row: np.ndarray, positions: np.ndarray, layers: Sequence[int],
+) -> RowsOf:
+    """Return the row function of the prompt token types: the selected positions' residuals, in row order."""
+
+    def rows_of(start: int, stop: int) -> dict[int, torch.Tensor]:
+        residuals = model.residuals([i[start:stop] for i in batch["images"]],
+                                    [m[start:stop] for m in batch["image_masks"]],
+                                    tokens[start:stop], token_mask[start:stop], layers)
+        inside = (frame_of_row >= start) & (frame_of_row < stop)
+        rows_b = torch.from_numpy(frame_of_row[inside] - start).to(model.device)
+        rows_p = torch.from_numpy(positions[inside]).to(model.device)
+        return {layer: residuals[layer][rows_b, rows_p] for layer in layers}
+
+    return rows_of
+
+
+def _kept_rows(rows_of: RowsOf, size: int, job: CaptureJob) -> dict[int, torch.Tensor]:
+    """Return layer -> the kept rows (rows, width) of a batch of `size` frames, run in parts no larger than the
+    job's limit (rows are frame-major, so the parts' rows concatenate in row order).
 
     On CUDA out-of-memory the part size is halved (down to one frame) and kept for the rest of the job,
     which records it (`CaptureResult.reduced_batch_size`), instead of failing or retrying the same size.
     """
-    size = len(tokens)
     step = min(size, job.limits.get("batch_size", size))
     while True:
         try:
             parts: dict[int, list[torch.Tensor]] = {layer: [] for layer in job.settings.layers}
             for start in range(0, size, step):
-                stop = min(start + step, size)
-                residuals = model.residuals([i[start:stop] for i in batch["images"]],
-                                            [m[start:stop] for m in batch["image_masks"]],
-                                            tokens[start:stop], token_mask[start:stop], job.settings.layers)
-                inside = (frame_of_row >= start) & (frame_of_row < stop)
-                rows_b = torch.from_numpy(frame_of_row[inside] - start).to(model.device)
-                rows_p = torch.from_numpy(positions[inside]).to(model.device)
-                for layer in parts:
-                    parts[layer].append(residuals[layer][rows_b, rows_p])
+                for layer, rows in rows_of(start, min(start + step, size)).items():
+                    parts[layer].append(rows)
             return {layer: torch.cat(chunks) for layer, chunks in parts.items()}
         except torch.cuda.OutOfMemoryError:
             if step == 1:
@@ -351,6 +411,7 @@ def _write_group(job: CaptureJob, key: str, buffer: _GroupRows) -> None:
     """Write one shard per layer for a finished episode group."""
     episodes = job.groups[key]
     columns = {name: torch.from_numpy(np.concatenate(parts)) for name, parts in buffer.columns.items()}
+    columns.setdefault(STEP, None)
     for layer, parts in buffer.per_layer.items():
         rows = ShardRows(residuals=torch.cat(parts), **columns)
         write_shard(job.run_dir, job.spec, layer, key, rows, episodes=episodes, inputs=job.group_inputs[key],

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, field_validator
 
-from steering_core.capture.shards import StorageDtype, TokenType
+from steering_core.capture.shards import ACTION_TOKEN_TYPES, StorageDtype, TokenType
 from steering_core.data.dataset import DatasetMeta
 from steering_core.pi05 import (
     NormStats,
@@ -18,7 +18,13 @@ from steering_core.pi05 import (
     TokenizedPrompt,
     read_norm_stats,
 )
-from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
+from steering_core.pi05.arch import ExpertArch
+from steering_core.pi05.checkpoint import (
+    check_expert_tensors,
+    check_prefix_layout,
+    expert_arch_from_checkpoint,
+    resolve_model_file,
+)
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID, norm_stats_path
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 from steering_core.pi05.tokenizer import MAX_TOKEN_LEN
@@ -34,8 +40,13 @@ class CaptureSettings(StrictModel):
 
     checkpoint_path: Path  # openpi PyTorch checkpoint folder (model.safetensors) or the file itself
     tokenizer_path: Path  # PaliGemma SentencePiece model (paligemma_tokenizer.model)
-    layers: tuple[int, ...] = (12,)  # the seed's SAE layer
+    layers: tuple[int, ...] = (12,)  # the seed's SAE layer; decision/adarms: action expert layers
     token_type: TokenType = "instructions"
+    # decision / adarms only: the full sampler runs per frame from noise drawn by a generator seeded
+    # with (noise_seed, the frame's global index), so re-capturing gives the same rows
+    num_steps: int = Field(10, ge=1)  # Euler denoising steps (openpi's default)
+    noise_seed: int = Field(0, ge=0, lt=2**31)
+    action_horizon: int = Field(10, ge=1)  # action tokens per chunk (pi05_libero: 10)
     prompt_format: PromptFormat = PromptFormat.LIBERO  # pi05_libero's; other pi0.5 checkpoints: discrete_state
     max_token_len: int = Field(MAX_TOKEN_LEN, ge=1)
     norm_stats_path: Path | None = None  # discrete_state only; default <checkpoint>/assets/<asset id>/norm_stats.json
@@ -65,21 +76,24 @@ class CaptureInputs:
     model_file: Path
     tokenizer: PromptTokenizer
     norm_stats: NormStats | None
+    expert_arch: ExpertArch | None = None  # the action expert's dimensions (decision / adarms captures)
 
 
 def select_tokens(prompt: TokenizedPrompt, token_type: str) -> np.ndarray:
     """Return the language indices (n,) int64 a token type keeps from one tokenised prompt.
 
     `instructions`: the task's own tokens; `prompt`: every valid token (BOS, scaffolding, state);
-    `last`: the last valid token.
+    `last`: the last valid token. The action token types (decision, adarms) keep no prompt token.
     """
+    if token_type in ACTION_TOKEN_TYPES:
+        return np.zeros(0, dtype=np.int64)
     if token_type == "instructions":
         return np.arange(*prompt.instruction, dtype=np.int64)
     if token_type == "prompt":
         return np.arange(prompt.n_valid, dtype=np.int64)
     if token_type == "last":
         return np.array([prompt.n_valid - 1], dtype=np.int64)
-    raise ValueError(f"token_type {token_type!r} unknown; expected instructions, prompt or last")
+    raise ValueError(f"token_type {token_type!r} unknown; expected instructions, prompt, last, decision or adarms")
 
 
 def check_inputs(meta: DatasetMeta, settings: CaptureSettings) -> CaptureInputs:
@@ -105,17 +119,24 @@ def check_inputs(meta: DatasetMeta, settings: CaptureSettings) -> CaptureInputs:
 def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
     """Return the checked checkpoint file, tokenizer and norm stats: everything but the dataset (no model loaded).
 
-    The checkpoint's header must hold every prefix tensor up to the deepest layer with the arch's shapes.
+    The checkpoint's header must hold every prefix tensor up to the deepest layer with the arch's shapes;
+    the action token types need the whole prefix and the action expert, whose layers `layers` then name.
     """
     model_file = resolve_model_file(settings.checkpoint_path)
     tokenizer = PromptTokenizer(settings.tokenizer_path, settings.max_token_len, settings.prompt_format)
     discrete = settings.prompt_format is PromptFormat.DISCRETE_STATE
     problems = []
-    depth = settings.arch.depth
+    expert_arch = None
+    depth, stream = settings.arch.depth, "language model"
+    if settings.token_type in ACTION_TOKEN_TYPES:
+        check_prefix_layout(model_file, settings.arch, settings.arch.depth - 1)
+        expert_arch = expert_arch_from_checkpoint(model_file, settings.arch)
+        check_expert_tensors(model_file, expert_arch)
+        depth, stream = expert_arch.depth, f"action expert ({settings.token_type} token type)"
     bad_layers = [layer for layer in settings.layers if not 0 <= layer < depth]
     if bad_layers:
         problems.append(
-            f"layers {bad_layers} out of range: the language model has {depth} decoder layers (0..{depth - 1})"
+            f"layers {bad_layers} out of range: the {stream} has {depth} decoder layers (0..{depth - 1})"
         )
     if tokenizer.vocab_size > settings.arch.vocab_size:
         problems.append(
@@ -129,7 +150,8 @@ def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
         )
     if problems:
         raise ValueError("\n".join(problems))
-    check_prefix_layout(model_file, settings.arch, max(settings.layers))
+    if expert_arch is None:
+        check_prefix_layout(model_file, settings.arch, max(settings.layers))
     norm_stats = None
     if discrete:
         source = settings.norm_stats_path or settings.checkpoint_path
@@ -137,4 +159,4 @@ def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
         if STATE_KEY not in stats:
             raise ValueError(f"{norm_stats_path(source, settings.norm_stats_asset_id)}: no `{STATE_KEY}` entry")
         norm_stats = stats[STATE_KEY]
-    return CaptureInputs(model_file, tokenizer, norm_stats)
+    return CaptureInputs(model_file, tokenizer, norm_stats, expert_arch)

@@ -9,7 +9,9 @@ A run folder holds
 
 A shard holds `residuals` (rows, width) in the run's storage dtype and, per row, int64
 `index` (global dataset index), `episode_index`, `frame_index`, `token_position` (prefix
-position) and `token_id`, sorted by (index, token_position). Shards are keyed by episode
+position) and `token_id`, sorted by (index, token_position). Shards of the action token types
+(`decision`, `adarms`: one row per frame and denoising step) hold an int64 `step` column too and are
+sorted by (index, step); older shards without it stay readable. Shards are keyed by episode
 group, so adding demos never touches existing shards; each shard has its own sidecar, so
 several workers can write one run without sharing a file. `metadata.json` is rebuilt from
 `run.json` and the sidecars whenever a worker finishes.
@@ -45,13 +47,20 @@ SHARD_FILE = "shard-{key}.safetensors"
 SIDECAR_FILE = "shard-{key}.json"
 SHARD_KEY = "{group:05d}"  # group = episode_index // episodes_per_shard
 
-TokenType = Literal["instructions", "prompt", "last"]
+TokenType = Literal["instructions", "prompt", "last", "decision", "adarms"]
+ACTION_TOKEN_TYPES = ("decision", "adarms")  # rows per frame and denoising step of the action expert
 StorageDtype = Literal["float32", "bfloat16", "float16"]
 STORAGE_DTYPES: dict[str, torch.dtype] = {name: DTYPES[name] for name in StorageDtype.__args__}
 _DTYPE_NAMES = {code: DTYPE_NAMES[dtype] for code, dtype in SAFETENSORS_DTYPES.items()}  # safetensors header names
 RESIDUALS = "residuals"
 HEADER_KEY = "latent_steering"  # safetensors metadata entry: JSON of format_version, layer, key, token_type
 ROW_COLUMNS: tuple[str, ...] = ("index", "episode_index", "frame_index", "token_position", "token_id")
+STEP = "step"  # the extra column of the action token types: denoising step 0..num_steps-1
+
+
+def row_columns(token_type: str) -> tuple[str, ...]:
+    """Return the per-row int64 columns of a token type's shards (the action types add `step`)."""
+    return (*ROW_COLUMNS, STEP) if token_type in ACTION_TOKEN_TYPES else ROW_COLUMNS
 
 
 class RunSpec(StrictModel):
@@ -104,7 +113,7 @@ class RunMetadata(StrictModel):
 
 @dataclass(frozen=True)
 class ShardRows:
-    """Rows of one shard in memory: `residuals` (rows, width) float, the rest (rows,) int64."""
+    """Rows of one shard in memory: `residuals` (rows, width) float, the rest (rows,) int64 (`step`: action types)."""
 
     residuals: torch.Tensor
     index: torch.Tensor
@@ -112,10 +121,12 @@ class ShardRows:
     frame_index: torch.Tensor
     token_position: torch.Tensor
     token_id: torch.Tensor
+    step: torch.Tensor | None = None
 
     def columns(self) -> dict[str, torch.Tensor]:
-        """Return the per-row int64 columns by name."""
-        return {name: getattr(self, name) for name in ROW_COLUMNS}
+        """Return the per-row int64 columns by name (`step` only when set)."""
+        names = ROW_COLUMNS if self.step is None else (*ROW_COLUMNS, STEP)
+        return {name: getattr(self, name) for name in names}
 
 
 def shard_key(group: int) -> str:
@@ -192,7 +203,8 @@ def write_shard(
     """
     _validate_rows(rows, spec, layer, key)
     path = shard_path(run_dir, spec.token_type, layer, key)
-    order = np.lexsort((rows.token_position.numpy(), rows.index.numpy()))  # sort by index, then position
+    keys = [rows.token_position.numpy(), *([rows.step.numpy()] if rows.step is not None else []), rows.index.numpy()]
+    order = np.lexsort(keys)  # sort by index, then step (action types), then position
     order_t = torch.from_numpy(order)
     tensors = {RESIDUALS: rows.residuals.detach().to("cpu", STORAGE_DTYPES[spec.storage_dtype])[order_t].contiguous()}
     tensors.update({name: column.to(torch.int64)[order_t].contiguous() for name, column in rows.columns().items()})
@@ -251,13 +263,14 @@ def find_complete_shard(
 class ShardReader:
     """An open, validated shard: row columns as numpy, residual rows read from the memory map."""
 
-    def __init__(self, path: Path, handle: Any, rows: int, width: int, dtype: str):
+    def __init__(self, path: Path, handle: Any, rows: int, width: int, dtype: str, names: tuple[str, ...]):
         self.path, self._handle = path, handle
         self.rows, self.width, self.dtype = rows, width, dtype
+        self.column_names = names  # ROW_COLUMNS, plus `step` in shards of the action token types
 
-    def columns(self, names: Sequence[str] = ROW_COLUMNS) -> dict[str, np.ndarray]:
-        """Return the requested per-row columns, each (rows,) int64."""
-        return {name: self._handle.get_tensor(name).numpy() for name in names}
+    def columns(self, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """Return the requested per-row columns (default all of the shard's), each (rows,) int64."""
+        return {name: self._handle.get_tensor(name).numpy() for name in names or self.column_names}
 
     def residuals(self, start: int = 0, stop: int | None = None) -> torch.Tensor:
         """Return residual rows [start, stop) as (stop - start, width) in the storage dtype."""
@@ -292,7 +305,8 @@ def open_shard(
     with handle_cm as handle:
         header = _header(handle)
         found_rows, found_width, found_dtype = _validate_shard(path, handle, width, dtype, rows, header)
-        yield ShardReader(path, handle, found_rows, found_width, found_dtype)
+        names = row_columns(header.get("token_type", ""))
+        yield ShardReader(path, handle, found_rows, found_width, found_dtype, names)
 
 
 def write_run_metadata(run_dir: str | os.PathLike) -> Path:
@@ -366,6 +380,9 @@ def _validate_rows(rows: ShardRows, spec: RunSpec, layer: int, key: str) -> None
             f"`{RESIDUALS}` is {tuple(residuals.shape)} {residuals.dtype}, expected (*, {spec.width}) floating point"
         )
     n_rows = residuals.shape[0] if residuals.ndim else -1
+    if (rows.step is not None) != (spec.token_type in ACTION_TOKEN_TYPES):
+        problems.append(f"`{STEP}` is {'set' if rows.step is not None else 'missing'}; token type "
+                        f"{spec.token_type!r} expects it {'set' if rows.step is None else 'unset'}")
     for column, values in rows.columns().items():
         if values.ndim != 1 or values.shape[0] != n_rows or values.is_floating_point():
             problems.append(f"`{column}` is {tuple(values.shape)} {values.dtype}, expected ({n_rows},) integer")
@@ -379,7 +396,8 @@ def _validate_shard(
     """Return (rows, width, dtype) of an open shard; raise once listing every problem."""
     fix = f"re-run capture for layer {header.get('layer', '?')}"
     keys = set(handle.keys())
-    expected_keys = {RESIDUALS, *ROW_COLUMNS}
+    columns = row_columns(header.get("token_type", ""))
+    expected_keys = {RESIDUALS, *columns}
     problems = []
     if header.get("format_version") != FORMAT_VERSION:
         problems.append(f"header `format_version` is {header.get('format_version')!r}, expected {FORMAT_VERSION}")
@@ -404,7 +422,7 @@ def _validate_shard(
             )
         else:
             found_rows, found_width = shape
-    for column in ROW_COLUMNS:
+    for column in columns:
         if column in keys:
             view = handle.get_slice(column)
             shape, stored = view.get_shape(), view.get_dtype()

@@ -28,6 +28,7 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.capture.shards import (
+    STEP,
     RunMetadata,
     ShardRecord,
     TokenType,
@@ -36,8 +37,9 @@ from steering_core.capture.shards import (
 )
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
-from steering_core.fileio import atomic_dir, sha256_file, sha256_json, write_json
+from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
+from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel
 
@@ -190,13 +192,62 @@ def _slice_layer(
     settings: SliceSettings,
     advance: Callable[[], None],
 ) -> Path:
-    """Select, read and write the slices of one layer; return its index.json path."""
+    """Select, read and write the slices of one layer; return its index.json path.
+
+    The layer folder is locked while it is written; a complete folder from the same run, concept map and
+    settings (its index.json says so and its files exist) is kept, so a second run waits, then skips it.
+    """
     records = metadata.layer_shards(layer)
-    selections = _select_rows(run_dir, records, concept_map, map_path, settings)
-    outputs = _read_selected(run_dir, records, selections, settings, advance)
+    target = output_dir / layer_dir(layer)
+    header = {
+        "format_version": SLICE_FORMAT_VERSION,
+        "layer": layer,
+        "width": metadata.run.width,
+        "settings": settings.model_dump(mode="json", exclude={"layers", "device"}),
+        "run_dir": str(run_dir.resolve()),
+        "run_fingerprint": metadata.run_fingerprint,
+        "concept_map": str(map_path.resolve()),
+        "concept_map_sha256": sha256_file(map_path),
+        "token_selection": {"token_type": metadata.run.token_type, "tasks": metadata.tasks},
+    }
+    with output_lock(target):
+        if _complete_layer(target, header):
+            logger.info("layer %d: %s already holds these slices; kept", layer, target)
+            for _ in records:
+                advance()
+            return target / SLICE_INDEX_FILE
+        selections = _select_rows(run_dir, records, concept_map, map_path, settings)
+        outputs = _read_selected(run_dir, records, selections, settings, advance)
+        _write_layer(target, header, outputs, concept_map)
+    logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), target)
+    return target / SLICE_INDEX_FILE
+
+
+def _complete_layer(target: Path, header: dict[str, Any]) -> bool:
+    """Return True if `target` holds the slices `header` describes, every listed file present."""
+    index_path = target / SLICE_INDEX_FILE
+    if not index_path.is_file():
+        return False
+    try:
+        index = read_json(index_path)
+    except ValueError:
+        return False
+    if not isinstance(index, dict) or {k: index.get(k) for k in header} != header:
+        return False
+    entries = index.get("concepts")
+    return isinstance(entries, dict) and all(
+        isinstance(entry, dict) and (target / str(entry.get("pt"))).is_file()
+        and (target / str(entry.get("safetensors"))).is_file() for entry in entries.values())
+
+
+def _write_layer(
+    target: Path, header: dict[str, Any], outputs: dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]],
+    concept_map: ConceptMap,
+) -> None:
+    """Write one layer's slice files and index.json into a staging folder, then swap it onto `target`."""
     names = slice_file_names(list(concept_map.concepts))
     index_entries: dict[str, Any] = {}
-    with atomic_dir(output_dir / layer_dir(layer), overwrite=True) as staging:
+    with atomic_dir(target, overwrite=True) as staging:
         staging.mkdir(parents=True)
         for concept, (residuals, columns) in outputs.items():
             stem = names[concept]
@@ -209,23 +260,7 @@ def _slice_layer(
                 "frames": int(np.unique(columns["index"].numpy()).size),
                 "segments": [segment.model_dump(mode="json") for segment in concept_map.concepts[concept]],
             }
-        write_json(
-            staging / SLICE_INDEX_FILE,
-            {
-                "format_version": SLICE_FORMAT_VERSION,
-                "layer": layer,
-                "width": metadata.run.width,
-                "settings": settings.model_dump(mode="json", exclude={"layers", "device"}),
-                "run_dir": str(run_dir.resolve()),
-                "run_fingerprint": metadata.run_fingerprint,
-                "concept_map": str(map_path.resolve()),
-                "concept_map_sha256": sha256_file(map_path),
-                "token_selection": {"token_type": metadata.run.token_type, "tasks": metadata.tasks},
-                "concepts": index_entries,
-            },
-        )
-    logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), output_dir / layer_dir(layer))
-    return output_dir / layer_dir(layer) / SLICE_INDEX_FILE
+        write_json(staging / SLICE_INDEX_FILE, {**header, "concepts": index_entries})
 
 
 def _select_rows(
@@ -267,7 +302,7 @@ def _select_rows(
         for concept, hit in per_concept.items():
             rows = np.flatnonzero(hit)
             selections[concept].rows[position] = rows
-            selections[concept].keys[position] = np.stack([cols["index"][rows], cols["token_position"][rows]], axis=1)
+            selections[concept].keys[position] = np.stack([cols["index"][rows], _within_frame(cols)[rows]], axis=1)
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             expected = set(range(segment.frame_start, segment.frame_end + 1))
@@ -375,15 +410,20 @@ def _frame_means(
 def _concatenate(
     parts: list[tuple[torch.Tensor, dict[str, np.ndarray]]], reduce: str
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Return one concept's rows in dataset order (index, then token position) with their columns."""
+    """Return one concept's rows in dataset order (index, then step or token position) with their columns."""
     residuals = torch.cat([p[0] for p in parts])
     names = parts[0][1].keys()
     columns = {name: np.concatenate([p[1][name] for p in parts]) for name in names}
-    secondary = columns["token_position"] if reduce == "token" else np.zeros_like(columns["index"])
+    secondary = _within_frame(columns) if reduce == "token" else np.zeros_like(columns["index"])
     order = np.lexsort((secondary, columns["index"]))
     return residuals[torch.from_numpy(order)].contiguous(), {
         name: torch.from_numpy(np.ascontiguousarray(values[order])) for name, values in columns.items()
     }
+
+
+def _within_frame(columns: dict[str, np.ndarray]) -> np.ndarray:
+    """Return the order of rows within a frame: the denoising step (action token types), else the token position."""
+    return columns[STEP] if STEP in columns else columns["token_position"]
 
 
 def _describe(values: Sequence[int]) -> str:

@@ -23,6 +23,10 @@ puts demo_10 before demo_2) with `orientation="as_stored"` (the seed did not fli
 Every episode's source (file name, demo key, file sha256, task, length) goes to
 `meta/libero_sources.json`; when every source in that record is still present, a
 re-run appends only the new episodes.
+
+The same inputs give the same bytes, wherever the output goes: the `datasets` fingerprint lerobot
+stamps into each v3.0 data file (a hash of the staging path) is replaced by one of the file's content
+(`parquet_fingerprint`); everything else both writers produce is deterministic already.
 """
 
 from __future__ import annotations
@@ -41,8 +45,10 @@ import numpy as np
 from pydantic import Field
 
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
+from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
 from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel, read_model
 
@@ -59,6 +65,7 @@ REQUIRED_DATASET_FILES = {
     "v3.0": ("meta/info.json", "meta/tasks.parquet", "meta/episodes", "data"),
     "v2.1": ("meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl", "meta/episodes_stats.jsonl", "data"),
 }
+DATA_PARQUET_GLOB = "**/*.parquet"  # v3.0 data files, under data/
 _RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for long demos
 
 Orientation = Literal["rotate180", "as_stored"]
@@ -227,22 +234,23 @@ def convert_libero(
         raise ValueError(f"no demos found in {', '.join(map(str, input_dirs))}")
     new_sources = [source for _, source in planned]
 
-    existing = _existing_record(output_dir)
-    reason = "rebuild requested" if rebuild else _rebuild_reason(output_dir, existing, settings, new_sources)
-    if existing is not None and reason is None:
-        planned = _existing_first(planned, existing)
-        new_sources = [source for _, source in planned]
-        done = len(existing.episodes)
-        if done == len(new_sources):
-            logger.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
-            return _result(output_dir, settings, "unchanged", new_sources, added=0)
-        logger.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
-        _append(output_dir, planned, done, settings, progress)
-        return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
-    if existing is not None:
-        logger.info("%s: rebuilding from scratch (%s)", output_dir, reason)
-    _create(output_dir, planned, settings, progress)
-    action: Action = "created" if existing is None else "rebuilt"
+    with output_lock(output_dir):  # a second conversion into it waits, then finds it unchanged
+        existing = _existing_record(output_dir)
+        reason = "rebuild requested" if rebuild else _rebuild_reason(output_dir, existing, settings, new_sources)
+        if existing is not None and reason is None:
+            planned = _existing_first(planned, existing)
+            new_sources = [source for _, source in planned]
+            done = len(existing.episodes)
+            if done == len(new_sources):
+                logger.info("%s: all %d episodes already converted; nothing to do", output_dir, done)
+                return _result(output_dir, settings, "unchanged", new_sources, added=0)
+            logger.info("%s: appending %d new episode(s) after %d", output_dir, len(new_sources) - done, done)
+            _append(output_dir, planned, done, settings, progress)
+            return _result(output_dir, settings, "appended", new_sources, added=len(new_sources) - done)
+        if existing is not None:
+            logger.info("%s: rebuilding from scratch (%s)", output_dir, reason)
+        _create(output_dir, planned, settings, progress)
+        action: Action = "created" if existing is None else "rebuilt"
     return _result(output_dir, settings, action, new_sources, added=len(new_sources))
 
 
@@ -409,6 +417,8 @@ def _write_episodes(
         return
     from lerobot.utils.utils import SuppressProgressBars  # lerobot is imported by now
 
+    data = Path(dataset.root) / "data"
+    before = {path: _stamp(path) for path in data.glob(DATA_PARQUET_GLOB)}  # an append's copied files
     try:
         # we count episodes; the per-episode `datasets` bars lerobot triggers are noise
         with SuppressProgressBars():
@@ -418,8 +428,16 @@ def _write_episodes(
             dataset.finalize()  # close the parquet writers; the staging folder is discarded anyway
         raise
     dataset.finalize()
+    for path in sorted(data.glob(DATA_PARQUET_GLOB)):
+        if before.get(path) != _stamp(path):  # written now: its `datasets` fingerprint hashes the staging path
+            content_fingerprint(path)
     # lerobot stages PNGs under images/ before embedding them in the parquet files; only empty folders remain
     shutil.rmtree(Path(dataset.root) / "images", ignore_errors=True)
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    stat = path.stat()
+    return stat.st_size, stat.st_mtime_ns
 
 
 def _add_all(

@@ -81,7 +81,7 @@ def run_config_job(config: RunConfig, pair: str, layer: int) -> EvaluateJob:
     pairs_config = config.pairs_config_path(layer)
     return pair_job(pairs_config, config.pair(pair).name, layer, base_dir=pairs_config.parent,
                     data_root=config.output_root, steering_root=config.steering_root,
-                    dataset_root=config.dataset_root, repo_id=config.dataset.repo_id,
+                    dataset_root=config.dataset_root, repo_id=config.repo_id,
                     output_root=config.eval_root)
 
 

@@ -24,6 +24,7 @@ from steering_core.capture.slicing import safe_file_name
 from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, read_json, sha256_json, write_json
 from steering_core.identity import file_digest
+from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
 from steering_core.sae.model import Sae
 
@@ -121,36 +122,38 @@ def encode_concept(
 ) -> Path:
     """Stream one concept file through the SAE; write its statistics and return their `.json` path.
 
-    A statistics file whose recorded source (size, mtime) and SAE fingerprint match is reused.
+    A statistics file whose recorded source (size, mtime) and SAE fingerprint match is reused; the file is
+    locked while it is computed, so a second run encoding the same concept waits, then reuses it.
     """
     reader = reader or ConceptReader(source.path)
     stem = concept_stats_path(layer_path, source)
     identity = _concept_identity(source, sae)
     json_path = stem.with_suffix(".json")
-    if json_path.is_file() and read_json(json_path).get("identity") == identity:
-        logger.info("%s: statistics are current, reusing %s", source.path, json_path)
-        return json_path
-    sums = _Sums()
-    with Progress(reader.rows, f"encode {source.label[:40]}", "row", callback=progress, logger=logger) as bar:
-        for batch in reader.batches(batch_size):
-            sums.add(batch, sae, source.path, start=bar.done)
-            bar.update(len(batch))
-    stats = sums.finish(source)
-    tensors = {"residual_mean": stats.residual_mean}
-    if sae is not None:
-        tensors |= {"latent_mean": stats.latent_mean, "firing_rate": stats.firing_rate}
-    with atomic_path(stem.with_suffix(".safetensors")) as tmp:
-        save_file({name: tensor.contiguous() for name, tensor in tensors.items()}, tmp)
-    write_json(json_path, {
-        "format_version": FORMAT_VERSION,
-        "label": source.label,
-        "identity": identity,
-        "count": stats.count,
-        "fvu": stats.fvu,
-        "mean_l0": stats.mean_l0,
-        "batch_size": batch_size,
-        "tensors": stem.with_suffix(".safetensors").name,
-    })
+    with output_lock(json_path):  # another run encoding this concept: wait, then reuse its statistics
+        if json_path.is_file() and read_json(json_path).get("identity") == identity:
+            logger.info("%s: statistics are current, reusing %s", source.path, json_path)
+            return json_path
+        sums = _Sums()
+        with Progress(reader.rows, f"encode {source.label[:40]}", "row", callback=progress, logger=logger) as bar:
+            for batch in reader.batches(batch_size):
+                sums.add(batch, sae, source.path, start=bar.done)
+                bar.update(len(batch))
+        stats = sums.finish(source)
+        tensors = {"residual_mean": stats.residual_mean}
+        if sae is not None:
+            tensors |= {"latent_mean": stats.latent_mean, "firing_rate": stats.firing_rate}
+        with atomic_path(stem.with_suffix(".safetensors")) as tmp:
+            save_file({name: tensor.contiguous() for name, tensor in tensors.items()}, tmp)
+        write_json(json_path, {
+            "format_version": FORMAT_VERSION,
+            "label": source.label,
+            "identity": identity,
+            "count": stats.count,
+            "fvu": stats.fvu,
+            "mean_l0": stats.mean_l0,
+            "batch_size": batch_size,
+            "tensors": stem.with_suffix(".safetensors").name,
+        })
     fidelity = "" if stats.fvu is None else f", FVU {stats.fvu:.3f}, mean L0 {stats.mean_l0:.1f}"
     logger.info("%s: %d rows%s", source.label, stats.count, fidelity)
     return json_path

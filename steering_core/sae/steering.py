@@ -39,6 +39,7 @@ from steering_core.layout import (
     STEERING_ROOT,
     layer_dir,
 )
+from steering_core.locks import output_lock
 from steering_core.progress import ProgressCallback
 from steering_core.sae.concept_stats import (
     FORMAT_VERSION,
@@ -343,6 +344,7 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
     Steps: concept statistics, pair directions, pairwise stats, report.
 
     Relative concept paths resolve as `resolve_concept_path` says. A preloaded `sae` overrides `settings.sae`.
+    The layer folder is locked meanwhile: a second run on it waits, then reuses the statistics (the SAE pass).
     """
     config = read_pairs_config(settings.pairs_config)
     sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
@@ -352,25 +354,26 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
-    total, done = sum(rows.values()), 0
-    stats_files = {}
-    for path, source in sources.items():
-        def advance(step: int, _: int, before: int = done) -> None:
-            if progress is not None:
-                progress(before + step, total)
+    with output_lock(layer_path):  # a second run waits, then reuses the concept statistics written here
+        rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
+        total, done = sum(rows.values()), 0
+        stats_files = {}
+        for path, source in sources.items():
+            def advance(step: int, _: int, before: int = done) -> None:
+                if progress is not None:
+                    progress(before + step, total)
 
-        stats_files[path] = encode_concept(
-            source, layer_path, sae, batch_size=settings.batch_size, reader=readers[path], progress=advance
-        )
-        done += rows[path]
-        advance(0, total, before=done)
-    for pair in config.pairs:
-        positive, negative = pairs[pair.name]
-        compute_pair(pair, stats_files[positive], stats_files[negative], layer_path, sae,
-                     include_decoder_bias=settings.include_decoder_bias)
-    compute_pairwise_stats(layer_path, [pair.name for pair in config.pairs])
-    write_report(layer_path, top_k=settings.top_k)
+            stats_files[path] = encode_concept(
+                source, layer_path, sae, batch_size=settings.batch_size, reader=readers[path], progress=advance
+            )
+            done += rows[path]
+            advance(0, total, before=done)
+        for pair in config.pairs:
+            positive, negative = pairs[pair.name]
+            compute_pair(pair, stats_files[positive], stats_files[negative], layer_path, sae,
+                         include_decoder_bias=settings.include_decoder_bias)
+        compute_pairwise_stats(layer_path, [pair.name for pair in config.pairs])
+        write_report(layer_path, top_k=settings.top_k)
     return layer_path
 
 

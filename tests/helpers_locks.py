@@ -1,0 +1,29 @@
+"""Another process holding an output lock, and a step started beside it: for the tests of waiting and skipping."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+
+def hold_output_lock(output) -> subprocess.Popen:
+    """Return a process that holds `locks.output_lock(output)` until it reads a line (it holds it on return)."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
+         f"with output_lock({str(output)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
+
+
+def start_waiting(step: Callable[[], Any], seconds: float = 3) -> tuple[threading.Thread, dict[str, Any]]:
+    """Run `step` in a thread; return it (still running after `seconds`) and the dict its result lands in."""
+    outcome: dict[str, Any] = {}
+    worker = threading.Thread(target=lambda: outcome.update(result=step()))
+    worker.start()
+    worker.join(timeout=seconds)
+    assert worker.is_alive(), "the step did not wait for the lock"
+    return worker, outcome
