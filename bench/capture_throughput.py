@@ -151,6 +151,20 @@ class Inputs:
     prompt_tokens: int  # longest valid prompt among the frames' tasks
 
 
+def model_files(folder: Path, arch: Pi05Arch, prefix: str = "checkpoint") -> tuple[Path, Path]:
+    """Return (a generated checkpoint of `arch`, the generated tokenizer), writing whichever is not cached yet."""
+    from steering_core.synthetic.pi05 import write_pi05_checkpoint
+    from steering_core.synthetic.tokenizer import TOKENIZER_FILE, write_tokenizer
+
+    checkpoint = folder / f"{prefix}-{arch.fingerprint()[:12]}"
+    if not checkpoint.is_dir():
+        write_pi05_checkpoint(checkpoint, arch)
+    tokenizer = folder / TOKENIZER_FILE
+    if not tokenizer.is_file():
+        write_tokenizer(tokenizer)
+    return checkpoint, tokenizer
+
+
 def build_inputs(folder: Path, arch: Pi05Arch, frames: int) -> Inputs:
     """Return the LeRobot dataset, checkpoint and tokenizer, generating whatever is not cached yet."""
     from steering_core.data.convert import ConvertSettings, convert_libero
@@ -159,9 +173,6 @@ def build_inputs(folder: Path, arch: Pi05Arch, frames: int) -> Inputs:
         SyntheticSettings,
         write_libero_file,
     )
-    from steering_core.synthetic.pi05 import write_pi05_checkpoint
-    from steering_core.synthetic.tokenizer import TOKENIZER_FILE, write_tokenizer
-
     task = DEMO_SUITE_TASKS[TASK_INDEX]
     demos = folder / f"libero-{frames}"
     if not (demos / task.file_name).is_file():
@@ -169,12 +180,7 @@ def build_inputs(folder: Path, arch: Pi05Arch, frames: int) -> Inputs:
     repo_id = f"bench/capture-{frames}"
     dataset = folder / f"lerobot-{frames}"
     convert_libero([demos], dataset, ConvertSettings(repo_id=repo_id))  # a no-op once converted
-    checkpoint = folder / f"checkpoint-{arch.fingerprint()[:12]}"
-    if not checkpoint.is_dir():
-        write_pi05_checkpoint(checkpoint, arch)
-    tokenizer = folder / TOKENIZER_FILE
-    if not tokenizer.is_file():
-        write_tokenizer(tokenizer)
+    checkpoint, tokenizer = model_files(folder, arch)
     prompt_tokens = PromptTokenizer(tokenizer).tokenize(task.instruction).n_valid
     return Inputs(dataset, repo_id, checkpoint, tokenizer, prompt_tokens)
 

@@ -25,6 +25,7 @@ BENCHMARKS = (
     "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
     "cli_startup",
     "serve_latency",
+    "evaluate_cost",
 )
 OPT_IN = ("real_size",)  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"

@@ -10,6 +10,7 @@ from cli.app import app, input_errors
 from steering_core.capture import CaptureResult, CaptureSettings, capture
 from steering_core.capture.shards import StorageDtype, TokenType
 from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
+from steering_core.data.split import read_split
 from steering_core.config import load_run_config
 from steering_core.fileio import read_json
 from steering_core.pi05 import Pi05Arch, PromptFormat
@@ -190,10 +191,14 @@ def slice_command(
         True, "--verify-checksums/--no-verify-checksums",
         help="Re-hash every shard against metadata.json before reading it (a damaged shard stops the slice).",
     ),
+    split: Path | None = typer.Option(
+        None, "--split", help="Held-out split JSON (manifests/<pair>_split.json): its held-out episodes are not sliced."
+    ),
 ) -> None:
     """Write <output-dir>/layerNN/<concept>.pt (+ .safetensors, index.json) for each concept."""
     with input_errors():
         settings = SliceSettings(
+            holdout_episodes=read_split(split).holdout_episodes if split is not None else (),
             layers=_layer_list(layers),
             token_type=token_type,
             reduce=reduce,

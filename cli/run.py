@@ -109,5 +109,6 @@ def deploy_command(
         from flows.deploy import setup
 
         setup(config, gpu_slots=gpu_slots)
-    typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-refresh/scheduled")
+    typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-evaluate/gpu-evaluate, "
+               "latent-steering-refresh/scheduled")
     typer.echo("start workers: prefect worker start --pool gpu  |  prefect worker start --pool cpu")

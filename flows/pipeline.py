@@ -7,8 +7,11 @@
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
    in-process (`flows.capture.run_capture`), then the run metadata.
-3. Fan-out (CPU) over every (pair, layer): slice residuals by concept, SAE statistics per concept,
-   directions per pair; then per layer the pairwise statistics, the report and its artifacts.
+3. Fan-out (CPU) over every (pair, layer): slice residuals by concept (held-out episodes left out),
+   SAE statistics per concept, directions per pair; then per layer the pairwise statistics, the
+   report and its artifacts.
+4. Evaluation (GPU): the `latent-steering-evaluate` flow, one run per (pair, layer) on the `gpu`
+   pool or in-process (`flows.evaluate.run_evaluation`), then each layer's evaluation summary.
 
 Every task is cached on the content of its inputs (`tasks.cache`): a re-run on unchanged inputs
 reads every result from the cache, and a new demo file recomputes only what depends on it. After a
@@ -27,6 +30,7 @@ from prefect.settings import get_current_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.capture import capture_mode, run_capture
+from flows.evaluate import run_evaluation
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
@@ -59,16 +63,19 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     sources = scan_inputs(config, previous=read_sources_record(record_path))
 
     task_texts = prepare_data(config)
+    holdouts = holdout_splits(config)
     mode = run_capture(config, config_path)
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
-    reports = steering_vectors(config, task_texts)
+    reports = steering_vectors(config, task_texts, holdouts)
 
     for layer_path in reports.values():
         publish_layer_report(Path(layer_path), config.name)
+    evaluations = run_evaluation(config, config_path) if config.evaluate is not None else {}
     write_sources_record(record_path, sources.with_config(config.fingerprint()))
     logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
     return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
-            "reports": {str(layer): path for layer, path in reports.items()}}
+            "reports": {str(layer): path for layer, path in reports.items()},
+            "evaluations": {str(layer): path for layer, path in evaluations.items()}}
 
 
 def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
@@ -96,13 +103,23 @@ def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
     return {name: tuple(future.result()["tasks"]) for name, future in manifests.items()}
 
 
-def steering_vectors(config: RunConfig, task_texts: dict[str, tuple[str, str]]) -> dict[int, str]:
-    """Run the SAE phase over every (pair, layer); return layer -> its output folder."""
+def holdout_splits(config: RunConfig) -> dict[str, tuple[int, ...]]:
+    """Write each pair's held-out split (manifests/<pair>_split.json); return pair -> held-out episodes."""
+    split_task = rooted(data.split_episodes, config.output_root)
+    return {pair.name: tuple(split_task(pair.name, str(config.manifest_path(pair)), config.holdout_fraction,
+                                        str(config.split_path(pair)))["holdout_episodes"])
+            for pair in config.pairs}
+
+
+def steering_vectors(
+    config: RunConfig, task_texts: dict[str, tuple[str, str]], holdouts: dict[str, tuple[int, ...]]
+) -> dict[int, str]:
+    """Run the SAE phase over every (pair, layer), held-out episodes left out; return layer -> its output folder."""
     root, run_dir = config.output_root, str(config.run_dir)
     slices = {
         (pair.name, layer): rooted(capture_tasks.slice_layer, root).submit(
             pair.name, layer, run_dir, str(config.concept_map_path(pair)), str(config.slices_dir(pair)),
-            config.slice_settings(layer))
+            config.slice_settings(layer, holdouts[pair.name]))
         for layer in config.layers for pair in config.pairs
     }
     stats: dict[tuple[str, int, str], PrefectFuture] = {}

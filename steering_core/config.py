@@ -20,6 +20,7 @@ capture: {batch_size: 64, storage_dtype: bfloat16}   # CaptureSettings without m
 slicing: {reduce: token}                             # SliceSettings without layers and token type
 sae: {12: {release: gemma-2b-it-res-jb}}             # per layer; absent or null: residual space only
 steering: {batch_size: 512, top_k: 20}               # SteeringSettings without paths, layer and SAE
+evaluate: {holdout_fraction: 0.2, max_frames: 32}    # EvaluateSettings without top_k; null: no phase 4
 ```
 
 Sections that reuse a step's settings model take its fields minus those the run config supplies
@@ -54,6 +55,7 @@ from steering_core.capture.slicing import SliceSettings
 from steering_core.data.contrast import ContrastSettings
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
+from steering_core.evaluate import EvaluateSettings
 from steering_core.fileio import atomic_path
 from steering_core.pi05 import Pi05Arch
 from steering_core.sae.steering import PairsConfig, PairSpec, SteeringSettings
@@ -66,10 +68,11 @@ _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _SUPPLIED = {
     "capture": {"checkpoint_path": "model.checkpoint", "tokenizer_path": "model.tokenizer",
                 "norm_stats_path": "model.norm_stats", "arch": "model.arch", "layers": "layers"},
-    "slicing": {"layers": "layers", "token_type": "capture.token_type"},
+    "slicing": {"layers": "layers", "token_type": "capture.token_type", "holdout_episodes": "evaluate.holdout_fraction"},
     "steering": {"pairs_config": "pairs", "output_root": "output_root", "layer": "layers", "sae": "sae.<layer>",
                  "sae_id": "sae.<layer>.sae_id", "sae_dir": "sae.<layer>.local_dir",
                  "sae_cfg_from": "sae.<layer>.cfg_from", "paths_relative_to": "output_root"},
+    "evaluate": {"top_k": "steering.top_k"},
 }
 
 
@@ -104,6 +107,7 @@ _ConvertOptions = options_model(ConvertSettings, (), "_ConvertOptions", root=(Co
 CaptureSection = options_model(CaptureSettings, tuple(_SUPPLIED["capture"]), "CaptureSection")
 SliceSection = options_model(SliceSettings, tuple(_SUPPLIED["slicing"]), "SliceSection")
 SteeringSection = options_model(SteeringSettings, tuple(_SUPPLIED["steering"]), "SteeringSection")
+EvaluateSection = options_model(EvaluateSettings, tuple(_SUPPLIED["evaluate"]), "EvaluateSection")
 
 
 class DatasetSection(_ConvertOptions):
@@ -194,8 +198,9 @@ class SaeSection(StrictModel):
 class OrchestrationSection(StrictModel):
     """How the Prefect flows run the steps (no effect on any output)."""
 
-    capture: Literal["auto", "deployment", "local"] = "auto"  # auto: deployments when run from one
-    capture_deployment: str = "latent-steering-capture/gpu"
+    capture: Literal["auto", "deployment", "local"] = "auto"  # GPU phases (capture, evaluate): auto = deployments
+    capture_deployment: str = "latent-steering-capture/gpu"  # when run from one
+    evaluate_deployment: str = "latent-steering-evaluate/gpu-evaluate"
     pipeline_deployment: str = "latent-steering/pipeline"     # what a scheduled refresh starts
     shards_per_capture_run: int = Field(8, ge=1)  # episode groups per GPU flow run (one model load each)
     poll_seconds: float = Field(5.0, gt=0)        # how often the parent checks its capture runs
@@ -216,6 +221,7 @@ class RunConfig(StrictModel):
     slicing: SliceSection = SliceSection()
     sae: dict[int, SaeSection | None] = {}
     steering: SteeringSection = SteeringSection()
+    evaluate: EvaluateSection | None = EvaluateSection()  # null: no phase 4 and no held-out episodes
     orchestration: OrchestrationSection = OrchestrationSection()
 
     @field_validator("pairs")
@@ -295,6 +301,15 @@ class RunConfig(StrictModel):
         """Return the residual run folder `residuals/<name>`."""
         return self.output_root / layout.RESIDUALS_RUN_DIR.format(run=self.name)
 
+    def split_path(self, pair: PairSection) -> Path:
+        """Return `manifests/<pair>_split.json` (held-out episodes per task)."""
+        return self.output_root / layout.SPLIT_FILE.format(pair=pair.name)
+
+    @property
+    def holdout_fraction(self) -> float:
+        """Return the share of each task's episodes held out of slicing (0 without an evaluate section)."""
+        return self.evaluate.holdout_fraction if self.evaluate is not None else 0.0
+
     def slices_dir(self, pair: PairSection) -> Path:
         """Return `residuals/<pair>_slices` (holding layerNN/<concept>.pt)."""
         return self.output_root / layout.SLICES_DIR.format(pair=pair.name)
@@ -311,6 +326,15 @@ class RunConfig(StrictModel):
     def pairs_config_path(self, layer: int) -> Path:
         """Return the seed's pairs config of one layer, `latent_steering/layerNN_pairs.json`."""
         return self.steering_root / PAIRS_CONFIG_FILE.format(layer_dir=layout.layer_dir(layer))
+
+    @property
+    def eval_root(self) -> Path:
+        """Return `steering_eval/` (phase 4: layerNN/<pair>/ and the per-layer summaries)."""
+        return self.output_root / layout.STEERING_EVAL_ROOT
+
+    def eval_layer_path(self, layer: int) -> Path:
+        """Return `steering_eval/layerNN` (holding <pair>/dose_response.* and the layer summary)."""
+        return self.eval_root / layout.layer_dir(layer)
 
     def pair(self, name: str) -> PairSection:
         """Return the pair called `name`."""
@@ -345,9 +369,10 @@ class RunConfig(StrictModel):
             layers=self.layers,
         )
 
-    def slice_settings(self, layer: int) -> SliceSettings:
-        """Return the slicing settings of one layer."""
-        return SliceSettings(**self.slicing.model_dump(), layers=(layer,), token_type=self.capture.token_type)
+    def slice_settings(self, layer: int, holdout_episodes: tuple[int, ...] = ()) -> SliceSettings:
+        """Return the slicing settings of one layer, leaving out a pair's held-out episodes."""
+        return SliceSettings(**self.slicing.model_dump(), layers=(layer,), token_type=self.capture.token_type,
+                             holdout_episodes=tuple(sorted(holdout_episodes)))
 
     def sae_for(self, layer: int) -> SaeSection | None:
         """Return the SAE configured for `layer`, or None (residual-space directions only)."""
@@ -367,6 +392,12 @@ class RunConfig(StrictModel):
             sae_cfg_from=None if sae is None else sae.cfg_from,
             paths_relative_to="config",
         )
+
+    def evaluate_settings(self) -> EvaluateSettings:
+        """Return the evaluation settings (top-k from the steering section); raise when evaluation is off."""
+        if self.evaluate is None:
+            raise ValueError("the run config has `evaluate: null`; add an evaluate section to evaluate the vectors")
+        return EvaluateSettings(**self.evaluate.model_dump(), top_k=self.steering.top_k)
 
     def pairs_config(
         self, layer: int, tasks: Mapping[str, tuple[str, str]], slices: Mapping[str, Mapping[str, str]]

@@ -18,6 +18,7 @@ from steering_core.config import (
     CONFIG_FILE,
     CaptureSection,
     DatasetSection,
+    EvaluateSection,
     ModelSection,
     PairSection,
     RunConfig,
@@ -50,6 +51,8 @@ DEMO_LAYERS = (1, 2)           # two of the tiny model's four decoder layers
 DEMO_SAE_LATENTS = 256         # d_sae of the tiny SAEs (4x the tiny model's width of 64)
 DEMO_IMAGE_SIZE = 64           # dataset frames (real: 256); the tiny model resizes them to 28
 DEMO_STEPS = 24                # steps per generated demo (real demos: 100-300)
+# The tiny model is random: its dose-responses exercise the whole phase but measure nothing.
+TINY_MODEL_NOTE = "Tiny random demo model: these numbers mean nothing; on a real checkpoint they are the result."
 DEMO_PAIRS = (
     ("open_vs_close", DRAWER_OPEN, DRAWER_CLOSE),
     ("on_vs_off", STOVE_ON, STOVE_OFF),
@@ -91,6 +94,8 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
         capture=CaptureSection(batch_size=16, device="cpu", num_workers=0),  # tiny frames: decoding in-process is faster
         sae={layer: SaeSection(path=path) for layer, path in saes.items()},
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
+        evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
+                                 note=TINY_MODEL_NOTE),
     )
     return write_run_config(config, folder / CONFIG_FILE)
 
@@ -168,8 +173,11 @@ def format_summary(summary: dict[str, list[dict[str, Any]]], *, random_sae: bool
 
 
 def report_paths(config: RunConfig) -> list[Path]:
-    """Return the summary.md of every layer."""
-    return [config.layer_path(layer) / SUMMARY_MD for layer in config.layers]
+    """Return the summary.md of every layer: the steering vectors', then the evaluation's (when it runs)."""
+    reports = [config.layer_path(layer) / SUMMARY_MD for layer in config.layers]
+    if config.evaluate is not None:
+        reports += [config.eval_layer_path(layer) / SUMMARY_MD for layer in config.layers]
+    return reports
 
 
 def _number(value: float | None) -> str:

@@ -11,12 +11,19 @@ CONCEPT_MAP_FILE = "manifests/{pair}_concept_map.json"
 RESIDUALS_RUN_DIR = "residuals/{run}"
 SLICES_DIR = "residuals/{pair}_slices"
 SLICE_INDEX_FILE = "index.json"                     # beside the slices of one layer: settings, concepts
+SPLIT_FILE = "manifests/{pair}_split.json"   # held-out episodes per task (phase 4 evaluates on them)
 STEERING_ROOT = "latent_steering"
+STEERING_EVAL_ROOT = "steering_eval"       # phase 4: steering_eval/layerNN/<pair>/ and per-layer summaries
 # Files of one steering layer folder (STEERING_ROOT/layerNN/) and of its pair folders (layerNN/<pair>/).
 PAIR_SUMMARY_FILE = "directions.json"
 PAIRWISE_STATS_FILE = "pairwise_stats"  # + .pt / .json
 SUMMARY_MD = "summary.md"
 SUMMARY_JSON = "summary.json"
+# Files of one evaluation pair folder (STEERING_EVAL_ROOT/layerNN/<pair>/).
+DOSE_RESPONSE_FILE = "dose_response"  # + .json / .safetensors
+EFFICACY_PLOT = "efficacy_vs_alpha.png"
+SHIFT_PLOT = "shift_vs_alpha.png"
+TRAJECTORY_PLOT = "trajectory.png"
 
 
 def layer_dir(layer: int) -> str:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from prefect import get_run_logger, task
 
-from steering_core.data import concept_map, contrast, convert, filtering
+from steering_core.data import concept_map, contrast, convert, filtering, split
 from steering_core.data.contrast import ContrastSettings
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.dataset import dataset_fingerprint
@@ -92,3 +92,16 @@ def map_concepts(
     result = concept_map.build_concept_map(manifest_path, dataset_root, repo_id=repo_id, rename=rename)
     concept_map.write_concept_map(result, output)
     return {OUTPUTS: [output], "concepts": {name: sum(r.length for r in rows) for name, rows in result.concepts.items()}}
+
+
+@task(
+    name="split-episodes",
+    task_run_name="held-out split {pair}",
+    cache_policy=content_key("steering_core.data.split", manifest_path=file_digest),
+    **RESULTS,
+)
+def split_episodes(pair: str, manifest_path: str, holdout_fraction: float, output: str) -> dict:
+    """Write the held-out split of a manifest's episodes; return the held-out episode indices."""
+    result = split.split_episodes(contrast.read_manifest(manifest_path), holdout_fraction, where=manifest_path)
+    split.write_split(result, output)
+    return {OUTPUTS: [output], "holdout_episodes": list(result.holdout_episodes)}

@@ -13,7 +13,10 @@ from steering_core.layout import layer_dir
 
 
 def run_cli_steps(config: RunConfig, out: Path) -> None:
-    """Run filter, convert, manifest, concept-map, capture, slice and steer into `out` (the seed's layout)."""
+    """Run filter, convert, manifest, concept-map, capture, split, slice, steer and evaluate into `out` (the seed's layout).
+
+    The evaluation runs at the last layer only (with the run config's evaluate settings; none without them).
+    """
     repo = config.dataset.repo_id
     dataset, run_dir = out / "libero_lerobot" / repo, out / "residuals" / "demo"
     arch_file = out / "arch.json"
@@ -28,7 +31,8 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
          "--image-size", str(config.dataset.image_size)],
     ]
     for pair in config.pairs:
-        manifest, concept_map = out / "manifests" / f"{pair.name}.json", out / "manifests" / f"{pair.name}_map.json"
+        manifest = out / "manifests" / f"{pair.name}.json"
+        concept_map = out / "manifests" / f"{pair.name}_concept_map.json"
         steps += [
             ["manifest", "--lerobot-root", str(dataset), "--task-a-text", pair.positive, "--task-b-text",
              pair.negative, "--output", str(manifest), "--repo-id", repo],
@@ -39,8 +43,14 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
                   str(config.model.tokenizer), "--lerobot-root", str(dataset), "--repo-id", repo, "--output-dir",
                   str(run_dir), "--layers", layers, "--batch-size", str(config.capture.batch_size), "--device", "cpu",
                   "--num-workers", "0", "--arch-file", str(arch_file)])
-    steps += [["slice", "--run-dir", str(run_dir), "--concept-map-path", str(out / "manifests" / f"{p.name}_map.json"),
-               "--output-dir", str(out / "residuals" / f"{p.name}_slices"), "--layers", layers] for p in config.pairs]
+    fraction = config.evaluate.holdout_fraction if config.evaluate is not None else 0.0
+    steps += [["split", "--manifest", str(out / "manifests" / f"{p.name}.json"), "--output",
+               str(out / "manifests" / f"{p.name}_split.json"), "--holdout-fraction", str(fraction)]
+              for p in config.pairs]
+    steps += [["slice", "--run-dir", str(run_dir), "--concept-map-path",
+               str(out / "manifests" / f"{p.name}_concept_map.json"), "--output-dir",
+               str(out / "residuals" / f"{p.name}_slices"), "--layers", layers,
+               "--split", str(out / "manifests" / f"{p.name}_split.json")] for p in config.pairs]
     runner = CliRunner()
     for step in steps:
         result = runner.invoke(app, step)
@@ -59,3 +69,15 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
             "--layer", str(layer), "--device", "cpu", "--batch-size", str(config.steering.batch_size),
             "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k)])
         assert result.exit_code == 0, (result.output, result.exception)
+    evaluate = config.evaluate
+    if evaluate is None:
+        return
+    layer = config.layers[-1]
+    result = runner.invoke(app, [
+        "evaluate", "--pairs-config", str(out / f"layer{layer}_pairs.json"), "--layer", str(layer),
+        "--data-root", str(out), "--lerobot-root", str(dataset), "--repo-id", repo,
+        "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
+        "--arch-file", str(arch_file), "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k),
+        "--max-frames", str(evaluate.max_frames), "--noise-seeds", str(evaluate.noise_seeds),
+        "--batch-size", str(evaluate.batch_size), "--device", "cpu"])
+    assert result.exit_code == 0, (result.output, result.exception)

@@ -26,6 +26,7 @@ from bench import (  # noqa: E402
     capture_throughput,
     cli_startup,
     concept_map_speed,
+    evaluate_cost,
     policy_sweep,
     real_size,
     run_all,
@@ -111,6 +112,30 @@ def test_real_size_section_runs_at_tiny_size(cache, tmp_path):
     # the selected-rows call does less work than the full one by the analytic count
     assert 0 < values["capture's call / every row, analytic FLOPs"] < 1
     assert "Opt-in" in real_size.__doc__ and "real_size" in run_all.OPT_IN and "real_size" not in run_all.BENCHMARKS
+
+
+def test_evaluation_sweep_gives_the_naive_loops_actions(cache, tmp_path):
+    result = run_quick(evaluate_cost, cache, tmp_path)
+    assert result.checks["max_abs_difference"] < 1e-4
+    assert result.checks["naive_calls"] == 2 * 1 * (2 * 3 + 1)  # frames x seeds x (directions x alphas + swap)
+    assert [row["case"] for row in result.table] == ["measured cpu, layer 2",
+                                                     "real pi0.5, layer 12, one pair (analytic)"]
+
+
+def test_evaluation_flop_model_known_answers():
+    from steering_core.evaluate import EvaluateSettings
+
+    real = Pi05Arch()
+    parts = evaluate_cost.call_flops(real)
+    assert parts["vision"] + real.depth * parts["layer"] + parts["expert"] == pytest.approx(parts["full"])
+    # 2 frames x 1 seed; 1 direction x 2 nonzero alphas in 2 calls of one entry each (the first also runs alpha 0)
+    settings = EvaluateSettings(alphas=(-1.0, 0.0, 1.0), max_frames=2, noise_seeds=1, entries_per_call=1)
+    flops = evaluate_cost.pair_layer_flops(real, 12, settings, directions=1)
+    shared = parts["vision"] + 13 * parts["layer"]
+    per_entry = 5 * parts["layer"] + parts["expert"]
+    assert flops["ours"] == pytest.approx(2 * (2 * shared + 3 * per_entry + parts["full"]))
+    assert flops["naive"] == pytest.approx(2 * 4 * parts["full"])
+    assert evaluate_cost.h100_seconds(flops["ours"]) == pytest.approx(flops["ours"] / (0.4 * 989e12))
 
 
 def test_policy_sweep_equals_separate_calls(cache, tmp_path):

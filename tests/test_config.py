@@ -213,6 +213,25 @@ def test_documented_example_is_valid(tmp_path):
     assert config.pairs[1].concept("turn on the stove") == "stove_on"
 
 
+def test_evaluate_section_holds_out_episodes_and_takes_top_k_from_steering(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID + "evaluate: {holdout_fraction: 0.25, max_frames: 6, alphas: [0, 2, -2]}\n"))
+    settings = config.evaluate_settings()
+    assert (settings.holdout_fraction, settings.max_frames, settings.alphas, settings.top_k) == (0.25, 6, (-2.0, 0.0, 2.0), 7)
+    assert config.holdout_fraction == 0.25
+    assert config.slice_settings(2, (5, 3)).holdout_episodes == (3, 5)
+    assert config.slice_settings(2).holdout_episodes == ()
+    assert config.split_path(config.pairs[0]) == tmp_path / "data/manifests/open_vs_close_split.json"
+    assert config.eval_layer_path(2) == tmp_path / "data/steering_eval/layer02"
+    off = load_run_config(write_yaml(tmp_path, VALID + "evaluate: null\n", name="off.yaml"))
+    assert off.holdout_fraction == 0.0
+    with pytest.raises(ValueError, match="evaluate: null"):
+        off.evaluate_settings()
+    assert load_error(tmp_path, VALID + "evaluate: {top_k: 3}\n") == ["evaluate.top_k: set by the run config: use `steering.top_k`"]
+    assert load_error(tmp_path, VALID + "evaluate: {alphas: [1, 2]}\n")[0].startswith("evaluate.alphas: alphas [1.0, 2.0] must include 0")
+    assert load_error(tmp_path, VALID + "slicing: {holdout_episodes: [1]}\n") == [
+        "slicing.holdout_episodes: set by the run config: use `evaluate.holdout_fraction`"]
+
+
 EXISTING = VALID.replace("sources:\n  folders: [demos, /abs/more_demos]\n", "").replace(
     "dataset: {repo_id: libero_ds, image_size: 64}", "dataset: {existing: hf/physical-intelligence/libero}")
 

@@ -7,7 +7,7 @@ One module-wide sequence, each step a fixture building on the previous one:
    Prefect's API);
 3. a refresh with nothing changed ends at once without running the pipeline;
 4. one demo file added, then a refresh: only its episodes are captured, only the pair it
-   belongs to is recomputed, existing shards are untouched.
+   belongs to is recomputed (and re-evaluated), existing shards are untouched.
 """
 
 from __future__ import annotations
@@ -236,6 +236,21 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
             assert (config.slices_dir(config.pair(pair)) / layer_dir(layer) / "index.json").is_file()
     assert {"capture episodes 0-7", "pairwise stats layer 1", "report layer 2"} <= set(tasks)
     assert tasks["capture episodes 0-7"].tags == ["gpu"]
+    # phase 4: a held-out split per pair, one evaluation per (pair, layer) on the gpu tag, a summary per layer
+    for pair in ("open_vs_close", "on_vs_off"):
+        split = read_json(config.split_path(config.pair(pair)))
+        held_out = {e for side in split["tasks"].values() for e in side["holdout"]}
+        assert len(held_out) == 2 and f"held-out split {pair}" in tasks
+        for layer in config.layers:
+            assert tasks[f"evaluate {pair} layer {layer}"].tags == ["gpu"]
+            record = read_json(config.eval_layer_path(layer) / pair / "dose_response.json")
+            assert record["in_sample"] is False and {f["episode_index"] for f in record["frames"]} == held_out
+            index = read_json(config.slices_dir(config.pair(pair)) / layer_dir(layer) / "index.json")
+            sliced = {s["episode_index"] for c in index["concepts"].values() for s in c["segments"]}
+            assert not sliced & held_out and index["settings"]["holdout_episodes"] == sorted(held_out)
+    for layer in config.layers:
+        assert f"evaluation summary layer {layer}" in tasks
+        assert "these numbers mean nothing" in (config.eval_layer_path(layer) / "summary.md").read_text()
     assert read_run_metadata(config.run_dir).episodes == tuple(range(8))
     for layer in config.layers:
         assert (config.layer_path(layer) / "summary.md").is_file()
@@ -265,6 +280,7 @@ def test_demo_prints_summary_and_locations(first_run, demo_config):
     assert "The demo's SAEs are random" in output
     assert f"outputs: {config.output_root}" in output
     assert f"report:  {config.layer_path(2) / 'summary.md'}" in output
+    assert f"report:  {config.eval_layer_path(2) / 'summary.md'}" in output
 
 
 def test_closing_table_names_every_task_run_with_its_state(first_run, demo_config):
@@ -293,8 +309,9 @@ def test_injected_fault_is_retried_and_recorded(first_run):
 
 def test_artifacts_are_published(first_run):
     progress = ["capture-demo-episodes-0-7", "convert-libero-demo-lerobot", "slice-on-vs-off-layer02",
-                "encode-open-vs-close-negative-layer01"]
-    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress]
+                "encode-open-vs-close-negative-layer01",
+                "evaluate-on-vs-off-layer01"]
+    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress, "demo-evaluation-layer02"]
     with get_client(sync_client=True) as client:
         artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)))
     by_key = {a.key: a for a in artifacts}
@@ -306,6 +323,7 @@ def test_artifacts_are_published(first_run):
     assert report.count("](data:image/png;base64,") == 3 and "](pairwise_cosine.png)" not in report
     assert "file://" not in report and "## Files" in report
     assert by_key["demo-pairwise-cosines-layer02"].type == "table"
+    assert by_key["demo-evaluation-layer02"].data.startswith("# Steering evaluation, layer02")
     assert "open_vs_close vs on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
 
 
@@ -320,7 +338,7 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
         ours, theirs = read_manifest(config.manifest_path(pair)), read_manifest(out / "manifests" / f"{pair.name}.json")
         assert (ours.axis, ours.segments) == (theirs.axis, theirs.segments)
         assert (read_json(config.concept_map_path(pair))["concepts"]
-                == read_json(out / "manifests" / f"{pair.name}_map.json")["concepts"])
+                == read_json(out / "manifests" / f"{pair.name}_concept_map.json")["concepts"])
     # shards are byte-identical: same rows, same dtype, same header
     assert ([(r.file, r.sha256) for r in read_run_metadata(config.run_dir).shards]
             == [(r.file, r.sha256) for r in read_run_metadata(run_dir).shards])
@@ -337,6 +355,14 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
                 assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
         assert (read_json(config.layer_path(layer) / "pairwise_stats.json")["entries"]
                 == read_json(out / "latent_steering" / layer_dir(layer) / "pairwise_stats.json")["entries"])
+
+    # phase 4 at the last layer (the CLI's `evaluate`): the same frames, noise, directions and actions
+    layer = config.layers[-1]
+    for pair in config.pairs:
+        ours = load_file(config.eval_layer_path(layer) / pair.name / "dose_response.safetensors")
+        theirs = load_file(out / "steering_eval" / layer_dir(layer) / pair.name / "dose_response.safetensors")
+        for key in ("actions", "swap_actions", "efficacy", "alphas_vector_units", "z"):
+            assert torch.equal(ours[key], theirs[key]), (pair.name, key)
 
 
 def test_capture_cli_with_run_config_agrees_with_the_pipeline(first_run, demo_config):
@@ -398,14 +424,19 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     tasks = task_runs_under(state.state_details.flow_run_id)
     recomputed = {name for name, t in tasks.items() if t.state.name != "Cached"}
     steps = {f"{step} layer {layer}" for layer in config.layers for step in (
-        "slice open_vs_close", "encode open_vs_close positive", "directions open_vs_close", "pairwise stats", "report")}
+        "slice open_vs_close", "encode open_vs_close positive", "directions open_vs_close", "pairwise stats", "report",
+        "evaluate open_vs_close", "evaluation summary")}
+    # the held-out split of both pairs runs again (their manifests record the dataset's new fingerprint)
     assert recomputed == {
         f"filter demos into {config.filtered_dir}", f"convert to LeRobot {config.dataset.repo_id}",
         "manifest open_vs_close", "manifest on_vs_off", "concept map open_vs_close", "concept map on_vs_off",
+        "held-out split open_vs_close", "held-out split on_vs_off",
         "capture episodes 8-8", f"run metadata {config.run_dir}", PREFLIGHT, *steps,
     }
     assert all(tasks[name].state.name == "Completed" for name in recomputed)
     assert tasks["capture episodes 0-7"].state.name == "Cached"
+    # the refreshed vector re-evaluates only its own pair
+    assert {tasks[f"evaluate on_vs_off layer {layer}"].state.name for layer in config.layers} == {"Cached"}
 
     # only the new episode's shards were written; every old shard is the same file as before
     shards_after = shard_files(config)
@@ -417,7 +448,10 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     counts = read_json(config.layer_path(1) / "open_vs_close" / "directions.json")["counts"]
     index = read_json(config.slices_dir(config.pair("open_vs_close")) / "layer01" / "index.json")
     assert counts["positive"] == index["concepts"][DRAWER_OPEN]["rows"]
-    assert len(index["concepts"][DRAWER_OPEN]["segments"]) == 3
+    # three drawer-opening episodes now: the split holds one out, the slices hold the other two
+    split = read_json(config.split_path(config.pair("open_vs_close")))["tasks"][DRAWER_OPEN]
+    assert len(split["train"]) + len(split["holdout"]) == 3 and len(split["holdout"]) == 1
+    assert [s["episode_index"] for s in index["concepts"][DRAWER_OPEN]["segments"]] == split["train"]
 
 
 def test_bad_input_fails_the_flow_in_its_preflight_task(tmp_path):

@@ -12,6 +12,8 @@ SUBPACKAGES = (
     "steering_core.capture",
     "steering_core.sae",
     "steering_core.synthetic",
+    "steering_core.evaluate",
+    "steering_core.evaluate.run",
     "steering_core.config",
     "steering_core.demo",
     "steering_core.refresh",

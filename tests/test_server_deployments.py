@@ -40,7 +40,7 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parent.parent
 PREFECT = [sys.executable, "-m", "prefect"]
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
-RUN_TIMEOUT = 420  # seconds for the whole deployment run on a busy 2-core machine
+RUN_TIMEOUT = 900  # seconds for the whole deployment run (4 evaluation runs included) on a busy 2-core machine
 WORKER_GRACE = 5   # seconds a worker gets after SIGTERM before SIGKILL (they rarely stop by themselves)
 
 
@@ -155,11 +155,14 @@ def server(tmp_path):
 
 
 def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, tmp_path):
+    """Capture and the steering evaluation run as deployments on the gpu pool, the SAE phase on the cpu pool."""
     env, processes = server
     config_path = build_demo(tmp_path / "demo", demos_per_task=2)
     # two capture runs (4 shard groups each) so the gpu pool has work to share
     raw = yaml.safe_load(config_path.read_text())
     raw["orchestration"] = {"shards_per_capture_run": 4, "poll_seconds": 2}
+    # the smallest evaluation: where it runs is under test here, not what it measures
+    raw["evaluate"] |= {"max_frames": 2, "noise_seeds": 1, "alphas": [-1.0, 0.0, 1.0], "bootstrap": 20}
     config_path.write_text(yaml.safe_dump(raw))
     config = load_run_config(config_path)
 
@@ -184,6 +187,11 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
         assert len(captures) == 2
         assert {(r.work_pool_name, r.state.name) for r in captures} == {("gpu", "Completed")}
         assert {r.parent_task_run_id is not None for r in captures} == {True}  # linked to the parent
+        # phase 4: one evaluation run per (pair, layer), on the gpu pool too
+        evaluations = client.read_flow_runs(
+            flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-evaluate"])))
+        assert len(evaluations) == 2 * len(config.layers)
+        assert {(r.work_pool_name, r.state.name) for r in evaluations} == {("gpu", "Completed")}
 
         runs = {r.id: r for r in [parent, *captures]}
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=list(runs))))
@@ -202,6 +210,8 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
     for layer in config.layers:
         assert (config.layer_path(layer) / "summary.md").is_file()
         assert (config.layer_path(layer) / "on_vs_off" / "residual_direction.pt").is_file()
+        assert (config.eval_layer_path(layer) / "on_vs_off" / "dose_response.json").is_file()
+        assert (config.eval_layer_path(layer) / "summary.md").is_file()
 
     # the refresh deployment sees the sources of that successful run: it ends without a pipeline run
     refreshed = run_deployment_and_wait(env, "latent-steering-refresh/scheduled", tmp_path / "logs" / "worker-cpu.log")

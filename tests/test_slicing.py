@@ -296,6 +296,32 @@ def test_slice_command(tmp_path, run_dir, concept_map):
     assert "re-run capture with --layers 12" in result.output
 
 
+def test_held_out_episodes_never_reach_the_slices(tmp_path, run_dir, concept_map):
+    """Slices with episodes 2 and 3 held out equal the brute force over a map without them; none of their rows."""
+    held_out = (2, 3)
+    out = tmp_path / "slices"
+    written = slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,), holdout_episodes=held_out))
+    payload = json.loads(concept_map.read_text())
+    payload["concepts"] = {name: [s for s in segs if s["episode_index"] not in held_out]
+                           for name, segs in payload["concepts"].items()}
+    reduced = write_concept_map(tmp_path / "train_map.json", payload["concepts"])
+    expected = brute_force(run_dir, reduced, 2)
+    index = json.loads(written[2].read_text())
+    assert index["settings"]["holdout_episodes"] == list(held_out)
+    for name, (rows, keys) in expected.items():
+        copy = load_file(out / "layer02" / index["concepts"][name]["safetensors"])
+        assert torch.equal(copy["residuals"], rows)
+        assert not set(copy["episode_index"].tolist()) & set(held_out)
+    # holding nothing out reproduces the slices of a run without a split, byte for byte
+    plain, empty = tmp_path / "plain", tmp_path / "empty"
+    slice_concepts(run_dir, concept_map, plain, SliceSettings(layers=(2,)))
+    slice_concepts(run_dir, concept_map, empty, SliceSettings(layers=(2,), holdout_episodes=()))
+    for name in (OPEN, CLOSE):
+        stem = safe_file_name(name)
+        for suffix in (".pt", ".safetensors"):
+            assert (plain / "layer02" / f"{stem}{suffix}").read_bytes() == (empty / "layer02" / f"{stem}{suffix}").read_bytes()
+
+
 def test_concept_map_of_another_dataset_is_refused(tmp_path, concept_map):
     """Same episode layout, other dataset: the map's repo_id or dataset content must be the run's."""
     from helpers_dataset import contrast_episodes, write_dataset

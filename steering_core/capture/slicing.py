@@ -66,6 +66,7 @@ class SliceSettings(StrictModel):
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
     verify_checksums: bool = True  # re-hash every shard against metadata.json before reading it (a damaged one stops)
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
+    holdout_episodes: tuple[int, ...] = ()  # episodes held out for evaluation: their frames are never sliced
 
 
 @dataclass
@@ -123,7 +124,7 @@ def slice_concepts(
     """
     run_dir, output_dir = Path(run_dir), Path(output_dir)
     metadata = read_run_metadata(run_dir)
-    concept_map = read_concept_map(concept_map_path)
+    concept_map = read_concept_map(concept_map_path).without_episodes(settings.holdout_episodes)
     _check_request(run_dir, metadata, concept_map, concept_map_path, settings)
     layers = list(settings.layers)
     total = sum(len(metadata.layer_shards(layer)) for layer in layers)

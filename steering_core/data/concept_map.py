@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +76,16 @@ class ConceptMap(StrictModel):
         if problems:
             raise ValueError("; ".join(problems))
         return self
+
+    def without_episodes(self, episodes: Collection[int]) -> ConceptMap:
+        """Return this map without the segments of `episodes` (held-out episodes never reach slicing)."""
+        dropped = set(episodes)
+        if not dropped:
+            return self
+        concepts = {c: tuple(r for r in rows if r.episode_index not in dropped) for c, rows in self.concepts.items()}
+        return self.model_copy(update={
+            "concepts": concepts, "concept_count": {c: len(rows) for c, rows in concepts.items()},
+        })
 
 
 def build_concept_map(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,10 +21,8 @@ from steering_core.layout import (
     SUMMARY_JSON,
     SUMMARY_MD,
 )
+from steering_core.plots import figure, save_png
 from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +30,6 @@ REPORT_FORMAT_VERSION = 1
 COSINE_PLOT = "pairwise_cosine.png"
 TOP_LATENTS_PLOT = "top_latents_{pair}.png"
 FVU_LIMIT = 1.0  # above it the SAE explains less of the residuals' variance than their mean does
-_DPI = 120
 
 
 def write_report(layer_path: Path, *, top_k: int = 20) -> Path:
@@ -129,7 +126,7 @@ def _plot_cosines(path: Path, pairwise: dict[str, Any]) -> str:
     keys = ["residual_cosine"] + (["latent_cosine"] if pairwise["sae_used"] else [])
     names = pairwise["pairs"]
     side = 1.2 + 0.75 * len(names)
-    fig = _figure(figsize=(side * len(keys) + 2.5, side + 1.2))
+    fig = figure(figsize=(side * len(keys) + 2.5, side + 1.2))
     axes = fig.subplots(1, len(keys), squeeze=False)
     for column, (ax, key) in enumerate(zip(axes[0], keys, strict=True)):
         matrix = _cosine_matrix(pairwise, key)
@@ -140,7 +137,7 @@ def _plot_cosines(path: Path, pairwise: dict[str, Any]) -> str:
         for (i, j), value in np.ndenumerate(matrix):
             ax.text(j, i, f"{value:.2f}", ha="center", va="center", color="white" if abs(value) > 0.6 else "black")
     fig.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="cosine of the two pairs' directions")
-    _save(fig, path)
+    save_png(fig, path)
     return path.name
 
 
@@ -152,7 +149,7 @@ def _plot_top_latents(path: Path, pair: dict[str, Any]) -> str:
         for item in latents
     ]
     values = [item["value"] for item in latents]
-    fig = _figure(figsize=(8, 1.4 + 0.32 * len(latents)))
+    fig = figure(figsize=(8, 1.4 + 0.32 * len(latents)))
     ax = fig.subplots()
     ax.barh(range(len(values)), values, color=["#c0392b" if v > 0 else "#2471a3" for v in values])
     ax.set_yticks(range(len(values)), labels, fontsize=8)
@@ -165,25 +162,8 @@ def _plot_top_latents(path: Path, pair: dict[str, Any]) -> str:
         "label: latent index (firing rate on positive | negative rows)",
         fontsize=9,
     )
-    _save(fig, path)
+    save_png(fig, path)
     return path.name
-
-
-def _figure(figsize: tuple[float, float]) -> Figure:
-    """Return a new figure on the Agg canvas: files only, no pyplot state, no display."""
-    # imported here: matplotlib costs most of a second, which every CLI start would pay
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=figsize, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _save(fig: Figure, path: Path) -> None:
-    """Save a figure atomically as PNG."""
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=_DPI, bbox_inches="tight")
 
 
 def _number(value: float | None, spec: str = ".3f") -> str:

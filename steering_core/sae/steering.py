@@ -282,7 +282,7 @@ def slice_reduction(concept_file: Path) -> str | None:
 
 def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
     """Write cosines and norms of every two pairs' directions (the seed's pairwise_stats.pt); return the .pt path."""
-    vectors = {name: _pair_vectors(layer_path / name) for name in pair_names}
+    vectors = {name: read_pair_vectors(layer_path / name) for name in pair_names}
     sae_used = all("latent" in vectors[name] for name in pair_names)
     entries, extras = {}, {}
     for i, a in enumerate(pair_names):
@@ -394,7 +394,7 @@ def _write_tensor_dict(folder: Path, files: dict[str, str], stem: str, tensor_ke
     files[stem] = {"pt": f"{stem}.pt", "safetensors": f"{stem}.safetensors", "tensor": tensor_key}
 
 
-def _pair_vectors(pair_path: Path) -> dict[str, torch.Tensor]:
+def read_pair_vectors(pair_path: Path) -> dict[str, torch.Tensor]:
     """Return a pair's directions from its safetensors copies: residual, and latent + mean when an SAE was used."""
     files = read_json(pair_path / PAIR_SUMMARY_FILE)["files"]
     vectors = {"residual": load_file(pair_path / files[RESIDUAL_DIRECTION_FILE]["safetensors"])["residual_direction"]}

@@ -1,0 +1,209 @@
+"""Evaluation cost: the dose-response sweep against the naive loop of full `sample_actions` calls.
+
+Ours is `steering_core.evaluate.sweep.run_sweep`: per frame and noise seed, one `sample_actions_sweep` call
+per chunk of (direction, α) entries, the prefix below the steered layer computed once per call and the
+unsteered α = 0 entry shared by every direction, plus one call with the other task's instruction (the
+swap reference). The naive loop runs one full `sample_actions` per frame × α × direction × seed (and the
+same swap calls). Both use the same mid-size pi0.5 (as the capture benchmark), frames, prompts, noise and
+directions, and must give the same actions.
+
+Next to the measured ratio: the analytic FLOPs (matrix products) and H100 time of one pair at one layer
+at the real size with the default evaluate settings, for both.
+
+    uv run python -m bench.evaluate_cost [--device cuda] [--quick]
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bench.capture_throughput import (
+    ARCH,
+    CAMERA_SLOTS,
+    H100_BF16_DENSE_TFLOPS,
+    LANGUAGE_SLOTS,
+    MFU,
+    REAL_ARCH,
+    decoder_layer_flops,
+    model_files,
+    seed_flops,
+    siglip_flops,
+)
+from bench.common import Result, cache_dir, command, finish, parser, timed
+from steering_core.devices import resolve_device
+from steering_core.evaluate import EvaluateSettings
+from steering_core.evaluate.frames import EvalFrame
+from steering_core.evaluate.sweep import frame_noise, run_sweep
+from steering_core.pi05 import Pi05Arch, PromptTokenizer, libero_camera_slots
+from steering_core.synthetic.pi05 import tiny_arch
+
+# ----------------------------------------------------------------------------- settings
+
+LAYER = 12                      # the seed's SAE layer
+FRAMES = 1                      # frames of the negative task
+NOISE_SEEDS = 1
+DIRECTIONS = 3                  # e.g. residual, mean difference, top-k: every direction costs the same
+ALPHAS = (-4.0, -2.0, 0.0, 2.0, 4.0)
+NUM_STEPS = 10                  # openpi's denoising steps
+ROUNDS = 2                      # alternating ours/naive rounds, best kept (load from other jobs hits both)
+TARGET = 0.4                    # ours / naive wall time at most
+POSITIVE, NEGATIVE = "open the top drawer of the cabinet", "close the top drawer of the cabinet"
+QUICK = {"arch": tiny_arch(), "layer": 2, "frames": 2, "directions": 2, "alphas": (-2.0, 0.0, 2.0)}
+
+
+# ----------------------------------------------------------------------------- analytic cost
+
+
+def call_flops(arch: Pi05Arch) -> dict[str, float]:
+    """Return the FLOPs of one frame's pieces: vision, one prefix decoder layer, the expert's denoising loop."""
+    tokens = CAMERA_SLOTS * arch.tokens_per_image + LANGUAGE_SLOTS
+    vision = siglip_flops(arch, CAMERA_SLOTS)
+    layer = decoder_layer_flops(arch, tokens, tokens)
+    expert = seed_flops(arch, 1) - vision - arch.depth * layer
+    return {"vision": vision, "layer": layer, "expert": expert, "full": seed_flops(arch, 1)}
+
+
+def pair_layer_flops(arch: Pi05Arch, layer: int, settings: EvaluateSettings, directions: int) -> dict[str, float]:
+    """Return (ours, naive) FLOPs of one pair at one layer: every frame, seed, direction and α, plus the swap."""
+    parts = call_flops(arch)
+    steered = directions * (len(settings.alphas) - 1)
+    chunks = math.ceil(steered / settings.entries_per_call)
+    shared = parts["vision"] + (layer + 1) * parts["layer"]           # once per sweep call
+    per_entry = (arch.depth - layer - 1) * parts["layer"] + parts["expert"]
+    per_frame_seed_ours = chunks * shared + (1 + steered) * per_entry + parts["full"]
+    per_frame_seed_naive = directions * len(settings.alphas) * parts["full"] + parts["full"]
+    runs = settings.max_frames * settings.noise_seeds
+    return {"ours": runs * per_frame_seed_ours, "naive": runs * per_frame_seed_naive}
+
+
+def h100_seconds(flops: float) -> float:
+    """Return seconds on an H100 at MFU of its dense bf16 peak."""
+    return flops / (MFU * H100_BF16_DENSE_TFLOPS * 1e12)
+
+
+# ----------------------------------------------------------------------------- inputs and the two sides
+
+
+def build_policy(folder: Path, arch: Pi05Arch, device: torch.device) -> tuple[Any, Path]:
+    """Return (the policy of a generated checkpoint of `arch`, written once; the generated tokenizer file)."""
+    from steering_core.pi05.policy import Pi05Policy
+
+    # "policy-": checkpoints cached before the action expert was written lack its tensors
+    checkpoint, tokenizer = model_files(folder, arch, prefix="policy")
+    return Pi05Policy.from_checkpoint(checkpoint, arch=arch, device=device, tokenizer_path=tokenizer), tokenizer
+
+
+def frame_inputs(arch: Pi05Arch, frames: int) -> dict[str, Any]:
+    """Return random 256 px LIBERO cameras of `frames` frames in pi0.5's three slots."""
+    generator = torch.Generator().manual_seed(0)
+    image, wrist = (torch.rand(frames, 3, 256, 256, generator=generator) for _ in range(2))
+    images, masks = libero_camera_slots(image, wrist, arch.image_size)
+    return {"images": images, "image_masks": masks}
+
+
+def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prompts: dict[str, Any],
+              directions: dict[str, torch.Tensor], layer: int, alphas: tuple[float, ...], seeds: int) -> torch.Tensor:
+    """Return robot actions (directions, alphas, frames, seeds, H, 7): one full sample_actions each, plus swaps."""
+    from steering_core.pi05.steering import Steering
+
+    own, other = prompts["negative"], prompts["positive"]
+    out = torch.zeros(len(directions), len(alphas), len(frames), seeds, policy.action_horizon, 7, dtype=torch.float64)
+    device = policy.device
+    for f, frame in enumerate(frames):
+        images = [t[f : f + 1].to(device) for t in inputs["images"]]
+        masks = [t[f : f + 1].to(device) for t in inputs["image_masks"]]
+        for s in range(seeds):
+            noise = frame_noise(frame, s, 0, policy.action_horizon, policy.action_dim)[None].to(device)
+            for d, vector in enumerate(directions.values()):
+                unit = (vector / vector.norm()).to(device)
+                for a, alpha in enumerate(alphas):
+                    steering = None if alpha == 0 else Steering(layer=layer, vector=unit, alpha=alpha,
+                                                                token_mask=own.instruction_mask.to(device))
+                    actions = policy.sample_actions(images, masks, own.tokens.to(device), own.token_mask.to(device),
+                                                    noise=noise, num_steps=NUM_STEPS, steering=steering)
+                    out[d, a, f, s] = torch.from_numpy(np.asarray(policy.robot_actions(actions), np.float64))[0]
+            policy.sample_actions(images, masks, other.tokens.to(device), other.token_mask.to(device), noise=noise,
+                                  num_steps=NUM_STEPS)
+    return out
+
+
+def main(argv: list[str] | None = None) -> Result:
+    """Run the benchmark; return (and print) its result."""
+    from steering_core.evaluate.run import task_prompts
+    from steering_core.pi05.steering import Steering
+
+    args = parser(__doc__.splitlines()[0]).parse_args(argv)
+    device = resolve_device(args.device)
+    arch, layer, n_frames, n_directions, alphas = ARCH, LAYER, FRAMES, DIRECTIONS, ALPHAS
+    if args.quick:
+        arch, layer, n_frames = QUICK["arch"], QUICK["layer"], QUICK["frames"]
+        n_directions, alphas = QUICK["directions"], QUICK["alphas"]
+    policy, tokenizer = build_policy(cache_dir(args) / "evaluate", arch, device)
+    prompts = task_prompts(PromptTokenizer(tokenizer), POSITIVE, NEGATIVE)
+    inputs = frame_inputs(arch, n_frames)
+    frames = [EvalFrame("negative", 0, i, i) for i in range(n_frames)]
+    generator = torch.Generator().manual_seed(1)
+    directions = {f"d{i}": torch.randn(arch.width, generator=generator) for i in range(n_directions)}
+
+    def ours() -> torch.Tensor:
+        return run_sweep(policy, Steering, frames, lambda _: inputs, prompts, directions, layer=layer, alphas=alphas,
+                         residual_norm=1.0, noise_seeds=NOISE_SEEDS, seed=0, num_steps=NUM_STEPS,
+                         batch_size=n_frames, entries_per_call=EvaluateSettings().entries_per_call).steered
+
+    def naive() -> torch.Tensor:
+        return run_naive(policy, inputs, frames, prompts, directions, layer, alphas, NOISE_SEEDS)
+
+    ours()  # warm-up: first-call allocations
+    ours_times, naive_times, differences = [], [], []
+    for _ in range(ROUNDS):
+        mine, seconds = timed(ours, device)
+        ours_times.append(seconds)
+        reference, seconds = timed(naive, device)
+        naive_times.append(seconds)
+        differences.append(float((mine - reference).abs().max()))
+    ratio = min(ours_times) / min(naive_times)
+    calls = n_frames * NOISE_SEEDS * (n_directions * len(alphas) + 1)
+    real = pair_layer_flops(REAL_ARCH, LAYER, EvaluateSettings(), 3 + EvaluateSettings().random_directions)
+    rows = [
+        {"case": f"measured {device.type}, layer {layer}", "frames x seeds": f"{n_frames} x {NOISE_SEEDS}",
+         "directions x alphas": f"{n_directions} x {len(alphas)}", "ours s": min(ours_times),
+         "naive s": min(naive_times), "ratio": ratio, "ours TFLOP": "", "naive TFLOP": "", "H100 ours s": "",
+         "H100 naive s": ""},
+        {"case": f"real pi0.5, layer {LAYER}, one pair (analytic)", "frames x seeds":
+         f"{EvaluateSettings().max_frames} x {EvaluateSettings().noise_seeds}",
+         "directions x alphas": f"{3 + EvaluateSettings().random_directions} x {len(EvaluateSettings().alphas)}",
+         "ours s": "", "naive s": "", "ratio": real["ours"] / real["naive"], "ours TFLOP": real["ours"] / 1e12,
+         "naive TFLOP": real["naive"] / 1e12, "H100 ours s": h100_seconds(real["ours"]),
+         "H100 naive s": h100_seconds(real["naive"])},
+    ]
+    result = Result(
+        name="evaluate",
+        title="9. Steering evaluation cost (one pair, one layer)",
+        command=command("evaluate_cost", args),
+        measured=f"{min(ours_times):.1f} s",
+        baseline=f"{min(naive_times):.1f} s",
+        ratio=ratio,
+        target=f"<= {TARGET}x (layer {layer})",
+        met=ratio <= TARGET,
+        table=rows,
+        checks={"max_abs_difference": max(differences), "naive_calls": calls},
+        notes=[
+            f"model{'' if args.quick else ' (the capture benchmark mid-size pi0.5)'}: LM width {arch.width} x depth {arch.depth}, SigLIP width "
+            f"{arch.vision_width} x depth {arch.vision_depth}; {NUM_STEPS} denoising steps; naive: {calls} full "
+            f"sample_actions calls; best of {ROUNDS} round(s) after a warm-up.",
+            f"same actions on both sides: max |ours - naive| over every robot action = {max(differences):.2e}.",
+            "real size: the default evaluate settings (3 named + 8 random directions, 9 alphas, 32 frames, 4 seeds, "
+            f"{EvaluateSettings().entries_per_call} entries per sweep call) and {LANGUAGE_SLOTS} language slots; "
+            f"FLOPs count matrix products only; H100 at {MFU:.0%} of {H100_BF16_DENSE_TFLOPS:.0f} TFLOP/s dense bf16.",
+        ],
+    )
+    return finish(result, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,75 @@
+"""The directions compared by the evaluation, all in the residual space of one layer.
+
+- `residual_direction`: the pair's SAE direction (latent difference @ W_dec, as phase 3 wrote it);
+- `mean_difference_direction`: the plain difference of the concepts' residual means;
+- `top_k_latents`: only the k largest |latent differences|, decoded without b_dec;
+- `random_00..`: Gaussian directions of the same norm as `residual_direction` (the null band).
+
+Without an SAE, phase 3's `residual_direction` is the mean difference itself; it is evaluated once.
+There is no action-expert direction: the capture does not record the expert's `decision` residuals.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from steering_core.sae.model import Sae
+from steering_core.sae.steering import read_pair_vectors
+
+RESIDUAL = "residual_direction"
+MEAN_DIFFERENCE = "mean_difference_direction"
+TOP_K = "top_k_latents"
+RANDOM = "random_{index:02d}"
+RANDOM_PREFIX = "random_"
+
+
+def top_k_direction(latent_direction: torch.Tensor, sae: Sae, k: int) -> torch.Tensor:
+    """Return the residual image of the k largest-|value| latents of a (d_sae,) direction, without b_dec."""
+    kept = torch.zeros_like(latent_direction)
+    top = latent_direction.abs().topk(min(k, latent_direction.numel())).indices
+    kept[top] = latent_direction[top]
+    return sae.decode_direction(kept).detach().to("cpu", torch.float32)
+
+
+def random_directions(width: int, norm: float, count: int, seed: int) -> list[torch.Tensor]:
+    """Return `count` Gaussian (width,) float32 directions of the given norm, each from its own seed."""
+    vectors = []
+    for index in range(count):
+        generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
+        v = torch.randn(width, generator=generator, dtype=torch.float64)
+        vectors.append((v * (norm / v.norm())).float())
+    return vectors
+
+
+def pair_directions(pair_path: Path, sae: Sae | None, *, top_k: int, random_count: int, seed: int) -> dict[str, torch.Tensor]:
+    """Return name -> (width,) float32 direction for one pair folder of phase 3, controls last.
+
+    Raises ValueError when a direction is zero (nothing to scale) or when the SAE does not match the
+    pair's latent direction.
+    """
+    vectors = read_pair_vectors(pair_path)
+    directions = {RESIDUAL: vectors["residual"].float()}
+    if "latent" in vectors:
+        directions[MEAN_DIFFERENCE] = vectors["mean"].float()
+        if sae is not None:
+            if vectors["latent"].numel() != sae.cfg.d_sae:
+                raise ValueError(f"{pair_path}: latent_direction has {vectors['latent'].numel()} latents, the SAE "
+                                 f"{sae.name} has {sae.cfg.d_sae}; evaluate with the SAE phase 3 used")
+            directions[TOP_K] = top_k_direction(vectors["latent"].float(), sae, top_k)
+    zero = [name for name, v in directions.items() if not float(v.norm()) > 0]
+    if zero:
+        raise ValueError(f"{pair_path}: direction(s) {zero} are zero; the two concepts have equal means")
+    reference = directions[RESIDUAL]
+    for index, v in enumerate(random_directions(reference.numel(), float(reference.norm()), random_count, seed)):
+        directions[RANDOM.format(index=index)] = v
+    return directions
+
+
+def check_width(directions: dict[str, torch.Tensor], width: int, where: str) -> None:
+    """Raise ValueError naming every direction whose shape is not (width,)."""
+    wrong = {name: tuple(v.shape) for name, v in directions.items() if tuple(v.shape) != (width,)}
+    if wrong:
+        raise ValueError(f"{where}: directions {wrong} do not match the policy's residual width ({width},); "
+                         "use vectors of the same model and layer")

@@ -1,0 +1,91 @@
+"""Evaluation frames: evenly spaced frames of the held-out episodes of both tasks, inside the contrast windows."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from steering_core.data.concept_map import ConceptMap
+from steering_core.data.contrast import ContrastManifest
+from steering_core.data.split import HoldoutSplit
+
+SIDES = ("positive", "negative")
+
+
+@dataclass(frozen=True)
+class EvalFrame:
+    """One evaluation frame: its task side, dataset position and global dataset `index`."""
+
+    side: str           # "positive" or "negative": which task's instruction is the frame's own
+    episode_index: int
+    frame_index: int
+    index: int          # global dataset index
+
+    def as_json(self) -> dict[str, Any]:
+        return {"side": self.side, "episode_index": self.episode_index, "frame_index": self.frame_index,
+                "index": self.index}
+
+
+def evenly_spaced(count: int, limit: int) -> list[int]:
+    """Return positions floor(j * count / limit) for j < limit (all positions when count <= limit)."""
+    if count <= limit:
+        return list(range(count))
+    return [(j * count) // limit for j in range(limit)]
+
+
+def select_frames(
+    manifest: ContrastManifest, concept_map: ConceptMap, split: HoldoutSplit, tasks: tuple[str, str], max_frames: int
+) -> list[EvalFrame]:
+    """Return up to `max_frames` frames: ceil(max/2) of the positive task, the rest of the negative one.
+
+    `tasks` is (positive, negative) as the manifest spells them. Candidates are every frame of every
+    contrast window of the task's evaluation episodes (held-out ones; training ones when nothing is
+    held out), in (episode, frame) order. `concept_map` must be the map of the whole manifest.
+    """
+    budgets = ((max_frames + 1) // 2, max_frames // 2)
+    frames: list[EvalFrame] = []
+    for side, task, budget in zip(SIDES, tasks, budgets, strict=True):
+        episodes = set(split.evaluation_episodes(task))
+        candidates = [
+            EvalFrame(side, row.episode_index, frame, row.start_index + frame - row.frame_start)
+            for rows in concept_map.concepts.values() for row in rows
+            if manifest.segments[row.segment_id].task == task and row.episode_index in episodes
+            for frame in range(row.frame_start, row.frame_end + 1)
+        ]
+        if not candidates:
+            raise ValueError(f"task {task!r}: no contrast-window frames in its evaluation episodes {sorted(episodes)}; "
+                             "the concept map does not belong to this manifest")
+        candidates.sort(key=lambda f: (f.episode_index, f.frame_index))
+        frames += [candidates[i] for i in evenly_spaced(len(candidates), budget)]
+    return frames
+
+
+def load_frames(
+    dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], image_size: int, video_backend: str | None = None
+) -> dict[str, Any]:
+    """Return the frames' cameras in pi0.5's three slots: {"images": [...], "image_masks": [...]} in `frames` order.
+
+    Reads only the frames' episodes; cameras are preprocessed exactly as capture does (libero_camera_slots).
+    """
+    from steering_core.capture.frames import frame_source, position_columns
+    from steering_core.data.dataset import read_meta
+    from steering_core.pi05 import libero_camera_slots
+    from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
+
+    episodes = sorted({f.episode_index for f in frames})
+    dataset = frame_source(read_meta(dataset_root), repo_id, episodes, video_backend)  # v3.0, v2.1 or v2.0
+    index_column = position_columns(dataset)[1]
+    position = {int(index): p for p, index in enumerate(index_column)}
+    missing = [f.index for f in frames if f.index not in position]
+    if missing:
+        raise ValueError(f"{dataset_root}: frames with index {missing[:5]} are not in the dataset; the concept map "
+                         "belongs to another dataset")
+    items = [dataset[position[f.index]] for f in frames]
+    cameras = [torch.stack([item[key] for item in items]) for key in LIBERO_IMAGE_KEYS]
+    images, image_masks = libero_camera_slots(cameras[0], cameras[1], image_size)
+    return {"images": images, "image_masks": image_masks}

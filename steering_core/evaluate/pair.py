@@ -1,0 +1,125 @@
+"""Evaluate one pair at one layer: directions + held-out frames + policy sweep -> dose_response outputs."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import safe_open
+
+from steering_core.data.concept_map import ConceptMap
+from steering_core.data.contrast import ContrastManifest
+from steering_core.data.split import HoldoutSplit
+from steering_core.evaluate.directions import RANDOM_PREFIX, check_width
+from steering_core.evaluate.frames import EvalFrame, select_frames
+from steering_core.evaluate.metrics import (
+    action_dim_of_state_axis,
+    bootstrap_indices,
+    dose_response_metrics,
+    random_band_z,
+)
+from steering_core.evaluate.report import pair_record, write_pair_outputs
+from steering_core.evaluate.settings import EvaluateSettings
+from steering_core.evaluate.sweep import Progress, Prompt, SweepPolicy, run_sweep
+from steering_core.fileio import atomic_dir
+
+logger = logging.getLogger(__name__)
+
+IN_SAMPLE_NOTE = ("holdout_fraction is 0: the frames evaluated are the frames the vectors were computed from "
+                  "(in-sample evaluation)")
+
+
+@dataclass(frozen=True)
+class PairInputs:
+    """What one pair's evaluation reads besides the policy (all from phases 1-3)."""
+
+    name: str
+    tasks: tuple[str, str]          # (positive, negative) task texts as the manifest spells them
+    manifest: ContrastManifest
+    concept_map: ConceptMap         # the map of the whole manifest (held-out episodes included)
+    split: HoldoutSplit
+    slices: tuple[Path, Path]       # training concept slices (positive, negative): the residual norm unit
+
+
+def mean_residual_norm(slice_paths: Sequence[Path]) -> float:
+    """Return the mean row norm of concept slices (.safetensors `residuals`, or the .pt beside it)."""
+    total, rows = 0.0, 0
+    for path in slice_paths:
+        tensors = path.with_suffix(".safetensors")
+        if tensors.is_file():
+            with safe_open(str(tensors), "pt") as handle:
+                residuals = handle.get_tensor("residuals")
+        else:
+            residuals = torch.load(path, weights_only=True)
+        total += float(residuals.double().norm(dim=-1).sum())
+        rows += residuals.shape[0]
+    if rows == 0 or not total > 0:
+        raise ValueError(f"slices {[str(p) for p in slice_paths]} hold no non-zero residual rows")
+    return total / rows
+
+
+def evaluate_pair(
+    pair: PairInputs,
+    directions: dict[str, torch.Tensor],
+    policy: SweepPolicy,
+    make_steering: Callable[..., Any],
+    load: Callable[[Sequence[EvalFrame]], dict[str, Any]],
+    prompts: dict[str, Prompt],
+    *,
+    layer: int,
+    width: int,
+    settings: EvaluateSettings,
+    output_dir: Path,
+    metadata: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> Path:
+    """Run the dose-response of every direction for one pair and write `output_dir` atomically; return it.
+
+    `directions` maps a name to a (width,) residual direction, random controls named `random_NN`;
+    `metadata` (the policy's description, input digests) is recorded as is.
+    """
+    check_width(directions, width, f"pair {pair.name!r}")
+    if not any(name.startswith(RANDOM_PREFIX) for name in directions):
+        raise ValueError(f"pair {pair.name!r}: no random directions; the null band needs them")
+    frames = select_frames(pair.manifest, pair.concept_map, pair.split, pair.tasks, settings.max_frames)
+    residual_norm = mean_residual_norm(pair.slices)
+    actions = run_sweep(
+        policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
+        residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
+        num_steps=settings.num_steps, batch_size=settings.batch_size, entries_per_call=settings.entries_per_call,
+        progress=progress,
+    )
+    axis = pair.manifest.axis
+    means = axis.mean_delta_per_task
+    sign = 1.0 if means[pair.tasks[0]] >= means[pair.tasks[1]] else -1.0
+    names = list(directions)
+    metrics = dose_response_metrics(
+        actions.steered, actions.swap, settings.zero_index, action_dim_of_state_axis(axis.index), sign,
+        bootstrap_indices(len(frames), settings.bootstrap, settings.seed),
+    )
+    metrics |= random_band_z(metrics["efficacy"], [i for i, n in enumerate(names) if n.startswith(RANDOM_PREFIX)])
+    norms = torch.stack([directions[n].double().norm() for n in names])
+    vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
+    head = {
+        "pair": pair.name, "layer": layer, "positive": pair.tasks[0], "negative": pair.tasks[1],
+        "residual_norm": residual_norm, "direction_norms": dict(zip(names, norms.tolist(), strict=True)),
+        "contrast_axis": {"state_index": axis.index, "action_dim": action_dim_of_state_axis(axis.index),
+                          "sign": sign},
+        "split": pair.split.model_dump(mode="json"), "in_sample": pair.split.in_sample,
+        "in_sample_note": IN_SAMPLE_NOTE if pair.split.in_sample else None, "note": settings.note,
+        "settings": settings.model_dump(mode="json", exclude={"device"}),
+        "frames": [f.as_json() for f in frames], "model": metadata or {},
+    }
+    record = pair_record(head, names, settings.alphas, settings.zero_index, metrics, vector_scale)
+    tensors = {key: value.float() for key, value in metrics.items()}
+    tensors |= {"alphas": torch.tensor(settings.alphas, dtype=torch.float32), "alphas_vector_units": vector_scale.float(),
+                "actions": actions.steered.float(), "swap_actions": actions.swap.float()}
+    with atomic_dir(output_dir, overwrite=True) as staging:
+        write_pair_outputs(staging, record, tensors)
+    logger.info("%s layer %d: dose-response of %d directions on %d frames in %s", pair.name, layer, len(names),
+                len(frames), output_dir)
+    return output_dir

@@ -1,0 +1,194 @@
+"""Outputs of the evaluation: per pair dose_response.json/.safetensors and PNGs, per layer summary.md/json.
+
+`dose_response.json` names the α grid `alphas`, the metric `efficacy`, the control directions `random`
+and the reference `swap`; its tensors (every metric, interval and the raw robot actions) are in
+`dose_response.safetensors`. Nothing here reads a clock or a random state, so equal inputs give
+byte-identical files.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import save_file
+
+from steering_core.evaluate.directions import RANDOM_PREFIX
+from steering_core.evaluate.metrics import ACTION_GROUPS
+from steering_core.fileio import atomic_path, read_json, write_json
+from steering_core.layout import (
+    DOSE_RESPONSE_FILE,
+    EFFICACY_PLOT,
+    SHIFT_PLOT,
+    SUMMARY_JSON,
+    SUMMARY_MD,
+    TRAJECTORY_PLOT,
+)
+from steering_core.plots import figure, save_png
+
+logger = logging.getLogger(__name__)
+
+EVAL_FORMAT_VERSION = 1
+_PER_DIRECTION = ("efficacy", "efficacy_ci", "cosine", "cosine_ci", "contrast_shift", "contrast_shift_ci", "z")
+_AXIS_NAMES = ("x", "y", "z")
+
+
+def _floats(tensor: torch.Tensor) -> Any:
+    """Return a tensor as nested Python floats, NaN/inf as None (JSON has neither)."""
+    values = tensor.double().tolist()
+    if isinstance(values, float):
+        return values if math.isfinite(values) else None
+    return [_floats(torch.tensor(v, dtype=torch.float64)) if isinstance(v, list) else
+            (v if math.isfinite(v) else None) for v in values]
+
+
+def best_alpha_index(efficacy: torch.Tensor, zero_index: int) -> int:
+    """Return the index of the α ≠ 0 whose efficacy is closest to 1 (the instruction swap); ties keep the first."""
+    distance = (efficacy.double() - 1.0).abs().clone()
+    distance[zero_index] = math.inf
+    return int(torch.argmin(distance))
+
+
+def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...], zero_index: int,
+                metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
+    """Return the JSON of one pair's dose-response (`head` holds pair, layer, split, settings, frames...)."""
+    groups = list(ACTION_GROUPS)
+    directions = {}
+    for d, name in enumerate(names):
+        entry = {key: _floats(metrics[key][d]) for key in _PER_DIRECTION}
+        entry["alphas_vector_units"] = _floats(vector_scale[d])
+        entry["shift"] = {g: _floats(metrics["shift"][d, :, i]) for i, g in enumerate(groups)}
+        entry["shift_ci"] = {g: _floats(metrics["shift_ci"][d, :, i]) for i, g in enumerate(groups)}
+        best = best_alpha_index(metrics["efficacy"][d], zero_index)
+        entry["best"] = {"alpha": alphas[best], "efficacy": entry["efficacy"][best],
+                         "efficacy_ci": entry["efficacy_ci"][best], "z": entry["z"][best],
+                         "shift": {g: entry["shift"][g][best] for g in groups}}
+        directions[name] = entry
+    random = [n for n in names if n.startswith(RANDOM_PREFIX)]
+    return {
+        "format_version": EVAL_FORMAT_VERSION,
+        **head,
+        "alphas": list(alphas),
+        "alpha_units": "mean instruction-token residual norm at the layer / ||d||; alphas_vector_units: multiples of d",
+        "metric": "efficacy",
+        "action_groups": groups,
+        "directions": directions,
+        "random": {"names": random, **{k.removeprefix("random_"): _floats(metrics[k])
+                                       for k in ("random_mean", "random_std", "random_min", "random_max")}},
+        "swap": {"shift": dict(zip(groups, _floats(metrics["swap_shift"]), strict=True)),
+                 "contrast_shift": _floats(metrics["swap_contrast_shift"])},
+    }
+
+
+def write_pair_outputs(folder: Path, record: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
+    """Write dose_response.json/.safetensors and the three PNGs of one pair into `folder` (already staged)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.contiguous() for k, v in sorted(tensors.items())}, str(folder / f"{DOSE_RESPONSE_FILE}.safetensors"))
+    record = {**record, "plots": {"efficacy": EFFICACY_PLOT, "shift": SHIFT_PLOT, "trajectory": TRAJECTORY_PLOT}}
+    write_json(folder / f"{DOSE_RESPONSE_FILE}.json", record)
+    _plot_efficacy(folder / EFFICACY_PLOT, record)
+    _plot_shift(folder / SHIFT_PLOT, record)
+    _plot_trajectory(folder / TRAJECTORY_PLOT, record, tensors)
+
+
+def _named(record: dict[str, Any]) -> list[str]:
+    """Return the non-random directions of a record."""
+    return [n for n in record["directions"] if not n.startswith(RANDOM_PREFIX)]
+
+
+def _plot_efficacy(path: Path, record: dict[str, Any]) -> None:
+    """Efficacy vs α per direction, intervals as error bars, the random band (min..max) shaded."""
+    alphas, random = record["alphas"], record["random"]
+    fig = figure((6.4, 4.2))
+    ax = fig.add_subplot()
+    ax.fill_between(alphas, random["min"], random["max"], color="0.85", label=f"random ({len(random['names'])})")
+    ax.plot(alphas, random["mean"], color="0.6", linestyle="--", linewidth=1)
+    for name in _named(record):
+        entry = record["directions"][name]
+        low = [v - ci[0] for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
+        high = [ci[1] - v for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
+        ax.errorbar(alphas, entry["efficacy"], yerr=[low, high], marker="o", markersize=3, capsize=2, label=name)
+    ax.axhline(1.0, color="k", linewidth=0.6, linestyle=":")
+    ax.set(xlabel="α (× mean residual norm / ‖d‖)", ylabel="efficacy (1 = instruction swap)",
+           title=f"{record['pair']}, layer {record['layer']}")
+    ax.legend(fontsize=7)
+    save_png(fig, path)
+
+
+def _plot_shift(path: Path, record: dict[str, Any]) -> None:
+    """Mean action shift ‖Δa‖ per action group vs α, one panel per non-random direction."""
+    names = _named(record)
+    fig = figure((3.2 * len(names), 3.4))
+    for i, name in enumerate(names):
+        ax = fig.add_subplot(1, len(names), i + 1)
+        for group, values in record["directions"][name]["shift"].items():
+            ax.plot(record["alphas"], values, marker="o", markersize=3, label=group)
+        ax.set(xlabel="α", ylabel="mean ‖Δa‖ over the horizon" if i == 0 else None, title=name)
+        ax.title.set_fontsize(8)
+    fig.axes[0].legend(fontsize=7)
+    save_png(fig, path)
+
+
+def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
+    """x, y, z over the horizon of the first negative-task frame, seed 0: unsteered (its own instruction),
+    residual_direction at its best α, and with the positive task's instruction (the swap)."""
+    names, direction = list(record["directions"]), 0  # the first direction is residual_direction
+    best = record["alphas"].index(record["directions"][names[0]]["best"]["alpha"])
+    zero = record["alphas"].index(0.0)
+    f = next(i for i, frame in enumerate(record["frames"]) if frame["side"] == "negative")
+    steered, swap = tensors["actions"], tensors["swap_actions"]
+    curves = {"α = 0": steered[direction, zero, f, 0], f"{names[0]}, α = {record['alphas'][best]:g}":
+              steered[direction, best, f, 0], "positive instruction (swap)": steered[direction, zero, f, 0] + swap[f, 0]}
+    fig = figure((9.0, 3.0))
+    for axis, label in enumerate(_AXIS_NAMES):
+        ax = fig.add_subplot(1, 3, axis + 1)
+        for name, actions in curves.items():
+            ax.plot(actions[:, axis].tolist(), marker=".", label=name)
+        ax.set(xlabel="action step", ylabel=f"Δ{label}")
+    fig.axes[0].legend(fontsize=7)
+    frame = record["frames"][f]
+    fig.suptitle(f"episode {frame['episode_index']} frame {frame['frame_index']} ({frame['side']} task)", fontsize=9)
+    save_png(fig, path)
+
+
+def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
+    """Write summary.json and summary.md of one layer from its pairs' dose_response.json; return the .md path."""
+    rows, notes = [], []
+    for pair in pair_names:
+        record = read_json(layer_path / pair / f"{DOSE_RESPONSE_FILE}.json")
+        notes += [n for n in (record.get("note"), record.get("in_sample_note")) if n and n not in notes]
+        for name in _named(record):
+            best = record["directions"][name]["best"]
+            rows.append({"pair": pair, "direction": name, **best})
+    summary = {"format_version": EVAL_FORMAT_VERSION, "layer": layer_path.name, "notes": notes, "rows": rows}
+    write_json(layer_path / SUMMARY_JSON, summary)
+    md_path = layer_path / SUMMARY_MD
+    with atomic_path(md_path) as tmp:
+        tmp.write_text(summary_markdown(summary), encoding="utf-8")
+    return md_path
+
+
+def _fmt(value: float | None) -> str:
+    return "–" if value is None else f"{value:.3f}"
+
+
+def summary_markdown(summary: dict[str, Any]) -> str:
+    """Return the summary.md text: notes, then one table row per pair and direction."""
+    groups = list(ACTION_GROUPS)
+    lines = [f"# Steering evaluation, {summary['layer']}", ""]
+    lines += [f"**{note}**" for note in summary["notes"]] + ([""] if summary["notes"] else [])
+    lines += [
+        "Best α: the α ≠ 0 whose efficacy is closest to 1 (steering reproduces the instruction swap); z: efficacy "
+        "against the random directions' band at that α; shift: mean ‖Δa‖ over the horizon per action group.", "",
+        "| pair | direction | best α | efficacy [95% CI] | z vs random | " + " | ".join(groups) + " |",
+        "|---|---|---|---|---|" + "---|" * len(groups),
+    ]
+    for row in summary["rows"]:
+        low, high = row["efficacy_ci"]
+        lines.append(f"| {row['pair']} | {row['direction']} | {row['alpha']:g} | {_fmt(row['efficacy'])} "
+                     f"[{_fmt(low)}, {_fmt(high)}] | {_fmt(row['z'])} | "
+                     + " | ".join(_fmt(row["shift"][g]) for g in groups) + " |")
+    return "\n".join(lines) + "\n"

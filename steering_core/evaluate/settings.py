@@ -1,0 +1,57 @@
+"""Settings of the steering evaluation (phase 4) and the α grid's units."""
+
+from __future__ import annotations
+
+import math
+
+from typing import Annotated
+
+from pydantic import AfterValidator, Field
+
+from steering_core.schema import StrictModel
+
+# α in units of (mean instruction-token residual norm at the layer) / ‖d‖: α = 1 adds a vector as long as a
+# typical residual, whatever the direction's own norm.
+DEFAULT_ALPHAS = (-8.0, -4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0, 8.0)
+MIN_RANDOM_DIRECTIONS = 8  # the null band needs enough draws for a mean and a spread
+
+
+def _grid_with_zero(alphas: tuple[float, ...]) -> tuple[float, ...]:
+    """Return the grid sorted and without repeats; refuse one without 0 or with nothing else."""
+    if not all(math.isfinite(a) for a in alphas):
+        raise ValueError(f"alphas {list(alphas)} must be finite numbers")
+    if 0.0 not in alphas:
+        raise ValueError(f"alphas {list(alphas)} must include 0: every shift is measured against the unsteered "
+                         "actions at α = 0")
+    grid = tuple(sorted(set(alphas)))
+    if len(grid) < 2:
+        raise ValueError(f"alphas {list(alphas)} need at least one value besides 0")
+    return grid
+
+
+# a field-level validator (not a model method), so that the run config's evaluate section checks it too
+AlphaGrid = Annotated[tuple[float, ...], AfterValidator(_grid_with_zero)]
+
+
+class EvaluateSettings(StrictModel):
+    """How each (pair, layer) is evaluated; defaults are the issue's method."""
+
+    holdout_fraction: float = Field(0.2, ge=0, lt=1)  # episodes per task held out of slicing (at least one)
+    max_frames: int = Field(32, ge=2)          # evaluation frames per pair, shared by both tasks
+    alphas: AlphaGrid = DEFAULT_ALPHAS       # must hold 0 (the unsteered reference)
+    noise_seeds: int = Field(4, gt=0)          # flow-matching noise draws per frame, the same across α
+    random_directions: int = Field(8, ge=MIN_RANDOM_DIRECTIONS)  # null band: random directions of equal norm
+    top_k: int = Field(20, gt=0)               # SAE latents kept for the top-k direction
+    num_steps: int = Field(10, gt=0)           # denoising steps of sample_actions
+    bootstrap: int = Field(1000, gt=0)         # resamples of the frames for 95% intervals
+    seed: int = 0                              # random directions, noise and bootstrap
+    batch_size: int = Field(8, gt=0)           # frames per policy sweep call
+    entries_per_call: int = Field(40, gt=0)    # steered (direction, α) entries per sweep call (bounds GPU memory)
+    device: str = "auto"
+    dtype: str | None = None                   # None: bfloat16 on CUDA, float32 on CPU (as openpi)
+    note: str | None = None                    # printed at the top of the summary (e.g. "tiny random model")
+
+    @property
+    def zero_index(self) -> int:
+        """Return the position of α = 0 in the (sorted) grid."""
+        return self.alphas.index(0.0)

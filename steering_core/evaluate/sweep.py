@@ -1,0 +1,148 @@
+"""Run the policy for every frame, noise seed, direction and α: the raw actions of a dose-response.
+
+Per batch of frames of one task and per noise seed, one `sample_actions_sweep` call takes the
+unsteered entry (α = 0, shared by every direction) and one entry per (direction, α ≠ 0), so the
+prefix below the steered layer is computed once for all of them; one `sample_actions` call with
+the other task's instruction gives the swap reference. No frame runs twice with the same inputs.
+Steering adds α · R · d / ‖d‖ at the instruction tokens (R: the layer's mean instruction-token
+residual norm), i.e. α · R / ‖d‖ in units of the direction itself.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from steering_core.evaluate.frames import EvalFrame
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[int, int], None]  # (calls done, calls in total)
+
+
+class SweepPolicy(Protocol):
+    """What the evaluation needs of a policy (`steering_core.pi05.Pi05Policy` provides it)."""
+
+    action_horizon: int
+    action_dim: int
+
+    def sample_actions(self, images: list[torch.Tensor], image_masks: list[torch.Tensor], tokens: torch.Tensor,
+                       token_mask: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int = 10,
+                       steering: Any = None, generator: Any = None) -> torch.Tensor: ...
+
+    def sample_actions_sweep(self, images: list[torch.Tensor], image_masks: list[torch.Tensor], tokens: torch.Tensor,
+                             token_mask: torch.Tensor, steerings: list[Any], noise: torch.Tensor | None = None,
+                             num_steps: int = 10) -> torch.Tensor: ...
+
+    def robot_actions(self, actions: torch.Tensor | np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """One task's tokenised prompt: tokens (1, T) int64, token_mask (1, T) bool, instruction_mask (1, T) bool."""
+
+    tokens: torch.Tensor
+    token_mask: torch.Tensor
+    instruction_mask: torch.Tensor
+
+
+@dataclass
+class SweepActions:
+    """Robot actions of a dose-response: steered (dirs, alphas, frames, seeds, H, 7), swap (frames, seeds, H, 7)."""
+
+    steered: torch.Tensor
+    swap: torch.Tensor
+    own: torch.Tensor  # (frames, seeds, H, 7): unsteered, the frame's own instruction
+
+
+def frame_noise(frame: EvalFrame, seed: int, base_seed: int, horizon: int, dim: int) -> torch.Tensor:
+    """Return the (horizon, dim) float32 noise of one frame and seed, the same for every α and direction."""
+    key = hashlib.sha256(f"{base_seed}:{frame.episode_index}:{frame.frame_index}:{seed}".encode()).digest()
+    generator = torch.Generator().manual_seed(int.from_bytes(key[:8], "little") & (2**63 - 1))
+    return torch.randn(horizon, dim, generator=generator)
+
+
+def run_sweep(
+    policy: SweepPolicy,
+    make_steering: Callable[..., Any],
+    frames: Sequence[EvalFrame],
+    load: Callable[[Sequence[EvalFrame]], dict[str, Any]],
+    prompts: dict[str, Prompt],
+    directions: dict[str, torch.Tensor],
+    *,
+    layer: int,
+    alphas: tuple[float, ...],
+    residual_norm: float,
+    noise_seeds: int,
+    seed: int,
+    num_steps: int,
+    batch_size: int,
+    entries_per_call: int,
+    progress: Progress | None = None,
+) -> SweepActions:
+    """Return the robot actions of every (direction, α, frame, seed) and the instruction-swap reference.
+
+    `make_steering(layer=, vector=, alpha=, token_mask=)` builds one `Steering`; `load(frames)` returns
+    {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device); `prompts` maps
+    "positive"/"negative" to their prompt. At most `entries_per_call` steered entries go into one sweep call.
+    """
+    names = list(directions)
+    unit = {name: directions[name].float() / directions[name].float().norm() * residual_norm for name in names}
+    nonzero = [(d, a) for d, name in enumerate(names) for a, alpha in enumerate(alphas) if alpha != 0.0]
+    zero = alphas.index(0.0)
+    horizon, dim = policy.action_horizon, policy.action_dim
+    batches = [(side, [i for i, f in enumerate(frames) if f.side == side][start : start + batch_size])
+               for side in ("positive", "negative")
+               for start in range(0, sum(f.side == side for f in frames), batch_size)]
+    steered = torch.zeros(len(names), len(alphas), len(frames), noise_seeds, horizon, 7, dtype=torch.float64)
+    own = torch.zeros(len(frames), noise_seeds, horizon, 7, dtype=torch.float64)
+    other = torch.zeros_like(own)
+    chunks = [nonzero[i : i + entries_per_call] for i in range(0, len(nonzero), entries_per_call)] or [[]]
+    device = getattr(policy, "device", torch.device("cpu"))
+    everything = load(frames)
+    total, done = len(batches) * noise_seeds * len(chunks), 0
+    for side, members in batches:
+        batch_frames = [frames[i] for i in members]
+        index = torch.tensor(members)
+        inputs = {key: [t[index].to(device) for t in tensors] for key, tensors in everything.items()}
+        mine, theirs = prompts[side], prompts["negative" if side == "positive" else "positive"]
+        size = len(members)
+        tokens, token_mask = mine.tokens.expand(size, -1).to(device), mine.token_mask.expand(size, -1).to(device)
+        steer_mask = mine.instruction_mask.expand(size, -1).to(device)
+        theirs = Prompt(*(t.to(device) for t in (theirs.tokens, theirs.token_mask, theirs.instruction_mask)))
+        for s in range(noise_seeds):
+            noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
+            for number, chunk in enumerate(chunks):
+                # the unsteered entry rides with the first chunk only: it is shared by every direction
+                entries = ([None] if number == 0 else []) + [
+                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=alphas[a], token_mask=steer_mask)
+                    for d, a in chunk]
+                actions = policy.sample_actions_sweep(inputs["images"], inputs["image_masks"], tokens, token_mask,
+                                                      entries, noise=noise, num_steps=num_steps)  # (E, B, H, 32)
+                robot = _robot(policy, actions)
+                if number == 0:
+                    own[index, s] = steered[:, zero, index, s] = robot[0]
+                    robot = robot[1:]
+                for e, (d, a) in enumerate(chunk):
+                    steered[d, a, index, s] = robot[e]
+                done += 1
+                if progress is not None:
+                    progress(done, total)
+            swapped = policy.sample_actions(inputs["images"], inputs["image_masks"], theirs.tokens.expand(size, -1),
+                                            theirs.token_mask.expand(size, -1), noise=noise, num_steps=num_steps)
+            other[index, s] = _robot(policy, swapped)
+    sign = torch.tensor([1.0 if f.side == "negative" else -1.0 for f in frames], dtype=torch.float64)
+    swap = (other - own) * sign[:, None, None, None]  # positive-instruction actions minus negative-instruction ones
+    logger.info("sweep: %d frames x %d seeds x %d entries", len(frames), noise_seeds, 1 + len(nonzero))
+    return SweepActions(steered=steered, swap=swap, own=own)
+
+
+def _robot(policy: SweepPolicy, actions: torch.Tensor) -> torch.Tensor:
+    """Return the policy's robot actions (..., H, 7) of model actions as float64 on the CPU."""
+    return torch.from_numpy(np.asarray(policy.robot_actions(actions.float().cpu()), dtype=np.float64))

@@ -1,0 +1,96 @@
+"""Phase 4 tasks: the dose-response of one (pair, layer) on the policy (GPU), and the per-layer summary."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import get_run_logger, task
+
+from steering_core import layout
+from steering_core.capture import CaptureSettings
+from steering_core.data.contrast import read_manifest
+from steering_core.data.split import read_split
+from steering_core.evaluate import report
+from steering_core.evaluate import run as evaluate_run
+from steering_core.evaluate.settings import EvaluateSettings
+from steering_core.identity import file_digest, plain
+from steering_core.sae import steering
+from steering_core.sae.steering import SteeringSettings
+from tasks.artifacts import ProgressArtifact, artifact_key
+from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
+from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs
+from tasks.sae import sae_inputs
+
+_PAIR_OUTPUTS = (f"{layout.DOSE_RESPONSE_FILE}.json", f"{layout.DOSE_RESPONSE_FILE}.safetensors",
+                 layout.EFFICACY_PLOT, layout.SHIFT_PLOT, layout.TRAJECTORY_PLOT)
+
+
+def folder_digests(path: Path) -> dict[str, str]:
+    """Return {file: sha256} of every file directly in a folder."""
+    return {p.name: file_digest(p) for p in sorted(path.iterdir()) if p.is_file()}
+
+
+def manifest_content(path: Path) -> Any:
+    """Return a manifest's axis and segments: not its dataset record, whose fingerprint follows every new demo."""
+    manifest = read_manifest(path)
+    return {"axis": plain(manifest.axis), "segments": [plain(segment) for segment in manifest.segments]}
+
+
+def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
+    """Return what one evaluation reads, by content: its pair's vectors, slices, windows, split and frames.
+
+    Other pairs' files never enter, so a refreshed vector re-evaluates only its own pair.
+    """
+    split = read_split(job.split)
+    episodes = sorted({e for task in (job.positive, job.negative) for e in split.evaluation_episodes(task)})
+    return {
+        "job": job.model_dump(mode="json", exclude={"manifest", "concept_map", "split", "positive_slice",
+                                                    "negative_slice", "directions", "dataset_root"}),
+        "directions": folder_digests(job.directions),
+        "slices": [file_digest(job.positive_slice), file_digest(job.negative_slice)],
+        "manifest": manifest_content(job.manifest),
+        "windows": concept_rows(str(job.concept_map)),
+        "split": file_digest(job.split),
+        "frames": episode_sources({"dataset_root": str(job.dataset_root), "episodes": episodes}),
+    }
+
+
+@task(
+    name="evaluate-steering",
+    task_run_name="evaluate {job.pair} layer {job.layer}",
+    tags=[GPU_TAG],
+    cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs, steering=sae_inputs),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
+    **RESULTS,
+)
+def evaluate_pair(
+    job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings,
+    settings: EvaluateSettings,
+) -> dict:
+    """Run one pair's dose-response on the policy at one layer; return its output files."""
+    progress = ProgressArtifact(artifact_key("evaluate", job.pair, layout.layer_dir(job.layer)), "policy calls",
+                                f"evaluate {job.pair} at layer {job.layer}")
+    sae = steering.load_steering_sae(steering_settings)
+    folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress)
+    progress.finish()
+    get_run_logger().info("%s layer %d: %s", job.pair, job.layer, folder)
+    return {OUTPUTS: [str(folder / name) for name in _PAIR_OUTPUTS], "folder": str(folder)}
+
+
+def dose_responses(inputs: dict[str, Any]) -> dict[str, str]:
+    """Return the digest of each pair's dose_response.json (all the layer summary reads)."""
+    layer_path = Path(inputs["layer_path"])
+    return {name: file_digest(layer_path / name / f"{layout.DOSE_RESPONSE_FILE}.json") for name in inputs["pair_names"]}
+
+
+@task(
+    name="evaluation-summary",
+    task_run_name="evaluation summary layer {layer}",
+    cache_policy=content_key("steering_core.evaluate.report", derived={"pairs": dose_responses}),
+    **RESULTS,
+)
+def evaluation_summary(layer: int, layer_path: str, pair_names: list[str]) -> dict:
+    """Write summary.md and summary.json of one layer's evaluation; return their paths."""
+    md_path = report.write_layer_summary(Path(layer_path), pair_names)
+    return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))], "summary": str(md_path)}

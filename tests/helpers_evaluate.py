@@ -1,0 +1,105 @@
+"""A small fake policy for the evaluation tests: its actions read the instruction residual along a planted direction.
+
+The "residual" of a frame at the steered layer is r = mean(token embeddings of the instruction) + base(frame)
++ α·v (steering at the instruction tokens). Actions = ⟨r, u⟩ · A + β · tanh(⟨r, w_f⟩) · b_f + 0.1 · noise, with u
+the planted direction, A a fixed (H, 32) pattern and (w_f, b_f) a per-frame nonlinearity (so efficacy varies a
+little between frames). The two instructions' embeddings differ by `gap` · u, so steering with u reproduces the
+instruction swap at α = gap / R (R: the residual norm unit): efficacy exactly 1 up to the nonlinearity.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from steering_core.evaluate.frames import EvalFrame
+from steering_core.evaluate.sweep import Prompt
+
+HORIZON, ACTION_DIM, T = 4, 32, 6
+POSITIVE_IDS, NEGATIVE_IDS = [0, 1, 2, 3, 7, 8], [0, 4, 5, 6, 7, 8]
+INSTRUCTION = torch.tensor([[False, True, True, True, False, False]])
+
+
+@dataclass(frozen=True)
+class FakeSteering:
+    layer: int
+    vector: torch.Tensor
+    alpha: float = 1.0
+    token_mask: torch.Tensor | None = None
+
+
+class FakePolicy:
+    """Implements the sweep contract of Pi05Policy on a linear-plus-small-nonlinearity toy model."""
+
+    action_horizon, action_dim = HORIZON, ACTION_DIM
+
+    def __init__(self, width: int, planted: torch.Tensor, gap: float, *, depth: int = 4, beta: float = 3.0):
+        gen = torch.Generator().manual_seed(123)
+        self.width, self.depth, self.beta = width, depth, beta
+        self.u = planted.double() / planted.double().norm()
+        self.embed = torch.randn(10, width, generator=gen, dtype=torch.float64)
+        # the instruction tokens' mean embeddings differ by exactly gap * u
+        self.embed[4:7] = self.embed[1:4] - gap * self.u
+        self.pattern = torch.randn(HORIZON, ACTION_DIM, generator=gen, dtype=torch.float64)
+        self.calls = {"sample_actions": 0, "sweep_entries": 0, "sweep_calls": 0}
+        self.seen: set[tuple] = set()
+
+    def _frame_terms(self, images: list[torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        terms = []
+        for b in range(images[0].shape[0]):
+            key = int(images[0][b, 0, 0, 0])
+            gen = torch.Generator().manual_seed(1000 + key)
+            base = torch.randn(self.width, generator=gen, dtype=torch.float64)
+            w = torch.randn(self.width, generator=gen, dtype=torch.float64) / self.width**0.5
+            bias = torch.randn(HORIZON, ACTION_DIM, generator=gen, dtype=torch.float64)
+            terms.append((base, w, bias))
+        return terms
+
+    def sample_actions(self, images, image_masks, tokens, token_mask, noise=None, num_steps=10, steering=None,
+                       generator=None):
+        self.calls["sample_actions"] += 1
+        return self._actions(images, tokens, noise, steering)
+
+    def sample_actions_sweep(self, images, image_masks, tokens, token_mask, steerings, noise=None, num_steps=10):
+        self.calls["sweep_calls"] += 1
+        self.calls["sweep_entries"] += len(steerings)
+        return torch.stack([self._actions(images, tokens, noise, s) for s in steerings])
+
+    def _actions(self, images, tokens, noise, steering) -> torch.Tensor:
+        batch = tokens.shape[0]
+        key = (tuple(int(images[0][b, 0, 0, 0]) for b in range(batch)), tuple(tokens[:, 1].tolist()),
+               float(noise.sum()), None if steering is None else (steering.alpha, float(steering.vector.sum())))
+        assert key not in self.seen, "the same inputs ran twice"
+        self.seen.add(key)
+        instruction = INSTRUCTION.expand(batch, -1)
+        r = torch.stack([self.embed[tokens[b][instruction[b]]].mean(0) for b in range(batch)])
+        if steering is not None:
+            assert steering.layer < self.depth
+            assert torch.equal(steering.token_mask, instruction)
+            r = r + steering.alpha * steering.vector.double()
+        out = []
+        for b, (base, w, bias) in enumerate(self._frame_terms(images)):
+            resid = r[b] + base
+            out.append((resid @ self.u) * self.pattern + self.beta * torch.tanh(resid @ w) * bias
+                       + 0.1 * noise[b].double())
+        return torch.stack(out).float()
+
+    def robot_actions(self, actions):
+        return np.asarray(actions, dtype=np.float64)[..., :7] * 2.0 + 0.5
+
+
+def prompts() -> dict[str, Prompt]:
+    mask = torch.ones(1, T, dtype=torch.bool)
+    return {"positive": Prompt(torch.tensor([POSITIVE_IDS]), mask, INSTRUCTION),
+            "negative": Prompt(torch.tensor([NEGATIVE_IDS]), mask, INSTRUCTION)}
+
+
+def load(frames: Sequence[EvalFrame]) -> dict:
+    """Images whose first pixel is the frame's global index (the fake policy's frame identity)."""
+    image = torch.zeros(len(frames), 3, 2, 2)
+    image[:, 0, 0, 0] = torch.tensor([float(f.index) for f in frames])
+    masks = [torch.ones(len(frames), dtype=torch.bool)] * 3
+    return {"images": [image, image.clone(), image.clone()], "image_masks": masks}
