@@ -19,7 +19,6 @@ import pytest
 import torch
 from helpers_libero import tiny_task
 from prefect.client.orchestration import get_client
-from prefect.testing.utilities import prefect_test_harness
 from safetensors.torch import load_file
 from test_flows import flow_runs_under, invoke
 from test_lerobot_v2 import CLOSE, DEMOS, OPEN, make_read_only, make_writable, tree_listing
@@ -57,9 +56,9 @@ PAIR = "open_vs_close"
 
 
 @pytest.fixture(scope="module", autouse=True)
-def prefect_backend():
-    with prefect_test_harness(server_startup_timeout=120):
-        yield
+def prefect_backend(prefect_server):
+    """Every test here talks to the session's Prefect test server (tests/conftest.py)."""
+    return prefect_server
 
 
 @pytest.fixture(scope="module")
