@@ -62,12 +62,7 @@ def run_command(
         prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
         check_run(run_config, capture_device=run_config.orchestration.capture != "deployment")  # before Prefect starts
     run_pipeline(config, run_config)
-    typer.echo("")
-    typer.echo(demo.format_summary(demo.summarise(run_config), random_sae=False))
-    typer.echo("")
-    typer.echo(f"outputs under {run_config.output_root}")
-    for path in demo.report_paths(run_config):
-        typer.echo(f"report: {path}")
+    _echo_outcome(run_config, random_sae=False)
 
 
 @app.command("demo")
@@ -87,12 +82,17 @@ def demo_command(
     typer.echo(f"inputs written under {output_dir / demo.INPUTS_DIR}; run config {config_path}")
     run_config = load_run_config(config_path)
     run_pipeline(config_path, run_config)
+    _echo_outcome(run_config, random_sae=True)
+
+
+def _echo_outcome(run_config: RunConfig, random_sae: bool) -> None:
+    """Print the steering-vector summary, the output root and the report paths of a finished run."""
     typer.echo("")
-    typer.echo(demo.format_summary(demo.summarise(run_config), random_sae=True))
+    typer.echo(demo.format_summary(demo.summarise(run_config), random_sae=random_sae))
     typer.echo("")
     typer.echo(f"outputs: {run_config.output_root}")
     for path in demo.report_paths(run_config):
-        typer.echo(f"report:  {path}")
+        typer.echo(f"report: {path}")
 
 
 @app.command("deploy")

@@ -279,8 +279,8 @@ def test_demo_prints_summary_and_locations(first_run, demo_config):
     assert [r["layer"] for r in summary["between"]] == [1, 2]
     assert "The demo's SAEs are random" in output
     assert f"outputs: {config.output_root}" in output
-    assert f"report:  {config.layer_path(2) / 'summary.md'}" in output
-    assert f"report:  {config.eval_layer_path(2) / 'summary.md'}" in output
+    assert f"report: {config.layer_path(2) / 'summary.md'}" in output
+    assert f"report: {config.eval_layer_path(2) / 'summary.md'}" in output
 
 
 def test_closing_table_names_every_task_run_with_its_state(first_run, demo_config):
