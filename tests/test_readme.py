@@ -16,6 +16,18 @@ def python_blocks() -> list[str]:
     return re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.S)
 
 
+def run_example(marker: str, substitutions: dict[str, str], arch, tmp_path, monkeypatch) -> dict:
+    """Run the README's Python block that mentions `marker`, its real sizes replaced; return its variables."""
+    (block,) = [b for b in python_blocks() if marker in b]
+    for text, tiny in substitutions.items():
+        assert text in block, f"README example changed: {text!r} no longer in it; update this test"
+        block = block.replace(text, tiny)
+    monkeypatch.chdir(tmp_path)
+    scope = {"ARCH": arch}
+    exec(compile(block, str(README), "exec"), scope)
+    return scope
+
+
 def test_python_api_example_runs(tmp_path, monkeypatch):
     arch = tiny_arch()
     checkpoint = write_pi05_checkpoint(tmp_path / "pi05_libero_pytorch", arch, seed=0)
@@ -32,13 +44,7 @@ def test_python_api_example_runs(tmp_path, monkeypatch):
         'load_sae("gemma-2b-it-res-jb", "blocks.12.hook_resid_post")': f"load_sae({str(sae_dir)!r})",
         "libero_camera_slots(agentview, wrist)": f"libero_camera_slots(agentview, wrist, {arch.image_size})",
     }
-    (block,) = [b for b in python_blocks() if "Pi05Prefix" in b]
-    for text, tiny in substitutions.items():
-        assert text in block, f"README example changed: {text!r} no longer in it; update this test"
-        block = block.replace(text, tiny)
-    monkeypatch.chdir(tmp_path)
-    scope = {"ARCH": arch}
-    exec(compile(block, str(README), "exec"), scope)
+    scope = run_example("Pi05Prefix", substitutions, arch, tmp_path, monkeypatch)
     n_instruction = scope["prompt"].instruction[1] - scope["prompt"].instruction[0]
     assert scope["rows"].shape == (n_instruction, arch.width)
     assert scope["latents"].shape == (n_instruction, 96)
@@ -55,11 +61,5 @@ def test_policy_example_runs(tmp_path, monkeypatch):
         '"paligemma_tokenizer.model"': repr(str(tokenizer)),
         "layer=12": "layer=2",
     }
-    (block,) = [b for b in python_blocks() if "Pi05Policy" in b]
-    for text, tiny in substitutions.items():
-        assert text in block, f"README example changed: {text!r} no longer in it; update this test"
-        block = block.replace(text, tiny)
-    monkeypatch.chdir(tmp_path)
-    scope = {"ARCH": arch}
-    exec(compile(block, str(README), "exec"), scope)
+    scope = run_example("Pi05Policy", substitutions, arch, tmp_path, monkeypatch)
     assert scope["actions"].shape == (10, 7)

@@ -2,7 +2,7 @@
 
 openpi pins a lerobot that reads v2.x only; this writer produces what that lerobot's
 `LeRobotDataset.create` + `add_frame` + `save_episode` write (docs/PI05_SPEC.md §8.2): one
-parquet per episode under `data/chunk-XXX/` (PNG image structs, fixed-size float lists, snappy,
+parquet per episode under `data/chunk-000/, chunk-001/, …` (PNG image structs, fixed-size float lists, snappy,
 row groups of 100, the `huggingface` schema metadata in datasets-3.x spelling), `meta/info.json`
 rewritten after every episode, and one appended line per episode in `meta/episodes.jsonl`,
 `meta/episodes_stats.jsonl` and, for new tasks, `meta/tasks.jsonl`. The caller stages the folder
@@ -27,7 +27,7 @@ from steering_core.data import lerobot_v2
 from steering_core.data.dataset import INFO_FILE
 
 CODEBASE_VERSION = "v2.1"
-CHUNKS_SIZE = 1000  # episodes per data/chunk-XXX folder (lerobot's default)
+CHUNKS_SIZE = 1000  # episodes per data/chunk-NNN folder (lerobot's default)
 DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 # openpi never passes use_videos=False, so its datasets carry the video template without any video.
 VIDEO_PATH = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
