@@ -50,8 +50,8 @@ class SliceFile:
         """Write the residuals of the closed file as a torch.save `.pt` (the seed's copy) without its CRC-32s,
         read from a memory map of the file; `fill_zip_crcs(path)` completes it."""
         populate = getattr(mmap, "MAP_POPULATE", 0)  # Linux: map every page in one call, not a fault per 64 KiB
-        with open(self.path, "rb") as handle:  # private and writable, as torch wants; the file stays untouched
-            mapped = mmap.mmap(handle.fileno(), 0, flags=mmap.MAP_PRIVATE | populate,
+        with open(self.path, "r+b") as handle:  # shared (no page copied) and writable (torch wants that); only read
+            mapped = mmap.mmap(handle.fileno(), 0, flags=mmap.MAP_SHARED | populate,
                                prot=mmap.PROT_READ | mmap.PROT_WRITE)
         residuals = torch.frombuffer(mapped, dtype=torch.float32, offset=self._offsets[RESIDUALS],
                                      count=self.rows * self.width).view(self.rows, self.width)
