@@ -19,11 +19,12 @@ Outputs, per layer (the seed's layout):
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import unicodedata
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -286,13 +287,31 @@ def _positions_read(records: Sequence[ShardRecord], concept_map: ConceptMap) -> 
     return [position for position, record in enumerate(records) if episodes.intersection(record.episodes)]
 
 
+class _Job:
+    """A call run in a background thread, or by the caller if the caller asks for it before the thread starts it."""
+
+    def __init__(self, pool: ThreadPoolExecutor, call: Callable[[], Any]) -> None:
+        self._call, self._future = call, pool.submit(call)
+
+    def result(self) -> Any:
+        """Return the call's result: waited for if started, else computed here (the thread is still busy)."""
+        if self._future.cancel():
+            self._future = Future()
+            try:
+                self._future.set_result(self._call())
+            except Exception as err:  # kept, so that asking again raises it again
+                self._future.set_exception(err)
+        return self._future.result()
+
+
 class _Checksums:
     """sha256 of the shards a layer reads, computed in a background thread while the layer is sliced."""
 
     def __init__(self, pool: ThreadPoolExecutor | None, run_dir: Path, records: Sequence[ShardRecord],
                  positions: Sequence[int]) -> None:
         self._expected = {run_dir / records[p].file: records[p].sha256 for p in positions}
-        self._found = {} if pool is None else {path: pool.submit(sha256_file, path) for path in self._expected}
+        self._found = {} if pool is None else {
+            path: _Job(pool, functools.partial(sha256_file, path)) for path in self._expected}
 
     def mismatches(self) -> list[str]:
         """Return one message per shard whose bytes differ from its record (waiting for the hashes)."""
@@ -455,9 +474,10 @@ def _write_slices(
     finally:
         for file in files.values():
             file.close()
-    crcs = [background.submit(fill_zip_crcs, file.save_pt(file.path.with_suffix(".pt"))) for file in files.values()]
-    for done in crcs:
-        done.result()
+    crcs = [_Job(background, functools.partial(fill_zip_crcs, file.save_pt(file.path.with_suffix(".pt"))))
+            for file in files.values()]
+    for job in crcs:
+        job.result()
     return files
 
 
