@@ -396,3 +396,23 @@ def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it
     (out / "layer02" / "open the top_drawer.pt").unlink()  # an incomplete layer is not kept either
     slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,), reduce="frame"))
     assert reads == [1, 1] and (out / "layer02" / "open the top_drawer.pt").is_file()
+
+
+def test_background_jobs_are_taken_back_when_the_thread_is_busy():
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from steering_core.capture.slicing import _Job
+
+    release = threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        blocker = pool.submit(release.wait)  # the background thread is busy
+        ran_in = []
+        job = _Job(pool, lambda: ran_in.append(threading.current_thread().name) or 7)
+        assert job.result() == 7 and job.result() == 7 and ran_in == [threading.current_thread().name]  # here, once
+        failing = _Job(pool, lambda: 1 / 0)
+        for _ in range(2):
+            with pytest.raises(ZeroDivisionError):
+                failing.result()
+        release.set()
+        blocker.result()
