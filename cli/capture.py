@@ -189,7 +189,7 @@ def slice_command(
     ),
     verify_checksums: bool = typer.Option(
         True, "--verify-checksums/--no-verify-checksums",
-        help="Re-hash every shard against metadata.json before reading it (a damaged shard stops the slice).",
+        help="Check every shard read against its recorded CRC-32 (sha256 for older runs); a damaged shard stops the slice.",
     ),
     split: Path | None = typer.Option(
         None, "--split", help="Held-out split JSON (manifests/<pair>_split.json): its held-out episodes are not sliced."

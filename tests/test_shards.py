@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
+import zlib
 
 import numpy as np
 import pytest
@@ -111,6 +113,7 @@ def test_checksum_mismatch_is_detected(tmp_path):
     spec = make_spec()
     record = shards.write_shard(tmp_path, spec, 1, "00000", make_rows(0), episodes=[0], inputs="in")
     path = tmp_path / record.file
+    assert record.crc32 == zlib.crc32(path.read_bytes()) and record.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
     assert shards.find_complete_shard(tmp_path, spec, 1, "00000", "in") == record
     assert shards.find_complete_shard(tmp_path, spec, 1, "00000", "other inputs") is None
 

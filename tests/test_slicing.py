@@ -271,10 +271,28 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
     data = bytearray(shard.read_bytes())
     data[-1] ^= 0xFF
     shard.write_bytes(bytes(data))
-    with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
+    with pytest.raises(ValueError, match="shard-00000.safetensors: CRC-32 is .* re-run capture to rewrite it"):
         slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))  # by default
     assert not (tmp_path / "checked").exists()
     slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
+
+
+def test_a_run_recorded_without_crc32s_is_checked_by_sha256(tmp_path, run_dir, concept_map):
+    """Shard records written before CRC-32s were kept fall back to their sha256."""
+    for path in [run_dir / shards.METADATA_FILE, *run_dir.rglob("*.json")]:
+        text = path.read_text()
+        if '"crc32"' in text:
+            payload = json.loads(text)
+            for record in payload.get("shards", [payload]):
+                record.pop("crc32", None)
+            path.write_text(json.dumps(payload))
+    assert shards.read_run_metadata(run_dir).shards[0].crc32 is None
+    shard = run_dir / "instructions" / "layer02" / "shard-00000.safetensors"
+    data = bytearray(shard.read_bytes())
+    data[-1] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is [0-9a-f]{64}, expected [0-9a-f]{64}"):
+        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))
 
 
 def test_a_shard_with_a_damaged_header_is_reported_by_its_checksum(tmp_path, run_dir, concept_map):
@@ -283,7 +301,7 @@ def test_a_shard_with_a_damaged_header_is_reported_by_its_checksum(tmp_path, run
     data = bytearray(shard.read_bytes())
     data[10:20] = b"#" * 10  # inside the JSON header
     shard.write_bytes(bytes(data))
-    with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
+    with pytest.raises(ValueError, match="shard-00000.safetensors: CRC-32 is .* re-run capture to rewrite it"):
         slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))
     assert not (tmp_path / "checked").exists()
     with pytest.raises(ValueError, match="shard-00000.safetensors.*(not a readable safetensors|header)"):

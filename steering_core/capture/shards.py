@@ -34,7 +34,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
-from steering_core.fileio import atomic_path, sha256_file, sha256_json, write_json
+from steering_core.fileio import atomic_path, crc32_file, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
 from steering_core.tensor_files import TensorLocation, tensor_locations
@@ -94,6 +94,7 @@ class ShardRecord(StrictModel):
     dtype: StorageDtype
     sha256: str
     inputs: str  # fingerprint of the run identity + episode contents; resume compares it
+    crc32: int | None = None  # zlib CRC-32 of the file: slicing's check for damage (records before it have none)
     tasks: dict[str, dict[str, Any]] = {}  # task text -> token selection record (see capture)
 
 
@@ -213,7 +214,7 @@ def write_shard(
     with atomic_path(path) as tmp:
         # one metadata entry holding canonical JSON: safetensors orders several entries at random
         save_file(tensors, str(tmp), metadata={HEADER_KEY: json.dumps(header, sort_keys=True)})
-        digest = sha256_file(tmp)
+        digest, crc = sha256_file(tmp), crc32_file(tmp)
     record = ShardRecord(
         file=path.relative_to(run_dir).as_posix(),
         layer=layer,
@@ -225,6 +226,7 @@ def write_shard(
         sha256=digest,
         inputs=inputs,
         tasks=tasks or {},
+        crc32=crc,
     )
     write_json(sidecar_path(run_dir, spec.token_type, layer, key), record.model_dump(mode="json"))
     return record
@@ -282,9 +284,9 @@ class ShardReader:
         return tensor_locations(self.path)[RESIDUALS]
 
 
-def sha256_mismatch(path: Path, found: str, expected: str) -> str:
-    """Return the error text of a shard whose bytes no longer hash to its record's sha256."""
-    return (f"{path}: sha256 is {found}, expected {expected} from its record; the file changed after capture, "
+def checksum_mismatch(path: Path, kind: str, found: str, expected: str) -> str:
+    """Return the error text of a shard whose bytes no longer match its record's `kind` (sha256 or CRC-32)."""
+    return (f"{path}: {kind} is {found}, expected {expected} from its record; the file changed after capture, "
             "re-run capture to rewrite it")
 
 
@@ -305,7 +307,7 @@ def open_shard(
     if not path.is_file():
         raise FileNotFoundError(f"{path}: shard not found; re-run capture to write it")
     if sha256 is not None and (found := sha256_file(path)) != sha256:
-        raise ValueError(sha256_mismatch(path, found, sha256))
+        raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
     try:
         handle_cm = safe_open(str(path), framework="pt")
     except Exception as err:  # safetensors raises its own error types for damaged headers

@@ -39,12 +39,12 @@ from steering_core.capture.shards import (
     TokenType,
     open_shard,
     read_run_metadata,
-    sha256_mismatch,
+    checksum_mismatch,
 )
 from steering_core.capture.slice_files import SliceFile
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
-from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
+from steering_core.fileio import atomic_dir, crc32_file, read_json, sha256_file, sha256_json, write_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
@@ -71,7 +71,7 @@ class SliceSettings(StrictModel):
     token_type: TokenType = "instructions"
     reduce: Reduce = "token"  # one row per captured token, or their mean per frame
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
-    verify_checksums: bool = True  # re-hash every shard against metadata.json before reading it (a damaged one stops)
+    verify_checksums: bool = True  # check every shard read against its record's CRC-32 (or sha256): a damaged one stops
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
     holdout_episodes: tuple[int, ...] = ()  # episodes held out for evaluation: their frames are never sliced
 
@@ -305,21 +305,29 @@ class _Job:
 
 
 class _Checksums:
-    """sha256 of the shards a layer reads, computed in a background thread while the layer is sliced."""
+    """Checksums of the shards a layer reads, computed in a background thread while the layer is sliced.
+
+    A record's CRC-32 is checked where it has one (about 3x faster than sha256, and enough to catch a
+    damaged or rewritten file); records written before CRC-32s were kept are checked by sha256.
+    """
 
     def __init__(self, pool: ThreadPoolExecutor | None, run_dir: Path, records: Sequence[ShardRecord],
                  positions: Sequence[int]) -> None:
-        self._expected = {run_dir / records[p].file: records[p].sha256 for p in positions}
+        self._records = {run_dir / records[p].file: records[p] for p in positions}
         self._found = {} if pool is None else {
-            path: _Job(pool, functools.partial(sha256_file, path)) for path in self._expected}
+            path: _Job(pool, functools.partial(crc32_file if record.crc32 is not None else sha256_file, path))
+            for path, record in self._records.items()}
 
     def mismatches(self) -> list[str]:
-        """Return one message per shard whose bytes differ from its record (waiting for the hashes)."""
+        """Return one message per shard whose bytes differ from its record (waiting for the checksums)."""
         problems = []
         for path, found in self._found.items():
+            record = self._records[path]
             with contextlib.suppress(OSError):  # a missing shard: the read that needed it says so
-                if (digest := found.result()) != self._expected[path]:
-                    problems.append(sha256_mismatch(path, digest, self._expected[path]))
+                if record.crc32 is not None and (crc := found.result()) != record.crc32:
+                    problems.append(checksum_mismatch(path, "CRC-32", f"{crc:08x}", f"{record.crc32:08x}"))
+                elif record.crc32 is None and (digest := found.result()) != record.sha256:
+                    problems.append(checksum_mismatch(path, "sha256", digest, record.sha256))
         return problems
 
     def check(self) -> None:
