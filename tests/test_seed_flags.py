@@ -6,13 +6,13 @@ import json
 
 import numpy as np
 import pytest
-import typer.main
 from helpers_libero import tiny_task
 from PIL import Image
 from typer.testing import CliRunner
 
 from cli import app
 from cli.app import seed_spellings
+from cli.lazy import load_command
 from steering_core.data.convert import read_sources
 from steering_core.data.dataset import read_meta
 from steering_core.data.libero import read_demo
@@ -25,7 +25,7 @@ DEMOS = SyntheticSettings(image_size=16, num_steps=10, length_jitter=4, state_di
 
 
 def command(name: str):
-    return typer.main.get_command(app).commands[name]
+    return load_command(name)  # commands are imported lazily: in a fresh process none is loaded yet
 
 
 def invoke(*args) -> str:
