@@ -32,6 +32,12 @@ def folder_digests(path: Path) -> dict[str, str]:
     return {p.name: file_digest(p) for p in sorted(path.iterdir()) if p.is_file()}
 
 
+def slice_digests(path: Path) -> list[str]:
+    """Return the digests of a concept slice's .pt and, when present, of the .safetensors beside it (what is read)."""
+    tensors = path.with_suffix(".safetensors")
+    return [file_digest(path)] + ([file_digest(tensors)] if tensors.is_file() else [])
+
+
 def manifest_content(path: Path) -> Any:
     """Return a manifest's axis and segments: not its dataset record, whose fingerprint follows every new demo."""
     manifest = read_manifest(path)
@@ -50,7 +56,7 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
                                                     "negative_slice", "directions", "dataset_root"}),
         # the expert's direction is the mean difference of its slices, digested below
         "directions": folder_digests(job.directions) if job.directions is not None else None,
-        "slices": [file_digest(job.positive_slice), file_digest(job.negative_slice)],
+        "slices": [slice_digests(job.positive_slice), slice_digests(job.negative_slice)],
         "manifest": manifest_content(job.manifest),
         "windows": concept_rows(str(job.concept_map)),
         "split": file_digest(job.split),

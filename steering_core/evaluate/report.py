@@ -171,12 +171,22 @@ def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torc
     save_png(fig, path)
 
 
+def _add_notes(notes: list[str], record: dict[str, Any]) -> None:
+    """Append a record's notes (the settings' note, the in-sample warning) not yet in `notes`."""
+    notes += [n for n in (record.get("note"), record.get("in_sample_note")) if n and n not in notes]
+
+
+def _note_lines(notes: list[str]) -> list[str]:
+    """Return the notes as bold markdown lines, then a blank line (nothing without notes)."""
+    return [f"**{note}**" for note in notes] + ([""] if notes else [])
+
+
 def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
     """Write summary.json and summary.md of one layer from its pairs' dose_response.json; return the .md path."""
     rows, notes = [], []
     for pair in pair_names:
         record = read_json(layer_path / pair / f"{DOSE_RESPONSE_FILE}.json")
-        notes += [n for n in (record.get("note"), record.get("in_sample_note")) if n and n not in notes]
+        _add_notes(notes, record)
         for name in _named(record):
             best = record["directions"][name]["best"]
             rows.append({"pair": pair, "direction": name, **best})
@@ -196,7 +206,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     """Return the summary.md text: notes, then one table row per pair and direction."""
     groups = list(ACTION_GROUPS)
     lines = [f"# Steering evaluation, {summary['layer']}", ""]
-    lines += [f"**{note}**" for note in summary["notes"]] + ([""] if summary["notes"] else [])
+    lines += _note_lines(summary["notes"])
     lines += [
         "Best α: the α ≠ 0 whose efficacy is closest to 1 (steering reproduces the instruction swap); z: efficacy "
         "against the random directions' band at that α; shift: mean ‖Δa‖ over the horizon per action group.", "",
@@ -228,7 +238,7 @@ def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: l
 
     "Best" is the direction (and layer) whose efficacy at its best α is closest to 1, as in the layer summaries.
     """
-    rows = []
+    rows, notes = [], []
     for pair in pair_names:
         row: dict[str, Any] = {"pair": pair}
         for stream in ("lm", "expert"):
@@ -236,11 +246,12 @@ def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: l
             for layer, where in layers:
                 if where == stream:
                     record = read_json(eval_root / stream_layer_dir(layer, stream) / pair / f"{DOSE_RESPONSE_FILE}.json")
+                    _add_notes(notes, record)
                     name, best = best_named(record)
                     candidates.append({"layer": layer, "direction": name, **best})
             row[stream] = min(candidates, key=_from_swap, default=None)
         rows.append(row)
-    pathways = {"format_version": EVAL_FORMAT_VERSION, "rows": rows}
+    pathways = {"format_version": EVAL_FORMAT_VERSION, "notes": notes, "rows": rows}
     write_json(eval_root / f"{PATHWAYS_FILE}.json", pathways)
     md_path = eval_root / f"{PATHWAYS_FILE}.md"
     with atomic_path(md_path) as tmp:
@@ -250,8 +261,9 @@ def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: l
 
 def pathways_markdown(pathways: dict[str, Any]) -> str:
     """Return the pathways.md text: one row per pair, the language model's best direction beside the expert's."""
-    lines = [
-        "# Steering pathways: language model vs action expert", "",
+    lines = ["# Steering pathways: language model vs action expert", ""]
+    lines += _note_lines(pathways["notes"])
+    lines += [
         "Per pair, the direction (over layers) whose efficacy at its best α is closest to 1 (the instruction "
         "swap), in the language model (SAE and mean-difference directions at the instruction tokens) and in the "
         "action expert (mean difference of the decision rows, at every action token); z: against the random "
