@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from cli.app import app, input_errors
-from cli.capture import _layer_list
+from cli.capture import layer_list
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
@@ -109,7 +109,7 @@ def evaluate_command(
         ("alphas", _floats(alphas) if alphas else None), ("max_frames", max_frames), ("noise_seeds", noise_seeds),
         ("random_directions", random_directions), ("top_k", top_k), ("batch_size", batch_size), ("device", device),
         ("dtype", dtype)) if value is not None}
-    expert = _layer_list(expert_layers, "--expert-layers") if expert_layers is not None else None
+    expert = layer_list(expert_layers, "--expert-layers") if expert_layers is not None else None
     with input_errors():
         if config is not None:
             step_flags = [flag for flag, value in (("--pairs-config", pairs_config), ("--lerobot-root", lerobot_root),

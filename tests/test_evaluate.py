@@ -53,12 +53,16 @@ EPISODES = {POS: [0, 1, 2, 3, 4], NEG: [5, 6, 7, 8, 9]}
 
 def slices(folder: Path) -> tuple[Path, Path]:
     """Two concept slices whose rows all have norm NORM (the α unit)."""
+    rows = [torch.randn(20, WIDTH, generator=torch.Generator().manual_seed(i)) for i in range(2)]
+    return write_slices(folder, *(r / r.norm(dim=-1, keepdim=True) * NORM for r in rows))
+
+
+def write_slices(folder: Path, positive: torch.Tensor, negative: torch.Tensor) -> tuple[Path, Path]:
+    """Write two concept slices as slicing does (.pt + .safetensors `residuals`); return their .pt paths."""
+    folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, name in enumerate(("pos", "neg")):
-        rows = torch.randn(20, WIDTH, generator=torch.Generator().manual_seed(i))
-        rows = rows / rows.norm(dim=-1, keepdim=True) * NORM
+    for name, rows in (("pos", positive), ("neg", negative)):
         path = folder / f"{name}.pt"
-        folder.mkdir(parents=True, exist_ok=True)
         torch.save(rows, path)
         save_file({"residuals": rows}, str(path.with_suffix(".safetensors")))
         paths.append(path)
@@ -242,15 +246,7 @@ def decision_slices(folder: Path, u: torch.Tensor) -> tuple[Path, Path]:
     w = torch.randn(30, EXPERT_WIDTH, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     w = w - (w @ unit)[:, None] * unit
     w = w / w.norm(dim=-1, keepdim=True) * (NORM**2 - HALF_GAP**2) ** 0.5
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name, sign in (("pos", 1.0), ("neg", -1.0)):
-        rows = (sign * HALF_GAP * unit + w).float()
-        path = folder / f"{name}.pt"
-        torch.save(rows, path)
-        save_file({"residuals": rows}, str(path.with_suffix(".safetensors")))
-        paths.append(path)
-    return paths[0], paths[1]
+    return write_slices(folder, (HALF_GAP * unit + w).float(), (-HALF_GAP * unit + w).float())
 
 
 def expert_planted() -> torch.Tensor:

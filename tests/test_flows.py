@@ -471,6 +471,10 @@ def test_cli_refuses_a_decision_run_it_cannot_steer_with(first_run, demo_config,
         assert result.exit_code == 1 and message in " ".join(result.output.split()), result.output
     missing = CliRunner().invoke(app, [*base, "--decision-run", str(wide)])
     assert missing.exit_code == 2 and "--expert-layers required" in " ".join(missing.output.split())
+    for extra, message in ((["--expert-layers", "1"], "[1]: the run config's evaluate.expert_layers are [2]"),
+                           (["--decision-run", str(wide)], "--decision-run cannot be combined with --config")):
+        refused = CliRunner().invoke(app, ["evaluate", "--config", str(demo_config), *extra])
+        assert refused.exit_code == 2 and message in " ".join(refused.output.replace("│", " ").split()), refused.output
     assert not out.exists() and {p: p.stat().st_mtime_ns for p in slices.rglob("*")} == stamp
 
 
