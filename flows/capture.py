@@ -4,8 +4,9 @@ Episodes are captured in fixed runs of `shards_per_capture_run` shard groups (ru
 groups r*S .. r*S+S-1), so the runs of a growing dataset keep their episodes and cached runs stay
 cached. With a server, the parent flow starts one deployment run per capture run so several GPU
 workers share the work; without one, the parent calls this flow in-process (a subflow) and the
-runs go one after another on the local device. With `evaluate.expert_layers`, a second capture
-(`expert=True`) writes the action expert's `decision` rows into `residuals/<name>_decision` the same way.
+runs go one after another on the local device. With `evaluate.expert_layers`, each capture run also
+writes the action expert's `decision` rows of its episodes into `residuals/<name>_decision` (a second
+residual run, same episodes and groups), so the GPU flow runs stay as many as without it.
 """
 
 from __future__ import annotations
@@ -46,11 +47,13 @@ def run_label(episodes: Sequence[int], expert: bool = False) -> str:
     return ("decision " if expert else "") + f"episodes {episodes[0]}-{episodes[-1]}"
 
 
-def capture_target(config: RunConfig, expert: bool) -> tuple[Path, CaptureSettings]:
-    """Return the run folder and capture settings of the main capture, or of the `decision` capture."""
-    if expert:
-        return config.decision_run_dir, config.decision_capture_settings()
-    return config.run_dir, config.capture_settings()
+def capture_targets(config: RunConfig) -> list[tuple[Path, CaptureSettings, bool]]:
+    """Return (run folder, capture settings, is the expert's) of the main capture and, with
+    `evaluate.expert_layers`, of the `decision` capture."""
+    targets = [(config.run_dir, config.capture_settings(), False)]
+    if config.expert_layers:
+        targets.append((config.decision_run_dir, config.decision_capture_settings(), True))
+    return targets
 
 
 def capture_mode(config: RunConfig) -> str:
@@ -62,36 +65,34 @@ def capture_mode(config: RunConfig) -> str:
 
 
 @flow(name=CAPTURE_FLOW)
-def capture_flow(
-    config_path: str, episodes: list[int] | None = None, write_metadata: bool = True, expert: bool = False
-) -> dict:
-    """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run.
-
-    `expert`: the action expert's `decision` rows at `evaluate.expert_layers` instead of the main capture.
-    """
+def capture_flow(config_path: str, episodes: list[int] | None = None, write_metadata: bool = True) -> dict:
+    """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run (and per
+    residual run: the decision rows too, with `evaluate.expert_layers`)."""
     config = load_run_config(config_path)
-    run_dir, settings = capture_target(config, expert)
+    targets = capture_targets(config)
     capture_task = rooted(capture_tasks.capture_episodes, config.output_root)
     plan = capture_plan(config, episodes)
-    get_run_logger().info("capturing %d episode(s) in %d run(s) into %s", sum(map(len, plan)), len(plan), run_dir)
+    get_run_logger().info("capturing %d episode(s) in %d run(s) into %s", sum(map(len, plan)), len(plan),
+                          ", ".join(str(run_dir) for run_dir, _, _ in targets))
     frames = 0
     for members in plan:  # one after another: they share this worker's device
-        result = capture_task(run_label(members, expert), str(config.dataset_root), config.repo_id,
-                              str(run_dir), settings, members)
-        frames += result["frames"]
+        for run_dir, settings, expert in targets:
+            result = capture_task(run_label(members, expert), str(config.dataset_root), config.repo_id,
+                                  str(run_dir), settings, members)
+            frames += result["frames"]
     if write_metadata:
-        rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
+        for run_dir, _, _ in targets:
+            rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
     return {"runs": len(plan), "frames": frames}
 
 
-def capture_on_workers(config: RunConfig, config_path: str, expert: bool = False) -> list[FlowRun]:
+def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
     """Start one capture deployment run per capture run, wait for all, then write the run metadata."""
     logger = get_run_logger()
     deployment = config.orchestration.capture_deployment
     started = [
-        run_deployment(deployment, parameters={"config_path": config_path, "episodes": members, "write_metadata": False,
-                                               "expert": expert},
-                       flow_run_name=f"capture {run_label(members, expert)}", timeout=0)
+        run_deployment(deployment, parameters={"config_path": config_path, "episodes": members, "write_metadata": False},
+                       flow_run_name=f"capture {run_label(members)}", timeout=0)
         for members in capture_plan(config)
     ]
     logger.info("started %d capture run(s) of %s; waiting", len(started), deployment)
@@ -101,7 +102,8 @@ def capture_on_workers(config: RunConfig, config_path: str, expert: bool = False
     if failed:
         raise RuntimeError(f"capture run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI, "
                            "fix the cause and re-run: complete shards are kept")
-    rooted(capture_tasks.write_run_metadata, config.output_root)(str(capture_target(config, expert)[0]))
+    for run_dir, _, _ in capture_targets(config):
+        rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
     return finished
 
 
@@ -147,14 +149,11 @@ def _fail_if_nobody_polls(client: Any, pending: list[FlowRun], waited: float) ->
     )
 
 
-def run_capture(config: RunConfig, config_path: str | Path, expert: bool = False) -> str:
-    """Capture the whole dataset on the `gpu` pool or in-process (see `capture_mode`); return the mode used.
-
-    `expert`: the `decision` capture of `evaluate.expert_layers` (`residuals/<name>_decision`).
-    """
+def run_capture(config: RunConfig, config_path: str | Path) -> str:
+    """Capture the whole dataset on the `gpu` pool or in-process (see `capture_mode`); return the mode used."""
     mode = capture_mode(config)
     if mode == "deployment":
-        capture_on_workers(config, str(config_path), expert)
+        capture_on_workers(config, str(config_path))
     else:
-        capture_flow(str(config_path), expert=expert)
+        capture_flow(str(config_path))
     return mode

@@ -7,7 +7,7 @@
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
    in-process (`flows.capture.run_capture`), then the run metadata; with `evaluate.expert_layers`,
-   a second capture of the action expert's `decision` rows (`residuals/<name>_decision`).
+   each capture run also writes the action expert's `decision` rows (`residuals/<name>_decision`).
 3. Fan-out (CPU) over every (pair, layer): slice residuals by concept (held-out episodes left out),
    SAE statistics per concept, directions per pair; then per layer the pairwise statistics, the
    report and its artifacts. The decision rows are sliced per (pair, expert layer) the same way.
@@ -66,9 +66,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
 
     task_texts = prepare_data(config)
     holdouts = holdout_splits(config)
-    mode = run_capture(config, config_path)
-    if config.expert_layers:
-        run_capture(config, config_path, expert=True)
+    mode = run_capture(config, config_path)  # with evaluate.expert_layers, the decision rows too
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
     expert_slices = decision_slices(config, holdouts)
     reports = steering_vectors(config, task_texts, holdouts)
