@@ -1,13 +1,14 @@
 """Real size, whole policy: `Pi05Policy` loads a real-layout random checkpoint on the CPU and acts on one frame.
 
 A random checkpoint with openpi's real layout (812 tensors, bfloat16 on disk, as openpi's converter writes) is
-generated once in a child process (`steering_core.synthetic.pi05.write_pi05_checkpoint`) and cached. Another
+generated once in a child process (`steering_core.synthetic.pi05.write_pi05_checkpoint`) and cached, the same
+one `bench.real_size` uses. Another
 fresh process loads `Pi05Policy` on the CPU (float32) and runs `infer` on one LIBERO observation (two 224 px
 cameras, 10 denoising steps, fixed noise). Reported: load and inference time, peak resident memory (VmHWM)
 against the float32 bytes of the parameters (target: at most 1.25x), and whether the actions are finite.
 
-Opt-in, not in `bench.run_all`: it needs about 15 GB of free memory and 8 GB of disk, and refuses to start
-with less than MIN_AVAILABLE_GIB available.
+Opt-in (`bench.run_all --real-size`): it needs about 15 GB of free memory and 8 GB of disk, and refuses to
+start with less than MIN_AVAILABLE_GIB available.
 
     uv run python -m bench.policy_real_size [--quick]
 """
@@ -23,6 +24,7 @@ import torch
 from safetensors import safe_open
 
 from bench.common import Result, cache_dir, command, finish, parser, peak_rss_mib, print_child_result, run_child
+from bench.real_size import checkpoint_folder
 from steering_core.pi05 import Pi05Arch, Pi05Policy
 from steering_core.synthetic.pi05 import checkpoint_tensor_shapes, tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
@@ -72,10 +74,11 @@ def main(argv: list[str] | None = None) -> Result | None:
     arguments.add_argument("--child", choices=("generate", "measure"), help=argparse.SUPPRESS)
     args = arguments.parse_args(argv)
     arch = tiny_arch() if args.quick else Pi05Arch()
-    folder = cache_dir(args) / ("policy_tiny" if args.quick else "pi05_real_bf16")
-    checkpoint, tokenizer = folder / "checkpoint", folder / "tokenizer.model"
+    checkpoint = checkpoint_folder(args)  # the same generated checkpoint as bench.real_size
+    tokenizer = checkpoint.parent / "pi05-tokenizer.model"
     if args.child == "generate":
-        write_pi05_checkpoint(checkpoint, arch, dtype=torch.bfloat16, overwrite=True)
+        if not (checkpoint / "model.safetensors").is_file():
+            write_pi05_checkpoint(checkpoint, arch, dtype=torch.bfloat16, overwrite=True)
         write_tokenizer(tokenizer)
         print_child_result({"written": str(checkpoint)})
         return None

@@ -130,6 +130,11 @@ def child(checkpoint: Path, arch_json: str, layer: int) -> dict[str, Any]:
     }
 
 
+def checkpoint_folder(args: argparse.Namespace) -> Path:
+    """Return the cached real-layout bf16 checkpoint folder (tiny with --quick), shared with bench.policy_real_size."""
+    return cache_dir(args) / ("pi05-tiny-bf16" if args.quick else "pi05-real-bf16")
+
+
 def main(argv: list[str] | None = None) -> Result | None:
     """Run the real-size section (or, with --child, its measurement in this process); return the result."""
     from steering_core.pi05 import Pi05Arch
@@ -155,7 +160,7 @@ def main(argv: list[str] | None = None) -> Result | None:
                         baseline="skipped", ratio=float("nan"), target=f"<= {TARGET}x", met=False, table=[],
                         notes=[note])
         return finish(result, args)
-    folder = cache_dir(args) / ("pi05-tiny-bf16" if args.quick else "pi05-real-bf16")
+    folder = checkpoint_folder(args)
     generated = 0.0
     if not (folder / "model.safetensors").is_file():
         start = time.perf_counter()

@@ -79,6 +79,23 @@ def test_encode_decode_match_reference(tmp_path, architecture, normalize, layout
     np.testing.assert_allclose(sae.decode_direction(d).numpy(), d.numpy() @ ref.W_dec, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("normalize", ["none", "layer_norm"])
+@pytest.mark.parametrize("architecture", ARCHITECTURES)
+def test_reconstruct_into_reused_buffers_matches_reference(tmp_path, architecture, normalize):
+    """Batches computed into the same two buffers (a full one, then a shorter one) each match the reference."""
+    folder = write_sae_folder(tmp_path / "sae", d_in=D_IN, d_sae=D_SAE, architecture=architecture, k=K,
+                              normalize_activations=normalize, dtype="float64")
+    sae = load_sae(folder)
+    ref = reference_for(folder, architecture=architecture, normalize=normalize, k=K)
+    buffers = torch.full((ROWS, D_IN), 7.0, dtype=torch.float64), torch.full((ROWS, D_SAE), 7.0, dtype=torch.float64)
+    for rows, seed in ((ROWS, 2), (ROWS // 3, 3)):
+        x = residuals(rows, seed=seed)
+        decoded, latents = sae.reconstruct(x, tuple(buffer[:rows] for buffer in buffers))
+        ref_f, stats = ref.encode(x.numpy())
+        np.testing.assert_allclose(latents.numpy(), ref_f, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(decoded.numpy(), ref.decode(ref_f, stats), rtol=1e-10, atol=1e-10)
+
+
 def test_topk_rescaled_by_decoder_norm_matches_reference(tmp_path):
     folder = write_sae_folder(
         tmp_path / "sae", d_in=D_IN, d_sae=D_SAE, architecture="topk", k=K, rescale_acts_by_decoder_norm=True,

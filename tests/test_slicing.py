@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 from helpers_locks import hold_output_lock, start_waiting
+from helpers_zip import assert_same_torch_records
 from safetensors.torch import load_file, save_file
 
 from steering_core.capture import shards
@@ -146,7 +147,8 @@ def test_token_slices_equal_brute_force(tmp_path, run_dir, concept_map):
 @pytest.mark.parametrize("storage_dtype", ["float32", "bfloat16"])
 @pytest.mark.parametrize("reversed_index", [False, True])
 def test_slice_files_are_byte_identical_to_saving_the_selected_rows(tmp_path, storage_dtype, reversed_index):
-    """Each .pt and .safetensors equals, byte for byte, what torch.save / save_file write for the selected rows.
+    """Each .safetensors equals, byte for byte, what save_file writes for the selected rows, and each .pt holds the
+    records torch.save writes for them.
 
     With `reversed_index` the later episodes come first in the dataset, so shard order is not dataset order.
     """
@@ -168,9 +170,9 @@ def test_slice_files_are_byte_identical_to_saving_the_selected_rows(tmp_path, st
         # reduce=token: the rows themselves
         torch.save(rows, expected_dir / f"{stem}.pt")
         save_file({"residuals": rows, **columns}, expected_dir / f"{stem}.safetensors")
-        for suffix in (".pt", ".safetensors"):
-            written = (tmp_path / "slices" / "layer05" / f"{stem}{suffix}").read_bytes()
-            assert written == (expected_dir / f"{stem}{suffix}").read_bytes(), (name, suffix)
+        written = tmp_path / "slices" / "layer05" / stem
+        assert written.with_suffix(".safetensors").read_bytes() == (expected_dir / f"{stem}.safetensors").read_bytes()
+        assert_same_torch_records(written.with_suffix(".pt"), expected_dir / f"{stem}.pt")
         # reduce=frame: float64 sums accumulated row by row in dataset order, divided by the count
         frames = sorted(set(columns["index"].tolist()))
         means, tokens = [], []
@@ -275,6 +277,19 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
     slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
 
 
+def test_a_shard_with_a_damaged_header_is_reported_by_its_checksum(tmp_path, run_dir, concept_map):
+    """The checksums are computed beside the slicing: a shard that fails to open is still named as changed."""
+    shard = run_dir / "instructions" / "layer02" / "shard-00000.safetensors"
+    data = bytearray(shard.read_bytes())
+    data[10:20] = b"#" * 10  # inside the JSON header
+    shard.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="shard-00000.safetensors: sha256 is .* re-run capture to rewrite it"):
+        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))
+    assert not (tmp_path / "checked").exists()
+    with pytest.raises(ValueError, match="shard-00000.safetensors.*(not a readable safetensors|header)"):
+        slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
+
+
 def test_slice_command(tmp_path, run_dir, concept_map):
     from typer.testing import CliRunner
 
@@ -364,8 +379,8 @@ def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it
     slice_concepts(run_dir, concept_map, reference, SliceSettings(layers=(2,)))
     out = tmp_path / "slices"
     reads = []
-    real_read = slicing._read_selected
-    monkeypatch.setattr(slicing, "_read_selected", lambda *a, **k: reads.append(1) or real_read(*a, **k))
+    real_read = slicing._write_slices
+    monkeypatch.setattr(slicing, "_write_slices", lambda *a, **k: reads.append(1) or real_read(*a, **k))
     holder = hold_output_lock(out / "layer02")
     worker, outcome = start_waiting(lambda: slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,))))
     assert not (out / "layer02").exists()  # waiting, nothing computed
@@ -381,3 +396,23 @@ def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it
     (out / "layer02" / "open the top_drawer.pt").unlink()  # an incomplete layer is not kept either
     slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,), reduce="frame"))
     assert reads == [1, 1] and (out / "layer02" / "open the top_drawer.pt").is_file()
+
+
+def test_background_jobs_are_taken_back_when_the_thread_is_busy():
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from steering_core.capture.slicing import _Job
+
+    release = threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        blocker = pool.submit(release.wait)  # the background thread is busy
+        ran_in = []
+        job = _Job(pool, lambda: ran_in.append(threading.current_thread().name) or 7)
+        assert job.result() == 7 and job.result() == 7 and ran_in == [threading.current_thread().name]  # here, once
+        failing = _Job(pool, lambda: 1 / 0)
+        for _ in range(2):
+            with pytest.raises(ZeroDivisionError):
+                failing.result()
+        release.set()
+        blocker.result()

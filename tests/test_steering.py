@@ -102,7 +102,7 @@ def test_streaming_statistics_equal_in_memory_ones(tmp_path, sae_folder, batch_s
     sae = load_sae(sae_folder)
     encoded_rows = []
     original = sae.encode_with_norm
-    sae.encode_with_norm = lambda rows: (encoded_rows.append(len(rows)), original(rows))[1]
+    sae.encode_with_norm = lambda rows, out=None: (encoded_rows.append(len(rows)), original(rows, out))[1]
     stats = read_concept_stats(encode_concept(ConceptSource("c", path), tmp_path / "layer12", sae, batch_size=batch_size))
     assert max(encoded_rows) <= batch_size and sum(encoded_rows) == 101  # never more than one batch of latents
 
@@ -219,7 +219,7 @@ def test_each_concept_is_encoded_once(project, sae_folder):
     sae = load_sae(sae_folder)
     encoded = []
     original = sae.encode_with_norm
-    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    sae.encode_with_norm = lambda rows, out=None: (encoded.append(len(rows)), original(rows, out))[1]
     compute_steering(settings(project, None), sae=sae)
     rows = sum(len(torch.load(path, weights_only=True)) for path in (project / "data").rglob("*.pt"))
     assert sum(encoded) == rows
@@ -230,7 +230,7 @@ def test_current_statistics_are_reused_and_stale_ones_recomputed(project, sae_fo
     compute_steering(settings(project, None), sae=sae)
     encoded = []
     original = sae.encode_with_norm
-    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    sae.encode_with_norm = lambda rows, out=None: (encoded.append(len(rows)), original(rows, out))[1]
     compute_steering(settings(project, None), sae=sae)
     assert encoded == []
     changed = project / "data/residuals/on_vs_off_slices/layer12/turn on the stove.pt"
@@ -415,7 +415,7 @@ def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its
     compute_steering(settings(project, None, output_root=reference_root), sae=sae)
     encoded = []
     original = sae.encode_with_norm
-    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    sae.encode_with_norm = lambda rows, out=None: (encoded.append(len(rows)), original(rows, out))[1]
     layer = project / "out" / "layer12"
     holder = hold_output_lock(layer)
     worker, outcome = start_waiting(lambda: compute_steering(settings(project, None), sae=sae))
@@ -440,7 +440,7 @@ def test_encoding_a_concept_another_process_is_encoding_waits_then_reuses_it(tmp
     reference = encode_concept(source, tmp_path / "reference", sae, batch_size=8)
     encoded = []
     original = sae.encode_with_norm
-    sae.encode_with_norm = lambda rows: (encoded.append(len(rows)), original(rows))[1]
+    sae.encode_with_norm = lambda rows, out=None: (encoded.append(len(rows)), original(rows, out))[1]
     json_path = concept_stats_path(tmp_path / "layer12", source).with_suffix(".json")
     holder = hold_output_lock(json_path)
     worker, outcome = start_waiting(lambda: encode_concept(source, tmp_path / "layer12", sae, batch_size=8))

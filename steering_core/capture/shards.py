@@ -282,6 +282,12 @@ class ShardReader:
         return tensor_locations(self.path)[RESIDUALS]
 
 
+def sha256_mismatch(path: Path, found: str, expected: str) -> str:
+    """Return the error text of a shard whose bytes no longer hash to its record's sha256."""
+    return (f"{path}: sha256 is {found}, expected {expected} from its record; the file changed after capture, "
+            "re-run capture to rewrite it")
+
+
 @contextlib.contextmanager
 def open_shard(
     path: str | os.PathLike,
@@ -299,10 +305,7 @@ def open_shard(
     if not path.is_file():
         raise FileNotFoundError(f"{path}: shard not found; re-run capture to write it")
     if sha256 is not None and (found := sha256_file(path)) != sha256:
-        raise ValueError(
-            f"{path}: sha256 is {found}, expected {sha256} from its record; the file changed after capture, "
-            "re-run capture to rewrite it"
-        )
+        raise ValueError(sha256_mismatch(path, found, sha256))
     try:
         handle_cm = safe_open(str(path), framework="pt")
     except Exception as err:  # safetensors raises its own error types for damaged headers

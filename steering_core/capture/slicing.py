@@ -3,9 +3,11 @@
 Rows are matched by (episode_index, frame_index) against the concept map's segments, never
 by their position in a stream, so slices stay right when a dataset grows. Two passes over
 each layer's shards: the first reads only the small int64 row columns (to validate the
-concept map against the run and to choose rows), the second reads each shard's selected
-residual rows straight from the file into their place in the (preallocated) outputs, so every
-byte is copied once. Peak memory is the outputs plus, for frame means, one shard's rows.
+concept map against the run and to choose rows), the second copies each shard's selected
+residual rows through one bounded buffer to their place in the concept's output file
+(`slice_files`), so no concept is ever held whole in memory. Peak memory is that buffer plus,
+for frame means, one shard's rows. Shard checksums are verified in a background thread while
+the layer is sliced; a mismatch stops the layer before its folder replaces the old one.
 
 Outputs, per layer (the seed's layout):
 
@@ -16,17 +18,19 @@ Outputs, per layer (the seed's layout):
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import logging
 import os
 import unicodedata
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import torch
-from safetensors.torch import save_file
 
 from steering_core.capture.shards import (
     STEP,
@@ -35,7 +39,9 @@ from steering_core.capture.shards import (
     TokenType,
     open_shard,
     read_run_metadata,
+    sha256_mismatch,
 )
+from steering_core.capture.slice_files import SliceFile
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
 from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
@@ -43,13 +49,14 @@ from steering_core.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel
-from steering_core.tensor_files import TensorLocation, read_rows_into
+from steering_core.tensor_files import TensorLocation, fill_zip_crcs, read_rows_into
 
 logger = logging.getLogger(__name__)
 
 SLICE_PT = "{name}.pt"
 SLICE_SAFETENSORS = "{name}.safetensors"
 SLICE_FORMAT_VERSION = 1
+_BUFFER_BYTES = 8 << 20  # rows copied per read and write from shard to slice file
 _MAX_NAME_BYTES = 200  # file systems cap names at 255 bytes; leave room for suffixes and a hash
 _UNSAFE = {"/", "\\", "\0", ":"}  # path separators (and ':' for Windows/macOS shares)
 
@@ -227,10 +234,18 @@ def _slice_layer(
             for _ in records:
                 advance()
             return target / SLICE_INDEX_FILE
-        selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
-        outputs = _read_selected(records, selections, locations, metadata.run.width, settings, advance)
-        _write_layer(target, header, outputs, concept_map)
-    logger.info("layer %d: wrote %d concept slices to %s", layer, len(outputs), target)
+        read = _positions_read(records, concept_map)
+        with ThreadPoolExecutor(1, thread_name_prefix="slice-checksums") as background, \
+                _shard_checksums(run_dir, records, read, background if settings.verify_checksums else None) as checksums:
+            selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
+            plans = {concept: _plan(selection, settings.reduce) for concept, selection in selections.items()}
+            with atomic_dir(target, overwrite=True) as staging:
+                staging.mkdir(parents=True)
+                files = _write_slices(staging, plans, records, locations, metadata.run.width, settings, advance,
+                                      background)
+                _write_index(staging, header, files, concept_map)
+                checksums.check()  # before the staging folder takes the target's place
+    logger.info("layer %d: wrote %d concept slices to %s", layer, len(plans), target)
     return target / SLICE_INDEX_FILE
 
 
@@ -251,27 +266,84 @@ def _complete_layer(target: Path, header: dict[str, Any]) -> bool:
         and (target / str(entry.get("safetensors"))).is_file() for entry in entries.values())
 
 
-def _write_layer(
-    target: Path, header: dict[str, Any], outputs: dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]],
-    concept_map: ConceptMap,
-) -> None:
-    """Write one layer's slice files and index.json into a staging folder, then swap it onto `target`."""
-    names = slice_file_names(list(concept_map.concepts))
-    index_entries: dict[str, Any] = {}
-    with atomic_dir(target, overwrite=True) as staging:
-        staging.mkdir(parents=True)
-        for concept, (residuals, columns) in outputs.items():
-            stem = names[concept]
-            torch.save(residuals, staging / SLICE_PT.format(name=stem))
-            save_file({"residuals": residuals, **columns}, str(staging / SLICE_SAFETENSORS.format(name=stem)))
-            index_entries[concept] = {
-                "pt": SLICE_PT.format(name=stem),
-                "safetensors": SLICE_SAFETENSORS.format(name=stem),
-                "rows": int(residuals.shape[0]),
-                "frames": int(np.unique(columns["index"].numpy()).size),
-                "segments": [segment.model_dump(mode="json") for segment in concept_map.concepts[concept]],
-            }
-        write_json(staging / SLICE_INDEX_FILE, {**header, "concepts": index_entries})
+def _write_index(staging: Path, header: dict[str, Any], files: dict[str, SliceFile], concept_map: ConceptMap) -> None:
+    """Write the layer's index.json: the header, then per concept its files, rows, frames and segments."""
+    entries = {
+        concept: {
+            "pt": file.path.with_suffix(".pt").name,
+            "safetensors": file.path.name,
+            "rows": file.rows,
+            "frames": file.frames,
+            "segments": [segment.model_dump(mode="json") for segment in concept_map.concepts[concept]],
+        }
+        for concept, file in files.items()
+    }
+    write_json(staging / SLICE_INDEX_FILE, {**header, "concepts": entries})
+
+
+def _positions_read(records: Sequence[ShardRecord], concept_map: ConceptMap) -> list[int]:
+    """Return the positions of the shards holding an episode of the concept map: the only ones read."""
+    episodes = {segment.episode_index for segments in concept_map.concepts.values() for segment in segments}
+    return [position for position, record in enumerate(records) if episodes.intersection(record.episodes)]
+
+
+class _Job:
+    """A call run in a background thread, or by the caller if the caller asks for it before the thread starts it."""
+
+    def __init__(self, pool: ThreadPoolExecutor, call: Callable[[], Any]) -> None:
+        self._call, self._future = call, pool.submit(call)
+
+    def result(self) -> Any:
+        """Return the call's result: waited for if started, else computed here (the thread is still busy)."""
+        if self._future.cancel():
+            self._future = Future()
+            try:
+                self._future.set_result(self._call())
+            except Exception as err:  # kept, so that asking again raises it again
+                self._future.set_exception(err)
+        return self._future.result()
+
+
+class _Checksums:
+    """sha256 of the shards a layer reads, computed in a background thread while the layer is sliced."""
+
+    def __init__(self, pool: ThreadPoolExecutor | None, run_dir: Path, records: Sequence[ShardRecord],
+                 positions: Sequence[int]) -> None:
+        self._expected = {run_dir / records[p].file: records[p].sha256 for p in positions}
+        self._found = {} if pool is None else {
+            path: _Job(pool, functools.partial(sha256_file, path)) for path in self._expected}
+
+    def mismatches(self) -> list[str]:
+        """Return one message per shard whose bytes differ from its record (waiting for the hashes)."""
+        problems = []
+        for path, found in self._found.items():
+            with contextlib.suppress(OSError):  # a missing shard: the read that needed it says so
+                if (digest := found.result()) != self._expected[path]:
+                    problems.append(sha256_mismatch(path, digest, self._expected[path]))
+        return problems
+
+    def check(self) -> None:
+        """Raise a ValueError listing every changed shard."""
+        if problems := self.mismatches():
+            raise ValueError("\n".join(problems))
+
+
+@contextlib.contextmanager
+def _shard_checksums(
+    run_dir: Path, records: Sequence[ShardRecord], positions: Sequence[int], pool: ThreadPoolExecutor | None
+) -> Iterator[_Checksums]:
+    """Yield the shards' checksums, hashed in `pool` beside the block (none without a pool).
+
+    An error in the block caused by a changed shard (a damaged header, say) is reported as the checksum
+    mismatch it is.
+    """
+    checksums = _Checksums(pool, run_dir, records, positions)
+    try:
+        yield checksums
+    except Exception:
+        if problems := checksums.mismatches():
+            raise ValueError("\n".join(problems)) from None
+        raise
 
 
 def _select_rows(
@@ -291,10 +363,7 @@ def _select_rows(
         wanted = [item for episode in record.episodes for item in by_episode.get(episode, [])]
         if not wanted:
             continue
-        sha = record.sha256 if settings.verify_checksums else None
-        with open_shard(
-            run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows, sha256=sha
-        ) as reader:
+        with open_shard(run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows) as reader:
             cols = reader.columns()
             locations[position] = reader.residual_location()
         per_concept: dict[str, np.ndarray] = {}
@@ -374,40 +443,70 @@ def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
             del selection.rows[p], selection.columns[p]
 
 
-def _read_selected(
+def _write_slices(
+    staging: Path,
+    plans: dict[str, tuple[dict[int, _Part], dict[str, np.ndarray]]],
     records: Sequence[ShardRecord],
-    selections: dict[str, _Selection],
     locations: dict[int, TensorLocation],
     width: int,
     settings: SliceSettings,
     advance: Callable[[], None],
-) -> dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]]:
-    """Second pass: read each concept's rows straight into its output; return concept -> (residuals, row columns).
+    background: ThreadPoolExecutor,
+) -> dict[str, SliceFile]:
+    """Second pass: copy each concept's rows from the shards into its files in `staging`; return concept -> file.
 
-    Every output row is placed in dataset order as it is read (`_plan`), so rows are copied once,
-    from the file into the output (reduce=token), or into one shard's buffer before its frame means.
+    Rows go shard by shard through one bounded buffer to their place in the concept's `.safetensors`
+    (in dataset order, `_plan`); frame means are computed per shard. Each `.pt` is then saved from its
+    finished `.safetensors`, its CRC-32s computed in `background` (zlib releases the GIL).
     """
-    outputs: dict[str, tuple[torch.Tensor, dict[str, torch.Tensor]]] = {}
-    parts: dict[str, dict[int, _Part]] = {}
-    for concept, selection in selections.items():
-        parts[concept], columns = _plan(selection, settings.reduce)
-        residuals = torch.empty(len(columns["index"]), width, dtype=torch.float32)
-        outputs[concept] = residuals, {name: torch.from_numpy(values) for name, values in columns.items()}
-    for position, record in enumerate(records):
-        needed = {concept: mine[position] for concept, mine in parts.items() if position in mine}
-        if needed:
-            with open(locations[position].path, "rb", buffering=0) as handle:
-                for concept, part in needed.items():
-                    residuals = outputs[concept][0]
-                    if part.frame_of_row is None:
-                        _read_rows(locations[position], handle, part.rows, residuals, part.dest)
-                    else:
-                        rows = torch.empty(len(part.rows), width, dtype=torch.float32)
-                        _read_rows(locations[position], handle, part.rows, rows, np.arange(len(part.rows)))
-                        means = _frame_means(rows, part.frame_of_row, len(part.dest), settings.device)
-                        residuals[torch.from_numpy(part.dest)] = means
-        advance()
-    return outputs
+    stems = slice_file_names(list(plans))
+    files = {concept: SliceFile(staging / SLICE_SAFETENSORS.format(name=stems[concept]), columns, width)
+             for concept, (_, columns) in plans.items()}
+    buffer = torch.empty(max(1, _BUFFER_BYTES // (4 * width)), width, dtype=torch.float32)
+    try:
+        for position, record in enumerate(records):
+            needed = {concept: parts[position] for concept, (parts, _) in plans.items() if position in parts}
+            if needed:
+                with open(locations[position].path, "rb", buffering=0) as handle:
+                    for concept, part in needed.items():
+                        _copy_part(locations[position], handle, part, files[concept], buffer, settings.device)
+            advance()
+    finally:
+        for file in files.values():
+            file.close()
+    crcs = [_Job(background, functools.partial(fill_zip_crcs, file.save_pt(file.path.with_suffix(".pt"))))
+            for file in files.values()]
+    for job in crcs:
+        job.result()
+    return files
+
+
+def _copy_part(
+    location: TensorLocation, handle: Any, part: _Part, file: SliceFile, buffer: torch.Tensor, device: str
+) -> None:
+    """Copy one shard's share of a concept into its file: its rows (reduce=token) or their frame means."""
+    if part.frame_of_row is None:
+        for start, stop in _runs(part.rows, part.dest):
+            for first in range(start, stop, len(buffer)):
+                count = min(len(buffer), stop - first)
+                rows = read_rows_into(handle, location, int(part.rows[first]), buffer[:count])
+                file.write(int(part.dest[first]), rows)
+        return
+    rows = torch.empty(len(part.rows), location.shape[1], dtype=torch.float32)
+    for start, stop in _runs(part.rows):
+        read_rows_into(handle, location, int(part.rows[start]), rows[start:stop])
+    means = _frame_means(rows, part.frame_of_row, len(part.dest), device)
+    for start, stop in _runs(part.dest):
+        file.write(int(part.dest[start]), means[start:stop])
+
+
+def _runs(*sequences: np.ndarray) -> list[tuple[int, int]]:
+    """Return [start, stop) spans over which every sequence counts up by one (one read or write each)."""
+    steps = np.zeros(max(len(sequences[0]) - 1, 0), dtype=bool)
+    for values in sequences:
+        steps |= np.diff(values) != 1
+    breaks = (np.flatnonzero(steps) + 1).tolist()
+    return list(zip([0, *breaks], [*breaks, len(sequences[0])]))
 
 
 def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[str, np.ndarray]]:
@@ -442,14 +541,6 @@ def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[st
         p: _Part(selection.rows[p], dest[bounds[i] : bounds[i + 1]], frame_of_row[p]) for i, p in enumerate(positions)
     }
     return parts, {name: np.ascontiguousarray(values[order]) for name, values in columns.items()}
-
-
-def _read_rows(location: TensorLocation, handle: Any, rows: np.ndarray, out: torch.Tensor, dest: np.ndarray) -> None:
-    """Read shard rows `rows` into out[dest], one read per run of rows consecutive in both the shard and `out`."""
-    breaks = (np.flatnonzero((np.diff(rows) != 1) | (np.diff(dest) != 1)) + 1).tolist()
-    for start, stop in zip([0, *breaks], [*breaks, len(rows)]):
-        first = int(dest[start])
-        read_rows_into(handle, location, int(rows[start]), out[first : first + stop - start])
 
 
 def _frame_means(residuals: torch.Tensor, frame_of_row: np.ndarray, frames: int, device: str) -> torch.Tensor:

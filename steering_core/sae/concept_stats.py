@@ -133,10 +133,10 @@ def encode_concept(
         if json_path.is_file() and read_json(json_path).get("identity") == identity:
             logger.info("%s: statistics are current, reusing %s", source.path, json_path)
             return json_path
-        sums = _Sums()
+        sums = _Sums(sae, min(batch_size, max(reader.rows, 1)))
         with Progress(reader.rows, f"encode {source.label[:40]}", "row", callback=progress, logger=logger) as bar:
             for batch in reader.batches(batch_size):
-                sums.add(batch, sae, source.path, start=bar.done)
+                sums.add(batch, source.path, start=bar.done)
                 bar.update(len(batch))
         stats = sums.finish(source)
         tensors = {"residual_mean": stats.residual_mean}
@@ -183,10 +183,15 @@ class _Sums:
     Sums stay on the SAE's device as tensors (no host sync per batch but the finiteness check). Per
     batch, large sums run in the input dtype and are added to float64 totals: a batch of 512 rows
     loses nothing that matters, while a float64 copy of every (n, d_sae) latent batch would cost as
-    much as the decode product.
+    much as the decode product. Every batch is encoded and decoded into the same two buffers.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, sae: Sae | None, batch_size: int) -> None:
+        self.sae = sae
+        self.buffers = None if sae is None else (
+            torch.empty(batch_size, sae.cfg.d_in, dtype=sae.dtype, device=sae.device),
+            torch.empty(batch_size, sae.cfg.d_sae, dtype=sae.dtype, device=sae.device),
+        )
         self.count = 0
         self.residual_sum: torch.Tensor | float = 0.0   # (d_in,) float64
         self.residual_sq: torch.Tensor | float = 0.0    # sum of squared norms, for the total variance
@@ -194,8 +199,9 @@ class _Sums:
         self.firing: torch.Tensor | int = 0             # (d_sae,) float64: rows where each latent fired
         self.squared_error: torch.Tensor | float = 0.0  # sum of ||x - x_hat||^2
 
-    def add(self, batch: torch.Tensor, sae: Sae | None, path: Path, *, start: int) -> None:
-        """Accumulate one (n, d_in) batch; raise if it holds NaN or inf."""
+    def add(self, batch: torch.Tensor, path: Path, *, start: int) -> None:
+        """Accumulate one (n <= batch_size, d_in) batch; raise if it holds NaN or inf."""
+        sae = self.sae
         if sae is not None:
             batch = batch.to(sae.device)
         column_sum = batch.sum(dim=0, dtype=torch.float64)  # finite iff every value is (no float64 overflow)
@@ -206,7 +212,7 @@ class _Sums:
         self.residual_sq = self.residual_sq + batch.double().square().sum()
         if sae is None:
             return
-        reconstruction, latents = sae.reconstruct(batch)
+        reconstruction, latents = sae.reconstruct(batch, tuple(buffer[: len(batch)] for buffer in self.buffers))
         self.latent_sum = self.latent_sum + latents.sum(dim=0).double()
         self.firing = self.firing + _fired(latents)
         error = reconstruction.sub_(batch)  # the reconstruction is this batch's own: its memory takes the error

@@ -52,7 +52,7 @@ from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
 from steering_core.sae.report import write_report
 from steering_core.schema import StrictModel, read_model
-from steering_core.tensor_files import save_safetensors
+from steering_core.tensor_files import save_safetensors, save_torch
 
 logger = logging.getLogger(__name__)
 
@@ -298,8 +298,8 @@ def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
             entry |= {"residual_norm_a": float(va["residual"].norm()), "residual_norm_b": float(vb["residual"].norm())}
             entries[PAIR_KEY.format(a=a, b=b)] = entry
     pt_path = layer_path / f"{PAIRWISE_STATS_FILE}.pt"
-    with atomic_path(pt_path) as tmp, open(tmp, "wb") as handle:
-        torch.save(entries, handle)  # to a handle: torch names the archive after a path (here a random temp name)
+    with atomic_path(pt_path) as tmp:
+        save_torch(entries, tmp)
     write_json(pt_path.with_suffix(".json"), {
         "format_version": FORMAT_VERSION,
         "pairs": pair_names,
@@ -388,7 +388,7 @@ def _direction_space(sae: Sae | None) -> str:
 
 def _write_tensor_dict(folder: Path, files: dict[str, str], stem: str, tensor_key: str, payload: dict) -> None:
     """Write `payload` as `<stem>.pt` (the seed's dict) and its tensor as `<stem>.safetensors` with JSON metadata."""
-    torch.save(payload, folder / f"{stem}.pt")
+    save_torch(payload, folder / f"{stem}.pt")
     metadata = {key: json.dumps(value) for key, value in payload.items() if key != tensor_key}
     save_safetensors({tensor_key: payload[tensor_key].contiguous()}, folder / f"{stem}.safetensors", metadata=metadata)
     files[stem] = {"pt": f"{stem}.pt", "safetensors": f"{stem}.safetensors", "tensor": tensor_key}

@@ -1,0 +1,65 @@
+"""One concept's slice files, streamed: rows go to their final place in the file as they are read.
+
+The `.safetensors` copy is laid out first (header and row columns, `safetensors_layout`, the bytes
+`save_file` would write), then each residual row is written at its offset with `os.pwrite` as the
+shards are read, so no concept is ever held whole in memory. The `.pt` copy is then saved from a
+memory map of that finished file, reading the bytes from the page cache; its CRC-32s are filled in
+afterwards (`fill_zip_crcs`), in whichever thread has time.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from steering_core.capture.shards import RESIDUALS
+from steering_core.tensor_files import safetensors_layout, save_torch_without_crcs
+
+
+class SliceFile:
+    """A concept's `.safetensors` slice being filled: (rows, width) float32 `residuals` + int64 row columns."""
+
+    def __init__(self, path: Path, columns: dict[str, np.ndarray], width: int) -> None:
+        self.path, self.rows, self.width = path, len(columns["index"]), width
+        self.frames = int(np.unique(columns["index"]).size)  # dataset frames the rows come from
+        entries = {RESIDUALS: (torch.float32, (self.rows, width))}
+        entries |= {name: (torch.int64, (self.rows,)) for name in columns}
+        header, self._offsets = safetensors_layout(entries)
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        os.ftruncate(self._fd, self._offsets[RESIDUALS] + self.rows * width * 4)  # residuals come last (F32)
+        _pwrite(self._fd, memoryview(header), 0)
+        for name, values in columns.items():
+            _pwrite(self._fd, memoryview(np.ascontiguousarray(values, dtype="<i8")).cast("B"), self._offsets[name])
+
+    def write(self, first: int, rows: torch.Tensor) -> None:
+        """Write (n, width) contiguous float32 CPU `rows` as output rows first .. first + n - 1."""
+        data = memoryview(rows.numpy()).cast("B")
+        _pwrite(self._fd, data, self._offsets[RESIDUALS] + first * self.width * 4)
+
+    def close(self) -> None:
+        """Close the file (once every row is written)."""
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def save_pt(self, path: Path) -> Path:
+        """Write the residuals of the closed file as a torch.save `.pt` (the seed's copy) without its CRC-32s,
+        read from a memory map of the file; `fill_zip_crcs(path)` completes it."""
+        populate = getattr(mmap, "MAP_POPULATE", 0)  # Linux: map every page in one call, not a fault per 64 KiB
+        with open(self.path, "r+b") as handle:  # shared (no page copied) and writable (torch wants that); only read
+            mapped = mmap.mmap(handle.fileno(), 0, flags=mmap.MAP_SHARED | populate,
+                               prot=mmap.PROT_READ | mmap.PROT_WRITE)
+        residuals = torch.frombuffer(mapped, dtype=torch.float32, offset=self._offsets[RESIDUALS],
+                                     count=self.rows * self.width).view(self.rows, self.width)
+        return save_torch_without_crcs(residuals, path)  # the map closes with its last reference
+
+
+def _pwrite(fd: int, data: memoryview, offset: int) -> None:
+    """Write all of `data` at `offset` (pwrite may write less than asked)."""
+    while data:
+        written = os.pwrite(fd, data, offset)
+        data, offset = data[written:], offset + written
