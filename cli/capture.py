@@ -18,7 +18,7 @@ from steering_core.pi05 import Pi05Arch, PromptFormat
 _CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
 
 
-def _layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
+def layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
     """Return the layers of a comma- or space-separated list, e.g. `12` or `6,12`."""
     try:
         layers = tuple(int(part) for part in value.replace(",", " ").split())
@@ -127,7 +127,7 @@ def capture_command(
         settings = CaptureSettings(
             checkpoint_path=checkpoint_path,
             tokenizer_path=tokenizer_path,
-            layers=_layer_list(layers),
+            layers=layer_list(layers),
             token_type=token_type or "instructions",
             num_steps=num_steps,
             noise_seed=noise_seed,
@@ -199,7 +199,7 @@ def slice_command(
     with input_errors():
         settings = SliceSettings(
             holdout_episodes=read_split(split).holdout_episodes if split is not None else (),
-            layers=_layer_list(layers),
+            layers=layer_list(layers),
             token_type=token_type,
             reduce=reduce,
             max_samples_per_concept=max_samples_per_concept,

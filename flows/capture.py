@@ -4,7 +4,9 @@ Episodes are captured in fixed runs of `shards_per_capture_run` shard groups (ru
 groups r*S .. r*S+S-1), so the runs of a growing dataset keep their episodes and cached runs stay
 cached. With a server, the parent flow starts one deployment run per capture run so several GPU
 workers share the work; without one, the parent calls this flow in-process (a subflow) and the
-runs go one after another on the local device.
+runs go one after another on the local device. With `evaluate.expert_layers`, each capture run also
+writes the action expert's `decision` rows of its episodes into `residuals/<name>_decision` (a second
+residual run, same episodes and groups), so the GPU flow runs stay as many as without it.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from prefect.client.schemas.objects import FlowRun, WorkerStatus
 from prefect.deployments import run_deployment
 from prefect.states import Cancelled
 
-from steering_core.capture import shards
+from steering_core.capture import CaptureSettings, shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from tasks import capture as capture_tasks
@@ -40,9 +42,18 @@ def capture_plan(config: RunConfig, episodes: Sequence[int] | None = None) -> li
     return [runs[r] for r in sorted(runs)]
 
 
-def run_label(episodes: Sequence[int]) -> str:
-    """Return a capture run's name, e.g. `episodes 0-15`."""
-    return f"episodes {episodes[0]}-{episodes[-1]}"
+def run_label(episodes: Sequence[int], expert: bool = False) -> str:
+    """Return a capture run's name, e.g. `episodes 0-15` (`decision episodes 0-15` for the expert's rows)."""
+    return ("decision " if expert else "") + f"episodes {episodes[0]}-{episodes[-1]}"
+
+
+def capture_targets(config: RunConfig) -> list[tuple[Path, CaptureSettings, bool]]:
+    """Return (run folder, capture settings, is the expert's) of the main capture and, with
+    `evaluate.expert_layers`, of the `decision` capture."""
+    targets = [(config.run_dir, config.capture_settings(), False)]
+    if config.expert_layers:
+        targets.append((config.decision_run_dir, config.decision_capture_settings(), True))
+    return targets
 
 
 def capture_mode(config: RunConfig) -> str:
@@ -55,20 +66,23 @@ def capture_mode(config: RunConfig) -> str:
 
 @flow(name=CAPTURE_FLOW)
 def capture_flow(config_path: str, episodes: list[int] | None = None, write_metadata: bool = True) -> dict:
-    """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run."""
+    """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run (and per
+    residual run: the decision rows too, with `evaluate.expert_layers`)."""
     config = load_run_config(config_path)
-    settings = config.capture_settings()
+    targets = capture_targets(config)
     capture_task = rooted(capture_tasks.capture_episodes, config.output_root)
     plan = capture_plan(config, episodes)
-    get_run_logger().info("capturing %d episode(s) in %d run(s) into %s",
-                          sum(map(len, plan)), len(plan), config.run_dir)
+    get_run_logger().info("capturing %d episode(s) in %d run(s) into %s", sum(map(len, plan)), len(plan),
+                          ", ".join(str(run_dir) for run_dir, _, _ in targets))
     frames = 0
     for members in plan:  # one after another: they share this worker's device
-        result = capture_task(run_label(members), str(config.dataset_root), config.repo_id,
-                              str(config.run_dir), settings, members)
-        frames += result["frames"]
+        for run_dir, settings, expert in targets:
+            result = capture_task(run_label(members, expert), str(config.dataset_root), config.repo_id,
+                                  str(run_dir), settings, members)
+            frames += result["frames"]
     if write_metadata:
-        rooted(capture_tasks.write_run_metadata, config.output_root)(str(config.run_dir))
+        for run_dir, _, _ in targets:
+            rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
     return {"runs": len(plan), "frames": frames}
 
 
@@ -88,7 +102,8 @@ def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
     if failed:
         raise RuntimeError(f"capture run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI, "
                            "fix the cause and re-run: complete shards are kept")
-    rooted(capture_tasks.write_run_metadata, config.output_root)(str(config.run_dir))
+    for run_dir, _, _ in capture_targets(config):
+        rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
     return finished
 
 

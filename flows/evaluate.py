@@ -16,8 +16,9 @@ from prefect.deployments import run_deployment
 
 from flows.capture import capture_mode, wait_for_runs
 from steering_core.config import RunConfig, load_run_config
+from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
-from steering_core.layout import layer_dir
+from steering_core.layout import PATHWAYS_FILE, stream_layer_dir
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
 from tasks.cache import rooted
@@ -25,36 +26,38 @@ from tasks.cache import rooted
 EVALUATE_FLOW = "latent-steering-evaluate"
 
 
-def evaluation_targets(config: RunConfig) -> list[tuple[str, int]]:
-    """Return every (pair, layer) of the run, layer by layer."""
-    return [(pair.name, layer) for layer in config.layers for pair in config.pairs]
+def evaluation_targets(config: RunConfig) -> list[tuple[str, int, str]]:
+    """Return every (pair, layer, stream) of the run, layer by layer: the language model's, then the expert's."""
+    return [(pair.name, layer, stream) for layer, stream in config.eval_layers() for pair in config.pairs]
 
 
 @flow(name=EVALUATE_FLOW)
-def evaluate_flow(config_path: str, targets: list[tuple[str, int]] | None = None) -> dict:
-    """Evaluate the steering vectors of `targets` (default every pair and layer), one task each."""
+def evaluate_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
+    """Evaluate the steering vectors of `targets` (default every pair, layer and stream), one task each."""
     config = load_run_config(config_path)
     settings = config.evaluate_settings()
     task = rooted(evaluate_tasks.evaluate_pair, config.output_root)
     done = []
-    for name, layer in targets or evaluation_targets(config):  # one after another: they share this device
-        job = run_config_job(config, name, layer)
-        done.append(task(job, config.capture_settings(), config.steering_settings(layer), settings)["folder"])
+    for name, layer, stream in targets or evaluation_targets(config):  # one after another: they share this device
+        job = run_config_job(config, name, layer, stream)
+        steering = config.steering_settings(layer) if stream == "lm" else None  # the expert has no SAE
+        done.append(task(job, config.capture_settings(), steering, settings)["folder"])
     return {"folders": done}
 
 
-def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[int, str]:
-    """Evaluate every (pair, layer) on the `gpu` pool or in-process, then write and publish each layer's summary.
+def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]:
+    """Evaluate every (pair, layer, stream) on the `gpu` pool or in-process, then write and publish each layer's
+    summary and, with expert layers, the pathways table.
 
-    Returns layer -> its summary.md.
+    Returns layer folder name (`layer02`, `expert_layer01`, `pathways`) -> its summary.md.
     """
     logger = get_run_logger()
     targets = evaluation_targets(config)
     if capture_mode(config) == "deployment":
         started = [run_deployment(config.orchestration.evaluate_deployment,
-                                  parameters={"config_path": str(config_path), "targets": [[name, layer]]},
-                                  flow_run_name=f"evaluate {name} {layer_dir(layer)}", timeout=0)
-                   for name, layer in targets]
+                                  parameters={"config_path": str(config_path), "targets": [[name, layer, stream]]},
+                                  flow_run_name=f"evaluate {name} {stream_layer_dir(layer, stream)}", timeout=0)
+                   for name, layer, stream in targets]
         logger.info("started %d evaluation run(s); waiting", len(started))
         failed = [run.name for run in wait_for_runs(started, config.orchestration.poll_seconds)
                   if run.state is None or not run.state.is_completed()]
@@ -63,12 +66,20 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[int, str]
     else:
         evaluate_flow(str(config_path), targets)
     summaries = {}
-    for layer in config.layers:
-        layer_path = config.eval_layer_path(layer)
+    names = [pair.name for pair in config.pairs]
+    for layer, stream in config.eval_layers():
+        layer_path, folder = config.eval_layer_path(layer, stream), stream_layer_dir(layer, stream)
         result = rooted(evaluate_tasks.evaluation_summary, config.output_root)(
-            layer, str(layer_path), [pair.name for pair in config.pairs])
-        summaries[layer] = result["summary"]
+            layer_label(layer, stream), str(layer_path), names)
+        summaries[folder] = result["summary"]
         create_markdown_artifact(Path(result["summary"]).read_text(encoding="utf-8"),
-                                 key=artifact_key(config.name, "evaluation", layer_dir(layer)),
-                                 description=f"Steering evaluation, {layer_dir(layer)} ({layer_path})")
+                                 key=artifact_key(config.name, "evaluation", folder),
+                                 description=f"Steering evaluation, {folder} ({layer_path})")
+    if config.expert_layers:
+        result = rooted(evaluate_tasks.evaluation_pathways, config.output_root)(
+            str(config.eval_root), config.eval_layers(), names)
+        summaries[PATHWAYS_FILE] = result["pathways"]
+        create_markdown_artifact(Path(result["pathways"]).read_text(encoding="utf-8"),
+                                 key=artifact_key(config.name, "evaluation", PATHWAYS_FILE),
+                                 description=f"Steering pathways, language model vs action expert ({config.eval_root})")
     return summaries

@@ -6,12 +6,14 @@
    `dataset.existing`, read an existing dataset in place), then a contrast manifest
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
-   in-process (`flows.capture.run_capture`), then the run metadata.
+   in-process (`flows.capture.run_capture`), then the run metadata; with `evaluate.expert_layers`,
+   each capture run also writes the action expert's `decision` rows (`residuals/<name>_decision`).
 3. Fan-out (CPU) over every (pair, layer): slice residuals by concept (held-out episodes left out),
    SAE statistics per concept, directions per pair; then per layer the pairwise statistics, the
-   report and its artifacts.
-4. Evaluation (GPU): the `latent-steering-evaluate` flow, one run per (pair, layer) on the `gpu`
-   pool or in-process (`flows.evaluate.run_evaluation`), then each layer's evaluation summary.
+   report and its artifacts. The decision rows are sliced per (pair, expert layer) the same way.
+4. Evaluation (GPU): the `latent-steering-evaluate` flow, one run per (pair, layer) of the language
+   model and of the expert on the `gpu` pool or in-process (`flows.evaluate.run_evaluation`), then
+   each layer's evaluation summary and, with expert layers, the pathways table.
 
 Every task is cached on the content of its inputs (`tasks.cache`): a re-run on unchanged inputs
 reads every result from the cache, and a new demo file recomputes only what depends on it. After a
@@ -64,9 +66,12 @@ def latent_steering(config_path: str) -> dict[str, Any]:
 
     task_texts = prepare_data(config)
     holdouts = holdout_splits(config)
-    mode = run_capture(config, config_path)
+    mode = run_capture(config, config_path)  # with evaluate.expert_layers, the decision rows too
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
+    expert_slices = decision_slices(config, holdouts)
     reports = steering_vectors(config, task_texts, holdouts)
+    for future in expert_slices:
+        future.result()
 
     for layer_path in reports.values():
         publish_layer_report(Path(layer_path), config.name)
@@ -75,7 +80,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
     return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
             "reports": {str(layer): path for layer, path in reports.items()},
-            "evaluations": {str(layer): path for layer, path in evaluations.items()}}
+            "evaluations": evaluations}
 
 
 def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
@@ -109,6 +114,17 @@ def holdout_splits(config: RunConfig) -> dict[str, tuple[int, ...]]:
     return {pair.name: tuple(split_task(pair.name, str(config.manifest_path(pair)), config.holdout_fraction,
                                         str(config.split_path(pair)))["holdout_episodes"])
             for pair in config.pairs}
+
+
+def decision_slices(config: RunConfig, holdouts: dict[str, tuple[int, ...]]) -> list[PrefectFuture]:
+    """Submit the slicing of the `decision` rows per (pair, expert layer), held-out episodes left out."""
+    slice_task = rooted(capture_tasks.slice_layer, config.output_root)
+    return [
+        slice_task.with_options(task_run_name=f"slice {pair.name} expert layer {layer}").submit(
+            pair.name, layer, str(config.decision_run_dir), str(config.concept_map_path(pair)),
+            str(config.decision_slices_dir(pair)), config.slice_settings(layer, holdouts[pair.name], "expert"))
+        for layer in config.expert_layers for pair in config.pairs
+    ]
 
 
 def steering_vectors(

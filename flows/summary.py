@@ -33,8 +33,8 @@ from tasks.cache import OUTPUTS, cache_store
 SETTLE_SECONDS = 30.0
 PAGE = 200  # task runs per API call (the server's default limit)
 STATES = {"Completed": "ran", "Cached": "cached", "Failed": "failed", "Crashed": "failed", "TimedOut": "failed"}
-_LAYER = re.compile(r"\blayer (\d+)\b")
-_EPISODES = re.compile(r"\bepisodes \d+-\d+\b")
+_LAYER = re.compile(r"\b(expert )?layer (\d+)\b")  # `expert layer 2`: the action expert's
+_EPISODES = re.compile(r"\b(?:decision )?episodes \d+-\d+\b")
 _SIDES = ("positive", "negative")
 
 
@@ -96,7 +96,7 @@ def task_rows(runs: list[TaskRun], config: RunConfig) -> list[TaskRow]:
         rows.append(TaskRow(
             step=names.get(run.task_key, run.task_key.rsplit("-", 1)[0]),
             pair=_pair(run.name, pairs),
-            layer=(match.group(1) if (match := _LAYER.search(run.name)) else "-"),
+            layer=("".join(match.groups("")) if (match := _LAYER.search(run.name)) else "-"),
             state=STATES.get(state, state.lower()),
             seconds=run.total_run_time.total_seconds(),
             attempts=max(run.run_count, 1),

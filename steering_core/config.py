@@ -21,6 +21,7 @@ slicing: {reduce: token}                             # SliceSettings without lay
 sae: {12: {release: gemma-2b-it-res-jb}}             # per layer; absent or null: residual space only
 steering: {batch_size: 512, top_k: 20}               # SteeringSettings without paths, layer and SAE
 evaluate: {holdout_fraction: 0.2, max_frames: 32}    # EvaluateSettings without top_k; null: no phase 4
+# evaluate: {expert_layers: [9]}   # also capture `decision` rows at these action-expert layers and evaluate them
 ```
 
 Sections that reuse a step's settings model take its fields minus those the run config supplies
@@ -107,7 +108,21 @@ _ConvertOptions = options_model(ConvertSettings, (), "_ConvertOptions", root=(Co
 CaptureSection = options_model(CaptureSettings, tuple(_SUPPLIED["capture"]), "CaptureSection")
 SliceSection = options_model(SliceSettings, tuple(_SUPPLIED["slicing"]), "SliceSection")
 SteeringSection = options_model(SteeringSettings, tuple(_SUPPLIED["steering"]), "SteeringSection")
-EvaluateSection = options_model(EvaluateSettings, tuple(_SUPPLIED["evaluate"]), "EvaluateSection")
+
+
+def _expert_layers(layers: tuple[int, ...]) -> tuple[int, ...]:
+    """Return the expert layers sorted and without repeats; refuse negative ones."""
+    if any(layer < 0 for layer in layers):
+        raise ValueError(f"expert_layers {list(layers)} include a negative index; expert layers count from 0")
+    return tuple(sorted(set(layers)))
+
+
+# The evaluation settings plus the run-level choice of action-expert layers: capturing their `decision` rows is
+# a second capture run, so the list belongs to the run config, not to each (pair, layer) evaluation.
+EvaluateSection = options_model(
+    EvaluateSettings, tuple(_SUPPLIED["evaluate"]), "EvaluateSection",
+    expert_layers=(Annotated[tuple[int, ...], AfterValidator(_expert_layers)], ()),
+)
 
 
 class DatasetSection(_ConvertOptions):
@@ -249,6 +264,14 @@ class RunConfig(StrictModel):
             problems.append(f"layers {too_deep} out of range: model.arch has {depth} decoder layers (0..{depth - 1})")
         if stray := sorted(set(self.sae) - set(self.layers)):
             problems.append(f"sae has entries for layers {stray} that are not in layers {list(self.layers)}")
+        if self.expert_layers:
+            if too_deep := [layer for layer in self.expert_layers if layer >= depth]:
+                problems.append(f"evaluate.expert_layers {too_deep} out of range: the action expert has {depth} "
+                                f"decoder layers (0..{depth - 1}), as many as model.arch.depth")
+            if self.capture.num_steps != self.evaluate.num_steps:
+                problems.append(f"evaluate.num_steps {self.evaluate.num_steps} differs from capture.num_steps "
+                                f"{self.capture.num_steps}: the expert direction comes from the decision rows of "
+                                "the sampler the evaluation steers; set both to the same value")
         if (self.sources is None) == (self.dataset.existing is None):
             problems.append("give exactly one of `sources` (hdf5 demo folders to filter and convert) and "
                             f"`dataset.existing` (a LeRobot dataset to read in place); found "
@@ -315,6 +338,20 @@ class RunConfig(StrictModel):
         return self.output_root / layout.SLICES_DIR.format(pair=pair.name)
 
     @property
+    def expert_layers(self) -> tuple[int, ...]:
+        """Return the action-expert layers whose `decision` rows are captured and evaluated (empty: none)."""
+        return self.evaluate.expert_layers if self.evaluate is not None else ()
+
+    @property
+    def decision_run_dir(self) -> Path:
+        """Return the `decision` residual run folder `residuals/<name>_decision` (evaluate.expert_layers)."""
+        return self.output_root / layout.DECISION_RUN_DIR.format(run=self.name)
+
+    def decision_slices_dir(self, pair: PairSection) -> Path:
+        """Return `residuals/<pair>_decision_slices` (holding layerKK/<concept>.pt of expert layer KK)."""
+        return self.output_root / layout.DECISION_SLICES_DIR.format(pair=pair.name)
+
+    @property
     def steering_root(self) -> Path:
         """Return `latent_steering/` (holding layerNN/<pair>/ and the per-layer reports)."""
         return self.output_root / layout.STEERING_ROOT
@@ -332,9 +369,16 @@ class RunConfig(StrictModel):
         """Return `steering_eval/` (phase 4: layerNN/<pair>/ and the per-layer summaries)."""
         return self.output_root / layout.STEERING_EVAL_ROOT
 
-    def eval_layer_path(self, layer: int) -> Path:
-        """Return `steering_eval/layerNN` (holding <pair>/dose_response.* and the layer summary)."""
-        return self.eval_root / layout.layer_dir(layer)
+    def eval_layer_path(self, layer: int, stream: str = "lm") -> Path:
+        """Return `steering_eval/layerNN` or, for the action expert, `steering_eval/expert_layerKK`
+        (holding <pair>/dose_response.* and the layer summary)."""
+        return self.eval_root / layout.stream_layer_dir(layer, stream)
+
+    def eval_layers(self) -> list[tuple[int, str]]:
+        """Return every evaluated (layer, stream): the language model's layers, then the expert's."""
+        if self.evaluate is None:
+            return []
+        return [(layer, "lm") for layer in self.layers] + [(layer, "expert") for layer in self.expert_layers]
 
     def pair(self, name: str) -> PairSection:
         """Return the pair called `name`."""
@@ -369,9 +413,18 @@ class RunConfig(StrictModel):
             layers=self.layers,
         )
 
-    def slice_settings(self, layer: int, holdout_episodes: tuple[int, ...] = ()) -> SliceSettings:
-        """Return the slicing settings of one layer, leaving out a pair's held-out episodes."""
-        return SliceSettings(**self.slicing.model_dump(), layers=(layer,), token_type=self.capture.token_type,
+    def decision_capture_settings(self) -> CaptureSettings:
+        """Return the settings of the `decision` capture: the main capture's at the expert layers."""
+        if not self.expert_layers:
+            raise ValueError("evaluate.expert_layers is empty: the run captures no decision rows")
+        return CaptureSettings(**(self.capture_settings().model_dump() | {"token_type": "decision",
+                                                                           "layers": self.expert_layers}))
+
+    def slice_settings(self, layer: int, holdout_episodes: tuple[int, ...] = (), stream: str = "lm") -> SliceSettings:
+        """Return the slicing settings of one layer (of the language model, or the expert's decision rows),
+        leaving out a pair's held-out episodes."""
+        token_type = "decision" if stream == "expert" else self.capture.token_type
+        return SliceSettings(**self.slicing.model_dump(), layers=(layer,), token_type=token_type,
                              holdout_episodes=tuple(sorted(holdout_episodes)))
 
     def sae_for(self, layer: int) -> SaeSection | None:
@@ -397,7 +450,7 @@ class RunConfig(StrictModel):
         """Return the evaluation settings (top-k from the steering section); raise when evaluation is off."""
         if self.evaluate is None:
             raise ValueError("the run config has `evaluate: null`; add an evaluate section to evaluate the vectors")
-        return EvaluateSettings(**self.evaluate.model_dump(), top_k=self.steering.top_k)
+        return EvaluateSettings(**self.evaluate.model_dump(exclude={"expert_layers"}), top_k=self.steering.top_k)
 
     def pairs_config(
         self, layer: int, tasks: Mapping[str, tuple[str, str]], slices: Mapping[str, Mapping[str, str]]

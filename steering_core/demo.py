@@ -28,7 +28,7 @@ from steering_core.config import (
     write_run_config,
 )
 from steering_core.fileio import read_json, write_json
-from steering_core.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
+from steering_core.layout import PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.sae.report import FVU_LIMIT
 from steering_core.synthetic.libero import (
     DRAWER_CLOSE,
@@ -48,6 +48,7 @@ logger = logging.getLogger(__name__)
 INPUTS_DIR = "inputs"          # generated inputs, beside the outputs (`data/`) and the run config
 ARCH_FILE = "pi05_tiny_arch.json"  # the tiny checkpoint's Pi05Arch
 DEMO_LAYERS = (1, 2)           # two of the tiny model's four decoder layers
+DEMO_EXPERT_LAYERS = (2,)      # the action expert's layer whose decision rows are captured and evaluated
 DEMO_SAE_LATENTS = 256         # d_sae of the tiny SAEs (4x the tiny model's width of 64)
 DEMO_IMAGE_SIZE = 64           # dataset frames (real: 256); the tiny model resizes them to 28
 DEMO_STEPS = 24                # steps per generated demo (real demos: 100-300)
@@ -95,7 +96,7 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
         sae={layer: SaeSection(path=path) for layer, path in saes.items()},
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
-                                 note=TINY_MODEL_NOTE),
+                                 note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),
     )
     return write_run_config(config, folder / CONFIG_FILE)
 
@@ -173,10 +174,12 @@ def format_summary(summary: dict[str, list[dict[str, Any]]], *, random_sae: bool
 
 
 def report_paths(config: RunConfig) -> list[Path]:
-    """Return the summary.md of every layer: the steering vectors', then the evaluation's (when it runs)."""
+    """Return the summary.md of every layer: the steering vectors', then the evaluation's (when it runs), then
+    the pathways table (with expert layers)."""
     reports = [config.layer_path(layer) / SUMMARY_MD for layer in config.layers]
-    if config.evaluate is not None:
-        reports += [config.eval_layer_path(layer) / SUMMARY_MD for layer in config.layers]
+    reports += [config.eval_layer_path(layer, stream) / SUMMARY_MD for layer, stream in config.eval_layers()]
+    if config.expert_layers:
+        reports.append(config.eval_root / f"{PATHWAYS_FILE}.md")
     return reports
 
 

@@ -9,11 +9,15 @@ LEROBOT_DIR = "libero_lerobot/{repo_id}"
 MANIFEST_FILE = "manifests/{pair}.json"
 CONCEPT_MAP_FILE = "manifests/{pair}_concept_map.json"
 RESIDUALS_RUN_DIR = "residuals/{run}"
+DECISION_RUN_DIR = "residuals/{run}_decision"       # the action expert's `decision` rows (evaluate.expert_layers)
 SLICES_DIR = "residuals/{pair}_slices"
+DECISION_SLICES_DIR = "residuals/{pair}_decision_slices"  # layerKK/<concept>.pt: expert layer KK
+EXPERT_LAYER_DIR = "expert_layer{layer:02d}"        # steering_eval/expert_layerKK/<pair>/: action-expert layer KK
 SLICE_INDEX_FILE = "index.json"                     # beside the slices of one layer: settings, concepts
 SPLIT_FILE = "manifests/{pair}_split.json"   # held-out episodes per task (phase 4 evaluates on them)
 STEERING_ROOT = "latent_steering"
 STEERING_EVAL_ROOT = "steering_eval"       # phase 4: steering_eval/layerNN/<pair>/ and per-layer summaries
+PATHWAYS_FILE = "pathways"                 # + .md / .json in STEERING_EVAL_ROOT: language model vs action expert
 # Files of one steering layer folder (STEERING_ROOT/layerNN/) and of its pair folders (layerNN/<pair>/).
 PAIR_SUMMARY_FILE = "directions.json"
 PAIRWISE_STATS_FILE = "pairwise_stats"  # + .pt / .json
@@ -29,3 +33,8 @@ TRAJECTORY_PLOT = "trajectory.png"
 def layer_dir(layer: int) -> str:
     """Return the folder name of one layer, e.g. `layer12`."""
     return LAYER_DIR.format(layer=layer)
+
+
+def stream_layer_dir(layer: int, stream: str) -> str:
+    """Return the folder name of one layer of a stream: `layer12` (language model) or `expert_layer03`."""
+    return EXPERT_LAYER_DIR.format(layer=layer) if stream == "expert" else LAYER_DIR.format(layer=layer)

@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from steering_core.capture.settings import check_model_inputs
+from steering_core.capture.shards import ACTION_TOKEN_TYPES
 from steering_core.config import RunConfig
 from steering_core.data.dataset import check_dataset, resolve_task
 from steering_core.data.filtering import DEMO_FILE_GLOB, select_files
@@ -49,22 +50,42 @@ def check_run(config: RunConfig, *, capture_device: bool = True) -> None:
 def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]:
     """Return one line per problem found in the run's inputs and output paths (empty: ready to run)."""
     capture = config.capture_settings()
-    checks: list[Callable[[], object]] = [
+    model = _failures([
         lambda: check_prefix_layout(resolve_model_file(capture.checkpoint_path), capture.arch, max(capture.layers)),
-        lambda: check_model_inputs(config.capture_settings()),
+        lambda: check_model_inputs(capture),
+    ])
+    if config.expert_layers and not model:  # the decision capture reads the whole policy: checked when the rest is fine
+        model = _failures([lambda: check_model_inputs(config.decision_capture_settings())])
+    checks: list[Callable[[], object]] = [
         *[(lambda layer=layer: load_steering_sae(config.steering_settings(layer).model_copy(update={"device": "cpu"})))
           for layer in config.layers if config.sae_for(layer) is not None],
         lambda: resolve_device(config.steering.device),
     ]
     if capture_device:
         checks.append(lambda: resolve_device(config.capture.device))
-    problems = _source_problems(config) + _output_problems(config)
+    problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
+    return list(dict.fromkeys(problems + model + _failures(checks)))
+
+
+def _failures(checks: list[Callable[[], object]]) -> list[str]:
+    """Return the one-line message of every check that raises a bad-input error."""
+    problems = []
     for check in checks:
         try:
             check()
         except INPUT_ERRORS as err:
             problems.append(one_line(err))
-    return list(dict.fromkeys(problems))
+    return problems
+
+
+def _token_type_problems(config: RunConfig) -> list[str]:
+    """Return a problem when the main capture would feed action-expert rows to the SAE and steering phase."""
+    token_type = config.capture.token_type
+    if token_type not in ACTION_TOKEN_TYPES:
+        return []
+    return [f"capture.token_type: {token_type!r} captures action-expert rows, but the run's SAE and steering phase "
+            "reads language-model rows (instructions, prompt or last); keep a prompt token type and set "
+            "evaluate.expert_layers to capture and evaluate the action expert's decision rows"]
 
 
 def _source_problems(config: RunConfig) -> list[str]:
@@ -122,9 +143,13 @@ def _output_dirs(config: RunConfig) -> Iterator[tuple[Path, str]]:
         yield config.filtered_dir, "filtered demos folder"
         yield config.dataset_root, "dataset folder"
     yield config.run_dir, "residual run folder"
+    if config.expert_layers:
+        yield config.decision_run_dir, "decision run folder"
     for pair in config.pairs:
         yield config.manifest_path(pair).parent, "manifests folder"
         yield config.slices_dir(pair), "slices folder"
+        if config.expert_layers:
+            yield config.decision_slices_dir(pair), "decision slices folder"
     for layer in config.layers:
         yield config.layer_path(layer), "steering folder"
 

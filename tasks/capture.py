@@ -149,7 +149,8 @@ def write_run_metadata(run_dir: str) -> dict:
 )
 def slice_layer(pair: str, layer: int, run_dir: str, concept_map_path: str, output_dir: str, settings: SliceSettings) -> dict:
     """Write one pair's per-concept residual tensors for one layer; return concept -> .pt path."""
-    progress = ProgressArtifact(artifact_key("slice", pair, layer_dir(layer)), "shards",
+    stream = [settings.token_type] if settings.token_type in shards.ACTION_TOKEN_TYPES else []  # decision slices
+    progress = ProgressArtifact(artifact_key("slice", pair, *stream, layer_dir(layer)), "shards",
                                  f"slice {pair} {layer_dir(layer)} into {output_dir}")
     index_path = slicing.slice_concepts(run_dir, concept_map_path, output_dir, settings, progress=progress)[layer]
     progress.finish()

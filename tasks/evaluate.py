@@ -1,4 +1,5 @@
-"""Phase 4 tasks: the dose-response of one (pair, layer) on the policy (GPU), and the per-layer summary."""
+"""Phase 4 tasks: the dose-response of one (pair, layer) on the policy (GPU), the per-layer summary and the
+comparison of the two pathways (language model vs action expert)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,12 @@ def folder_digests(path: Path) -> dict[str, str]:
     return {p.name: file_digest(p) for p in sorted(path.iterdir()) if p.is_file()}
 
 
+def slice_digests(path: Path) -> list[str]:
+    """Return the digests of a concept slice's .pt and, when present, of the .safetensors beside it (what is read)."""
+    tensors = path.with_suffix(".safetensors")
+    return [file_digest(path)] + ([file_digest(tensors)] if tensors.is_file() else [])
+
+
 def manifest_content(path: Path) -> Any:
     """Return a manifest's axis and segments: not its dataset record, whose fingerprint follows every new demo."""
     manifest = read_manifest(path)
@@ -47,8 +54,9 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
     return {
         "job": job.model_dump(mode="json", exclude={"manifest", "concept_map", "split", "positive_slice",
                                                     "negative_slice", "directions", "dataset_root"}),
-        "directions": folder_digests(job.directions),
-        "slices": [file_digest(job.positive_slice), file_digest(job.negative_slice)],
+        # the expert's direction is the mean difference of its slices, digested below
+        "directions": folder_digests(job.directions) if job.directions is not None else None,
+        "slices": [slice_digests(job.positive_slice), slice_digests(job.negative_slice)],
         "manifest": manifest_content(job.manifest),
         "windows": concept_rows(str(job.concept_map)),
         "split": file_digest(job.split),
@@ -58,23 +66,26 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
 
 @task(
     name="evaluate-steering",
-    task_run_name="evaluate {job.pair} layer {job.layer}",
+    task_run_name="evaluate {job.pair} {job.label}",
     tags=[GPU_TAG],
     cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs, steering=sae_inputs),
     retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )
 def evaluate_pair(
-    job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings,
+    job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings | None,
     settings: EvaluateSettings,
 ) -> dict:
-    """Run one pair's dose-response on the policy at one layer; return its output files."""
-    progress = ProgressArtifact(artifact_key("evaluate", job.pair, layout.layer_dir(job.layer)), "policy calls",
-                                f"evaluate {job.pair} at layer {job.layer}")
-    sae = steering.load_steering_sae(steering_settings)
+    """Run one pair's dose-response on the policy at one layer; return its output files.
+
+    `steering_settings` (the SAE of the top-k direction) is None for the action expert.
+    """
+    progress = ProgressArtifact(artifact_key("evaluate", job.pair, job.output_dir.parent.name), "policy calls",
+                                f"evaluate {job.pair} at {job.label}")
+    sae = steering.load_steering_sae(steering_settings) if steering_settings is not None else None
     folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress)
     progress.finish()
-    get_run_logger().info("%s layer %d: %s", job.pair, job.layer, folder)
+    get_run_logger().info("%s %s: %s", job.pair, job.label, folder)
     return {OUTPUTS: [str(folder / name) for name in _PAIR_OUTPUTS], "folder": str(folder)}
 
 
@@ -86,11 +97,31 @@ def dose_responses(inputs: dict[str, Any]) -> dict[str, str]:
 
 @task(
     name="evaluation-summary",
-    task_run_name="evaluation summary layer {layer}",
+    task_run_name="evaluation summary {label}",
     cache_policy=content_key("steering_core.evaluate.report", derived={"pairs": dose_responses}),
     **RESULTS,
 )
-def evaluation_summary(layer: int, layer_path: str, pair_names: list[str]) -> dict:
-    """Write summary.md and summary.json of one layer's evaluation; return their paths."""
+def evaluation_summary(label: str, layer_path: str, pair_names: list[str]) -> dict:
+    """Write summary.md and summary.json of one layer's evaluation (`label`: `layer L`, `expert layer K`)."""
     md_path = report.write_layer_summary(Path(layer_path), pair_names)
     return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))], "summary": str(md_path)}
+
+
+def evaluated_layers(inputs: dict[str, Any]) -> dict[str, str]:
+    """Return the digest of every dose_response.json the pathways table reads."""
+    root = Path(inputs["eval_root"])
+    return {f"{layout.stream_layer_dir(layer, stream)}/{name}": file_digest(
+                root / layout.stream_layer_dir(layer, stream) / name / f"{layout.DOSE_RESPONSE_FILE}.json")
+            for layer, stream in inputs["layers"] for name in inputs["pair_names"]}
+
+
+@task(
+    name="evaluation-pathways",
+    task_run_name="evaluation pathways",
+    cache_policy=content_key("steering_core.evaluate.report", derived={"pairs": evaluated_layers}),
+    **RESULTS,
+)
+def evaluation_pathways(eval_root: str, layers: list[tuple[int, str]], pair_names: list[str]) -> dict:
+    """Write pathways.md and pathways.json: per pair, the best language-model direction vs the action expert's."""
+    md_path = report.write_pathways(Path(eval_root), [(int(layer), stream) for layer, stream in layers], pair_names)
+    return {OUTPUTS: [str(md_path), str(md_path.with_suffix(".json"))], "pathways": str(md_path)}

@@ -5,6 +5,8 @@ The "residual" of a frame at the steered layer is r = mean(token embeddings of t
 the planted direction, A a fixed (H, 32) pattern and (w_f, b_f) a per-frame nonlinearity (so efficacy varies a
 little between frames). The two instructions' embeddings differ by `gap` · u, so steering with u reproduces the
 instruction swap at α = gap / R (R: the residual norm unit): efficacy exactly 1 up to the nonlinearity.
+With `stream="expert"` the same residual stands for the action expert's (steered at every action token, no
+token mask): the evaluation's expert pathway must build its steerings that way.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ class FakeSteering:
     vector: torch.Tensor
     alpha: float = 1.0
     token_mask: torch.Tensor | None = None
+    stream: str = "lm"
 
 
 class FakePolicy:
@@ -36,9 +39,10 @@ class FakePolicy:
 
     action_horizon, action_dim = HORIZON, ACTION_DIM
 
-    def __init__(self, width: int, planted: torch.Tensor, gap: float, *, depth: int = 4, beta: float = 3.0):
+    def __init__(self, width: int, planted: torch.Tensor, gap: float, *, depth: int = 4, beta: float = 3.0,
+                 stream: str = "lm"):
         gen = torch.Generator().manual_seed(123)
-        self.width, self.depth, self.beta = width, depth, beta
+        self.width, self.depth, self.beta, self.stream = width, depth, beta, stream
         self.u = planted.double() / planted.double().norm()
         self.embed = torch.randn(10, width, generator=gen, dtype=torch.float64)
         # the instruction tokens' mean embeddings differ by exactly gap * u
@@ -77,8 +81,11 @@ class FakePolicy:
         instruction = INSTRUCTION.expand(batch, -1)
         r = torch.stack([self.embed[tokens[b][instruction[b]]].mean(0) for b in range(batch)])
         if steering is not None:
-            assert steering.layer < self.depth
-            assert torch.equal(steering.token_mask, instruction)
+            assert steering.layer < self.depth and steering.stream == self.stream
+            if self.stream == "lm":
+                assert torch.equal(steering.token_mask, instruction)
+            else:
+                assert steering.token_mask is None
             r = r + steering.alpha * steering.vector.double()
         out = []
         for b, (base, w, bias) in enumerate(self._frame_terms(images)):

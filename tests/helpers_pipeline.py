@@ -15,7 +15,8 @@ from steering_core.layout import layer_dir
 def run_cli_steps(config: RunConfig, out: Path) -> None:
     """Run filter, convert, manifest, concept-map, capture, split, slice, steer and evaluate into `out` (the seed's layout).
 
-    The evaluation runs at the last layer only (with the run config's evaluate settings; none without them).
+    The evaluation runs at the last layer only (with the run config's evaluate settings; none without them);
+    with evaluate.expert_layers, a `capture --token-type decision` run is evaluated with `--decision-run`.
     """
     repo = config.dataset.repo_id
     dataset, run_dir = out / "libero_lerobot" / repo, out / "residuals" / "demo"
@@ -73,11 +74,26 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
     if evaluate is None:
         return
     layer = config.layers[-1]
+    common = ["--data-root", str(out), "--lerobot-root", str(dataset), "--repo-id", repo,
+              "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
+              "--arch-file", str(arch_file), "--max-frames", str(evaluate.max_frames),
+              "--noise-seeds", str(evaluate.noise_seeds), "--batch-size", str(evaluate.batch_size), "--device", "cpu"]
     result = runner.invoke(app, [
         "evaluate", "--pairs-config", str(out / f"layer{layer}_pairs.json"), "--layer", str(layer),
-        "--data-root", str(out), "--lerobot-root", str(dataset), "--repo-id", repo,
-        "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
-        "--arch-file", str(arch_file), "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k),
-        "--max-frames", str(evaluate.max_frames), "--noise-seeds", str(evaluate.noise_seeds),
-        "--batch-size", str(evaluate.batch_size), "--device", "cpu"])
+        "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k), *common])
     assert result.exit_code == 0, (result.output, result.exception)
+    if not evaluate.expert_layers:
+        return
+    expert = ",".join(map(str, evaluate.expert_layers))
+    decision = out / "residuals" / "demo_decision"
+    for step in (
+        ["capture", "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
+         "--lerobot-root", str(dataset), "--repo-id", repo, "--output-dir", str(decision), "--layers", expert,
+         "--token-type", "decision", "--num-steps", str(config.capture.num_steps), "--batch-size",
+         str(config.capture.batch_size), "--device", "cpu", "--num-workers", "0", "--arch-file", str(arch_file)],
+        # the expert pathway alone: pairs by name, no --layer and no pairs config
+        ["evaluate", "--decision-run", str(decision), "--expert-layers", expert,
+         *[arg for p in config.pairs for arg in ("--pair", p.name)], *common],
+    ):
+        result = runner.invoke(app, step)
+        assert result.exit_code == 0, (step[0], result.output, result.exception)

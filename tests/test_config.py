@@ -232,6 +232,35 @@ def test_evaluate_section_holds_out_episodes_and_takes_top_k_from_steering(tmp_p
         "slicing.holdout_episodes: set by the run config: use `evaluate.holdout_fraction`"]
 
 
+def test_expert_layers_add_a_decision_capture_and_are_checked_against_the_expert_depth(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID + "evaluate: {expert_layers: [3, 0, 3]}\n"))
+    assert config.expert_layers == (0, 3)
+    assert "expert_layers" not in config.evaluate_settings().model_dump()  # a run-level choice, not per evaluation
+    decision = config.decision_capture_settings()
+    main = config.capture_settings()
+    assert (decision.token_type, decision.layers) == ("decision", (0, 3))
+    assert decision.model_dump(exclude={"token_type", "layers"}) == main.model_dump(exclude={"token_type", "layers"})
+    assert config.decision_run_dir == tmp_path / "data/residuals/drawer_stove_decision"
+    pair = config.pairs[0]
+    assert config.decision_slices_dir(pair) == tmp_path / "data/residuals/open_vs_close_decision_slices"
+    expert_slices = config.slice_settings(3, (4,), "expert")
+    assert (expert_slices.token_type, expert_slices.layers, expert_slices.holdout_episodes) == ("decision", (3,), (4,))
+    assert expert_slices.reduce == "frame"  # the slicing section applies to both streams
+    assert config.eval_layer_path(3, "expert") == tmp_path / "data/steering_eval/expert_layer03"
+    assert config.eval_layers() == [(1, "lm"), (2, "lm"), (0, "expert"), (3, "expert")]
+    assert load_run_config(write_yaml(tmp_path, VALID, name="none.yaml")).expert_layers == ()
+    with pytest.raises(ValueError, match="captures no decision rows"):
+        load_run_config(write_yaml(tmp_path, VALID, name="none.yaml")).decision_capture_settings()
+    assert load_error(tmp_path, VALID + "evaluate: {expert_layers: [1, 4]}\n") == [
+        "evaluate.expert_layers [4] out of range: the action expert has 4 decoder layers (0..3), as many as "
+        "model.arch.depth"]
+    assert load_error(tmp_path, VALID + "evaluate: {expert_layers: [-1]}\n") == [
+        "evaluate.expert_layers: expert_layers [-1] include a negative index; expert layers count from 0"]
+    assert load_error(tmp_path, VALID + "capture: {num_steps: 5}\nevaluate: {expert_layers: [1]}\n") == [
+        "evaluate.num_steps 10 differs from capture.num_steps 5: the expert direction comes from the decision rows "
+        "of the sampler the evaluation steers; set both to the same value"]
+
+
 EXISTING = VALID.replace("sources:\n  folders: [demos, /abs/more_demos]\n", "").replace(
     "dataset: {repo_id: libero_ds, image_size: 64}", "dataset: {existing: hf/physical-intelligence/libero}")
 

@@ -14,11 +14,11 @@ from steering_core.data.concept_map import ConceptMap, ConceptRow
 from steering_core.data.contrast import AxisSummary, ContrastManifest, Segment
 from steering_core.data.split import read_split, split_episodes, write_split
 from steering_core.evaluate import EvaluateSettings
-from steering_core.evaluate.directions import random_directions
+from steering_core.evaluate.directions import decision_directions, random_directions
 from steering_core.evaluate.frames import evenly_spaced, select_frames
 from steering_core.evaluate.metrics import bootstrap_indices, dose_response_metrics
 from steering_core.evaluate.pair import PairInputs, evaluate_pair
-from steering_core.evaluate.report import write_layer_summary
+from steering_core.evaluate.report import write_layer_summary, write_pathways
 
 POS, NEG = "open the drawer", "close the drawer"
 EPISODE_FRAMES, WINDOW = 12, (2, 9)
@@ -53,12 +53,16 @@ EPISODES = {POS: [0, 1, 2, 3, 4], NEG: [5, 6, 7, 8, 9]}
 
 def slices(folder: Path) -> tuple[Path, Path]:
     """Two concept slices whose rows all have norm NORM (the α unit)."""
+    rows = [torch.randn(20, WIDTH, generator=torch.Generator().manual_seed(i)) for i in range(2)]
+    return write_slices(folder, *(r / r.norm(dim=-1, keepdim=True) * NORM for r in rows))
+
+
+def write_slices(folder: Path, positive: torch.Tensor, negative: torch.Tensor) -> tuple[Path, Path]:
+    """Write two concept slices as slicing does (.pt + .safetensors `residuals`); return their .pt paths."""
+    folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, name in enumerate(("pos", "neg")):
-        rows = torch.randn(20, WIDTH, generator=torch.Generator().manual_seed(i))
-        rows = rows / rows.norm(dim=-1, keepdim=True) * NORM
+    for name, rows in (("pos", positive), ("neg", negative)):
         path = folder / f"{name}.pt"
-        folder.mkdir(parents=True, exist_ok=True)
         torch.save(rows, path)
         save_file({"residuals": rows}, str(path.with_suffix(".safetensors")))
         paths.append(path)
@@ -228,3 +232,104 @@ def test_model_checks_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="needs the libero format"):
         check_model(model.model_copy(update={"prompt_format": PromptFormat.DISCRETE_STATE}), 1)
     check_model(model, arch.depth - 1)
+
+
+# ----------------------------------------------------------------------------- the action-expert pathway
+
+EXPERT_WIDTH, EXPERT_LAYER, HALF_GAP = 128, 1, 3.0
+
+
+def decision_slices(folder: Path, u: torch.Tensor) -> tuple[Path, Path]:
+    """Decision slices of both tasks: rows ±HALF_GAP·û + w_i with the same w_i ⟂ û and every row of norm NORM,
+    so the mean difference is exactly 2·HALF_GAP·û and the α unit is NORM."""
+    unit = u.double() / u.double().norm()
+    w = torch.randn(30, EXPERT_WIDTH, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    w = w - (w @ unit)[:, None] * unit
+    w = w / w.norm(dim=-1, keepdim=True) * (NORM**2 - HALF_GAP**2) ** 0.5
+    return write_slices(folder, (HALF_GAP * unit + w).float(), (-HALF_GAP * unit + w).float())
+
+
+def expert_planted() -> torch.Tensor:
+    return torch.randn(EXPERT_WIDTH, generator=torch.Generator().manual_seed(11))
+
+
+def run_expert(tmp_path: Path, out: Path, *, width: int = EXPERT_WIDTH) -> tuple[Path, FakePolicy]:
+    """The expert pathway on a fake policy whose actions read the expert residual along the planted direction."""
+    m = manifest(EPISODES)
+    u = expert_planted()
+    pair = PairInputs(name="open_vs_close", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
+                      split=split_episodes(m, 0.4), slices=decision_slices(tmp_path / "decision", u))
+    directions = decision_directions(pair.slices, random_count=8, seed=0)
+    policy = FakePolicy(EXPERT_WIDTH, u, GAP, stream="expert")
+    settings = EvaluateSettings(max_frames=8, noise_seeds=2, bootstrap=200, batch_size=3, device="cpu")
+    evaluate_pair(pair, directions, policy, FakeSteering, load, prompts(), layer=EXPERT_LAYER, width=width,
+                  settings=settings, output_dir=out, metadata={"policy": "fake"}, stream="expert")
+    return out, policy
+
+
+def test_planted_expert_direction_reproduces_the_swap_and_random_ones_do_not(tmp_path):
+    out, policy = run_expert(tmp_path, tmp_path / "eval" / "expert_layer01" / "open_vs_close")
+    record = json.loads((out / "dose_response.json").read_text())
+    assert record["stream"] == "expert" and record["layer"] == EXPERT_LAYER
+    assert record["alpha_units"].startswith("mean decision-residual norm at the expert layer / ||d||")
+    assert list(record["directions"]) == ["decision_mean_difference"] + [f"random_{i:02d}" for i in range(8)]
+    alphas = record["alphas"]
+    at = alphas.index(2.0)  # the swap moves the expert residual by GAP = 2 R along the planted direction
+    entry = record["directions"]["decision_mean_difference"]
+    assert entry["efficacy"][at] == pytest.approx(1.0, abs=0.05)
+    low, high = entry["efficacy_ci"][at]
+    assert low <= 1.0 <= high and high - low < 0.2
+    assert entry["best"]["alpha"] == 2.0 and entry["z"][at] > 5
+    assert entry["efficacy"][alphas.index(-2.0)] == pytest.approx(-1.0, abs=0.05)
+    for name in record["random"]["names"]:
+        assert abs(record["directions"][name]["efficacy"][at]) < 0.25
+    # α unit: the decision rows' mean norm; in vector units α R / ||d|| with d = 2 HALF_GAP û
+    assert record["residual_norm"] == pytest.approx(NORM, rel=1e-5)
+    assert record["direction_norms"]["decision_mean_difference"] == pytest.approx(2 * HALF_GAP, rel=1e-5)
+    assert entry["alphas_vector_units"][at] == pytest.approx(2.0 * NORM / (2 * HALF_GAP), rel=1e-5)
+    # random directions of equal norm, in expert width; the direction itself is kept with the outputs
+    norms = record["direction_norms"]
+    assert all(norms[n] == pytest.approx(2 * HALF_GAP, rel=1e-5) for n in record["random"]["names"])
+    tensors = load_file(out / "dose_response.safetensors")
+    unit = expert_planted().double() / expert_planted().double().norm()
+    assert tensors["directions"].shape == (9, EXPERT_WIDTH)
+    torch.testing.assert_close(tensors["directions"][0].double(), 2 * HALF_GAP * unit, rtol=0, atol=1e-5)
+    # one sweep per (batch, seed), α = 0 shared: 1 + 9 directions x 8 nonzero α entries
+    batches = sum(-(-sum(f["side"] == s for f in record["frames"]) // 3) for s in ("positive", "negative"))
+    assert policy.calls == {"sweep_calls": batches * 2 * 2, "sweep_entries": batches * 2 * (1 + 9 * 8),
+                            "sample_actions": batches * 2}
+    md = write_layer_summary(out.parent, ["open_vs_close"]).read_text()
+    assert md.startswith("# Steering evaluation, expert_layer01") and "| open_vs_close | decision_mean_difference | 2 |" in md
+
+
+def test_expert_outputs_are_byte_identical_and_the_width_is_checked(tmp_path):
+    first, _ = run_expert(tmp_path, tmp_path / "a" / "p")
+    second, _ = run_expert(tmp_path, tmp_path / "b" / "p")
+    names = sorted(p.name for p in first.iterdir())
+    assert names == sorted(p.name for p in second.iterdir()) and "efficacy_vs_alpha.png" in names
+    for name in names:
+        assert (first / name).read_bytes() == (second / name).read_bytes(), name
+    out = tmp_path / "c" / "p"
+    with pytest.raises(ValueError, match=r"decision_mean_difference.*\(128,\).*action expert.s residual width \(129,\)"):
+        run_expert(tmp_path, out, width=EXPERT_WIDTH + 1)
+    assert not out.exists()
+
+
+def test_pathways_table_puts_the_best_lm_direction_beside_the_expert(tmp_path):
+    root = tmp_path / "steering_eval"
+    run(tmp_path, root / "layer02" / "open_vs_close")
+    run_expert(tmp_path, root / "expert_layer01" / "open_vs_close")
+    md = write_pathways(root, [(2, "lm"), (1, "expert")], ["open_vs_close"]).read_text()
+    pathways = json.loads((root / "pathways.json").read_text())
+    [row] = pathways["rows"]
+    lm = json.loads((root / "layer02" / "open_vs_close" / "dose_response.json").read_text())
+    expert = json.loads((root / "expert_layer01" / "open_vs_close" / "dose_response.json").read_text())
+    # the LM side: of residual/mean-difference, the one whose best efficacy is closest to 1
+    best = min(("residual_direction", "mean_difference_direction"),
+               key=lambda n: abs(lm["directions"][n]["best"]["efficacy"] - 1))
+    assert (row["lm"]["layer"], row["lm"]["direction"]) == (2, best)
+    assert row["lm"]["efficacy"] == lm["directions"][best]["best"]["efficacy"]
+    assert row["expert"] == {"layer": 1, "direction": "decision_mean_difference",
+                             **expert["directions"]["decision_mean_difference"]["best"]}
+    assert f"| open_vs_close | {best}, layer 2, α = 2 |" in md
+    assert "| decision_mean_difference, layer 1, α = 2 |" in md

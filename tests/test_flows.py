@@ -251,6 +251,33 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
     for layer in config.layers:
         assert f"evaluation summary layer {layer}" in tasks
         assert "these numbers mean nothing" in (config.eval_layer_path(layer) / "summary.md").read_text()
+    # the action expert: a decision capture beside the main one, sliced without the held-out episodes, evaluated
+    assert config.expert_layers == (2,)
+    assert tasks["capture decision episodes 0-7"].tags == ["gpu"]
+    decision = read_run_metadata(config.decision_run_dir)
+    assert decision.run.token_type == "decision" and decision.run.layers == config.expert_layers
+    assert decision.episodes == tuple(range(8)) and decision.run.inputs["num_steps"] == config.evaluate.num_steps
+    for pair in ("open_vs_close", "on_vs_off"):
+        split = read_json(config.split_path(config.pair(pair)))
+        held_out = {e for side in split["tasks"].values() for e in side["holdout"]}
+        index = read_json(config.decision_slices_dir(config.pair(pair)) / "layer02" / "index.json")
+        assert index["width"] == decision.run.width and index["settings"]["token_type"] == "decision"
+        sliced = {s["episode_index"] for c in index["concepts"].values() for s in c["segments"]}
+        assert sliced and not sliced & held_out and index["settings"]["holdout_episodes"] == sorted(held_out)
+        assert tasks[f"slice {pair} expert layer 2"].state.name == "Completed"
+        assert tasks[f"evaluate {pair} expert layer 2"].tags == ["gpu"]
+        record = read_json(config.eval_layer_path(2, "expert") / pair / "dose_response.json")
+        assert record["stream"] == "expert" and list(record["directions"])[0] == "decision_mean_difference"
+        assert len(record["random"]["names"]) == 8 and {f["episode_index"] for f in record["frames"]} == held_out
+        lm = read_json(config.eval_layer_path(2) / pair / "dose_response.json")
+        assert record["frames"] == lm["frames"]  # the same held-out frames (and noise) as the language model's
+        vectors = load_file(config.eval_layer_path(2, "expert") / pair / "dose_response.safetensors")["directions"]
+        assert vectors.shape == (9, decision.run.width)
+    assert {"evaluation summary expert layer 2", "evaluation pathways"} <= set(tasks)
+    pathways = read_json(config.eval_root / "pathways.json")
+    assert [(r["pair"], r["lm"]["layer"] in config.layers, r["expert"]["layer"]) for r in pathways["rows"]] == [
+        ("open_vs_close", True, 2), ("on_vs_off", True, 2)]
+    assert "these numbers mean nothing" in (config.eval_root / "pathways.md").read_text()
     assert read_run_metadata(config.run_dir).episodes == tuple(range(8))
     for layer in config.layers:
         assert (config.layer_path(layer) / "summary.md").is_file()
@@ -281,6 +308,8 @@ def test_demo_prints_summary_and_locations(first_run, demo_config):
     assert f"outputs: {config.output_root}" in output
     assert f"report: {config.layer_path(2) / 'summary.md'}" in output
     assert f"report: {config.eval_layer_path(2) / 'summary.md'}" in output
+    assert f"report: {config.eval_layer_path(2, 'expert') / 'summary.md'}" in output
+    assert f"report: {config.eval_root / 'pathways.md'}" in output
 
 
 def test_closing_table_names_every_task_run_with_its_state(first_run, demo_config):
@@ -290,10 +319,14 @@ def test_closing_table_names_every_task_run_with_its_state(first_run, demo_confi
     lines = output.splitlines()
     assert any(line.split()[:2] == ["step", "pair"] and line.endswith(f"output (under {root})") for line in lines)
     slices = [line.split() for line in lines if line.startswith("slice-concepts ")]
-    assert len(slices) == 4 and sum(line[3:6] == ["ran", "(2", "attempts)"] for line in slices) == 1  # the fault
+    # 2 pairs x (2 layers + 1 expert layer, whose rows read `expert 2`); one retried (the fault)
+    assert len(slices) == 6 and sum(" ran (2 attempts) " in " ".join(line) for line in slices) == 1
     encode = next(words for words in map(str.split, lines) if words[:4] == ["encode-concept", "on_vs_off", "negative", "2"])
     assert encode[-1] == "latent_steering/layer02/concepts/"
     assert any(line.split()[:3] == ["capture-residuals", "episodes", "0-7"] for line in lines)
+    assert any(line.split()[:4] == ["capture-residuals", "decision", "episodes", "0-7"] for line in lines)
+    assert any(line.split()[1:4] == ["on_vs_off", "expert", "2"] and line.endswith("steering_eval/expert_layer02/on_vs_off/")
+               for line in lines)
 
 
 def test_injected_fault_is_retried_and_recorded(first_run):
@@ -311,7 +344,8 @@ def test_artifacts_are_published(first_run):
     progress = ["capture-demo-episodes-0-7", "convert-libero-demo-lerobot", "slice-on-vs-off-layer02",
                 "encode-open-vs-close-negative-layer01",
                 "evaluate-on-vs-off-layer01"]
-    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress, "demo-evaluation-layer02"]
+    keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress, "demo-evaluation-layer02",
+            "demo-evaluation-pathways"]
     with get_client(sync_client=True) as client:
         artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)))
     by_key = {a.key: a for a in artifacts}
@@ -324,6 +358,7 @@ def test_artifacts_are_published(first_run):
     assert "file://" not in report and "## Files" in report
     assert by_key["demo-pairwise-cosines-layer02"].type == "table"
     assert by_key["demo-evaluation-layer02"].data.startswith("# Steering evaluation, layer02")
+    assert by_key["demo-evaluation-pathways"].data.startswith("# Steering pathways: language model vs action expert")
     assert "open_vs_close vs on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
 
 
@@ -363,6 +398,84 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
         theirs = load_file(out / "steering_eval" / layer_dir(layer) / pair.name / "dose_response.safetensors")
         for key in ("actions", "swap_actions", "efficacy", "alphas_vector_units", "z"):
             assert torch.equal(ours[key], theirs[key]), (pair.name, key)
+    # the action expert (`capture --token-type decision`, `evaluate --decision-run`): the same rows, slices, outputs
+    assert ([(r.file, r.sha256) for r in read_run_metadata(config.decision_run_dir).shards]
+            == [(r.file, r.sha256) for r in read_run_metadata(out / "residuals" / "demo_decision").shards])
+    for pair in config.pairs:
+        for concept in (pair.positive, pair.negative):
+            assert torch.equal(
+                torch.load(config.decision_slices_dir(pair) / "layer02" / f"{concept}.pt", weights_only=True),
+                torch.load(out / "residuals" / f"{pair.name}_decision_slices" / "layer02" / f"{concept}.pt",
+                           weights_only=True))
+        ours = load_file(config.eval_layer_path(2, "expert") / pair.name / "dose_response.safetensors")
+        theirs = load_file(out / "steering_eval" / "expert_layer02" / pair.name / "dose_response.safetensors")
+        for key in ("actions", "swap_actions", "efficacy", "directions", "z"):
+            assert torch.equal(ours[key], theirs[key]), (pair.name, key)
+
+
+def test_expert_evaluation_key_follows_its_own_pair_only(first_run, demo_config):
+    """Changing one pair's decision residuals changes that pair's evaluation key, and no other's."""
+    from safetensors.torch import save_file
+
+    from steering_core.evaluate.run import run_config_job
+    from steering_core.fileio import sha256_json
+    from tasks.evaluate import job_inputs
+
+    config = load_run_config(demo_config)
+    jobs = {p.name: run_config_job(config, p.name, 2, "expert") for p in config.pairs}
+
+    def keys() -> dict[str, str]:
+        return {name: sha256_json(job_inputs(job)) for name, job in jobs.items()}
+
+    before = keys()
+    target = jobs["open_vs_close"].negative_slice.with_suffix(".safetensors")  # what the evaluation reads
+    saved = target.read_bytes()
+    try:
+        tensors = load_file(target)
+        tensors["residuals"][0, 0] += 1.0
+        save_file(tensors, str(target))
+        changed = keys()
+    finally:
+        target.write_bytes(saved)
+    assert changed["open_vs_close"] != before["open_vs_close"] and changed["on_vs_off"] == before["on_vs_off"]
+    assert keys() == before
+
+
+def test_cli_refuses_a_decision_run_it_cannot_steer_with(first_run, demo_config, tmp_path):
+    """One error line naming --decision-run (or the flag), before anything is sliced or evaluated."""
+    import shutil
+
+    config = load_run_config(demo_config)
+    wide = tmp_path / "wide"
+    shutil.copytree(config.decision_run_dir, wide)
+    metadata = read_json(wide / "metadata.json")
+    width = metadata["run"]["width"]
+    metadata["run"]["width"] = width + 1
+    (wide / "metadata.json").write_text(json.dumps(metadata))
+    slices = config.decision_slices_dir(config.pair("open_vs_close"))
+    stamp = {p: p.stat().st_mtime_ns for p in slices.rglob("*")}
+    out = tmp_path / "eval"
+    base = ["evaluate", "--pair", "open_vs_close", "--data-root", str(config.output_root), "--output-root", str(out),
+            "--lerobot-root", str(config.dataset_root), "--checkpoint-path", str(config.model.checkpoint),
+            "--tokenizer-path", str(config.model.tokenizer), "--arch-file",
+            str(config.model.checkpoint.parent / "pi05_tiny_arch.json"), "--device", "cpu"]
+    cases = {
+        (str(wide), "2"): f"error: --decision-run {wide}: its rows are {width + 1} wide, the checkpoint's action "
+                          f"expert is {width} wide (an expert direction of the wrong width)",
+        (str(config.run_dir), "2"): f"error: --decision-run {config.run_dir}: it holds `instructions` rows, expected "
+                                    "`decision` rows",
+        (str(config.decision_run_dir), "9"): "error: action-expert layer 9 is not a layer of the policy: it has 4",
+    }
+    for (run_dir, layers), message in cases.items():
+        result = CliRunner().invoke(app, [*base, "--decision-run", run_dir, "--expert-layers", layers])
+        assert result.exit_code == 1 and message in " ".join(result.output.split()), result.output
+    missing = CliRunner().invoke(app, [*base, "--decision-run", str(wide)])
+    assert missing.exit_code == 2 and "--expert-layers required" in " ".join(missing.output.split())
+    for extra, message in ((["--expert-layers", "1"], "[1]: the run config's evaluate.expert_layers are [2]"),
+                           (["--decision-run", str(wide)], "--decision-run cannot be combined with --config")):
+        refused = CliRunner().invoke(app, ["evaluate", "--config", str(demo_config), *extra])
+        assert refused.exit_code == 2 and message in " ".join(refused.output.replace("│", " ").split()), refused.output
+    assert not out.exists() and {p: p.stat().st_mtime_ns for p in slices.rglob("*")} == stamp
 
 
 def test_capture_cli_with_run_config_agrees_with_the_pipeline(first_run, demo_config):
@@ -432,11 +545,18 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
         "manifest open_vs_close", "manifest on_vs_off", "concept map open_vs_close", "concept map on_vs_off",
         "held-out split open_vs_close", "held-out split on_vs_off",
         "capture episodes 8-8", f"run metadata {config.run_dir}", PREFLIGHT, *steps,
+        # the action expert: the new episode's decision rows change the drawer pair's decision slices only
+        "capture decision episodes 8-8", f"run metadata {config.decision_run_dir}",
+        "slice open_vs_close expert layer 2", "evaluate open_vs_close expert layer 2",
+        "evaluation summary expert layer 2", "evaluation pathways",
     }
     assert all(tasks[name].state.name == "Completed" for name in recomputed)
     assert tasks["capture episodes 0-7"].state.name == "Cached"
-    # the refreshed vector re-evaluates only its own pair
+    assert tasks["capture decision episodes 0-7"].state.name == "Cached"
+    # the refreshed vector (and decision slices) re-evaluate only their own pair
     assert {tasks[f"evaluate on_vs_off layer {layer}"].state.name for layer in config.layers} == {"Cached"}
+    assert tasks["slice on_vs_off expert layer 2"].state.name == "Cached"
+    assert tasks["evaluate on_vs_off expert layer 2"].state.name == "Cached"
 
     # only the new episode's shards were written; every old shard is the same file as before
     shards_after = shard_files(config)

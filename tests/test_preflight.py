@@ -85,6 +85,10 @@ CASES = {
     "SAE folder without cfg": (lambda c, t: with_sae(c, 2, t), "not a SAELens SAE folder"),
     "output root is a file": (lambda c, t: c.model_copy(update={"output_root": text_file(t / "out")}),
                               "out: is a file; expected a folder"),
+    "action-expert rows for the SAE phase": (
+        lambda c, t: c.model_copy(update={"capture": c.capture.model_copy(update={"token_type": "decision"})}),
+        "capture.token_type: 'decision' captures action-expert rows, but the run's SAE and steering phase reads "
+        "language-model rows (instructions, prompt or last); keep a prompt token type and set evaluate.expert_layers"),
     "a run folder's parent is a file": (
         lambda c, t: c.model_copy(update={"output_root": text_file(t / "residuals").parent}),
         "residuals: is a file (a parent of"),

@@ -184,22 +184,24 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
         assert parent.work_pool_name == "cpu"
 
         captures = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
-        assert len(captures) == 2
+        assert len(captures) == 2  # each also captures the action expert's decision rows of its episodes
         assert {(r.work_pool_name, r.state.name) for r in captures} == {("gpu", "Completed")}
         assert {r.parent_task_run_id is not None for r in captures} == {True}  # linked to the parent
-        # phase 4: one evaluation run per (pair, layer), on the gpu pool too
+        # phase 4: one evaluation run per (pair, layer), the expert's layers included, on the gpu pool too
         evaluations = client.read_flow_runs(
             flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-evaluate"])))
-        assert len(evaluations) == 2 * len(config.layers)
+        assert len(evaluations) == 2 * (len(config.layers) + len(config.expert_layers))
         assert {(r.work_pool_name, r.state.name) for r in evaluations} == {("gpu", "Completed")}
 
         runs = {r.id: r for r in [parent, *captures]}
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=list(runs))))
         pool_of = {t.name: runs[t.flow_run_id].work_pool_name for t in tasks if t.id not in
                    {r.parent_task_run_id for r in captures}}
-    assert {pool_of["capture episodes 0-3"], pool_of["capture episodes 4-7"]} == {"gpu"}
+    assert {pool_of[f"capture {kind}episodes {episodes}"] for kind in ("", "decision ")
+            for episodes in ("0-3", "4-7")} == {"gpu"}
     sae_tasks = [name for name in pool_of if name.split(" ")[0] in ("slice", "encode", "directions", "pairwise")]
-    assert len(sae_tasks) == 2 * 2 + 2 * 2 * 2 + 2 * 2 + 2  # slices, encodes, directions, pairwise per layer
+    # slices (+ the decision slices per pair and expert layer), encodes, directions, pairwise per layer
+    assert len(sae_tasks) == 2 * 2 + 2 * len(config.expert_layers) + 2 * 2 * 2 + 2 * 2 + 2
     assert {pool_of[name] for name in sae_tasks} == {"cpu"}
 
     # the tag limit of one GPU slot kept the two capture tasks from overlapping
@@ -212,6 +214,9 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
         assert (config.layer_path(layer) / "on_vs_off" / "residual_direction.pt").is_file()
         assert (config.eval_layer_path(layer) / "on_vs_off" / "dose_response.json").is_file()
         assert (config.eval_layer_path(layer) / "summary.md").is_file()
+    for layer in config.expert_layers:
+        assert (config.eval_layer_path(layer, "expert") / "on_vs_off" / "dose_response.json").is_file()
+    assert (config.eval_root / "pathways.md").is_file()
 
     # the refresh deployment sees the sources of that successful run: it ends without a pipeline run
     refreshed = run_deployment_and_wait(env, "latent-steering-refresh/scheduled", tmp_path / "logs" / "worker-cpu.log")

@@ -1,12 +1,15 @@
-"""The directions compared by the evaluation, all in the residual space of one layer.
+"""The directions compared by the evaluation, all in the residual space of one layer of one stream.
 
+Language model (layer L, from phase 3's files):
 - `residual_direction`: the pair's SAE direction (latent difference @ W_dec, as phase 3 wrote it);
 - `mean_difference_direction`: the plain difference of the concepts' residual means;
 - `top_k_latents`: only the k largest |latent differences|, decoded without b_dec;
-- `random_00..`: Gaussian directions of the same norm as `residual_direction` (the null band).
+Action expert (expert layer K, from the pair's `decision` slices, `evaluate.expert_layers`):
+- `decision_mean_difference`: mean(positive decision rows) − mean(negative decision rows);
+Both:
+- `random_00..`: Gaussian directions of the same norm as the first direction (the null band).
 
 Without an SAE, phase 3's `residual_direction` is the mean difference itself; it is evaluated once.
-There is no action-expert direction: the capture does not record the expert's `decision` residuals.
 """
 
 from __future__ import annotations
@@ -14,11 +17,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
 
 from steering_core.sae.model import Sae
 from steering_core.sae.steering import read_pair_vectors
 
 RESIDUAL = "residual_direction"
+DECISION = "decision_mean_difference"
 MEAN_DIFFERENCE = "mean_difference_direction"
 TOP_K = "top_k_latents"
 RANDOM = "random_{index:02d}"
@@ -58,18 +63,48 @@ def pair_directions(pair_path: Path, sae: Sae | None, *, top_k: int, random_coun
                 raise ValueError(f"{pair_path}: latent_direction has {vectors['latent'].numel()} latents, the SAE "
                                  f"{sae.name} has {sae.cfg.d_sae}; evaluate with the SAE phase 3 used")
             directions[TOP_K] = top_k_direction(vectors["latent"].float(), sae, top_k)
+    return with_random_band(directions, str(pair_path), random_count, seed)
+
+
+def decision_directions(slices: tuple[Path, Path], *, random_count: int, seed: int) -> dict[str, torch.Tensor]:
+    """Return name -> (expert width,) float32 direction of one pair at one expert layer, controls last.
+
+    `slices` are the (positive, negative) `decision` slices of the layer (training episodes only); the
+    direction is the difference of their row means (computed in float64).
+    """
+    means = [read_slice_rows(path).double().mean(0) for path in slices]
+    directions = {DECISION: (means[0] - means[1]).float()}
+    return with_random_band(directions, f"decision slices {slices[0].parent}", random_count, seed)
+
+
+def with_random_band(
+    directions: dict[str, torch.Tensor], where: str, random_count: int, seed: int
+) -> dict[str, torch.Tensor]:
+    """Return `directions` (the first one the reference) followed by `random_count` random ones of its norm.
+
+    Raises ValueError naming `where` when a direction is zero (nothing to scale).
+    """
     zero = [name for name, v in directions.items() if not float(v.norm()) > 0]
     if zero:
-        raise ValueError(f"{pair_path}: direction(s) {zero} are zero; the two concepts have equal means")
-    reference = directions[RESIDUAL]
-    for index, v in enumerate(random_directions(reference.numel(), float(reference.norm()), random_count, seed)):
-        directions[RANDOM.format(index=index)] = v
-    return directions
+        raise ValueError(f"{where}: direction(s) {zero} are zero; the two concepts have equal means")
+    reference = next(iter(directions.values()))
+    randoms = random_directions(reference.numel(), float(reference.norm()), random_count, seed)
+    return directions | {RANDOM.format(index=index): v for index, v in enumerate(randoms)}
 
 
-def check_width(directions: dict[str, torch.Tensor], width: int, where: str) -> None:
-    """Raise ValueError naming every direction whose shape is not (width,)."""
+def read_slice_rows(path: Path) -> torch.Tensor:
+    """Return a concept slice's (rows, width) residuals: its .safetensors `residuals`, or the .pt beside it."""
+    tensors = path.with_suffix(".safetensors")
+    if tensors.is_file():
+        with safe_open(str(tensors), "pt") as handle:
+            return handle.get_tensor("residuals")
+    return torch.load(path, weights_only=True)
+
+
+def check_width(directions: dict[str, torch.Tensor], width: int, where: str, stream: str = "lm") -> None:
+    """Raise ValueError naming every direction whose shape is not (width,) (the width of `stream`)."""
     wrong = {name: tuple(v.shape) for name, v in directions.items() if tuple(v.shape) != (width,)}
     if wrong:
-        raise ValueError(f"{where}: directions {wrong} do not match the policy's residual width ({width},); "
+        what = "action expert's" if stream == "expert" else "language model's"
+        raise ValueError(f"{where}: directions {wrong} do not match the policy's {what} residual width ({width},); "
                          "use vectors of the same model and layer")

@@ -9,12 +9,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors import safe_open
 
 from steering_core.data.concept_map import ConceptMap
 from steering_core.data.contrast import ContrastManifest
 from steering_core.data.split import HoldoutSplit
-from steering_core.evaluate.directions import RANDOM_PREFIX, check_width
+from steering_core.evaluate.directions import RANDOM_PREFIX, check_width, read_slice_rows
 from steering_core.evaluate.frames import EvalFrame, select_frames
 from steering_core.evaluate.metrics import (
     action_dim_of_state_axis,
@@ -42,19 +41,15 @@ class PairInputs:
     manifest: ContrastManifest
     concept_map: ConceptMap         # the map of the whole manifest (held-out episodes included)
     split: HoldoutSplit
-    slices: tuple[Path, Path]       # training concept slices (positive, negative): the residual norm unit
+    slices: tuple[Path, Path]       # training concept slices (positive, negative) of the steered layer and
+                                    # stream: their mean row norm is the α unit
 
 
 def mean_residual_norm(slice_paths: Sequence[Path]) -> float:
     """Return the mean row norm of concept slices (.safetensors `residuals`, or the .pt beside it)."""
     total, rows = 0.0, 0
     for path in slice_paths:
-        tensors = path.with_suffix(".safetensors")
-        if tensors.is_file():
-            with safe_open(str(tensors), "pt") as handle:
-                residuals = handle.get_tensor("residuals")
-        else:
-            residuals = torch.load(path, weights_only=True)
+        residuals = read_slice_rows(path)
         total += float(residuals.double().norm(dim=-1).sum())
         rows += residuals.shape[0]
     if rows == 0 or not total > 0:
@@ -76,13 +71,15 @@ def evaluate_pair(
     output_dir: Path,
     metadata: dict[str, Any] | None = None,
     progress: Progress | None = None,
+    stream: str = "lm",
 ) -> Path:
     """Run the dose-response of every direction for one pair and write `output_dir` atomically; return it.
 
-    `directions` maps a name to a (width,) residual direction, random controls named `random_NN`;
-    `metadata` (the policy's description, input digests) is recorded as is.
+    `directions` maps a name to a (width,) residual direction of `layer` of `stream` ("lm": the language
+    model, steered at the instruction tokens; "expert": the action expert, at every action token), random
+    controls named `random_NN`; `metadata` (the policy's description, input digests) is recorded as is.
     """
-    check_width(directions, width, f"pair {pair.name!r}")
+    check_width(directions, width, f"pair {pair.name!r}", stream)
     if not any(name.startswith(RANDOM_PREFIX) for name in directions):
         raise ValueError(f"pair {pair.name!r}: no random directions; the null band needs them")
     frames = select_frames(pair.manifest, pair.concept_map, pair.split, pair.tasks, settings.max_frames)
@@ -91,7 +88,7 @@ def evaluate_pair(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
         residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
         num_steps=settings.num_steps, batch_size=settings.batch_size, entries_per_call=settings.entries_per_call,
-        progress=progress,
+        progress=progress, stream=stream,
     )
     axis = pair.manifest.axis
     means = axis.mean_delta_per_task
@@ -105,7 +102,7 @@ def evaluate_pair(
     norms = torch.stack([directions[n].double().norm() for n in names])
     vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
     head = {
-        "pair": pair.name, "layer": layer, "positive": pair.tasks[0], "negative": pair.tasks[1],
+        "pair": pair.name, "layer": layer, "stream": stream, "positive": pair.tasks[0], "negative": pair.tasks[1],
         "residual_norm": residual_norm, "direction_norms": dict(zip(names, norms.tolist(), strict=True)),
         "contrast_axis": {"state_index": axis.index, "action_dim": action_dim_of_state_axis(axis.index),
                           "sign": sign},
@@ -117,9 +114,10 @@ def evaluate_pair(
     record = pair_record(head, names, settings.alphas, settings.zero_index, metrics, vector_scale)
     tensors = {key: value.float() for key, value in metrics.items()}
     tensors |= {"alphas": torch.tensor(settings.alphas, dtype=torch.float32), "alphas_vector_units": vector_scale.float(),
-                "actions": actions.steered.float(), "swap_actions": actions.swap.float()}
+                "actions": actions.steered.float(), "swap_actions": actions.swap.float(),
+                "directions": torch.stack([directions[n].float() for n in names])}
     with atomic_dir(output_dir, overwrite=True) as staging:
         write_pair_outputs(staging, record, tensors)
-    logger.info("%s layer %d: dose-response of %d directions on %d frames in %s", pair.name, layer, len(names),
-                len(frames), output_dir)
+    logger.info("%s %s layer %d: dose-response of %d directions on %d frames in %s", pair.name, stream, layer,
+                len(names), len(frames), output_dir)
     return output_dir

@@ -1,4 +1,5 @@
-"""Outputs of the evaluation: per pair dose_response.json/.safetensors and PNGs, per layer summary.md/json.
+"""Outputs of the evaluation: per pair dose_response.json/.safetensors and PNGs, per layer summary.md/json,
+and the comparison of the two pathways (language model vs action expert), pathways.md/json.
 
 `dose_response.json` names the α grid `alphas`, the metric `efficacy`, the control directions `random`
 and the reference `swap`; its tensors (every metric, interval and the raw robot actions) are in
@@ -22,10 +23,12 @@ from steering_core.fileio import atomic_path, read_json, write_json
 from steering_core.layout import (
     DOSE_RESPONSE_FILE,
     EFFICACY_PLOT,
+    PATHWAYS_FILE,
     SHIFT_PLOT,
     SUMMARY_JSON,
     SUMMARY_MD,
     TRAJECTORY_PLOT,
+    stream_layer_dir,
 )
 from steering_core.plots import figure, save_png
 
@@ -34,6 +37,10 @@ logger = logging.getLogger(__name__)
 EVAL_FORMAT_VERSION = 1
 _PER_DIRECTION = ("efficacy", "efficacy_ci", "cosine", "cosine_ci", "contrast_shift", "contrast_shift_ci", "z")
 _AXIS_NAMES = ("x", "y", "z")
+ALPHA_UNITS = {
+    "lm": "mean instruction-token residual norm at the layer / ||d||; alphas_vector_units: multiples of d",
+    "expert": "mean decision-residual norm at the expert layer / ||d||; alphas_vector_units: multiples of d",
+}
 
 
 def _floats(tensor: torch.Tensor) -> Any:
@@ -72,7 +79,7 @@ def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...
         "format_version": EVAL_FORMAT_VERSION,
         **head,
         "alphas": list(alphas),
-        "alpha_units": "mean instruction-token residual norm at the layer / ||d||; alphas_vector_units: multiples of d",
+        "alpha_units": ALPHA_UNITS[head.get("stream", "lm")],
         "metric": "efficacy",
         "action_groups": groups,
         "directions": directions,
@@ -113,7 +120,7 @@ def _plot_efficacy(path: Path, record: dict[str, Any]) -> None:
         ax.errorbar(alphas, entry["efficacy"], yerr=[low, high], marker="o", markersize=3, capsize=2, label=name)
     ax.axhline(1.0, color="k", linewidth=0.6, linestyle=":")
     ax.set(xlabel="α (× mean residual norm / ‖d‖)", ylabel="efficacy (1 = instruction swap)",
-           title=f"{record['pair']}, layer {record['layer']}")
+           title=f"{record['pair']}, {_layer_label(record)}")
     ax.legend(fontsize=7)
     save_png(fig, path)
 
@@ -132,10 +139,20 @@ def _plot_shift(path: Path, record: dict[str, Any]) -> None:
     save_png(fig, path)
 
 
+def layer_label(layer: int, stream: str) -> str:
+    """Return `layer L` (language model) or `expert layer K` (action expert): task run names, titles, logs."""
+    return ("expert " if stream == "expert" else "") + f"layer {layer}"
+
+
+def _layer_label(record: dict[str, Any]) -> str:
+    return layer_label(record["layer"], record.get("stream", "lm"))
+
+
 def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
     """x, y, z over the horizon of the first negative-task frame, seed 0: unsteered (its own instruction),
-    residual_direction at its best α, and with the positive task's instruction (the swap)."""
-    names, direction = list(record["directions"]), 0  # the first direction is residual_direction
+    the first direction (residual_direction, decision_mean_difference) at its best α, and with the positive
+    task's instruction (the swap)."""
+    names, direction = list(record["directions"]), 0
     best = record["alphas"].index(record["directions"][names[0]]["best"]["alpha"])
     zero = record["alphas"].index(0.0)
     f = next(i for i, frame in enumerate(record["frames"]) if frame["side"] == "negative")
@@ -154,12 +171,22 @@ def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torc
     save_png(fig, path)
 
 
+def _add_notes(notes: list[str], record: dict[str, Any]) -> None:
+    """Append a record's notes (the settings' note, the in-sample warning) not yet in `notes`."""
+    notes += [n for n in (record.get("note"), record.get("in_sample_note")) if n and n not in notes]
+
+
+def _note_lines(notes: list[str]) -> list[str]:
+    """Return the notes as bold markdown lines, then a blank line (nothing without notes)."""
+    return [f"**{note}**" for note in notes] + ([""] if notes else [])
+
+
 def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
     """Write summary.json and summary.md of one layer from its pairs' dose_response.json; return the .md path."""
     rows, notes = [], []
     for pair in pair_names:
         record = read_json(layer_path / pair / f"{DOSE_RESPONSE_FILE}.json")
-        notes += [n for n in (record.get("note"), record.get("in_sample_note")) if n and n not in notes]
+        _add_notes(notes, record)
         for name in _named(record):
             best = record["directions"][name]["best"]
             rows.append({"pair": pair, "direction": name, **best})
@@ -179,7 +206,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     """Return the summary.md text: notes, then one table row per pair and direction."""
     groups = list(ACTION_GROUPS)
     lines = [f"# Steering evaluation, {summary['layer']}", ""]
-    lines += [f"**{note}**" for note in summary["notes"]] + ([""] if summary["notes"] else [])
+    lines += _note_lines(summary["notes"])
     lines += [
         "Best α: the α ≠ 0 whose efficacy is closest to 1 (steering reproduces the instruction swap); z: efficacy "
         "against the random directions' band at that α; shift: mean ‖Δa‖ over the horizon per action group.", "",
@@ -191,4 +218,69 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         lines.append(f"| {row['pair']} | {row['direction']} | {row['alpha']:g} | {_fmt(row['efficacy'])} "
                      f"[{_fmt(low)}, {_fmt(high)}] | {_fmt(row['z'])} | "
                      + " | ".join(_fmt(row["shift"][g]) for g in groups) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _from_swap(best: dict[str, Any]) -> float:
+    """Return how far a `best` entry's efficacy is from 1 (the instruction swap); a missing one is farthest."""
+    return math.inf if best["efficacy"] is None else abs(best["efficacy"] - 1.0)
+
+
+def best_named(record: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """Return the non-random direction whose efficacy at its best α is closest to 1, and its `best` entry."""
+    name = min(_named(record), key=lambda n: _from_swap(record["directions"][n]["best"]))
+    return name, record["directions"][name]["best"]
+
+
+def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: list[str]) -> Path:
+    """Write pathways.json and pathways.md: per pair, the best language-model direction against the best
+    action-expert one; `layers` are the evaluated (layer, stream). Return the .md path.
+
+    "Best" is the direction (and layer) whose efficacy at its best α is closest to 1, as in the layer summaries.
+    """
+    rows, notes = [], []
+    for pair in pair_names:
+        row: dict[str, Any] = {"pair": pair}
+        for stream in ("lm", "expert"):
+            candidates = []
+            for layer, where in layers:
+                if where == stream:
+                    record = read_json(eval_root / stream_layer_dir(layer, stream) / pair / f"{DOSE_RESPONSE_FILE}.json")
+                    _add_notes(notes, record)
+                    name, best = best_named(record)
+                    candidates.append({"layer": layer, "direction": name, **best})
+            row[stream] = min(candidates, key=_from_swap, default=None)
+        rows.append(row)
+    pathways = {"format_version": EVAL_FORMAT_VERSION, "notes": notes, "rows": rows}
+    write_json(eval_root / f"{PATHWAYS_FILE}.json", pathways)
+    md_path = eval_root / f"{PATHWAYS_FILE}.md"
+    with atomic_path(md_path) as tmp:
+        tmp.write_text(pathways_markdown(pathways), encoding="utf-8")
+    return md_path
+
+
+def pathways_markdown(pathways: dict[str, Any]) -> str:
+    """Return the pathways.md text: one row per pair, the language model's best direction beside the expert's."""
+    lines = ["# Steering pathways: language model vs action expert", ""]
+    lines += _note_lines(pathways["notes"])
+    lines += [
+        "Per pair, the direction (over layers) whose efficacy at its best α is closest to 1 (the instruction "
+        "swap), in the language model (SAE and mean-difference directions at the instruction tokens) and in the "
+        "action expert (mean difference of the decision rows, at every action token); z: against the random "
+        "directions of that layer.", "",
+        "| pair | LM direction | LM efficacy [95% CI] | LM z | expert direction | expert efficacy [95% CI] | expert z |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in pathways["rows"]:
+        cells = [row["pair"]]
+        for stream in ("lm", "expert"):
+            best = row[stream]
+            if best is None:
+                cells += ["–", "–", "–"]
+                continue
+            low, high = best["efficacy_ci"]
+            cells += [f"{best['direction']}, layer {best['layer']}, α = {best['alpha']:g}",
+                      f"{_fmt(best['efficacy'])} [{_fmt(low)}, {_fmt(high)}]",
+                      _fmt(best["z"])]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

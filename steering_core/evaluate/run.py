@@ -1,6 +1,8 @@
 """Evaluate one (pair, layer) from the files of phases 1-3 with the real π0.5 policy.
 
-Frames are read from the LeRobot dataset and preprocessed exactly as capture does (`libero_camera_slots`,
+A job steers the language model (`stream="lm"`, phase 3's directions of layer L) or the action expert
+(`stream="expert"`, the mean difference of the pair's `decision` slices at expert layer K). Frames are
+read from the LeRobot dataset and preprocessed exactly as capture does (`libero_camera_slots`,
 `PromptTokenizer`); the policy is loaded once per process and model (`load_policy`).
 """
 
@@ -16,15 +18,19 @@ import torch
 
 from steering_core import layout
 from steering_core.capture.settings import CaptureSettings
-from steering_core.data.concept_map import read_concept_map
-from steering_core.data.contrast import read_manifest
+from steering_core.capture.shards import read_run_metadata
+from steering_core.data.concept_map import ConceptMap, read_concept_map
+from steering_core.data.contrast import ContrastManifest, read_manifest
 from steering_core.data.split import read_split
-from steering_core.evaluate.directions import pair_directions
+from steering_core.evaluate.directions import decision_directions, pair_directions
 from steering_core.evaluate.frames import EvalFrame, load_frames
 from steering_core.evaluate.pair import PairInputs, evaluate_pair
+from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Progress, Prompt
+from steering_core.fileio import read_json
 from steering_core.pi05 import PromptFormat, PromptTokenizer
+from steering_core.pi05.steering import Stream
 from steering_core.sae.model import Sae
 from steering_core.sae.steering import read_pairs_config
 from steering_core.schema import StrictModel
@@ -45,12 +51,18 @@ class EvaluateJob(StrictModel):
     manifest: Path
     concept_map: Path
     split: Path
-    positive_slice: Path         # training slices of the layer (the α unit)
+    positive_slice: Path         # training slices of the layer (the α unit; expert: also the direction)
     negative_slice: Path
-    directions: Path             # phase 3's latent_steering/layerNN/<pair>/
+    directions: Path | None      # phase 3's latent_steering/layerNN/<pair>/; None for the expert
     dataset_root: Path
     repo_id: str
-    output_dir: Path             # steering_eval/layerNN/<pair>/
+    output_dir: Path             # steering_eval/layerNN/<pair>/ or steering_eval/expert_layerKK/<pair>/
+    stream: Stream = "lm"        # "expert": the action expert's layer `layer`, steered at every action token
+
+    @property
+    def label(self) -> str:
+        """Return `layer L` or `expert layer K` (task run names, logs)."""
+        return layer_label(self.layer, self.stream)
 
 
 def pair_job(
@@ -76,8 +88,54 @@ def pair_job(
     )
 
 
-def run_config_job(config: RunConfig, pair: str, layer: int) -> EvaluateJob:
+def expert_job(
+    pair: str, layer: int, *, data_root: Path, slices_root: Path, dataset_root: Path, repo_id: str, output_root: Path,
+) -> EvaluateJob:
+    """Return the action-expert job of one pair at expert layer `layer`, with the seed's layout under `data_root`.
+
+    `slices_root` is the pair's decision slices folder (`residuals/<pair>_decision_slices`, holding layerKK/).
+    """
+    manifest_path = data_root / layout.MANIFEST_FILE.format(pair=pair)
+    concept_map = data_root / layout.CONCEPT_MAP_FILE.format(pair=pair)
+    manifest = read_manifest(manifest_path)
+    positive, negative = manifest.axis.mean_delta_per_task  # (task A, task B) = (positive, negative)
+    concepts = task_concepts(read_concept_map(concept_map), manifest, (positive, negative), concept_map)
+    files = slice_files(slices_root / layout.layer_dir(layer), concepts)
+    return EvaluateJob(
+        pair=pair, layer=layer, positive=positive, negative=negative, manifest=manifest_path, concept_map=concept_map,
+        split=data_root / layout.SPLIT_FILE.format(pair=pair), positive_slice=files[0], negative_slice=files[1],
+        directions=None, dataset_root=dataset_root, repo_id=repo_id,
+        output_dir=output_root / layout.stream_layer_dir(layer, "expert") / pair, stream="expert",
+    )
+
+
+def task_concepts(concept_map: ConceptMap, manifest: ContrastManifest, tasks: tuple[str, ...], where: Path) -> tuple[str, ...]:
+    """Return the concept name of each task text (the map's names, after any `rename`), via its segments."""
+    owner = {manifest.segments[row.segment_id].task: name for name, rows in concept_map.concepts.items() for row in rows}
+    missing = [task for task in tasks if task not in owner]
+    if missing:
+        raise ValueError(f"{where}: no concept covers task(s) {missing}; the concept map belongs to another manifest")
+    return tuple(owner[task] for task in tasks)
+
+
+def slice_files(folder: Path, concepts: tuple[str, ...]) -> list[Path]:
+    """Return the .pt slice of each concept (task text) in one layer folder of slices, from its index.json."""
+    index_path = folder / layout.SLICE_INDEX_FILE
+    if not index_path.is_file():
+        raise FileNotFoundError(f"{index_path}: no slices here; slice the decision run first")
+    entries = read_json(index_path)["concepts"]
+    missing = [c for c in concepts if c not in entries]
+    if missing:
+        raise ValueError(f"{index_path}: no slice of concept(s) {missing}; it holds {sorted(entries)}")
+    return [folder / entries[c]["pt"] for c in concepts]
+
+
+def run_config_job(config: RunConfig, pair: str, layer: int, stream: Stream = "lm") -> EvaluateJob:
     """Return the job of one (pair, layer) of a run config (the files its phases 1-3 wrote)."""
+    if stream == "expert":
+        return expert_job(config.pair(pair).name, layer, data_root=config.output_root,
+                          slices_root=config.decision_slices_dir(config.pair(pair)),
+                          dataset_root=config.dataset_root, repo_id=config.repo_id, output_root=config.eval_root)
     pairs_config = config.pairs_config_path(layer)
     return pair_job(pairs_config, config.pair(pair).name, layer, base_dir=pairs_config.parent,
                     data_root=config.output_root, steering_root=config.steering_root,
@@ -85,17 +143,56 @@ def run_config_job(config: RunConfig, pair: str, layer: int) -> EvaluateJob:
                     output_root=config.eval_root)
 
 
-def check_model(model: CaptureSettings, layer: int) -> None:
-    """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks, per-frame prompts."""
+def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> None:
+    """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks, per-frame prompts.
+
+    The action expert has as many layers as the language model (spec 10.1).
+    """
     if not Path(model.checkpoint_path).exists():
         raise FileNotFoundError(f"{model.checkpoint_path}: policy checkpoint not found; the evaluation runs the "
                                 "policy, set model.checkpoint (or --checkpoint-path) to a converted pi0.5 checkpoint")
     if not 0 <= layer < model.arch.depth:
-        raise ValueError(f"layer {layer} is not a layer of the policy: it has {model.arch.depth} decoder layers "
+        what = "action-expert layer" if stream == "expert" else "layer"
+        raise ValueError(f"{what} {layer} is not a layer of the policy: it has {model.arch.depth} decoder layers "
                          f"(0..{model.arch.depth - 1})")
     if model.prompt_format is not PromptFormat.LIBERO:
         raise ValueError(f"prompt_format {model.prompt_format.value!r}: the evaluation steers one prompt per task, "
                          "which needs the libero format (the state stays out of the prompt)")
+
+
+def check_decision_run(run_dir: Path, layers: Sequence[int], model: CaptureSettings, num_steps: int,
+                       where: str = "--decision-run") -> None:
+    """Raise ValueError (one line naming `where`) unless `run_dir` holds `decision` rows of `layers` whose
+    width is the checkpoint's action-expert width and whose sampler had `num_steps` steps. Reads headers only."""
+    from steering_core.pi05.checkpoint import expert_arch_from_checkpoint, resolve_model_file
+
+    run = read_run_metadata(run_dir).run
+    expert = expert_arch_from_checkpoint(resolve_model_file(model.checkpoint_path), model.arch)
+    problems = []
+    if run.token_type != "decision":
+        problems.append(f"it holds `{run.token_type}` rows, expected `decision` rows (capture --token-type decision)")
+    if missing := [layer for layer in layers if layer not in run.layers]:
+        problems.append(f"it has expert layers {list(run.layers)}, not {missing}")
+    if run.width != expert.width:
+        problems.append(f"its rows are {run.width} wide, the checkpoint's action expert is {expert.width} wide "
+                        "(an expert direction of the wrong width); capture the decision run with this checkpoint")
+    if run.token_type == "decision" and run.inputs.get("num_steps") != num_steps:
+        problems.append(f"it was captured with num_steps {run.inputs.get('num_steps')}, the evaluation samples "
+                        f"with {num_steps}")
+    if problems:
+        raise ValueError(f"{where} {run_dir}: " + "; ".join(problems))
+
+
+def slice_decision_run(run_dir: Path, pair: str, layers: Sequence[int], *, data_root: Path) -> Path:
+    """Slice a `decision` run for one pair at expert `layers`, its held-out episodes left out (the pair's split
+    under `data_root`); return the slices folder `residuals/<pair>_decision_slices` under `data_root`."""
+    from steering_core.capture.slicing import SliceSettings, slice_concepts
+
+    output = data_root / layout.DECISION_SLICES_DIR.format(pair=pair)
+    split = read_split(data_root / layout.SPLIT_FILE.format(pair=pair))
+    settings = SliceSettings(layers=tuple(layers), token_type="decision", holdout_episodes=split.holdout_episodes)
+    slice_concepts(run_dir, data_root / layout.CONCEPT_MAP_FILE.format(pair=pair), output, settings)
+    return output
 
 
 @functools.lru_cache(maxsize=1)
@@ -130,16 +227,20 @@ def evaluate_job(
     progress: Progress | None = None,
 ) -> Path:
     """Evaluate one (pair, layer) and return its output folder; `policy` defaults to `load_policy(model, ...)`."""
-    check_model(model, job.layer)
+    check_model(model, job.layer, job.stream)
     manifest = read_manifest(job.manifest)
     pair = PairInputs(
         name=job.pair, tasks=(job.positive, job.negative), manifest=manifest,
         concept_map=read_concept_map(job.concept_map), split=read_split(job.split),
         slices=(job.positive_slice, job.negative_slice),
     )
-    directions = pair_directions(job.directions, sae, top_k=settings.top_k, random_count=settings.random_directions,
-                                 seed=settings.seed)
+    if job.stream == "expert":
+        directions = decision_directions(pair.slices, random_count=settings.random_directions, seed=settings.seed)
+    else:
+        directions = pair_directions(job.directions, sae, top_k=settings.top_k,
+                                     random_count=settings.random_directions, seed=settings.seed)
     policy = policy if policy is not None else load_policy(model, settings.device, settings.dtype)
+    width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
     from steering_core.pi05.steering import Steering
 
     tokenizer = PromptTokenizer(model.tokenizer_path, model.max_token_len, model.prompt_format)
@@ -149,6 +250,6 @@ def evaluate_job(
 
     return evaluate_pair(
         pair, directions, policy, Steering, load, task_prompts(tokenizer, job.positive, job.negative),
-        layer=job.layer, width=model.arch.width, settings=settings, output_dir=job.output_dir,
-        metadata=policy.metadata, progress=progress,
+        layer=job.layer, width=width, settings=settings, output_dir=job.output_dir,
+        metadata=policy.metadata, progress=progress, stream=job.stream,
     )

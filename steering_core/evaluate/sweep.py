@@ -4,8 +4,9 @@ Per batch of frames of one task and per noise seed, one `sample_actions_sweep` c
 unsteered entry (α = 0, shared by every direction) and one entry per (direction, α ≠ 0), so the
 prefix below the steered layer is computed once for all of them; one `sample_actions` call with
 the other task's instruction gives the swap reference. No frame runs twice with the same inputs.
-Steering adds α · R · d / ‖d‖ at the instruction tokens (R: the layer's mean instruction-token
-residual norm), i.e. α · R / ‖d‖ in units of the direction itself.
+Steering adds α · R · d / ‖d‖ (R: the layer's mean residual norm), i.e. α · R / ‖d‖ in units of the
+direction itself: in the language model (`stream="lm"`) at the instruction tokens of the prefix, in the
+action expert (`stream="expert"`) at every action token of every denoising step.
 """
 
 from __future__ import annotations
@@ -85,10 +86,12 @@ def run_sweep(
     batch_size: int,
     entries_per_call: int,
     progress: Progress | None = None,
+    stream: str = "lm",
 ) -> SweepActions:
     """Return the robot actions of every (direction, α, frame, seed) and the instruction-swap reference.
 
-    `make_steering(layer=, vector=, alpha=, token_mask=)` builds one `Steering`; `load(frames)` returns
+    `make_steering(layer=, vector=, alpha=, token_mask=)` builds one `Steering` of the language model
+    (`make_steering(layer=, vector=, alpha=, stream="expert")` of the action expert); `load(frames)` returns
     {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device); `prompts` maps
     "positive"/"negative" to their prompt. At most `entries_per_call` steered entries go into one sweep call.
     """
@@ -114,14 +117,16 @@ def run_sweep(
         mine, theirs = prompts[side], prompts["negative" if side == "positive" else "positive"]
         size = len(members)
         tokens, token_mask = mine.tokens.expand(size, -1).to(device), mine.token_mask.expand(size, -1).to(device)
-        steer_mask = mine.instruction_mask.expand(size, -1).to(device)
+        # where the steering adds: the instruction tokens, or (expert) every action token, which takes no mask
+        where = ({"stream": "expert"} if stream == "expert" else
+                 {"token_mask": mine.instruction_mask.expand(size, -1).to(device)})
         theirs = Prompt(*(t.to(device) for t in (theirs.tokens, theirs.token_mask, theirs.instruction_mask)))
         for s in range(noise_seeds):
             noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
             for number, chunk in enumerate(chunks):
                 # the unsteered entry rides with the first chunk only: it is shared by every direction
                 entries = ([None] if number == 0 else []) + [
-                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=alphas[a], token_mask=steer_mask)
+                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=alphas[a], **where)
                     for d, a in chunk]
                 actions = policy.sample_actions_sweep(inputs["images"], inputs["image_masks"], tokens, token_mask,
                                                       entries, noise=noise, num_steps=num_steps)  # (E, B, H, 32)
