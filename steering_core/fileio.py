@@ -12,6 +12,7 @@ import errno
 import glob
 import hashlib
 import json
+import mmap
 import os
 import shutil
 import socket
@@ -212,12 +213,16 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 
 def crc32_file(path: str | os.PathLike) -> int:
-    """Return the zlib CRC-32 of a file's bytes, read in 1 MiB chunks into one buffer (about 3x sha256's speed)."""
-    crc, buffer = 0, bytearray(_HASH_CHUNK)
-    with open(path, "rb", buffering=0) as handle:
-        while count := handle.readinto(buffer):
-            crc = zlib.crc32(memoryview(buffer)[:count], crc)
-    return crc
+    """Return the zlib CRC-32 of a file's bytes (about 3x sha256's speed).
+
+    One call over a memory map of the whole file: zlib holds no GIL while it runs, so a thread checking
+    files does not wait for the interpreter between chunks while another thread computes.
+    """
+    with open(path, "rb") as handle:
+        if not os.fstat(handle.fileno()).st_size:
+            return zlib.crc32(b"")
+        with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, memoryview(mapped) as data:
+            return zlib.crc32(data)
 
 
 def sha256_json(payload: Any) -> str:

@@ -51,7 +51,11 @@ def check_safetensors(path: str | os.PathLike) -> dict[str, Any]:
     Checked: the header length fits the file, the header is a JSON object, and every tensor's
     `data_offsets` lie inside the data section.
     """
-    path = Path(path)
+    return _checked_header(Path(path))[0]
+
+
+def _checked_header(path: Path) -> tuple[dict[str, Any], int]:
+    """Return (`check_safetensors` header, byte offset where the data section starts)."""
     size = path.stat().st_size
     with open(path, "rb") as handle:
         head = handle.read(_LENGTH_BYTES)
@@ -75,7 +79,7 @@ def check_safetensors(path: str | os.PathLike) -> dict[str, Any]:
                 and 0 <= offsets[0] <= offsets[1] <= data):
             raise ValueError(f"{path}: tensor {name!r} has data_offsets {offsets!r} outside the {data}-byte data "
                              "section; the file is truncated or damaged, re-download or re-write it")
-    return header
+    return header, _LENGTH_BYTES + length
 
 
 def load_safetensors(path: str | os.PathLike, device: str = "cpu") -> dict[str, torch.Tensor]:
@@ -151,19 +155,27 @@ class TensorLocation:
 
 def tensor_locations(path: str | os.PathLike) -> dict[str, TensorLocation]:
     """Return name -> location of every tensor of a safetensors file, from its header (`check_safetensors`)."""
+    return read_layout(path)[1]
+
+
+def read_layout(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, TensorLocation]]:
+    """Return a safetensors file's checked header and name -> location of each tensor, from one read."""
     path = Path(path)
-    header = check_safetensors(path)
-    with open(path, "rb") as handle:
-        start = _LENGTH_BYTES + int.from_bytes(handle.read(_LENGTH_BYTES), "little")
+    header, start = _checked_header(path)
     locations = {}
     for name, entry in header.items():
         if name == "__metadata__":
             continue
         if entry.get("dtype") not in _DTYPES:
             raise ValueError(f"{path}: tensor `{name}` has dtype {entry.get('dtype')!r}, expected one of {sorted(_DTYPES)}")
+        shape, (first, last) = entry.get("shape"), entry["data_offsets"]
+        if not (isinstance(shape, list) and all(isinstance(n, int) and n >= 0 for n in shape)
+                and math.prod(shape) * _DTYPES[entry["dtype"]].itemsize == last - first):
+            raise ValueError(f"{path}: tensor `{name}` has shape {shape!r}, which does not fill its {last - first} "
+                             "bytes; the file is damaged, re-write it")
         locations[name] = TensorLocation(path, name, _DTYPES[entry["dtype"]], tuple(entry["shape"]),
                                          start + entry["data_offsets"][0])
-    return locations
+    return header, locations
 
 
 def staging_buffer() -> torch.Tensor:
@@ -278,9 +290,13 @@ def save_torch_without_crcs(obj: Any, path: str | os.PathLike) -> Path:
     return Path(path)
 
 
-def fill_zip_crcs(path: str | os.PathLike) -> None:
-    """Write each record's CRC-32 into its data descriptor (or local header) and central directory entry."""
-    path = Path(path)
+def fill_zip_crcs(path: str | os.PathLike, known: dict[str, tuple[int, int]] | None = None) -> None:
+    """Write each record's CRC-32 into its data descriptor (or local header) and central directory entry.
+
+    `known`: record name inside the archive folder (e.g. `data/0`) -> (its size, its CRC-32) computed
+    elsewhere from the same bytes; used when the record has that size, computed here otherwise.
+    """
+    path, known = Path(path), known or {}
     with zipfile.ZipFile(path) as archive:  # reads the central directory only
         records, central = archive.infolist(), archive.start_dir
     patches: list[tuple[int, int]] = []  # (byte offset, CRC-32)
@@ -295,7 +311,9 @@ def fill_zip_crcs(path: str | os.PathLike) -> None:
             name_length, extra_length = struct.unpack("<HH", data[at + 26 : at + 30])
             start = at + 30 + name_length + extra_length
             end = start + record.compress_size
-            crc = zlib.crc32(data[start:end])  # a view of the mapped file: no copy, and zlib releases the GIL
+            size, crc = known.get(record.filename.partition("/")[2], (-1, 0))
+            if size != record.compress_size:
+                crc = zlib.crc32(data[start:end])  # a view of the mapped file: no copy, and zlib releases the GIL
             if record.flag_bits & _HAS_DESCRIPTOR:
                 if data[end : end + 4] != _DESCRIPTOR:
                     raise ValueError(f"{path}: record {record.filename} has no data descriptor after its data")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import zipfile
+import zlib
 
 import pytest
 import torch
@@ -59,3 +60,13 @@ def test_concurrent_saves_each_get_their_checksums(tmp_path):
     for i, tensor in enumerate(tensors):
         torch.save(tensor, tmp_path / f"ref{i}.pt")
         assert_same_torch_records(tmp_path / f"{i}.pt", tmp_path / f"ref{i}.pt")
+
+
+def test_a_known_checksum_is_used_only_for_a_record_of_its_size(tmp_path):
+    tensor = torch.arange(12, dtype=torch.float32)
+    data = (tensor.numel() * 4, zlib.crc32(tensor.numpy().tobytes()))
+    torch.save(tensor, tmp_path / "torch.pt")
+    for known in ({"data/0": data}, {"data/0": (data[0] + 4, 12345)}):  # the right size and checksum; a wrong size
+        path = save_torch_without_crcs(tensor, tmp_path / "ours.pt")
+        fill_zip_crcs(path, known)
+        assert_same_torch_records(path, tmp_path / "torch.pt")

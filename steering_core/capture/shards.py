@@ -30,14 +30,13 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, crc32_file, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
-from steering_core.tensor_files import TensorLocation, tensor_locations
+from steering_core.tensor_files import TensorLocation, read_layout, read_rows_into, read_tensor
 
 logger = logging.getLogger(__name__)
 
@@ -264,24 +263,28 @@ def find_complete_shard(
 
 
 class ShardReader:
-    """An open, validated shard: row columns as numpy, residual rows read from the memory map."""
+    """An open, validated shard: row columns as numpy, residual rows read with plain file reads."""
 
-    def __init__(self, path: Path, handle: Any, rows: int, width: int, dtype: str, names: tuple[str, ...]):
-        self.path, self._handle = path, handle
+    def __init__(self, path: Path, handle: Any, locations: dict[str, TensorLocation], rows: int, width: int,
+                 dtype: str, names: tuple[str, ...]):
+        self.path, self._handle, self._locations = path, handle, locations
         self.rows, self.width, self.dtype = rows, width, dtype
         self.column_names = names  # ROW_COLUMNS, plus `step` in shards of the action token types
 
     def columns(self, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """Return the requested per-row columns (default all of the shard's), each (rows,) int64."""
-        return {name: self._handle.get_tensor(name).numpy() for name in names or self.column_names}
+        return {name: read_tensor(self._handle, self._locations[name], torch.device("cpu"), torch.int64).numpy()
+                for name in names or self.column_names}
 
     def residuals(self, start: int = 0, stop: int | None = None) -> torch.Tensor:
         """Return residual rows [start, stop) as (stop - start, width) in the storage dtype."""
-        return self._handle.get_slice(RESIDUALS)[start : self.rows if stop is None else stop]
+        location = self._locations[RESIDUALS]
+        out = torch.empty((self.rows if stop is None else stop) - start, self.width, dtype=location.dtype)
+        return read_rows_into(self._handle, location, start, out)
 
     def residual_location(self) -> TensorLocation:
         """Return where the residual matrix lies in the file, for `steering_core.tensor_files.read_rows_into`."""
-        return tensor_locations(self.path)[RESIDUALS]
+        return self._locations[RESIDUALS]
 
 
 def checksum_mismatch(path: Path, kind: str, found: str, expected: str) -> str:
@@ -309,14 +312,14 @@ def open_shard(
     if sha256 is not None and (found := sha256_file(path)) != sha256:
         raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
     try:
-        handle_cm = safe_open(str(path), framework="pt")
-    except Exception as err:  # safetensors raises its own error types for damaged headers
+        layout, locations = read_layout(path)
+    except ValueError as err:
         raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
-    with handle_cm as handle:
-        header = _header(handle)
-        found_rows, found_width, found_dtype = _validate_shard(path, handle, width, dtype, rows, header)
-        names = row_columns(header.get("token_type", ""))
-        yield ShardReader(path, handle, found_rows, found_width, found_dtype, names)
+    header = _header(layout)
+    found_rows, found_width, found_dtype = _validate_shard(path, layout, width, dtype, rows, header)
+    with open(path, "rb", buffering=0) as handle:
+        yield ShardReader(path, handle, locations, found_rows, found_width, found_dtype,
+                          row_columns(header.get("token_type", "")))
 
 
 def write_run_metadata(run_dir: str | os.PathLike) -> Path:
@@ -363,11 +366,12 @@ def read_run_metadata(run_dir: str | os.PathLike) -> RunMetadata:
     return _read_versioned(path, RunMetadata, "run metadata")
 
 
-def _header(handle: Any) -> dict[str, Any]:
-    """Return the shard's own header entry, or {} when absent or unreadable."""
+def _header(layout: dict[str, Any]) -> dict[str, Any]:
+    """Return the shard's own header entry from its safetensors header, or {} when absent or unreadable."""
+    metadata = layout.get("__metadata__")
     try:
-        header = json.loads((handle.metadata() or {}).get(HEADER_KEY, "{}"))
-    except json.JSONDecodeError:
+        header = json.loads(metadata.get(HEADER_KEY, "{}") if isinstance(metadata, dict) else "{}")
+    except (json.JSONDecodeError, TypeError):
         return {}
     return header if isinstance(header, dict) else {}
 
@@ -401,11 +405,11 @@ def _validate_rows(rows: ShardRows, spec: RunSpec, layer: int, key: str) -> None
 
 
 def _validate_shard(
-    path: Path, handle: Any, width: int | None, dtype: str | None, rows: int | None, header: dict[str, Any]
+    path: Path, layout: dict[str, Any], width: int | None, dtype: str | None, rows: int | None, header: dict[str, Any]
 ) -> tuple[int, int, str]:
-    """Return (rows, width, dtype) of an open shard; raise once listing every problem."""
+    """Return (rows, width, dtype) of a shard from its safetensors header; raise once listing every problem."""
     fix = f"re-run capture for layer {header.get('layer', '?')}"
-    keys = set(handle.keys())
+    keys = set(layout) - {"__metadata__"}
     columns = row_columns(header.get("token_type", ""))
     expected_keys = {RESIDUALS, *columns}
     problems = []
@@ -416,9 +420,8 @@ def _validate_shard(
         problems.append(f"tensors missing {missing}, unexpected {unexpected}")
     found_rows, found_width, found_dtype = -1, -1, "?"
     if RESIDUALS in keys:
-        view = handle.get_slice(RESIDUALS)
-        shape = tuple(view.get_shape())
-        found_dtype = _DTYPE_NAMES.get(view.get_dtype(), view.get_dtype())
+        shape = tuple(layout[RESIDUALS]["shape"])
+        found_dtype = _DTYPE_NAMES.get(layout[RESIDUALS]["dtype"], layout[RESIDUALS]["dtype"])
         if (
             len(shape) != 2
             or found_dtype not in STORAGE_DTYPES
@@ -434,8 +437,7 @@ def _validate_shard(
             found_rows, found_width = shape
     for column in columns:
         if column in keys:
-            view = handle.get_slice(column)
-            shape, stored = view.get_shape(), view.get_dtype()
+            shape, stored = layout[column]["shape"], layout[column]["dtype"]
             if stored != "I64" or len(shape) != 1 or (found_rows >= 0 and shape[0] != found_rows):
                 n = "*" if found_rows < 0 else found_rows
                 problems.append(f"`{column}` is {tuple(shape)} {stored}, expected ({n},) I64")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,14 @@ class SliceFile:
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+
+    def residual_crc32(self) -> tuple[int, int]:
+        """Return (bytes, zlib CRC-32) of the closed file's residuals: the `.pt`'s data record holds the same bytes."""
+        with open(self.path, "rb") as handle, mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, \
+                memoryview(mapped) as data:
+            start = self._offsets[RESIDUALS]
+            size = self.rows * self.width * 4
+            return size, zlib.crc32(data[start : start + size])
 
     def save_pt(self, path: Path) -> Path:
         """Write the residuals of the closed file as a torch.save `.pt` (the seed's copy) without its CRC-32s,

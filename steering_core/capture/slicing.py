@@ -57,6 +57,7 @@ SLICE_PT = "{name}.pt"
 SLICE_SAFETENSORS = "{name}.safetensors"
 SLICE_FORMAT_VERSION = 1
 _BUFFER_BYTES = 8 << 20  # rows copied per read and write from shard to slice file
+_PT_DATA_RECORD = "data/0"  # torch.save's record of a lone tensor's storage (spec 14); used only if its size matches
 _MAX_NAME_BYTES = 200  # file systems cap names at 255 bytes; leave room for suffixes and a hash
 _UNSAFE = {"/", "\\", "\0", ":"}  # path separators (and ':' for Windows/macOS shares)
 
@@ -482,11 +483,17 @@ def _write_slices(
     finally:
         for file in files.values():
             file.close()
-    crcs = [_Job(background, functools.partial(fill_zip_crcs, file.save_pt(file.path.with_suffix(".pt"))))
-            for file in files.values()]
-    for job in crcs:
+    data_crcs = [_Job(background, file.residual_crc32) for file in files.values()]  # beside the .pt saves
+    fills = [_Job(background, functools.partial(_fill_pt_crcs, file.save_pt(file.path.with_suffix(".pt")), data))
+             for file, data in zip(files.values(), data_crcs)]
+    for job in fills:
         job.result()
     return files
+
+
+def _fill_pt_crcs(pt: Path, data_crc: _Job) -> None:
+    """Fill the CRC-32s of a slice's `.pt`, its tensor's record from the `.safetensors` copy's checksum."""
+    fill_zip_crcs(pt, {_PT_DATA_RECORD: data_crc.result()})
 
 
 def _copy_part(
