@@ -209,14 +209,14 @@ class _Sums:
             raise ValueError(f"{path}: rows {start}..{start + len(batch) - 1} hold NaN or inf; re-run capture")
         self.count += len(batch)
         self.residual_sum = self.residual_sum + column_sum
-        self.residual_sq = self.residual_sq + batch.double().square().sum()
+        self.residual_sq = self.residual_sq + torch.linalg.vector_norm(batch, dtype=torch.float64).square()
         if sae is None:
             return
         reconstruction, latents = sae.reconstruct(batch, tuple(buffer[: len(batch)] for buffer in self.buffers))
         self.latent_sum = self.latent_sum + latents.sum(dim=0).double()
         self.firing = self.firing + _fired(latents)
         error = reconstruction.sub_(batch)  # the reconstruction is this batch's own: its memory takes the error
-        self.squared_error = self.squared_error + error.square().sum(dtype=torch.float64)
+        self.squared_error = self.squared_error + torch.linalg.vector_norm(error, dtype=torch.float64).square()
 
     def finish(self, source: ConceptSource) -> ConceptStats:
         """Return means and fidelity from the sums (all on CPU)."""
