@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> Result | None:
     expected_tensors = len(checkpoint_tensor_shapes(arch))
     return finish(Result(
         name="policy_real_size",
-        title="Real-size pi0.5 policy on the CPU: load and one frame" + (" (quick: tiny size)" if args.quick else ""),
+        title="11. Real-size pi0.5 policy on the CPU: load and one frame" + (" (quick: tiny size)" if args.quick else ""),
         command=command("policy_real_size", args),
         measured=f"{measured['peak_mib']:.0f} MiB peak",
         baseline=f"{measured['parameter_mib']:.0f} MiB float32 parameters",

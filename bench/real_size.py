@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> Result | None:
         return None
 
     arch, layer = (tiny_arch(), QUICK_LAYER) if args.quick else (Pi05Arch(), LAYER)
-    title = f"6. Real size: load and forward through layer {layer} (CPU)"
+    title = f"10. Real size: load and forward through layer {layer} (CPU)"
     ram = memory_gib("MemTotal")
     if not args.quick and ram < MIN_RAM_GIB:
         note = (f"skipped: this machine has {ram:.1f} GiB of RAM, the real-size section needs {MIN_RAM_GIB:.0f} GiB "

@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> Result | None:
             "how: the first pass reads only the shards' index columns and chooses rows; the second copies the "
             "selected rows through one 8 MiB buffer straight to their offsets in each concept's .safetensors "
             "(os.pwrite), then torch.save writes the .pt from a memory map of that file with torch's own CRC-32 "
-            "off; the shards' sha256 checks and the .pt's CRC-32s (zlib) run in a second thread meanwhile "
+            "off; the shards' CRC-32 checks (recorded at capture) and the .pt's CRC-32s (zlib) run in a second thread meanwhile "
             "(steering_core/capture/slicing.py, slice_files.py, tensor_files.save_torch). The floor does none of "
             "this hashing, and is single-threaded.",
         ],
