@@ -212,17 +212,18 @@ def sha256_file(path: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
-def crc32_file(path: str | os.PathLike) -> int:
-    """Return the zlib CRC-32 of a file's bytes (about 3x sha256's speed).
+def crc32_file(path: str | os.PathLike, start: int = 0, size: int | None = None) -> int:
+    """Return the zlib CRC-32 of a file's bytes [start, start + size) (default: all), about 3x sha256's speed.
 
-    One call over a memory map of the whole file: zlib holds no GIL while it runs, so a thread checking
-    files does not wait for the interpreter between chunks while another thread computes.
+    One call over a memory map: zlib holds no GIL while it runs, so a thread checking files does not
+    wait for the interpreter between chunks while another thread computes.
     """
     with open(path, "rb") as handle:
-        if not os.fstat(handle.fileno()).st_size:
+        end = os.fstat(handle.fileno()).st_size if size is None else start + size
+        if end <= start:
             return zlib.crc32(b"")
         with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, memoryview(mapped) as data:
-            return zlib.crc32(data)
+            return zlib.crc32(data[start:end])
 
 
 def sha256_json(payload: Any) -> str:

@@ -300,9 +300,8 @@ def fill_zip_crcs(path: str | os.PathLike, known: dict[str, tuple[int, int]] | N
     with zipfile.ZipFile(path) as archive:  # reads the central directory only
         records, central = archive.infolist(), archive.start_dir
     patches: list[tuple[int, int]] = []  # (byte offset, CRC-32)
-    populate = getattr(mmap, "MAP_POPULATE", 0)  # Linux: map every page in one call, not a fault per 64 KiB
-    with open(path, "r+b") as handle, \
-            mmap.mmap(handle.fileno(), 0, flags=mmap.MAP_SHARED | populate, prot=mmap.PROT_READ) as mapped, \
+    # not populated: with a known checksum only the small records' pages are ever read
+    with open(path, "r+b") as handle, mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, \
             memoryview(mapped) as data:
         for record in records:
             at = record.header_offset

@@ -403,10 +403,9 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
             == [(r.file, r.sha256) for r in read_run_metadata(out / "residuals" / "demo_decision").shards])
     for pair in config.pairs:
         for concept in (pair.positive, pair.negative):
-            assert torch.equal(
-                torch.load(config.decision_slices_dir(pair) / "layer02" / f"{concept}.pt", weights_only=True),
-                torch.load(out / "residuals" / f"{pair.name}_decision_slices" / "layer02" / f"{concept}.pt",
-                           weights_only=True))
+            ours = config.decision_slices_dir(pair) / "layer02" / f"{concept}.pt"
+            theirs = out / "residuals" / f"{pair.name}_decision_slices" / "layer02" / f"{concept}.pt"
+            assert torch.equal(torch.load(ours, weights_only=True), torch.load(theirs, weights_only=True))
         ours = load_file(config.eval_layer_path(2, "expert") / pair.name / "dose_response.safetensors")
         theirs = load_file(out / "steering_eval" / "expert_layer02" / pair.name / "dose_response.safetensors")
         for key in ("actions", "swap_actions", "efficacy", "directions", "z"):

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import mmap
 import os
-import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from steering_core.capture.shards import RESIDUALS
+from steering_core.fileio import crc32_file
 from steering_core.tensor_files import safetensors_layout, save_torch_without_crcs
 
 
@@ -49,11 +49,8 @@ class SliceFile:
 
     def residual_crc32(self) -> tuple[int, int]:
         """Return (bytes, zlib CRC-32) of the closed file's residuals: the `.pt`'s data record holds the same bytes."""
-        with open(self.path, "rb") as handle, mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, \
-                memoryview(mapped) as data:
-            start = self._offsets[RESIDUALS]
-            size = self.rows * self.width * 4
-            return size, zlib.crc32(data[start : start + size])
+        size = self.rows * self.width * 4
+        return size, crc32_file(self.path, self._offsets[RESIDUALS], size)
 
     def save_pt(self, path: Path) -> Path:
         """Write the residuals of the closed file as a torch.save `.pt` (the seed's copy) without its CRC-32s,
