@@ -262,12 +262,13 @@ def main(argv: list[str] | None = None) -> Result | None:
             f"warm): slicing {slicing_rate:.0f} MiB/s of shard bytes vs a plain sequential read {read_rate:.0f} MiB/s "
             f"= {slicing_rate / read_rate:.3f}x, and vs reading the shards and writing their bytes twice (slicing "
             f"writes every row to a .pt and a .safetensors) {floor_rate:.0f} MiB/s = {slicing_rate / floor_rate:.2f}x.",
-            "how: the first pass reads only the shards' index columns and chooses rows; the second copies the "
-            "selected rows through one 8 MiB buffer straight to their offsets in each concept's .safetensors "
-            "(os.pwrite), then torch.save writes the .pt from a memory map of that file with torch's own CRC-32 "
-            "off; the shards' CRC-32 checks (recorded at capture) and the .pt's CRC-32s (zlib) run in a second thread meanwhile "
-            "(steering_core/capture/slicing.py, slice_files.py, tensor_files.save_torch). The floor does none of "
-            "this hashing, and is single-threaded.",
+            "how: the first pass reads only the shards' row columns (one read each) and chooses rows; the second "
+            "reads each shard once, front to back through one 8 MiB buffer, feeding its bytes to the shard's CRC-32 "
+            "check (ISA-L) and writing the selected rows straight to their offsets in each concept's .safetensors "
+            "(os.pwrite), whose data CRC-32 grows as rows arrive in order; torch.save then writes the .pt from a "
+            "memory map of that file with torch's own CRC-32 off and the known CRC-32s filled in "
+            "(steering_core/capture/slice_copy.py, shard_checks.py, slice_files.py). One thread; the floor does no "
+            "hashing.",
         ],
     )
     return finish(result, args)

@@ -19,10 +19,11 @@ import socket
 import stat
 import sys
 import tempfile
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from isal.isal_zlib import crc32  # zlib's CRC-32, same values, by carry-less multiply: ~8x zlib's speed
 
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 
@@ -213,17 +214,17 @@ def sha256_file(path: str | os.PathLike) -> str:
 
 
 def crc32_file(path: str | os.PathLike, start: int = 0, size: int | None = None) -> int:
-    """Return the zlib CRC-32 of a file's bytes [start, start + size) (default: all), about 3x sha256's speed.
+    """Return the CRC-32 (zlib's) of a file's bytes [start, start + size) (default: all), at memory speed.
 
-    One call over a memory map: zlib holds no GIL while it runs, so a thread checking files does not
+    One call over a memory map: `crc32` holds no GIL while it runs, so a thread checking files does not
     wait for the interpreter between chunks while another thread computes.
     """
     with open(path, "rb") as handle:
         end = os.fstat(handle.fileno()).st_size if size is None else start + size
         if end <= start:
-            return zlib.crc32(b"")
+            return crc32(b"")
         with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, memoryview(mapped) as data:
-            return zlib.crc32(data[start:end])
+            return crc32(data[start:end])
 
 
 def sha256_json(payload: Any) -> str:

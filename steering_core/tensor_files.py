@@ -5,7 +5,7 @@ safetensors trusts the first 8 bytes as the header length: a text file or a pick
 checks the framing first; `load_torch_file` refuses pickled objects other than tensors with a message
 that does not advise `weights_only=False`. `tensor_locations` / `read_rows_into` read tensors with plain
 file reads straight into caller-owned memory, `safetensors_layout` lets a file be written tensor by
-tensor, and `save_torch` writes torch.save files with zlib's CRC-32 in place of torch's slower one.
+tensor, and `save_torch` writes torch.save files with a fast CRC-32 in place of torch's slower one.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ import re
 import struct
 import threading
 import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -28,6 +27,7 @@ import torch
 from safetensors.torch import load_file, save
 
 from steering_core.devices import SAFETENSORS_DTYPES
+from steering_core.fileio import crc32
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
@@ -258,10 +258,11 @@ def safetensors_layout(
 
 
 # ----------------------------------------------------------------------------- torch.save with fast checksums
-# torch.save checksums every record with its own CRC-32, about a third of zlib's speed: for a slice of residuals
-# that costs more than writing the bytes. torch can skip the checksum (`set_crc32_options`, a process-wide switch;
-# torch.load never checks it); `save_torch` skips it and then writes zlib's CRC-32 of every record where the zip
-# format keeps it (the record's data descriptor and its central directory entry), so zip tools accept the file.
+# torch.save checksums every record with its own CRC-32, about a third of zlib's speed and far below ISA-L's
+# (`fileio.crc32`): for a slice of residuals that costs more than writing the bytes. torch can skip the checksum
+# (`set_crc32_options`, a process-wide switch; torch.load never checks it); `save_torch` skips it and then writes
+# the CRC-32 of every record where the zip format keeps it (the record's data descriptor and its central directory
+# entry), so zip tools accept the file.
 
 _TORCH_SAVE = threading.Lock()  # the switch is process-wide: one save at a time turns it off and back on
 _LOCAL_HEADER, _CENTRAL_HEADER, _DESCRIPTOR = b"PK\x03\x04", b"PK\x01\x02", b"PK\x07\x08"
@@ -269,7 +270,7 @@ _HAS_DESCRIPTOR = 0x08  # general purpose flag bit 3: sizes and CRC follow the d
 
 
 def save_torch(obj: Any, path: str | os.PathLike) -> Path:
-    """torch.save `obj` to `path` (archive name `archive`, whatever the file is called), CRC-32s by zlib."""
+    """torch.save `obj` to `path` (archive name `archive`, whatever the file is called), CRC-32s by `fileio.crc32`."""
     fill_zip_crcs(save_torch_without_crcs(obj, path))
     return Path(path)
 
@@ -312,7 +313,7 @@ def fill_zip_crcs(path: str | os.PathLike, known: dict[str, tuple[int, int]] | N
             end = start + record.compress_size
             size, crc = known.get(record.filename.partition("/")[2], (-1, 0))
             if size != record.compress_size:
-                crc = zlib.crc32(data[start:end])  # a view of the mapped file: no copy, and zlib releases the GIL
+                crc = crc32(data[start:end])  # a view of the mapped file: no copy, and crc32 releases the GIL
             if record.flag_bits & _HAS_DESCRIPTOR:
                 if data[end : end + 4] != _DESCRIPTOR:
                     raise ValueError(f"{path}: record {record.filename} has no data descriptor after its data")

@@ -54,6 +54,7 @@ def test_round_trip_sorts_rows_and_records_sidecar(tmp_path):
 
     with shards.open_shard(path, width=WIDTH, dtype="float32", rows=6, sha256=record.sha256) as reader:
         columns = reader.columns()
+        some = reader.columns(["token_id", "episode_index"])
         residuals = reader.residuals()
         middle = reader.residuals(2, 4)
     expected_order = sorted(range(6), key=lambda i: (int(rows.index[i]), int(rows.token_position[i])))
@@ -62,6 +63,9 @@ def test_round_trip_sorts_rows_and_records_sidecar(tmp_path):
     assert torch.equal(residuals, rows.residuals[expected_order])
     assert torch.equal(middle, residuals[2:4])
     assert all(c.dtype == np.int64 for c in columns.values())
+    assert list(some) == ["token_id", "episode_index"]
+    assert all(np.array_equal(some[name], columns[name]) for name in some)
+    assert columns["episode_index"].tolist() == [2] * 6
 
 
 def test_bfloat16_storage_and_deterministic_bytes(tmp_path):

@@ -146,12 +146,21 @@ def test_token_slices_equal_brute_force(tmp_path, run_dir, concept_map):
 
 @pytest.mark.parametrize("storage_dtype", ["float32", "bfloat16"])
 @pytest.mark.parametrize("reversed_index", [False, True])
-def test_slice_files_are_byte_identical_to_saving_the_selected_rows(tmp_path, storage_dtype, reversed_index):
+@pytest.mark.parametrize("reading", ["checked", "checked in 2-row reads", "unchecked in 2-row reads"])
+def test_slice_files_are_byte_identical_to_saving_the_selected_rows(
+        tmp_path, monkeypatch, storage_dtype, reversed_index, reading):
     """Each .safetensors equals, byte for byte, what save_file writes for the selected rows, and each .pt holds the
     records torch.save writes for them.
 
-    With `reversed_index` the later episodes come first in the dataset, so shard order is not dataset order.
+    With `reversed_index` the later episodes come first in the dataset, so shard order is not dataset order. Shards
+    are read whole when checked, only the span the concepts need when not, and with 2-row reads a concept's rows
+    and frames straddle the reads.
     """
+    from steering_core.capture import slicing
+
+    if "2-row" in reading:
+        monkeypatch.setattr(slicing, "_BUFFER_BYTES", 2 * WIDTH * 4)
+    verify = reading.startswith("checked")
     def reversed_first(episode):
         return sum(EPISODES[e][0] for e in EPISODES if e > episode)
 
@@ -160,8 +169,9 @@ def test_slice_files_are_byte_identical_to_saving_the_selected_rows(tmp_path, st
     concepts = {OPEN: [segment(e, 1, 4, start_index=first(e) + 1, end_index=first(e) + 4) for e in (0, 2)],
                 CLOSE: [segment(e, 0, 3, start_index=first(e), end_index=first(e) + 3) for e in (1, 3)]}
     concept_map = write_concept_map(tmp_path / "map.json", concepts)
-    slice_concepts(tmp_path / "run", concept_map, tmp_path / "slices", SliceSettings(layers=(5,)))
-    slice_concepts(tmp_path / "run", concept_map, tmp_path / "frames", SliceSettings(layers=(5,), reduce="frame"))
+    settings = SliceSettings(layers=(5,), verify_checksums=verify)
+    slice_concepts(tmp_path / "run", concept_map, tmp_path / "slices", settings)
+    slice_concepts(tmp_path / "run", concept_map, tmp_path / "frames", settings.model_copy(update={"reduce": "frame"}))
     expected_dir = tmp_path / "expected"
     expected_dir.mkdir()
     for name, (rows, keys, columns) in brute_force(tmp_path / "run", concept_map, 5, with_columns=True).items():
@@ -275,6 +285,21 @@ def test_verify_checksums_catches_a_changed_shard(tmp_path, run_dir, concept_map
         slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))  # by default
     assert not (tmp_path / "checked").exists()
     slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
+
+
+def test_a_shard_is_checked_whole_even_where_no_concept_reads_it(tmp_path, run_dir):
+    """Damage in rows no concept selects still stops a checked slicing; unchecked, the selected rows are right."""
+    concept_map = write_concept_map(tmp_path / "early.json", {OPEN: [segment(0, 0, 1)], CLOSE: [segment(1, 0, 1)]})
+    shard = run_dir / "instructions" / "layer02" / "shard-00000.safetensors"  # episodes 0 and 1: episode 1 frame 4 last
+    data = bytearray(shard.read_bytes())
+    data[-1] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="shard-00000.safetensors: CRC-32 is [0-9a-f]{8}, expected [0-9a-f]{8}"):
+        slice_concepts(run_dir, concept_map, tmp_path / "checked", SliceSettings(layers=(2,)))
+    slice_concepts(run_dir, concept_map, tmp_path / "unchecked", SliceSettings(layers=(2,), verify_checksums=False))
+    for name, (rows, _) in brute_force(run_dir, concept_map, 2).items():
+        assert torch.equal(load_file(tmp_path / "unchecked" / "layer02" / f"{safe_file_name(name)}.safetensors")
+                           ["residuals"], rows)
 
 
 def test_a_run_recorded_without_crc32s_is_checked_by_sha256(tmp_path, run_dir, concept_map):
@@ -414,23 +439,3 @@ def test_a_second_slice_waits_for_the_layer_another_process_writes_then_keeps_it
     (out / "layer02" / "open the top_drawer.pt").unlink()  # an incomplete layer is not kept either
     slice_concepts(run_dir, concept_map, out, SliceSettings(layers=(2,), reduce="frame"))
     assert reads == [1, 1] and (out / "layer02" / "open the top_drawer.pt").is_file()
-
-
-def test_background_jobs_are_taken_back_when_the_thread_is_busy():
-    import threading
-    from concurrent.futures import ThreadPoolExecutor
-
-    from steering_core.capture.slicing import _Job
-
-    release = threading.Event()
-    with ThreadPoolExecutor(1) as pool:
-        blocker = pool.submit(release.wait)  # the background thread is busy
-        ran_in = []
-        job = _Job(pool, lambda: ran_in.append(threading.current_thread().name) or 7)
-        assert job.result() == 7 and job.result() == 7 and ran_in == [threading.current_thread().name]  # here, once
-        failing = _Job(pool, lambda: 1 / 0)
-        for _ in range(2):
-            with pytest.raises(ZeroDivisionError):
-                failing.result()
-        release.set()
-        blocker.result()

@@ -36,7 +36,7 @@ from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.fileio import atomic_path, crc32_file, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
-from steering_core.tensor_files import TensorLocation, read_layout, read_rows_into, read_tensor
+from steering_core.tensor_files import TensorLocation, read_layout, read_rows_into
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class ShardRecord(StrictModel):
     dtype: StorageDtype
     sha256: str
     inputs: str  # fingerprint of the run identity + episode contents; resume compares it
-    crc32: int | None = None  # zlib CRC-32 of the file: slicing's check for damage (records before it have none)
+    crc32: int | None = None  # CRC-32 (zlib's) of the file: slicing's check for damage (records before it have none)
     tasks: dict[str, dict[str, Any]] = {}  # task text -> token selection record (see capture)
 
 
@@ -272,9 +272,19 @@ class ShardReader:
         self.column_names = names  # ROW_COLUMNS, plus `step` in shards of the action token types
 
     def columns(self, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
-        """Return the requested per-row columns (default all of the shard's), each (rows,) int64."""
-        return {name: read_tensor(self._handle, self._locations[name], torch.device("cpu"), torch.int64).numpy()
-                for name in names or self.column_names}
+        """Return the requested per-row columns (default all of the shard's), each (rows,) int64.
+
+        One read of the bytes from the first column to the last (int64 tensors lie side by side in a
+        safetensors file), viewed as the columns.
+        """
+        where = [self._locations[name] for name in names or self.column_names]
+        start = min(location.offset for location in where)
+        block = np.empty(max(location.offset + 8 * self.rows for location in where) - start, dtype=np.uint8)
+        self._handle.seek(start)
+        if self._handle.readinto(block) != block.size:
+            raise ValueError(f"{self.path}: the file ends inside its row columns; it is truncated, re-run capture")
+        return {location.name: block[location.offset - start : location.offset - start + 8 * self.rows].view("<i8")
+                for location in where}
 
     def residuals(self, start: int = 0, stop: int | None = None) -> torch.Tensor:
         """Return residual rows [start, stop) as (stop - start, width) in the storage dtype."""

@@ -3,8 +3,8 @@
 The `.safetensors` copy is laid out first (header and row columns, `safetensors_layout`, the bytes
 `save_file` would write), then each residual row is written at its offset with `os.pwrite` as the
 shards are read, so no concept is ever held whole in memory. The `.pt` copy is then saved from a
-memory map of that finished file, reading the bytes from the page cache; its CRC-32s are filled in
-afterwards (`fill_zip_crcs`), in whichever thread has time.
+memory map of that finished file, reading the bytes from the page cache, and its CRC-32s filled in
+(`tensor_files.fill_zip_crcs`), the large record's as the rows were written (or from the same map).
 """
 
 from __future__ import annotations
@@ -17,8 +17,10 @@ import numpy as np
 import torch
 
 from steering_core.capture.shards import RESIDUALS
-from steering_core.fileio import crc32_file
-from steering_core.tensor_files import safetensors_layout, save_torch_without_crcs
+from steering_core.fileio import crc32
+from steering_core.tensor_files import fill_zip_crcs, safetensors_layout, save_torch_without_crcs
+
+_PT_DATA_RECORD = "data/0"  # torch.save's record of a lone tensor's storage (spec 14); used only if its size matches
 
 
 class SliceFile:
@@ -30,6 +32,7 @@ class SliceFile:
         entries = {RESIDUALS: (torch.float32, (self.rows, width))}
         entries |= {name: (torch.int64, (self.rows,)) for name in columns}
         header, self._offsets = safetensors_layout(entries)
+        self._crc, self._crc_rows = 0, 0  # CRC-32 of output rows 0 .. _crc_rows - 1, kept while rows come in order
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
         os.ftruncate(self._fd, self._offsets[RESIDUALS] + self.rows * width * 4)  # residuals come last (F32)
         _pwrite(self._fd, memoryview(header), 0)
@@ -40,6 +43,8 @@ class SliceFile:
         """Write (n, width) contiguous float32 CPU `rows` as output rows first .. first + n - 1."""
         data = memoryview(rows.numpy()).cast("B")
         _pwrite(self._fd, data, self._offsets[RESIDUALS] + first * self.width * 4)
+        if first == self._crc_rows:  # in output order, as a slice's rows usually come: the .pt's checksum grows with them
+            self._crc, self._crc_rows = crc32(data, self._crc), first + len(rows)
 
     def close(self) -> None:
         """Close the file (once every row is written)."""
@@ -47,21 +52,22 @@ class SliceFile:
             os.close(self._fd)
             self._fd = -1
 
-    def residual_crc32(self) -> tuple[int, int]:
-        """Return (bytes, zlib CRC-32) of the closed file's residuals: the `.pt`'s data record holds the same bytes."""
-        size = self.rows * self.width * 4
-        return size, crc32_file(self.path, self._offsets[RESIDUALS], size)
-
     def save_pt(self, path: Path) -> Path:
-        """Write the residuals of the closed file as a torch.save `.pt` (the seed's copy) without its CRC-32s,
-        read from a memory map of the file; `fill_zip_crcs(path)` completes it."""
+        """Write the residuals of the closed file as a torch.save `.pt` (the seed's copy), CRC-32s included,
+        read from a memory map of the file."""
         populate = getattr(mmap, "MAP_POPULATE", 0)  # Linux: map every page in one call, not a fault per 64 KiB
         with open(self.path, "r+b") as handle:  # shared (no page copied) and writable (torch wants that); only read
             mapped = mmap.mmap(handle.fileno(), 0, flags=mmap.MAP_SHARED | populate,
                                prot=mmap.PROT_READ | mmap.PROT_WRITE)
-        residuals = torch.frombuffer(mapped, dtype=torch.float32, offset=self._offsets[RESIDUALS],
-                                     count=self.rows * self.width).view(self.rows, self.width)
-        return save_torch_without_crcs(residuals, path)  # the map closes with its last reference
+        start, size = self._offsets[RESIDUALS], self.rows * self.width * 4
+        data_crc = self._crc
+        if self._crc_rows != self.rows:  # rows came out of order: checksum them where they now lie
+            with memoryview(mapped) as data:
+                data_crc = crc32(data[start : start + size])
+        residuals = torch.frombuffer(mapped, dtype=torch.float32, offset=start, count=self.rows * self.width)
+        save_torch_without_crcs(residuals.view(self.rows, self.width), path)  # the map closes with its last reference
+        fill_zip_crcs(path, {_PT_DATA_RECORD: (size, data_crc)})
+        return path
 
 
 def _pwrite(fd: int, data: memoryview, offset: int) -> None:

@@ -3,11 +3,11 @@
 Rows are matched by (episode_index, frame_index) against the concept map's segments, never
 by their position in a stream, so slices stay right when a dataset grows. Two passes over
 each layer's shards: the first reads only the small int64 row columns (to validate the
-concept map against the run and to choose rows), the second copies each shard's selected
-residual rows through one bounded buffer to their place in the concept's output file
-(`slice_files`), so no concept is ever held whole in memory. Peak memory is that buffer plus,
-for frame means, one shard's rows. Shard checksums are verified in a background thread while
-the layer is sliced; a mismatch stops the layer before its folder replaces the old one.
+concept map against the run and to choose rows), the second reads each shard once through one
+bounded buffer, copying its selected rows to their place in the concepts' output files
+(`slice_copy`, `slice_files`), so no concept is ever held whole in memory. Peak memory is that
+buffer plus, for frame means, one shard's rows. The same read checks each shard against its
+record (`shard_checks`); a mismatch stops the layer before its folder replaces the old one.
 
 Outputs, per layer (the seed's layout):
 
@@ -18,13 +18,10 @@ Outputs, per layer (the seed's layout):
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import logging
 import os
 import unicodedata
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -32,32 +29,25 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from steering_core.capture.shards import (
-    STEP,
-    RunMetadata,
-    ShardRecord,
-    TokenType,
-    open_shard,
-    read_run_metadata,
-    checksum_mismatch,
-)
+from steering_core.capture.shard_checks import ShardChecks
+from steering_core.capture.shards import STEP, RunMetadata, ShardRecord, TokenType, open_shard, read_run_metadata
+from steering_core.capture.slice_copy import Part, copy_shard
 from steering_core.capture.slice_files import SliceFile
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
-from steering_core.fileio import atomic_dir, crc32_file, read_json, sha256_file, sha256_json, write_json
+from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
 from steering_core.schema import StrictModel
-from steering_core.tensor_files import TensorLocation, fill_zip_crcs, read_rows_into
+from steering_core.tensor_files import TensorLocation
 
 logger = logging.getLogger(__name__)
 
 SLICE_PT = "{name}.pt"
 SLICE_SAFETENSORS = "{name}.safetensors"
 SLICE_FORMAT_VERSION = 1
-_BUFFER_BYTES = 8 << 20  # rows copied per read and write from shard to slice file
-_PT_DATA_RECORD = "data/0"  # torch.save's record of a lone tensor's storage (spec 14); used only if its size matches
+_BUFFER_BYTES = 8 << 20  # shard bytes read at a time in the second pass
 _MAX_NAME_BYTES = 200  # file systems cap names at 255 bytes; leave room for suffixes and a hash
 _UNSAFE = {"/", "\\", "\0", ":"}  # path separators (and ':' for Windows/macOS shares)
 
@@ -83,15 +73,6 @@ class _Selection:
 
     rows: dict[int, np.ndarray] = field(default_factory=dict)  # shard position -> (n,) ascending row numbers
     columns: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # shard position -> row columns, (n,)
-
-
-@dataclass
-class _Part:
-    """One shard's share of a concept's output: which rows to read and where their units go."""
-
-    rows: np.ndarray  # (n,) ascending row numbers in the shard
-    dest: np.ndarray  # output row of each unit: of each row (reduce=token) or of each frame (reduce=frame)
-    frame_of_row: np.ndarray | None  # reduce=frame: (n,) the shard-local frame of each row
 
 
 def safe_file_name(concept: str) -> str:
@@ -235,17 +216,16 @@ def _slice_layer(
             for _ in records:
                 advance()
             return target / SLICE_INDEX_FILE
-        read = _positions_read(records, concept_map)
-        with ThreadPoolExecutor(1, thread_name_prefix="slice-checksums") as background, \
-                _shard_checksums(run_dir, records, read, background if settings.verify_checksums else None) as checksums:
+        checks = ShardChecks(run_dir, records, _positions_read(records, concept_map), settings.verify_checksums)
+        with checks.blame():
             selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
             plans = {concept: _plan(selection, settings.reduce) for concept, selection in selections.items()}
             with atomic_dir(target, overwrite=True) as staging:
                 staging.mkdir(parents=True)
-                files = _write_slices(staging, plans, records, locations, metadata.run.width, settings, advance,
-                                      background)
+                files = _write_slices(staging, plans, len(records), locations, checks, metadata.run.width, settings,
+                                      advance)
                 _write_index(staging, header, files, concept_map)
-                checksums.check()  # before the staging folder takes the target's place
+                checks.check()  # before the staging folder takes the target's place
     logger.info("layer %d: wrote %d concept slices to %s", layer, len(plans), target)
     return target / SLICE_INDEX_FILE
 
@@ -286,73 +266,6 @@ def _positions_read(records: Sequence[ShardRecord], concept_map: ConceptMap) -> 
     """Return the positions of the shards holding an episode of the concept map: the only ones read."""
     episodes = {segment.episode_index for segments in concept_map.concepts.values() for segment in segments}
     return [position for position, record in enumerate(records) if episodes.intersection(record.episodes)]
-
-
-class _Job:
-    """A call run in a background thread, or by the caller if the caller asks for it before the thread starts it."""
-
-    def __init__(self, pool: ThreadPoolExecutor, call: Callable[[], Any]) -> None:
-        self._call, self._future = call, pool.submit(call)
-
-    def result(self) -> Any:
-        """Return the call's result: waited for if started, else computed here (the thread is still busy)."""
-        if self._future.cancel():
-            self._future = Future()
-            try:
-                self._future.set_result(self._call())
-            except Exception as err:  # kept, so that asking again raises it again
-                self._future.set_exception(err)
-        return self._future.result()
-
-
-class _Checksums:
-    """Checksums of the shards a layer reads, computed in a background thread while the layer is sliced.
-
-    A record's CRC-32 is checked where it has one (about 3x faster than sha256, and enough to catch a
-    damaged or rewritten file); records written before CRC-32s were kept are checked by sha256.
-    """
-
-    def __init__(self, pool: ThreadPoolExecutor | None, run_dir: Path, records: Sequence[ShardRecord],
-                 positions: Sequence[int]) -> None:
-        self._records = {run_dir / records[p].file: records[p] for p in positions}
-        self._found = {} if pool is None else {
-            path: _Job(pool, functools.partial(crc32_file if record.crc32 is not None else sha256_file, path))
-            for path, record in self._records.items()}
-
-    def mismatches(self) -> list[str]:
-        """Return one message per shard whose bytes differ from its record (waiting for the checksums)."""
-        problems = []
-        for path, found in self._found.items():
-            record = self._records[path]
-            with contextlib.suppress(OSError):  # a missing shard: the read that needed it says so
-                if record.crc32 is not None and (crc := found.result()) != record.crc32:
-                    problems.append(checksum_mismatch(path, "CRC-32", f"{crc:08x}", f"{record.crc32:08x}"))
-                elif record.crc32 is None and (digest := found.result()) != record.sha256:
-                    problems.append(checksum_mismatch(path, "sha256", digest, record.sha256))
-        return problems
-
-    def check(self) -> None:
-        """Raise a ValueError listing every changed shard."""
-        if problems := self.mismatches():
-            raise ValueError("\n".join(problems))
-
-
-@contextlib.contextmanager
-def _shard_checksums(
-    run_dir: Path, records: Sequence[ShardRecord], positions: Sequence[int], pool: ThreadPoolExecutor | None
-) -> Iterator[_Checksums]:
-    """Yield the shards' checksums, hashed in `pool` beside the block (none without a pool).
-
-    An error in the block caused by a changed shard (a damaged header, say) is reported as the checksum
-    mismatch it is.
-    """
-    checksums = _Checksums(pool, run_dir, records, positions)
-    try:
-        yield checksums
-    except Exception:
-        if problems := checksums.mismatches():
-            raise ValueError("\n".join(problems)) from None
-        raise
 
 
 def _select_rows(
@@ -454,77 +367,44 @@ def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
 
 def _write_slices(
     staging: Path,
-    plans: dict[str, tuple[dict[int, _Part], dict[str, np.ndarray]]],
-    records: Sequence[ShardRecord],
+    plans: dict[str, tuple[dict[int, Part], dict[str, np.ndarray]]],
+    shards: int,
     locations: dict[int, TensorLocation],
+    checks: ShardChecks,
     width: int,
     settings: SliceSettings,
     advance: Callable[[], None],
-    background: ThreadPoolExecutor,
 ) -> dict[str, SliceFile]:
-    """Second pass: copy each concept's rows from the shards into its files in `staging`; return concept -> file.
+    """Second pass: copy each concept's rows from the layer's `shards` into its files in `staging`; return
+    concept -> file.
 
-    Rows go shard by shard through one bounded buffer to their place in the concept's `.safetensors`
-    (in dataset order, `_plan`); frame means are computed per shard. Each `.pt` is then saved from its
-    finished `.safetensors`, its CRC-32s computed in `background` (zlib releases the GIL).
+    Each shard read in the first pass is read once more, through one bounded buffer, its rows going to
+    their place in each concept's `.safetensors` (in dataset order, `_plan`) and its bytes to its check
+    (`slice_copy.copy_shard`). Each `.pt` is then saved from its finished `.safetensors`.
     """
     stems = slice_file_names(list(plans))
     files = {concept: SliceFile(staging / SLICE_SAFETENSORS.format(name=stems[concept]), columns, width)
              for concept, (_, columns) in plans.items()}
-    buffer = torch.empty(max(1, _BUFFER_BYTES // (4 * width)), width, dtype=torch.float32)
+    buffer = torch.empty(max([_BUFFER_BYTES, *(where.row_bytes for where in locations.values())]), dtype=torch.uint8)
     try:
-        for position, record in enumerate(records):
-            needed = {concept: parts[position] for concept, (parts, _) in plans.items() if position in parts}
-            if needed:
+        for position in range(shards):
+            parts = [(parts[position], files[concept]) for concept, (parts, _) in plans.items() if position in parts]
+            digest = checks.digest(position)
+            if parts or digest is not None:
                 with open(locations[position].path, "rb", buffering=0) as handle:
-                    for concept, part in needed.items():
-                        _copy_part(locations[position], handle, part, files[concept], buffer, settings.device)
+                    copy_shard(handle, locations[position], parts, buffer, settings.device, digest)
+                if digest is not None:
+                    checks.found(position, digest)
             advance()
     finally:
         for file in files.values():
             file.close()
-    data_crcs = [_Job(background, file.residual_crc32) for file in files.values()]  # beside the .pt saves
-    fills = [_Job(background, functools.partial(_fill_pt_crcs, file.save_pt(file.path.with_suffix(".pt")), data))
-             for file, data in zip(files.values(), data_crcs)]
-    for job in fills:
-        job.result()
+    for file in files.values():
+        file.save_pt(file.path.with_suffix(".pt"))
     return files
 
 
-def _fill_pt_crcs(pt: Path, data_crc: _Job) -> None:
-    """Fill the CRC-32s of a slice's `.pt`, its tensor's record from the `.safetensors` copy's checksum."""
-    fill_zip_crcs(pt, {_PT_DATA_RECORD: data_crc.result()})
-
-
-def _copy_part(
-    location: TensorLocation, handle: Any, part: _Part, file: SliceFile, buffer: torch.Tensor, device: str
-) -> None:
-    """Copy one shard's share of a concept into its file: its rows (reduce=token) or their frame means."""
-    if part.frame_of_row is None:
-        for start, stop in _runs(part.rows, part.dest):
-            for first in range(start, stop, len(buffer)):
-                count = min(len(buffer), stop - first)
-                rows = read_rows_into(handle, location, int(part.rows[first]), buffer[:count])
-                file.write(int(part.dest[first]), rows)
-        return
-    rows = torch.empty(len(part.rows), location.shape[1], dtype=torch.float32)
-    for start, stop in _runs(part.rows):
-        read_rows_into(handle, location, int(part.rows[start]), rows[start:stop])
-    means = _frame_means(rows, part.frame_of_row, len(part.dest), device)
-    for start, stop in _runs(part.dest):
-        file.write(int(part.dest[start]), means[start:stop])
-
-
-def _runs(*sequences: np.ndarray) -> list[tuple[int, int]]:
-    """Return [start, stop) spans over which every sequence counts up by one (one read or write each)."""
-    steps = np.zeros(max(len(sequences[0]) - 1, 0), dtype=bool)
-    for values in sequences:
-        steps |= np.diff(values) != 1
-    breaks = (np.flatnonzero(steps) + 1).tolist()
-    return list(zip([0, *breaks], [*breaks, len(sequences[0])]))
-
-
-def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[str, np.ndarray]]:
+def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, Part], dict[str, np.ndarray]]:
     """Return one concept's parts per shard position and its output columns, in dataset order.
 
     Output units are rows (reduce=token, ordered by index, then token position) or frames
@@ -553,18 +433,9 @@ def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, _Part], dict[st
     dest[order] = np.arange(len(order))
     bounds = np.cumsum([0] + [len(unit["index"]) for unit in units])
     parts = {
-        p: _Part(selection.rows[p], dest[bounds[i] : bounds[i + 1]], frame_of_row[p]) for i, p in enumerate(positions)
+        p: Part(selection.rows[p], dest[bounds[i] : bounds[i + 1]], frame_of_row[p]) for i, p in enumerate(positions)
     }
     return parts, {name: np.ascontiguousarray(values[order]) for name, values in columns.items()}
-
-
-def _frame_means(residuals: torch.Tensor, frame_of_row: np.ndarray, frames: int, device: str) -> torch.Tensor:
-    """Return (frames, width) float32 means of the rows of each frame, summed in float64 on `device`."""
-    inverse_t = torch.from_numpy(frame_of_row).to(device)
-    sums = torch.zeros(frames, residuals.shape[1], dtype=torch.float64, device=device)
-    sums.index_add_(0, inverse_t, residuals.to(device, torch.float64))
-    counts = torch.bincount(inverse_t, minlength=frames).to(torch.float64)
-    return (sums / counts[:, None]).to("cpu", torch.float32)
 
 
 def _within_frame(columns: dict[str, np.ndarray]) -> np.ndarray:

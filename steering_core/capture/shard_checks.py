@@ -1,0 +1,102 @@
+"""Checking the shards a slicing reads against their records, so that no damaged shard feeds a slice.
+
+The copy reads each checked shard whole, front to back, once, and feeds its bytes to a digest
+(`ShardChecks.digest`): the check then costs a CRC-32 of bytes already in the cache, not a second read.
+A shard the copy did not finish (it failed to open, say) is hashed from its file when the check is
+asked for, so a damaged shard is named as changed whatever error its damage caused first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Protocol
+
+from steering_core.capture.shards import ShardRecord, checksum_mismatch
+from steering_core.fileio import crc32
+
+_CHUNK = 8 << 20  # bytes per read when a shard is hashed from its file
+
+
+class Digest(Protocol):
+    """What a shard check feeds bytes to: hashlib's `update` / `hexdigest`."""
+
+    def update(self, data: bytes | memoryview, /) -> None: ...
+
+    def hexdigest(self) -> str: ...
+
+
+class Crc32:
+    """A running CRC-32 (zlib's) with hashlib's `update` / `hexdigest`."""
+
+    def __init__(self) -> None:
+        self.value = 0
+
+    def update(self, data: bytes | memoryview, /) -> None:
+        """Extend the checksum by `data`."""
+        self.value = crc32(data, self.value)
+
+    def hexdigest(self) -> str:
+        """Return the checksum as 8 hex digits."""
+        return f"{self.value:08x}"
+
+
+def record_check(record: ShardRecord) -> tuple[str, Callable[[], Digest], str]:
+    """Return (name, new digest, expected hex digest) of a record's check: its CRC-32, or its sha256 for
+    records written before CRC-32s were kept (about 10x slower)."""
+    if record.crc32 is not None:
+        return "CRC-32", Crc32, f"{record.crc32:08x}"
+    return "sha256", hashlib.sha256, record.sha256
+
+
+class ShardChecks:
+    """The checks of the shards at `positions` of `records` (none when not `enabled`)."""
+
+    def __init__(self, run_dir: Path, records: Sequence[ShardRecord], positions: Sequence[int], enabled: bool) -> None:
+        self._paths = {p: run_dir / records[p].file for p in positions} if enabled else {}
+        self._checks = {p: record_check(records[p]) for p in self._paths}
+        self._found: dict[int, str] = {}
+
+    def digest(self, position: int) -> Digest | None:
+        """Return a new digest for the shard at `position` to be fed its whole file, or None if it is not checked."""
+        return self._checks[position][1]() if position in self._checks else None
+
+    def found(self, position: int, digest: Digest) -> None:
+        """Keep the digest of the shard at `position`, fed every byte of its file."""
+        self._found[position] = digest.hexdigest()
+
+    def mismatches(self) -> list[str]:
+        """Return one message per checked shard whose bytes differ from its record; unfed shards are hashed here."""
+        problems = []
+        for position, path in self._paths.items():
+            kind, new_digest, expected = self._checks[position]
+            with contextlib.suppress(OSError):  # a missing shard: the read that needed it says so
+                found = self._found.get(position) or _hash_file(path, new_digest())
+                if found != expected:
+                    problems.append(checksum_mismatch(path, kind, found, expected))
+        return problems
+
+    def check(self) -> None:
+        """Raise a ValueError listing every changed shard."""
+        if problems := self.mismatches():
+            raise ValueError("\n".join(problems))
+
+    @contextlib.contextmanager
+    def blame(self) -> Iterator[None]:
+        """Report an error in the block caused by a changed shard (a damaged header, say) as the mismatch it is."""
+        try:
+            yield
+        except Exception:
+            if problems := self.mismatches():
+                raise ValueError("\n".join(problems)) from None
+            raise
+
+
+def _hash_file(path: Path, digest: Digest) -> str:
+    """Return the hex digest of a file's bytes."""
+    with open(path, "rb") as handle:
+        while chunk := handle.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
