@@ -12,7 +12,6 @@ import errno
 import glob
 import hashlib
 import json
-import mmap
 import os
 import shutil
 import socket
@@ -205,26 +204,33 @@ def read_json(path: str | os.PathLike) -> Any:
 
 
 def sha256_file(path: str | os.PathLike) -> str:
-    """Return the hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    """Return the hex sha256 of a file's bytes."""
     digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(_HASH_CHUNK):
-            digest.update(chunk)
+    feed_file(path, digest)
     return digest.hexdigest()
 
 
-def crc32_file(path: str | os.PathLike, start: int = 0, size: int | None = None) -> int:
-    """Return the CRC-32 (zlib's) of a file's bytes [start, start + size) (default: all), at memory speed.
-
-    One call over a memory map: `crc32` holds no GIL while it runs, so a thread checking files does not
-    wait for the interpreter between chunks while another thread computes.
-    """
+def feed_file(path: str | os.PathLike, *digests: Any) -> None:
+    """Feed a file's bytes, in 1 MiB chunks read once, to each of `digests` (hashlib-like: `update`)."""
     with open(path, "rb") as handle:
-        end = os.fstat(handle.fileno()).st_size if size is None else start + size
-        if end <= start:
-            return crc32(b"")
-        with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mapped, memoryview(mapped) as data:
-            return crc32(data[start:end])
+        while chunk := handle.read(_HASH_CHUNK):
+            for digest in digests:
+                digest.update(chunk)
+
+
+class Crc32:
+    """A running CRC-32 (zlib's) with hashlib's `update` / `hexdigest`; `value` is the checksum so far."""
+
+    def __init__(self) -> None:
+        self.value = 0
+
+    def update(self, data: bytes | memoryview, /) -> None:
+        """Extend the checksum by `data`."""
+        self.value = crc32(data, self.value)
+
+    def hexdigest(self) -> str:
+        """Return the checksum as 8 hex digits."""
+        return f"{self.value:08x}"
 
 
 def sha256_json(payload: Any) -> str:

@@ -4,13 +4,16 @@ import hashlib
 import json
 import os
 import stat
+import zlib
 from pathlib import Path
 
 import pytest
 
 from steering_core.fileio import (
+    Crc32,
     atomic_dir,
     atomic_path,
+    feed_file,
     read_json,
     remove_stale_staging,
     sha256_file,
@@ -81,6 +84,10 @@ def test_hashes_match_hashlib(tmp_path):
     blob = os.urandom(3 * (1 << 20) + 17)  # spans several read chunks
     (tmp_path / "blob").write_bytes(blob)
     assert sha256_file(tmp_path / "blob") == hashlib.sha256(blob).hexdigest()
+    sha, crc = hashlib.sha256(), Crc32()
+    feed_file(tmp_path / "blob", sha, crc)  # one read feeds both
+    assert sha.hexdigest() == hashlib.sha256(blob).hexdigest()
+    assert crc.value == zlib.crc32(blob) and crc.hexdigest() == f"{zlib.crc32(blob):08x}"
     assert sha256_json({"b": 1, "a": [1, 2]}) == sha256_json({"a": [1, 2], "b": 1})
     assert sha256_json({"a": 1}) == hashlib.sha256(json.dumps({"a": 1}).replace(" ", "").encode()).hexdigest()
 

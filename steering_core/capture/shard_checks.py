@@ -15,9 +15,7 @@ from pathlib import Path
 from typing import Protocol
 
 from steering_core.capture.shards import ShardRecord, checksum_mismatch
-from steering_core.fileio import crc32
-
-_CHUNK = 8 << 20  # bytes per read when a shard is hashed from its file
+from steering_core.fileio import Crc32, feed_file
 
 
 class Digest(Protocol):
@@ -26,21 +24,6 @@ class Digest(Protocol):
     def update(self, data: bytes | memoryview, /) -> None: ...
 
     def hexdigest(self) -> str: ...
-
-
-class Crc32:
-    """A running CRC-32 (zlib's) with hashlib's `update` / `hexdigest`."""
-
-    def __init__(self) -> None:
-        self.value = 0
-
-    def update(self, data: bytes | memoryview, /) -> None:
-        """Extend the checksum by `data`."""
-        self.value = crc32(data, self.value)
-
-    def hexdigest(self) -> str:
-        """Return the checksum as 8 hex digits."""
-        return f"{self.value:08x}"
 
 
 def record_check(record: ShardRecord) -> tuple[str, Callable[[], Digest], str]:
@@ -73,7 +56,7 @@ class ShardChecks:
         for position, path in self._paths.items():
             kind, new_digest, expected = self._checks[position]
             with contextlib.suppress(OSError):  # a missing shard: the read that needed it says so
-                found = self._found.get(position) or _hash_file(path, new_digest())
+                found = self._found.get(position) or _file_digest(path, new_digest())
                 if found != expected:
                     problems.append(checksum_mismatch(path, kind, found, expected))
         return problems
@@ -94,9 +77,7 @@ class ShardChecks:
             raise
 
 
-def _hash_file(path: Path, digest: Digest) -> str:
+def _file_digest(path: Path, digest: Digest) -> str:
     """Return the hex digest of a file's bytes."""
-    with open(path, "rb") as handle:
-        while chunk := handle.read(_CHUNK):
-            digest.update(chunk)
+    feed_file(path, digest)
     return digest.hexdigest()

@@ -20,6 +20,7 @@ several workers can write one run without sharing a file. `metadata.json` is reb
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import os
@@ -33,7 +34,7 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
-from steering_core.fileio import atomic_path, crc32_file, sha256_file, sha256_json, write_json
+from steering_core.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
 from steering_core.layout import layer_dir
 from steering_core.schema import M, StrictModel, read_model
 from steering_core.tensor_files import TensorLocation, read_layout, read_rows_into
@@ -213,7 +214,8 @@ def write_shard(
     with atomic_path(path) as tmp:
         # one metadata entry holding canonical JSON: safetensors orders several entries at random
         save_file(tensors, str(tmp), metadata={HEADER_KEY: json.dumps(header, sort_keys=True)})
-        digest, crc = sha256_file(tmp), crc32_file(tmp)
+        digest, crc = hashlib.sha256(), Crc32()
+        feed_file(tmp, digest, crc)  # one read for both
     record = ShardRecord(
         file=path.relative_to(run_dir).as_posix(),
         layer=layer,
@@ -222,10 +224,10 @@ def write_shard(
         rows=int(rows.residuals.shape[0]),
         width=spec.width,
         dtype=spec.storage_dtype,
-        sha256=digest,
+        sha256=digest.hexdigest(),
         inputs=inputs,
         tasks=tasks or {},
-        crc32=crc,
+        crc32=crc.value,
     )
     write_json(sidecar_path(run_dir, spec.token_type, layer, key), record.model_dump(mode="json"))
     return record

@@ -388,7 +388,7 @@ def _write_slices(
     buffer = torch.empty(max([_BUFFER_BYTES, *(where.row_bytes for where in locations.values())]), dtype=torch.uint8)
     try:
         for position in range(shards):
-            parts = [(parts[position], files[concept]) for concept, (parts, _) in plans.items() if position in parts]
+            parts = [(shares[position], files[concept]) for concept, (shares, _) in plans.items() if position in shares]
             digest = checks.digest(position)
             if parts or digest is not None:
                 with open(locations[position].path, "rb", buffering=0) as handle:
