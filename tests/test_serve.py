@@ -232,6 +232,14 @@ def test_stop_finishes_the_request_in_flight_then_closes_every_connection(catalo
                 assert closed.value.rcvd.code == 1001
 
 
+def test_asking_a_stopped_server_to_stop_again_does_nothing(catalog):
+    """A stop asked for inside the block (as above) is asked again on leaving it, after the loop has closed."""
+    server = PolicyServer(FakePolicy(), catalog)
+    with running(server):
+        pass
+    server.request_stop()
+
+
 @pytest.mark.slow
 def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observations, tmp_path):
     vectors = next(iter(catalog)).path.parents[2]

@@ -94,9 +94,11 @@ class PolicyServer:
             await self._shutdown(server)
 
     def request_stop(self) -> None:
-        """Ask a running server to shut down (thread-safe); `serve` returns once it has."""
+        """Ask a running server to shut down (thread-safe); `serve` returns once it has. Asking again, after it
+        has stopped, does nothing."""
         if self._loop is not None and self._stop is not None:
-            self._loop.call_soon_threadsafe(self._stop.set)
+            with contextlib.suppress(RuntimeError):  # the loop already closed: the server stopped
+                self._loop.call_soon_threadsafe(self._stop.set)
 
     async def _shutdown(self, server: Server) -> None:
         logger.info("shutting down: %d connection(s), %d request(s) in flight", len(self._connections), len(self._busy))
