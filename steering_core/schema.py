@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import os
-from typing import TypeVar
+from collections.abc import Sequence
+from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -24,8 +25,44 @@ M = TypeVar("M", bound=BaseModel)
 
 
 def validation_problems(err: ValidationError) -> str:
-    """Return one line per problem of a pydantic error, each as `key.path: message`."""
-    return "\n  ".join(f"{'.'.join(map(str, e['loc'])) or '(top level)'}: {e['msg']}" for e in err.errors())
+    """Return one line per problem of a pydantic error, each as `key.path: message`.
+
+    Problems that differ only in list positions (the same field of every shard of a run, say) share one
+    line, the positions given as ranges: `shards.<0-39>.crc32 (40 entries): ...`.
+    """
+    groups: dict[tuple[tuple[Any, ...], str], list[tuple[int, ...]]] = {}
+    for problem in err.errors():
+        shape = tuple(None if isinstance(part, int) else part for part in problem["loc"])
+        groups.setdefault((shape, problem["msg"]), []).append(
+            tuple(part for part in problem["loc"] if isinstance(part, int)))
+    lines = []
+    for (shape, message), positions in groups.items():
+        columns = iter(zip(*positions))
+        parts = [str(part) if part is not None else _positions(sorted(set(next(columns))), len(positions))
+                 for part in shape]
+        count = f" ({len(positions)} entries)" if len(positions) > 1 else ""
+        lines.append(f"{'.'.join(parts) or '(top level)'}{count}: {message}")
+    return "\n  ".join(lines)
+
+
+def _positions(values: list[int], entries: int) -> str:
+    """Return one list position as it is (one entry), or as `<ranges>` (several)."""
+    return str(values[0]) if entries == 1 else f"<{describe_ranges(values)}>"
+
+
+def describe_ranges(values: Sequence[int]) -> str:
+    """Return sorted integers as compact ranges, e.g. `0-3, 7, 9-10`."""
+    if not values:
+        return "none"
+    spans, start, prev = [], values[0], values[0]
+    for value in list(values[1:]) + [None]:
+        if value is not None and value == prev + 1:
+            prev = value
+            continue
+        spans.append(f"{start}" if start == prev else f"{start}-{prev}")
+        if value is not None:
+            start = prev = value
+    return ", ".join(spans)
 
 
 def read_model(

@@ -45,3 +45,21 @@ def test_read_model_checks_version_then_lists_every_problem(tmp_path):
         "  inner.size: Input should be a valid integer, unable to parse string as an integer",
         "  typo: Extra inputs are not permitted",
     ]
+
+
+class Batch(StrictModel):
+    records: list[Inner]
+
+
+def test_the_same_problem_at_many_list_positions_is_one_line(tmp_path):
+    """A field wrong in every shard record of a large run reads as one line, not one per shard."""
+    path = tmp_path / "batch.json"
+    records = [{"size": 1, "x": 1}, {"size": 2, "x": 1}, {"size": 3, "x": 1}, {"size": "big"}, {"size": 5, "x": 1}]
+    path.write_text(json.dumps({"records": records}))
+    with pytest.raises(ValueError) as err:
+        read_model(path, Batch, what="batch")
+    assert str(err.value).splitlines() == [
+        f"{path}: not a valid batch:",
+        "  records.<0-2, 4>.x (4 entries): Extra inputs are not permitted",
+        "  records.3.size: Input should be a valid integer, unable to parse string as an integer",
+    ]

@@ -39,7 +39,7 @@ from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json
 from steering_core.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.locks import output_lock
 from steering_core.progress import Progress, ProgressCallback
-from steering_core.schema import StrictModel
+from steering_core.schema import StrictModel, describe_ranges
 from steering_core.tensor_files import TensorLocation
 
 logger = logging.getLogger(__name__)
@@ -153,7 +153,7 @@ def _check_request(
                 problems.append(
                     f"{map_path}: concept {concept!r} segment {number} needs episode {segment.episode_index} "
                     f"(frames {segment.frame_start}-{segment.frame_end}), which run {run_dir} never captured "
-                    f"(it holds episodes {_describe(sorted(captured))}); the concept map belongs to another "
+                    f"(it holds episodes {describe_ranges(sorted(captured))}); the concept map belongs to another "
                     "dataset or the capture is incomplete"
                 )
     if problems:
@@ -318,7 +318,7 @@ def _select_rows(
             if missing:
                 problems.append(
                     f"{map_path}: concept {concept!r} segment {number} needs episode {segment.episode_index} frames "
-                    f"{_describe(missing)}, which run {run_dir} never captured; the concept map belongs to another "
+                    f"{describe_ranges(missing)}, which run {run_dir} never captured; the concept map belongs to another "
                     "dataset or the capture is incomplete"
                 )
     problems += [
@@ -441,19 +441,3 @@ def _plan(selection: _Selection, reduce: str) -> tuple[dict[int, Part], dict[str
 def _within_frame(columns: dict[str, np.ndarray]) -> np.ndarray:
     """Return the order of rows within a frame: the denoising step (action token types), else the token position."""
     return columns[STEP] if STEP in columns else columns["token_position"]
-
-
-def _describe(values: Sequence[int]) -> str:
-    """Return sorted integers as compact ranges, e.g. `0-3, 7, 9-10`."""
-    if not values:
-        return "none"
-    spans, start, prev = [], values[0], values[0]
-    for value in list(values[1:]) + [None]:
-        if value is not None and value == prev + 1:
-            prev = value
-            continue
-        spans.append(f"{start}" if start == prev else f"{start}-{prev}")
-        if value is not None:
-            start = prev = value
-    return ", ".join(spans)
-
