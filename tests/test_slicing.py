@@ -161,6 +161,7 @@ def test_slice_files_are_byte_identical_to_saving_the_selected_rows(
     if "2-row" in reading:
         monkeypatch.setattr(slicing, "_BUFFER_BYTES", 2 * WIDTH * 4)
     verify = reading.startswith("checked")
+
     def reversed_first(episode):
         return sum(EPISODES[e][0] for e in EPISODES if e > episode)
 
