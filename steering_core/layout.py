@@ -37,4 +37,4 @@ def layer_dir(layer: int) -> str:
 
 def stream_layer_dir(layer: int, stream: str) -> str:
     """Return the folder name of one layer of a stream: `layer12` (language model) or `expert_layer03`."""
-    return EXPERT_LAYER_DIR.format(layer=layer) if stream == "expert" else LAYER_DIR.format(layer=layer)
+    return EXPERT_LAYER_DIR.format(layer=layer) if stream == "expert" else layer_dir(layer)

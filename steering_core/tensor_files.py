@@ -276,7 +276,7 @@ def save_torch(obj: Any, path: str | os.PathLike) -> Path:
 
 
 def save_torch_without_crcs(obj: Any, path: str | os.PathLike) -> Path:
-    """torch.save `obj` to `path` with zero CRC-32s; `fill_zip_crcs` completes it (in any thread).
+    """torch.save `obj` to `path` with zero CRC-32s; `fill_zip_crcs` completes it.
 
     Only torch.save calls made through this module are serialised with each other: a torch.save in
     another thread during one of them writes its file without CRC-32s (torch.load still reads it).
@@ -313,7 +313,7 @@ def fill_zip_crcs(path: str | os.PathLike, known: dict[str, tuple[int, int]] | N
             end = start + record.compress_size
             size, crc = known.get(record.filename.partition("/")[2], (-1, 0))
             if size != record.compress_size:
-                crc = crc32(data[start:end])  # a view of the mapped file: no copy, and crc32 releases the GIL
+                crc = crc32(data[start:end])  # a view of the mapped file: no copy
             if record.flag_bits & _HAS_DESCRIPTOR:
                 if data[end : end + 4] != _DESCRIPTOR:
                     raise ValueError(f"{path}: record {record.filename} has no data descriptor after its data")
