@@ -359,7 +359,7 @@ def main(argv: list[str] | None = None) -> Result:
             "than at the real widths, and the seed's eager attention over 968 tokens with a dense additive mask "
             "is slow on CPU, so the measured ratio exceeds the real model's FLOP ratio.",
             f"ours runs the deepest layer's queries, attention output and MLP for the captured rows only "
-            f"(`Pi05Prefix.selected_residuals`; keys and values still from every token): the real layer-{real_layer} "
+            f"(`capture.selected_rows.selected_residuals`; keys and values still from every token): the real layer-{real_layer} "
             f"FLOP ratio is {real_ratio_selected:.2f}x, against {real_ratio:.2f}x when every token runs the whole "
             "deepest layer (bench.real_size times both calls at the real size).",
             f"H100: {H100_BF16_DENSE_TFLOPS:.0f} TFLOP/s dense bf16 peak at {MFU:.0%} MFU; real prompt assumed "

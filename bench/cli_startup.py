@@ -4,7 +4,7 @@ Each command runs in a fresh process, as a user types it (the installed `latent-
 environment); its wall time from start to exit and its CPU time (user + system, which a busy shared
 machine inflates far less than the wall time) are measured several times and the medians kept, on the
 same machine and in the same run as the baseline, a Python interpreter that starts and does nothing.
-Command modules are imported only when their command runs (`cli.lazy`), so `--help`, `filter` and
+Command modules are imported only when their command runs (`latent_steering_cli.lazy`), so `--help`, `filter` and
 `manifest` never load torch, lerobot, transformers or Prefect; `steer --help`, which needs torch, is
 measured for comparison. `filter` selects two of four generated LIBERO demo files (real work, small).
 The target is an absolute one: under 2 s of start-up (CPU time, and wall time when the machine is not
@@ -35,7 +35,7 @@ QUICK = {"repeats": 2}
 def cli_command() -> list[str]:
     """Return how to start the installed `latent-steering` script with this interpreter's environment."""
     script = Path(sys.executable).parent / "latent-steering"
-    return [str(script)] if script.is_file() else [sys.executable, "-c", "import sys; from cli import app; sys.exit(app())"]
+    return [str(script)] if script.is_file() else [sys.executable, "-c", "import sys; from latent_steering_cli import app; sys.exit(app())"]
 
 
 def run_times(argv: list[str], repeats: int) -> tuple[float, float]:
@@ -55,7 +55,7 @@ def run_times(argv: list[str], repeats: int) -> tuple[float, float]:
 
 def heavy_imports(args: list[str]) -> list[str]:
     """Return the heavy libraries a command imports (run once more in-process of a child that reports them)."""
-    code = ("import sys\nfrom cli import app\n"
+    code = ("import sys\nfrom latent_steering_cli import app\n"
             f"sys.argv = ['latent-steering', *{args!r}]\n"
             "try:\n    app()\nexcept SystemExit:\n    pass\n"
             f"print(sorted({{m.split('.')[0] for m in sys.modules}} & {set(HEAVY)!r}))\n")

@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> Result:
             QUICK["base_files"], QUICK["demos_per_file"], QUICK["steps"], QUICK["image_size"], QUICK["warm_up"])
     folder = cache_dir(args) / "refresh"
 
-    from cli.run import prefect_environment
+    from latent_steering_cli.run import prefect_environment
 
     prefect_environment(home=folder.parent / "prefect-home")  # before Prefect is imported
     from prefect import flow

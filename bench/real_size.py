@@ -7,7 +7,7 @@ resident memory (VmHWM) against the bytes of the parameters it loaded (target: a
 `Pi05Prefix.residuals` on one LIBERO frame (two 224 px cameras, the third masked, a 16-token prompt) and, in
 alternating rounds, `torch.nn.functional.linear` over exactly the matrix products of that forward with the
 model's own weights: GFLOP/s of ours (analytic FLOPs, attention included) against GFLOP/s of linear().
-It also times capture's call, `Pi05Prefix.selected_residuals` of the 14 instruction rows, whose deepest layer
+It also times capture's call, `capture.selected_rows.selected_residuals` of the 14 instruction rows, whose deepest layer
 runs queries, attention output and MLP for those rows only.
 
 Opt-in (`bench.run_all --real-size`): it needs about 11 GB of free memory and 8 GB of disk, and is skipped,
@@ -33,7 +33,17 @@ from bench.capture_throughput import (
     ours_flops_selected_queries,
     seed_flops,
 )
-from bench.common import Result, cache_dir, command, finish, parser, peak_rss_mib, print_child_result, rss_mib, run_child
+from bench.common import (
+    Result,
+    cache_dir,
+    command,
+    finish,
+    parser,
+    peak_rss_mib,
+    print_child_result,
+    rss_mib,
+    run_child,
+)
 
 LAYER = 12  # the seed's SAE layer: the prefix is loaded through it
 ROUNDS = 2  # alternating rounds of ours and linear(), best kept
@@ -74,6 +84,7 @@ def products(model: Any, frames: int, prompt_tokens: int) -> list[tuple[int, tor
 
 def child(checkpoint: Path, arch_json: str, layer: int) -> dict[str, Any]:
     """Load the prefix in this fresh process, then time ours and linear(); return the measurements."""
+    from steering_core.capture.selected_rows import selected_residuals
     from steering_core.pi05 import Pi05Arch, Pi05Prefix
 
     arch = Pi05Arch.model_validate_json(arch_json)
@@ -101,7 +112,7 @@ def child(checkpoint: Path, arch_json: str, layer: int) -> dict[str, Any]:
         model.residuals(images, masks, tokens, token_mask, [layer])
 
     def selected() -> None:  # what capture calls: the instruction rows only
-        model.selected_residuals(images, masks, tokens, token_mask, [layer], frame_of_row, positions)
+        selected_residuals(model, images, masks, tokens, token_mask, [layer], frame_of_row, positions)
 
     def linear() -> None:
         for rows, weight in matrices:

@@ -18,7 +18,7 @@ from flows.capture import capture_mode, wait_for_runs
 from steering_core.config import RunConfig, load_run_config
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
-from steering_core.layout import PATHWAYS_FILE, stream_layer_dir
+from steering_core.storage.layout import PATHWAYS_FILE, stream_layer_dir
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
 from tasks.cache import rooted

@@ -41,7 +41,7 @@ from steering_core.refresh import (
     scan_inputs,
     write_sources_record,
 )
-from steering_core.sae.steering import SIDES
+from steering_core.sae.vectors import SIDES
 from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report

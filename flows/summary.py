@@ -26,7 +26,7 @@ from prefect.results import ResultRecord
 from prefect.tasks import Task
 
 from steering_core.config import RunConfig
-from steering_core.tables import text_table
+from steering_core.reporting.tables import text_table
 from tasks import capture, data, preflight, report, sae
 from tasks.cache import OUTPUTS, cache_store
 

@@ -50,17 +50,17 @@ from pydantic import (
     model_validator,
 )
 
-from steering_core import layout
 from steering_core.capture import CaptureSettings
 from steering_core.capture.slicing import SliceSettings
 from steering_core.data.contrast import ContrastSettings
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
-from steering_core.fileio import atomic_path
 from steering_core.pi05 import Pi05Arch
-from steering_core.sae.steering import PairsConfig, PairSpec, SteeringSettings
-from steering_core.schema import StrictModel
+from steering_core.sae.vectors import PairsConfig, PairSpec, SteeringSettings
+from steering_core.storage import layout
+from steering_core.storage.fileio import atomic_path
+from steering_core.storage.schema import StrictModel
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 PAIRS_CONFIG_FILE = "{layer_dir}_pairs.json"  # the seed's data/latent_steering/layer12_pairs.json

@@ -27,9 +27,10 @@ from steering_core.config import (
     SteeringSection,
     write_run_config,
 )
-from steering_core.fileio import read_json, write_json
-from steering_core.layout import PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
+from steering_core.reporting.tables import text_table
 from steering_core.sae.report import FVU_LIMIT
+from steering_core.storage.fileio import read_json, write_json
+from steering_core.storage.layout import PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.synthetic.libero import (
     DRAWER_CLOSE,
     DRAWER_OPEN,
@@ -41,7 +42,6 @@ from steering_core.synthetic.libero import (
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
-from steering_core.tables import text_table
 
 logger = logging.getLogger(__name__)
 

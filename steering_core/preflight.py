@@ -17,11 +17,11 @@ from steering_core.capture.shards import ACTION_TOKEN_TYPES
 from steering_core.config import RunConfig
 from steering_core.data.dataset import check_dataset, resolve_task
 from steering_core.data.filtering import DEMO_FILE_GLOB, select_files
-from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
 from steering_core.data.libero import validate_file
 from steering_core.devices import resolve_device
-from steering_core.fileio import check_output_dir
-from steering_core.sae.steering import load_steering_sae
+from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
+from steering_core.sae.vectors import load_steering_sae
+from steering_core.storage.fileio import check_output_dir
 
 logger = logging.getLogger(__name__)
 

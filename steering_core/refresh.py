@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from steering_core.data.dataset import dataset_fingerprint
-from steering_core.fileio import sha256_file, write_json
-from steering_core.schema import StrictModel, read_model
+from steering_core.storage.fileio import sha256_file, write_json
+from steering_core.storage.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
     from steering_core.config import RunConfig

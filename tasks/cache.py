@@ -1,6 +1,6 @@
 """Cache keys built from input content, and task results kept beside the outputs they describe.
 
-A task's identity (`steering_core.identity`) is the content of its inputs (file hashes, settings
+A task's identity (`steering_core.storage.fingerprints`) is the content of its inputs (file hashes, settings
 fingerprints), its own source, and the source of the `steering_core` modules it calls: equal
 identity, equal outputs. `ContentKey` turns a task's parameters into that identity, so an
 unchanged input gives a `Cached` task run and a changed one recomputes only what depends on it.
@@ -32,8 +32,8 @@ from prefect.context import TaskRunContext
 from prefect.states import State
 from prefect.tasks import Task
 
-from steering_core.fileio import sha256_json
-from steering_core.identity import code_version, plain
+from steering_core.storage.fileio import sha256_json
+from steering_core.storage.fingerprints import code_version, plain
 
 logger = logging.getLogger(__name__)
 

@@ -8,16 +8,16 @@ from typing import Any
 
 from prefect import get_run_logger, task
 
-from steering_core import layout
 from steering_core.capture import CaptureSettings
 from steering_core.data.contrast import read_manifest
 from steering_core.data.split import read_split
 from steering_core.evaluate import report
 from steering_core.evaluate import run as evaluate_run
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.identity import file_digest, plain
 from steering_core.sae import steering
-from steering_core.sae.steering import SteeringSettings
+from steering_core.sae.vectors import SteeringSettings
+from steering_core.storage import layout
+from steering_core.storage.fingerprints import file_digest, plain
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
 from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs

@@ -7,9 +7,9 @@ from typing import Any
 
 from prefect import task
 
-from steering_core import layout
-from steering_core.identity import file_digest
 from steering_core.sae import report, steering
+from steering_core.storage import layout
+from steering_core.storage.fingerprints import file_digest
 from tasks.cache import OUTPUTS, RESULTS, content_key
 
 
@@ -28,7 +28,7 @@ def pairwise_digest(inputs: dict[str, Any]) -> str:
 @task(
     name="pairwise-stats",
     task_run_name="pairwise stats layer {layer}",
-    cache_policy=content_key("steering_core.sae.steering", derived={"pairs": pair_folders}),
+    cache_policy=content_key("steering_core.sae.vectors", derived={"pairs": pair_folders}),
     **RESULTS,
 )
 def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:

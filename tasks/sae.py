@@ -7,14 +7,14 @@ from typing import Any
 
 from prefect import task
 
-from steering_core import layout
-from steering_core.fileio import write_json
-from steering_core.identity import file_digest
-from steering_core.layout import layer_dir
 from steering_core.sae import concept_stats, steering
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.registry import resolve_release
-from steering_core.sae.steering import PairsConfig, PairSpec, SteeringSettings
+from steering_core.sae.vectors import PairsConfig, PairSpec, SteeringSettings
+from steering_core.storage import layout
+from steering_core.storage.fileio import write_json
+from steering_core.storage.fingerprints import file_digest
+from steering_core.storage.layout import layer_dir
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     IO_RETRIES,
@@ -66,7 +66,7 @@ def stats_files(path: str) -> dict[str, str]:
 @task(
     name="write-pairs-config",
     task_run_name="pairs config layer {layer}",
-    cache_policy=content_key("steering_core.sae.steering"),
+    cache_policy=content_key("steering_core.sae.vectors"),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
@@ -97,7 +97,7 @@ def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str
 @task(
     name="pair-directions",
     task_run_name="directions {pair.name} layer {layer}",
-    cache_policy=content_key("steering_core.sae.steering", positive_stats=stats_files, negative_stats=stats_files,
+    cache_policy=content_key("steering_core.sae.vectors", positive_stats=stats_files, negative_stats=stats_files,
                              settings=direction_inputs),
     **RESULTS,
 )

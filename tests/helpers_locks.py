@@ -12,7 +12,7 @@ from typing import Any
 def hold_output_lock(output) -> subprocess.Popen:
     """Return a process that holds `locks.output_lock(output)` until it reads a line (it holds it on return)."""
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.locks import output_lock\n"
+        [sys.executable, "-c", "import sys; from steering_core.storage.locks import output_lock\n"
          f"with output_lock({str(output)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"

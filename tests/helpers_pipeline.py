@@ -7,9 +7,9 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.config import RunConfig
-from steering_core.layout import layer_dir
+from steering_core.storage.layout import layer_dir
 
 
 def run_cli_steps(config: RunConfig, out: Path) -> None:

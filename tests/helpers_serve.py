@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from steering_core.data.libero import read_demo
-from steering_core.sae.steering import SteeringSettings, compute_steering
+from steering_core.sae.vectors import SteeringSettings, compute_steering
 from steering_core.serve import codec
 from steering_core.serve.server import PolicyServer, serving_in_thread
 from steering_core.synthetic.libero import (

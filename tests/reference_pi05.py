@@ -1,4 +1,4 @@
-"""A naive float64 pi0.5 prefix, written straight from PI05_PREFIX_SPEC.md section 3, for equivalence tests.
+"""A naive float64 pi0.5 prefix, written straight from docs/PI05_SPEC.md section 3, for equivalence tests.
 
 Deliberately different from `steering_core.pi05.model`: it reads the checkpoint with safetensors itself,
 uses no transformers code, and runs each sample on its valid tokens only (that is what the bidirectional

@@ -1,4 +1,4 @@
-"""A naive float64 numpy SAE written straight from the spec (PI05_PREFIX_SPEC.md section 6.3).
+"""A naive float64 numpy SAE written straight from the spec (docs/PI05_SPEC.md section 6.3).
 
 Deliberately independent of `steering_core.sae.model`: numpy instead of torch, explicit per-row loops for
 TopK, and the "expected_average_only_in" factor applied to the input (x -> s*x, output / s) instead of

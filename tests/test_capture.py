@@ -10,9 +10,9 @@ import torch
 from helpers_capture import EPISODES, make_lerobot_dataset
 from safetensors.torch import load_file
 
-from steering_core.capture import CaptureSettings, capture, shards
+from steering_core.capture import CaptureSettings, capture, loop, shards
 from steering_core.capture.frames import worker_start_method
-from steering_core.capture.identity import checkpoint_fingerprint
+from steering_core.capture.run_identity import checkpoint_fingerprint
 from steering_core.capture.settings import select_tokens
 from steering_core.pi05 import (
     PromptFormat,
@@ -282,7 +282,7 @@ def test_capture_errors(inputs, tmp_path):
 def test_capture_command(inputs, tmp_path):
     from typer.testing import CliRunner
 
-    from cli.capture import app
+    from latent_steering_cli.capture import app
 
     checkpoint, tokenizer, dataset = inputs
     arch_file = tmp_path / "arch.json"
@@ -306,7 +306,7 @@ def test_seed_command_with_max_samples_per_layer(inputs, full_run, tmp_path):
     """The seed's spellings (`--layers 1 3`, underscores) and its cap: the first episodes until 4 frames (3 + 2)."""
     from typer.testing import CliRunner
 
-    from cli import app
+    from latent_steering_cli import app
 
     checkpoint, tokenizer, dataset = inputs
     arch_file = tmp_path / "arch.json"
@@ -400,7 +400,7 @@ def test_an_output_path_that_is_a_file_fails_before_the_model_loads(inputs, tmp_
 def test_capture_command_refuses_a_checkpoint_that_is_not_safetensors_in_one_line(inputs, tmp_path, content):
     from typer.testing import CliRunner
 
-    from cli.capture import app
+    from latent_steering_cli.capture import app
 
     _, tokenizer, dataset = inputs
     bad = tmp_path / "model.safetensors"
@@ -443,7 +443,7 @@ def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, 
 
     run_dir = tmp_path / "run"
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.locks import group_locks\n"
+        [sys.executable, "-c", "import sys; from steering_core.storage.locks import group_locks\n"
          f"with group_locks({str(run_dir)!r}, [1]):\n    print('locked', flush=True); sys.stdin.readline()"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
@@ -464,16 +464,16 @@ def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, 
 
 
 def test_cuda_out_of_memory_halves_the_batch_and_records_it(inputs, full_run, tmp_path, monkeypatch):
-    real = Pi05Prefix.selected_residuals  # what capture calls
+    real = loop.selected_residuals  # what capture calls
     sizes = []
 
-    def small_memory(self, images, masks, tokens, *args, **kwargs):
+    def small_memory(model, images, masks, tokens, *args, **kwargs):
         sizes.append(len(tokens))
         if len(tokens) > 1:  # a GPU that fits one frame per pass
             raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
-        return real(self, images, masks, tokens, *args, **kwargs)
+        return real(model, images, masks, tokens, *args, **kwargs)
 
-    monkeypatch.setattr(Pi05Prefix, "selected_residuals", small_memory)
+    monkeypatch.setattr(loop, "selected_residuals", small_memory)
     result = capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2))
     assert result.reduced_batch_size == 1
     assert sizes[:3] == [2, 1, 1] and set(sizes[3:]) == {1}  # halved once, then kept for the rest of the run
@@ -483,9 +483,9 @@ def test_cuda_out_of_memory_halves_the_batch_and_records_it(inputs, full_run, tm
 
 
 def test_out_of_memory_at_one_frame_is_raised(inputs, tmp_path, monkeypatch):
-    def no_memory(self, *args, **kwargs):
+    def no_memory(*args, **kwargs):
         raise torch.cuda.OutOfMemoryError("CUDA out of memory (simulated)")
 
-    monkeypatch.setattr(Pi05Prefix, "selected_residuals", no_memory)
+    monkeypatch.setattr(loop, "selected_residuals", no_memory)
     with pytest.raises(torch.cuda.OutOfMemoryError):
         capture(inputs[2], REPO_ID, tmp_path / "run", settings_for(inputs, batch_size=2), episodes=[1])

@@ -17,8 +17,8 @@ from test_capture import ARCH, REPO_ID, direct_frames, inputs, load_layer, setti
 
 from steering_core.capture import capture, shards
 from steering_core.capture.slicing import SliceSettings, slice_concepts
-from steering_core.fileio import sha256_file
 from steering_core.pi05 import PromptTokenizer
+from steering_core.storage.fileio import sha256_file
 from steering_core.synthetic.pi05 import tiny_expert_arch
 
 STEPS, SEED, HORIZON = 3, 7, 10
@@ -162,7 +162,7 @@ def test_decision_shard_without_its_step_column_is_refused(decision_run, tmp_pat
 def test_capture_command_decision(inputs, tmp_path):
     from typer.testing import CliRunner
 
-    from cli.capture import app
+    from latent_steering_cli.capture import app
 
     checkpoint, tokenizer, dataset = inputs
     arch_file = tmp_path / "arch.json"

@@ -12,8 +12,8 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-from cli import app
-from cli.lazy import command_sources, load_command
+from latent_steering_cli import app
+from latent_steering_cli.lazy import command_sources, load_command
 
 HEAVY = ("torch", "lerobot", "transformers", "prefect")
 
@@ -22,7 +22,7 @@ def modules_loaded_by(*argv: str) -> tuple[list[str], str]:
     """Run `latent-steering *argv` in a fresh interpreter; return the heavy top-level modules it imported, and its output."""
     code = (
         "import sys\n"
-        "from cli import app\n"
+        "from latent_steering_cli import app\n"
         f"sys.argv = ['latent-steering', *{list(argv)!r}]\n"
         "try:\n    app()\nexcept SystemExit:\n    pass\n"
         f"print('LOADED', sorted({{m.split('.')[0] for m in sys.modules}} & {set(HEAVY)!r}))\n"
@@ -50,7 +50,7 @@ def test_lazy_listing_matches_the_registered_commands():
     """Names and help read from the source with ast equal what the imported modules register."""
     for source in command_sources().values():
         importlib.import_module(source.module)
-    from cli.app import app as shared
+    from latent_steering_cli.app import app as shared
 
     registered = {info.name: inspect.getdoc(info.callback) for info in shared.registered_commands}
     assert registered == {name: source.help for name, source in command_sources().items()}
@@ -75,8 +75,8 @@ def test_unknown_command_is_a_usage_error():
 
 
 def test_log_lines_name_the_prefect_run_and_libraries_stay_quiet():
-    configure_logging = sys.modules["cli.app"].configure_logging
-    formatter_of = sys.modules["cli.app"].RunNameFormatter
+    configure_logging = sys.modules["latent_steering_cli.app"].configure_logging
+    formatter_of = sys.modules["latent_steering_cli.app"].RunNameFormatter
     record = logging.LogRecord("prefect.task_runs", logging.INFO, __file__, 1, "Finished in state %s", ("Cached()",), None)
     record.task_run_name = "slice on_vs_off layer 2"
     text = formatter_of("%(name)s%(run)s: %(message)s").format(record)

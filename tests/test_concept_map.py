@@ -15,7 +15,7 @@ from helpers_dataset import CLOSE, OPEN, brute_force_rows, write_contrast_datase
 from reference_formats import FORMATS
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.data.concept_map import (
     build_concept_map,
     read_concept_map,

@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from reference_formats import FORMATS
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.data.contrast import (
     ContrastSettings,
     build_manifest,

@@ -12,7 +12,7 @@ from helpers_libero import TINY, edit_file, sha256_bytes, write_tiny
 from helpers_locks import hold_output_lock, start_waiting
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.data import convert as convert_module
 from steering_core.data.convert import (
     ConvertSettings,

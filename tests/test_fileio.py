@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from steering_core.fileio import (
+from steering_core.storage.fileio import (
     Crc32,
     atomic_dir,
     atomic_path,
@@ -165,7 +165,7 @@ def test_a_swap_interrupted_between_its_renames_is_finished_by_the_next_run(tmp_
 
 @pytest.mark.parametrize("exchange", [True, False])
 def test_overwrite_never_loses_the_old_copy(tmp_path, monkeypatch, exchange):
-    from steering_core import fileio
+    from steering_core.storage import fileio
 
     target = tmp_path / "out"
     target.mkdir()

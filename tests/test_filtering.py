@@ -8,7 +8,7 @@ import pytest
 from helpers_libero import edit_file, sha256_bytes, write_tiny
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.data.filtering import FilterSettings, filter_demos, read_selection
 
 OPEN = "open the top drawer of the cabinet"

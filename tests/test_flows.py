@@ -22,6 +22,7 @@ from uuid import UUID
 
 import pytest
 import torch
+from helpers_pipeline import run_cli_steps
 from prefect import flow, task
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (
@@ -38,20 +39,19 @@ from prefect.states import Failed
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
-from cli import app
-from helpers_pipeline import run_cli_steps
 from flows.pipeline import PIPELINE_FLOW
 from flows.refresh import refresh
-from steering_core import fileio
+from latent_steering_cli import app
 from steering_core.capture import slicing
 from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
 from steering_core.demo import DEMO_STEPS, build_demo, format_summary, summarise
-from steering_core.fileio import read_json, sha256_file
-from steering_core.identity import code_modules, code_version, file_digest
-from steering_core.layout import layer_dir
+from steering_core.storage import fileio
+from steering_core.storage.fileio import read_json, sha256_file
+from steering_core.storage.fingerprints import code_modules, code_version, file_digest
+from steering_core.storage.layout import layer_dir
 from steering_core.synthetic.libero import (
     DRAWER_OPEN,
     MotionSpec,
@@ -103,7 +103,7 @@ def latest_pipeline_run() -> UUID:
 
 # ----------------------------------------------------------------------------- cache keys and retries
 
-@task(cache_policy=content_key("steering_core.layout", source=file_digest, ignore=("label",)), **RESULTS)
+@task(cache_policy=content_key("steering_core.storage.layout", source=file_digest, ignore=("label",)), **RESULTS)
 def double(label: str, source: str, output: str, times: int = 2) -> dict:
     """Write `times` copies of a file's text into `output`."""
     Path(output).write_text(Path(source).read_text() * times)
@@ -133,10 +133,10 @@ def test_content_key_caches_on_content_and_reruns_for_missing_outputs(tmp_path):
 
 def test_code_version_follows_project_imports_only():
     modules = code_modules("steering_core.capture.slicing")
-    assert {"steering_core.capture.slicing", "steering_core.capture.shards", "steering_core.data.concept_map", "steering_core.fileio",
-            "steering_core.layout", "steering_core.schema"} <= set(modules)
+    assert {"steering_core.capture.slicing", "steering_core.capture.shards", "steering_core.data.concept_map", "steering_core.storage.fileio",
+            "steering_core.storage.layout", "steering_core.storage.schema"} <= set(modules)
     assert "steering_core.capture.loop" not in modules and not any(m.startswith("torch") for m in modules)
-    assert modules["steering_core.fileio"] == sha256_file(Path(fileio.__file__))
+    assert modules["steering_core.storage.fileio"] == sha256_file(Path(fileio.__file__))
     # capture imports the prefix model lazily inside a function: still part of its code version
     assert "steering_core.pi05.model" in code_modules("steering_core.capture.loop")
     assert code_version("steering_core.capture.slicing") != code_version("steering_core.capture.shards")
@@ -417,7 +417,7 @@ def test_expert_evaluation_key_follows_its_own_pair_only(first_run, demo_config)
     from safetensors.torch import save_file
 
     from steering_core.evaluate.run import run_config_job
-    from steering_core.fileio import sha256_json
+    from steering_core.storage.fileio import sha256_json
     from tasks.evaluate import job_inputs
 
     config = load_run_config(demo_config)

@@ -17,9 +17,12 @@ SUBPACKAGES = (
     "steering_core.config",
     "steering_core.demo",
     "steering_core.refresh",
-    "steering_core.identity",
+    "steering_core.storage.fingerprints",
     "steering_core.preflight",
-    "steering_core.tensor_files",
+    "steering_core.storage",
+    "steering_core.storage.tensor_files",
+    "steering_core.reporting",
+    "steering_core.serve",
 )
 
 
@@ -27,7 +30,7 @@ SUBPACKAGES = (
 def test_library_imports_without_prefect_or_flows(name):
     code = (
         f"import importlib, sys; importlib.import_module({name!r}); "
-        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('prefect', 'flows', 'tasks', 'cli')); "
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('prefect', 'flows', 'tasks', 'latent_steering_cli')); "
         "print(bad); sys.exit(1 if bad else 0)"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

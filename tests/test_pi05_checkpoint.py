@@ -12,7 +12,6 @@ from safetensors.torch import load_file, save_file
 
 import steering_core.pi05.checkpoint as checkpoint_module
 import steering_core.synthetic.pi05 as synthetic_pi05
-from steering_core.fileio import sha256_file
 from steering_core.pi05 import Pi05Arch, Pi05Prefix
 from steering_core.pi05.checkpoint import (
     EMBEDDING_KEY,
@@ -23,6 +22,7 @@ from steering_core.pi05.checkpoint import (
     VISION_PREFIX,
     prefix_tensor_shapes,
 )
+from steering_core.storage.fileio import sha256_file
 from steering_core.synthetic.pi05 import (
     checkpoint_tensor_shapes,
     tiny_arch,

@@ -7,6 +7,7 @@ import torch
 from helpers_pi05 import make_batch
 from reference_pi05 import reference_residuals
 
+from steering_core.capture.selected_rows import selected_residuals
 from steering_core.pi05 import Pi05Prefix, PromptTokenizer
 from steering_core.pi05.checkpoint import MODEL_FILE
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
@@ -202,14 +203,14 @@ def test_selected_rows_equal_the_full_residuals(model, checkpoint, batch, attent
     valid = batch.valid(ARCH)
     frames, positions = selected_rows(batch, valid)
     full = model.residuals(*batch.args(), ALL_LAYERS, attention=attention)
-    rows = model.selected_residuals(*batch.args(), [3, 0, 2], frames, positions, attention=attention)
+    rows = selected_residuals(model, *batch.args(), [3, 0, 2], frames, positions, attention=attention)
     assert sorted(rows) == [0, 2, 3]
     for layer in (0, 2):  # before the deepest layer: the same computation, bit for bit
         assert torch.equal(rows[layer], full[layer][frames, positions])
     deepest = rows[3]  # queries, attention output and MLP of the selected rows only
     assert deepest.shape == (len(frames), ARCH.width) and deepest.dtype == torch.float32
     assert_rounding_close(deepest, full[3][frames, positions])
-    alone = model.selected_residuals(*batch.args(), [1], frames, positions, attention=attention)[1]
+    alone = selected_residuals(model, *batch.args(), [1], frames, positions, attention=attention)[1]
     assert_rounding_close(alone, full[1][frames, positions])
     if attention == "sdpa":
         expected = reference_residuals(checkpoint / MODEL_FILE, ARCH, *batch.args(), [3])[3]
@@ -221,4 +222,4 @@ def test_selected_rows_must_be_valid_tokens(model, batch):
     masked = int((~valid[0]).nonzero()[0])  # the right wrist camera is masked in every frame
     frames, positions = torch.tensor([0, 1]), torch.tensor([int(valid[0].nonzero()[0]), masked])
     with pytest.raises(ValueError, match=rf"row 1 \(frame 1, position {masked}\) is not a valid token"):
-        model.selected_residuals(*batch.args(), [2], frames, positions)
+        selected_residuals(model, *batch.args(), [2], frames, positions)

@@ -131,7 +131,7 @@ def test_cuda_device_without_a_gpu(config):
 
 def test_cli_run_stops_before_prefect_starts(config, tmp_path, monkeypatch):
     import flows.pipeline
-    from cli import app
+    from latent_steering_cli import app
 
     monkeypatch.setattr(flows.pipeline, "latent_steering", lambda *a: pytest.fail("the flow started"))
     bad = with_model(config, checkpoint=pickle_file(tmp_path / "model.safetensors"))

@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from steering_core.progress import Progress
+from steering_core.reporting.progress import Progress
 
 
 class FakeClock:
@@ -25,7 +25,7 @@ class FakeTTY(io.StringIO):
 
 def test_off_a_terminal_logs_done_rate_and_time_left_at_the_interval(caplog):
     clock, calls = FakeClock(), []
-    caplog.set_level(logging.INFO, logger="steering_core.progress")
+    caplog.set_level(logging.INFO, logger="steering_core.reporting.progress")
     with Progress(100, "capture", "frame", callback=lambda d, t: calls.append((d, t)), interval=10.0,
                   stream=io.StringIO(), clock=clock) as bar:
         for _ in range(10):  # 10 frames every 4 s: 2.5 frames/s
@@ -44,7 +44,7 @@ def test_off_a_terminal_logs_done_rate_and_time_left_at_the_interval(caplog):
 
 def test_a_quick_step_logs_nothing(caplog):
     clock = FakeClock()
-    caplog.set_level(logging.INFO, logger="steering_core.progress")
+    caplog.set_level(logging.INFO, logger="steering_core.reporting.progress")
     with Progress(3, "encode", "row", interval=10.0, stream=io.StringIO(), clock=clock) as bar:
         clock.now += 9.0
         bar.update(3)
@@ -53,7 +53,7 @@ def test_a_quick_step_logs_nothing(caplog):
 
 def test_a_failed_step_logs_no_closing_line(caplog):
     clock = FakeClock()
-    caplog.set_level(logging.INFO, logger="steering_core.progress")
+    caplog.set_level(logging.INFO, logger="steering_core.reporting.progress")
     with pytest.raises(RuntimeError), Progress(5, "slice", "shard", interval=10.0, stream=io.StringIO(),
                                                clock=clock) as bar:
         clock.now += 11.0
@@ -65,7 +65,7 @@ def test_a_failed_step_logs_no_closing_line(caplog):
 
 def test_on_a_terminal_a_bar_and_no_log_lines(caplog):
     stream, clock = FakeTTY(), FakeClock()
-    caplog.set_level(logging.INFO, logger="steering_core.progress")
+    caplog.set_level(logging.INFO, logger="steering_core.reporting.progress")
     with Progress(4, "encode", "row", stream=stream, interval=0.0, clock=clock) as bar:
         for _ in range(4):
             clock.now += 100.0

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from steering_core.sae.report import top_latents, write_report
-from steering_core.sae.steering import SteeringSettings, compute_steering
+from steering_core.sae.vectors import SteeringSettings, compute_steering
 from steering_core.synthetic.sae import write_sae_folder
 
 D_IN, D_SAE = 12, 40

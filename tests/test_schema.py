@@ -5,7 +5,7 @@ import json
 import pytest
 from pydantic import ValidationError
 
-from steering_core.schema import StrictModel, read_model
+from steering_core.storage.schema import StrictModel, read_model
 
 
 class Inner(StrictModel):

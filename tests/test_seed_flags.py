@@ -10,9 +10,9 @@ from helpers_libero import tiny_task
 from PIL import Image
 from typer.testing import CliRunner
 
-from cli import app
-from cli.app import seed_spellings
-from cli.lazy import load_command
+from latent_steering_cli import app
+from latent_steering_cli.app import seed_spellings
+from latent_steering_cli.lazy import load_command
 from steering_core.data.convert import read_sources
 from steering_core.data.dataset import read_meta
 from steering_core.data.libero import read_demo

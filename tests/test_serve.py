@@ -274,8 +274,8 @@ def test_readme_serve_commands_use_existing_flags():
 
     import typer
 
-    import cli.serve  # noqa: F401  (commands are imported lazily; this registers `serve`)
-    from cli import app
+    import latent_steering_cli.serve  # noqa: F401  (commands are imported lazily; this registers `serve`)
+    from latent_steering_cli import app
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
     section = readme.split("## Steered rollouts in LIBERO", 1)[1].split("\n## ", 1)[0]

@@ -16,11 +16,11 @@ from helpers_serve import libero_observations, port_from_log, run_openpi_client,
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from steering_core.fileio import write_json
 from steering_core.pi05.policy import Pi05Policy
 from steering_core.pi05.steering import Steering
 from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog
 from steering_core.serve.codec import pack, unpack
+from steering_core.storage.fileio import write_json
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
 

@@ -12,7 +12,7 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.capture import shards
-from steering_core.fileio import sha256_file
+from steering_core.storage.fileio import sha256_file
 
 WIDTH = 8
 

@@ -337,7 +337,7 @@ def test_a_shard_with_a_damaged_header_is_reported_by_its_checksum(tmp_path, run
 def test_slice_command(tmp_path, run_dir, concept_map):
     from typer.testing import CliRunner
 
-    from cli.capture import app
+    from latent_steering_cli.capture import app
 
     args = ["slice", "--run-dir", str(run_dir), "--concept-map-path", str(concept_map),
             "--output-dir", str(tmp_path / "cli"), "--token-type", "instructions", "--layers", "2,5",

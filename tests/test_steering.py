@@ -16,7 +16,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.sae.concept_stats import (
     ConceptSource,
     encode_concept,
@@ -24,7 +24,7 @@ from steering_core.sae.concept_stats import (
 )
 from steering_core.sae.formats import WEIGHTS_FILE
 from steering_core.sae.model import load_sae
-from steering_core.sae.steering import (
+from steering_core.sae.vectors import (
     SteeringSettings,
     compute_steering,
     concept_sources,

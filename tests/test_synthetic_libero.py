@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli import app
+from latent_steering_cli import app
 from steering_core.data import libero
 from steering_core.synthetic.libero import (
     DEMO_SUITE_TASKS,

@@ -22,14 +22,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
 from steering_core.capture.frames import (
     FRAME_KEYS,
     batch_plan,
     frame_loader,
     frame_source,
 )
-from steering_core.capture.identity import episode_records, run_spec
-from steering_core.locks import group_locks
+from steering_core.capture.run_identity import episode_records, run_spec
+from steering_core.capture.selected_rows import selected_residuals
 from steering_core.capture.settings import (
     N_CAMERAS,
     STATE_KEY,
@@ -38,7 +39,6 @@ from steering_core.capture.settings import (
     check_inputs,
     select_tokens,
 )
-from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
 from steering_core.capture.shards import (
     ACTION_TOKEN_TYPES,
     STEP,
@@ -55,9 +55,10 @@ from steering_core.capture.shards import (
 )
 from steering_core.data.dataset import DatasetMeta, read_meta
 from steering_core.devices import resolve_device
-from steering_core.fileio import check_output_dir, sha256_json
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
-from steering_core.progress import Progress, ProgressCallback
+from steering_core.reporting.progress import Progress, ProgressCallback
+from steering_core.storage.fileio import check_output_dir, sha256_json
+from steering_core.storage.locks import group_locks
 
 if TYPE_CHECKING:
     from steering_core.pi05.model import Pi05Prefix
@@ -340,11 +341,11 @@ def _token_rows_of(
     def rows_of(start: int, stop: int) -> dict[int, torch.Tensor]:
         inside = (frame_of_row >= start) & (frame_of_row < stop)
         # only the kept rows come back, and the deepest layer runs only their queries (PI05_SPEC section 14)
-        return model.selected_residuals([i[start:stop] for i in batch["images"]],
-                                        [m[start:stop] for m in batch["image_masks"]],
-                                        tokens[start:stop], token_mask[start:stop], layers,
-                                        torch.from_numpy(frame_of_row[inside] - start),
-                                        torch.from_numpy(positions[inside]))
+        return selected_residuals(model, [i[start:stop] for i in batch["images"]],
+                                  [m[start:stop] for m in batch["image_masks"]],
+                                  tokens[start:stop], token_mask[start:stop], layers,
+                                  torch.from_numpy(frame_of_row[inside] - start),
+                                  torch.from_numpy(positions[inside]))
 
     return rows_of
 

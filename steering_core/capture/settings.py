@@ -28,7 +28,7 @@ from steering_core.pi05.checkpoint import (
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID, norm_stats_path
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 from steering_core.pi05.tokenizer import MAX_TOKEN_LEN
-from steering_core.schema import StrictModel
+from steering_core.storage.schema import StrictModel
 
 STATE_KEY = "state"  # the dataset feature the discrete-state prompt reads
 CAMERA_DTYPES = ("image", "video")

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Protocol
 
 from steering_core.capture.shards import ShardRecord, checksum_mismatch
-from steering_core.fileio import Crc32, feed_file
+from steering_core.storage.fileio import Crc32, feed_file
 
 
 class Digest(Protocol):

@@ -34,10 +34,10 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
-from steering_core.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
-from steering_core.layout import layer_dir
-from steering_core.schema import M, StrictModel, read_model
-from steering_core.tensor_files import TensorLocation, read_layout, read_rows_into
+from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
+from steering_core.storage.layout import layer_dir
+from steering_core.storage.schema import M, StrictModel, read_model
+from steering_core.storage.tensor_files import TensorLocation, read_layout, read_rows_into
 
 logger = logging.getLogger(__name__)
 
@@ -295,7 +295,7 @@ class ShardReader:
         return read_rows_into(self._handle, location, start, out)
 
     def residual_location(self) -> TensorLocation:
-        """Return where the residual matrix lies in the file, for `steering_core.tensor_files.read_rows_into`."""
+        """Return where the residual matrix lies in the file, for `steering_core.storage.tensor_files.read_rows_into`."""
         return self._locations[RESIDUALS]
 
 

@@ -18,7 +18,7 @@ import torch
 
 from steering_core.capture.shard_checks import Digest
 from steering_core.capture.slice_files import SliceFile
-from steering_core.tensor_files import TensorLocation
+from steering_core.storage.tensor_files import TensorLocation
 
 
 @dataclass

@@ -35,12 +35,12 @@ from steering_core.capture.slice_copy import Part, copy_shard
 from steering_core.capture.slice_files import SliceFile
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
-from steering_core.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
-from steering_core.layout import SLICE_INDEX_FILE, layer_dir
-from steering_core.locks import output_lock
-from steering_core.progress import Progress, ProgressCallback
-from steering_core.schema import StrictModel, describe_ranges
-from steering_core.tensor_files import TensorLocation
+from steering_core.reporting.progress import Progress, ProgressCallback
+from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
+from steering_core.storage.layout import SLICE_INDEX_FILE, layer_dir
+from steering_core.storage.locks import output_lock
+from steering_core.storage.schema import StrictModel, describe_ranges
+from steering_core.storage.tensor_files import TensorLocation
 
 logger = logging.getLogger(__name__)
 

@@ -25,8 +25,8 @@ from steering_core.data.dataset import (
     read_index_columns,
     read_meta,
 )
-from steering_core.fileio import read_json, write_json
-from steering_core.schema import StrictModel, read_model
+from steering_core.storage.fileio import read_json, write_json
+from steering_core.storage.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 

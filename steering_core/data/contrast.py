@@ -31,8 +31,8 @@ from steering_core.data.dataset import (
     read_meta,
     resolve_task,
 )
-from steering_core.fileio import write_json
-from steering_core.schema import StrictModel, read_model
+from steering_core.storage.fileio import write_json
+from steering_core.storage.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 

@@ -47,10 +47,10 @@ from pydantic import Field
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
-from steering_core.fileio import atomic_dir, read_json, sha256_file, write_json
-from steering_core.locks import output_lock
-from steering_core.progress import Progress, ProgressCallback
-from steering_core.schema import StrictModel, read_model
+from steering_core.reporting.progress import Progress, ProgressCallback
+from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, write_json
+from steering_core.storage.locks import output_lock
+from steering_core.storage.schema import StrictModel, read_model
 
 if TYPE_CHECKING:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset

@@ -23,7 +23,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from steering_core.data import lerobot_v2
-from steering_core.fileio import read_json, sha256_file, sha256_json
+from steering_core.storage.fileio import read_json, sha256_file, sha256_json
 
 logger = logging.getLogger(__name__)
 

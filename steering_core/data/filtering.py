@@ -22,9 +22,9 @@ from steering_core.data.libero import (
     read_instruction_with_source,
     validate_file,
 )
-from steering_core.fileio import atomic_dir, sha256_file, write_json
-from steering_core.layout import SELECTION_FILE
-from steering_core.schema import StrictModel, read_model
+from steering_core.storage.fileio import atomic_dir, sha256_file, write_json
+from steering_core.storage.layout import SELECTION_FILE
+from steering_core.storage.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """LIBERO hdf5 demo files: schema, validation on open, instruction lookup, demo reading.
 
 The schema is the one LIBERO's `scripts/create_dataset.py` wrote for the released
-files (PI05_PREFIX_SPEC.md section 7)::
+files (docs/PI05_SPEC.md section 7)::
 
     data/                      attrs: problem_info (JSON), bddl_file_content, env_args, num_demos, total
     data/demo_<k>/             attrs: num_samples, model_file, init_state

@@ -17,8 +17,8 @@ from pathlib import Path
 from pydantic import Field, model_validator
 
 from steering_core.data.contrast import ContrastManifest
-from steering_core.fileio import write_json
-from steering_core.schema import StrictModel, read_model
+from steering_core.storage.fileio import write_json
+from steering_core.storage.schema import StrictModel, read_model
 
 SPLIT_FORMAT_VERSION = 1
 

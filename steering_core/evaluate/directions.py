@@ -20,7 +20,7 @@ import torch
 from safetensors import safe_open
 
 from steering_core.sae.model import Sae
-from steering_core.sae.steering import read_pair_vectors
+from steering_core.sae.vectors import read_pair_vectors
 
 RESIDUAL = "residual_direction"
 DECISION = "decision_mean_difference"

@@ -24,7 +24,7 @@ from steering_core.evaluate.metrics import (
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Progress, Prompt, SweepPolicy, run_sweep
-from steering_core.fileio import atomic_dir
+from steering_core.storage.fileio import atomic_dir
 
 logger = logging.getLogger(__name__)
 

@@ -19,8 +19,9 @@ from safetensors.torch import save_file
 
 from steering_core.evaluate.directions import RANDOM_PREFIX
 from steering_core.evaluate.metrics import ACTION_GROUPS
-from steering_core.fileio import atomic_path, read_json, write_json
-from steering_core.layout import (
+from steering_core.reporting.plots import figure, save_png
+from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.layout import (
     DOSE_RESPONSE_FILE,
     EFFICACY_PLOT,
     PATHWAYS_FILE,
@@ -30,7 +31,6 @@ from steering_core.layout import (
     TRAJECTORY_PLOT,
     stream_layer_dir,
 )
-from steering_core.plots import figure, save_png
 
 logger = logging.getLogger(__name__)
 

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from steering_core import layout
 from steering_core.capture.settings import CaptureSettings
 from steering_core.capture.shards import read_run_metadata
 from steering_core.data.concept_map import ConceptMap, read_concept_map
@@ -28,12 +27,13 @@ from steering_core.evaluate.pair import PairInputs, evaluate_pair
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Progress, Prompt
-from steering_core.fileio import read_json
 from steering_core.pi05 import PromptFormat, PromptTokenizer
 from steering_core.pi05.steering import Stream
 from steering_core.sae.model import Sae
-from steering_core.sae.steering import read_pairs_config
-from steering_core.schema import StrictModel
+from steering_core.sae.vectors import read_pairs_config
+from steering_core.storage import layout
+from steering_core.storage.fileio import read_json
+from steering_core.storage.schema import StrictModel
 
 if TYPE_CHECKING:
     from steering_core.config import RunConfig

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-
 from typing import Annotated
 
 from pydantic import AfterValidator, Field
 
-from steering_core.schema import StrictModel
+from steering_core.storage.schema import StrictModel
 
 # α in units of (mean instruction-token residual norm at the layer) / ‖d‖: α = 1 adds a vector as long as a
 # typical residual, whatever the direction's own norm.

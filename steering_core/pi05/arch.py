@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import PositiveInt, model_validator
 
-from steering_core.schema import StrictModel
+from steering_core.storage.schema import StrictModel
 
 
 class Pi05Arch(StrictModel):

@@ -17,9 +17,9 @@ import torch
 from safetensors import safe_open
 from tqdm.auto import tqdm
 
-from steering_core.fileio import read_json
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
-from steering_core.tensor_files import check_safetensors, read_tensor, staging_buffer, tensor_locations
+from steering_core.storage.fileio import read_json
+from steering_core.storage.tensor_files import check_safetensors, read_tensor, staging_buffer, tensor_locations
 
 logger = logging.getLogger(__name__)
 
@@ -241,7 +241,7 @@ def read_tensors(
     """Return checkpoint name -> tensor for the names of `expected`, read after `check_tensors`.
 
     `placement(name)` gives each tensor's run-time (device, dtype). Each tensor is allocated there and
-    filled by plain file reads (`steering_core.tensor_files`): no memory map keeps the file's pages resident,
+    filled by plain file reads (`steering_core.storage.tensor_files`): no memory map keeps the file's pages resident,
     and converted tensors pass through one staging buffer of 16 MiB, so peak memory is the converted
     tensors plus that buffer.
     """

@@ -2,7 +2,7 @@
 
 Built from transformers' SigLIP and Gemma blocks, which compute exactly what openpi's patched copies
 compute for the prefix; the prefix assembly (embedding scales, masks, positions) is written here from
-the spec (PI05_PREFIX_SPEC.md section 3). Submodules are named after the checkpoint's keys so loading
+the spec (docs/PI05_SPEC.md section 3). Submodules are named after the checkpoint's keys so loading
 is an explicit prefix mapping.
 """
 
@@ -18,12 +18,9 @@ from typing import Any, Literal
 import torch
 from torch import nn
 from transformers import GemmaConfig, SiglipVisionConfig
-from transformers.modeling_utils import ALL_ATTENTION_FUNCTIONS
 from transformers.models.gemma.modeling_gemma import (
     GemmaDecoderLayer,
     GemmaRotaryEmbedding,
-    eager_attention_forward,
-    rotate_half,
 )
 from transformers.models.siglip.modeling_siglip import SiglipEncoder
 
@@ -320,7 +317,7 @@ class Pi05Prefix(nn.Module):
         """
         wanted = set(layers)
         deepest = max(wanted)
-        hidden, mask, position_ids, position_embeddings = self._layer_inputs(hidden, pad, attention)
+        hidden, mask, position_ids, position_embeddings = self.layer_inputs(hidden, pad, attention)
         captured = {}
         for index in range(start, deepest + 1):
             hidden = self.layers[index](
@@ -336,7 +333,7 @@ class Pi05Prefix(nn.Module):
                 captured[index] = hidden
         return captured
 
-    def _layer_inputs(
+    def layer_inputs(
         self, hidden: torch.Tensor, pad: torch.Tensor, attention: Attention
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         """Return what every decoder layer takes besides its input: the input in the layers' dtype, the
@@ -346,90 +343,6 @@ class Pi05Prefix(nn.Module):
         position_ids = torch.cumsum(pad, dim=1) - 1  # (B, S): valid tokens numbered 0, 1, ...; pads repeat
         hidden = hidden.to(self.layers[0].self_attn.q_proj.weight.dtype)
         return hidden, mask, position_ids, self.rotary_emb(hidden, position_ids)
-
-    def selected_residuals(
-        self,
-        images: Sequence[torch.Tensor],
-        image_masks: Sequence[torch.Tensor],
-        tokens: torch.Tensor,
-        token_mask: torch.Tensor,
-        layers: Iterable[int],
-        frame_of_row: torch.Tensor,
-        positions: torch.Tensor,
-        *,
-        attention: Attention = "sdpa",
-    ) -> dict[int, torch.Tensor]:
-        """Return {layer: (n, width) float32} resid_post of the n rows (frame_of_row[i], positions[i]) only.
-
-        The rows `residuals` would return at [frame_of_row, positions] (positions in the full prefix,
-        valid tokens only), without ever holding a (B, prefix, width) tensor per layer: each layer's rows
-        are gathered as it is produced, and the deepest layer computes its queries, attention output and
-        MLP for the selected rows alone (keys and values still from every valid token). Rows of layers
-        before the deepest are bit-identical to `residuals`'; the deepest layer's agree to rounding.
-
-        Args:
-            images, image_masks, tokens, token_mask, layers, attention: as for `residuals` (masked cameras
-                skipped and padding trimmed).
-            frame_of_row: (n,) int64 batch index of each row; positions: (n,) int64 prefix position.
-        """
-        wanted = self._check_layers(layers)
-        self._check_inputs(images, image_masks, tokens, token_mask)
-        tokens = tokens.to(self.device, torch.long)
-        token_mask = token_mask.to(self.device)
-        image_masks = [mask.to(self.device) for mask in image_masks]
-        frame_of_row, positions = frame_of_row.to(self.device, torch.long), positions.to(self.device, torch.long)
-        with torch.no_grad():
-            hidden, pad, columns = self.embed_prefix(images, image_masks, tokens, token_mask)
-            query_columns, slot_of_row = self._query_columns(pad, columns, len(images), tokens.shape[1],
-                                                            frame_of_row, positions)
-            out, start = {}, 0
-            for layer in wanted[:-1]:
-                hidden = self.decode(hidden, pad, [layer], attention, start=start)[layer]
-                out[layer] = hidden[frame_of_row, query_columns[frame_of_row, slot_of_row]].float()
-                start = layer + 1
-            deepest = wanted[-1]
-            if deepest > start:
-                hidden = self.decode(hidden, pad, [deepest - 1], attention, start=start)[deepest - 1]
-            hidden, mask, _, position_embeddings = self._layer_inputs(hidden, pad, attention)
-            rows = _selected_rows_layer(self.layers[deepest], hidden, mask, position_embeddings, query_columns)
-            out[deepest] = rows[frame_of_row, slot_of_row].float()
-            return out
-
-    def _query_columns(
-        self, pad: torch.Tensor, columns: torch.Tensor, n_images: int, n_tokens: int,
-        frame_of_row: torch.Tensor, positions: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Return (B, Lq) computed columns of each frame's selected rows (padded with a repeat of its first
-        row, or column 0 for a frame without rows) and the slot (n,) of each row in its frame's list.
-
-        Raises ValueError when a row is not a valid token of its frame (a masked camera or padding).
-        """
-        batch = pad.shape[0]
-        total = self.arch.prefix_length(n_images, n_tokens)
-        bad = (frame_of_row < 0) | (frame_of_row >= batch) | (positions < 0) | (positions >= total)
-        lookup = torch.full((total,), -1, dtype=torch.long, device=pad.device)
-        lookup[columns] = torch.arange(len(columns), device=pad.device)
-        found = lookup[positions.clamp(0, total - 1)]
-        bad |= found < 0
-        bad |= ~pad[frame_of_row.clamp(0, batch - 1), found.clamp(min=0)]
-        if bool(bad.any()):
-            at = int(bad.nonzero()[0])
-            raise ValueError(
-                f"Pi05Prefix.selected_residuals: row {at} (frame {int(frame_of_row[at])}, position "
-                f"{int(positions[at])}) is not a valid token of a {batch}-frame batch with {total}-token prefixes "
-                f"({int(bad.sum())} such rows); select image tokens of present cameras and unpadded language tokens"
-            )
-        counts = torch.bincount(frame_of_row, minlength=batch)
-        order = torch.sort(frame_of_row, stable=True).indices
-        first = torch.cumsum(counts, 0) - counts  # first position of each frame in `order`
-        slot_of_row = torch.empty_like(frame_of_row)
-        slot_of_row[order] = torch.arange(len(order), device=pad.device) - first[frame_of_row[order]]
-        width = max(int(counts.max()) if len(counts) else 0, 1)
-        query_columns = torch.zeros(batch, width, dtype=torch.long, device=pad.device)
-        query_columns[frame_of_row, slot_of_row] = found
-        padding = torch.arange(width, device=pad.device)[None, :] >= counts[:, None]
-        query_columns = torch.where(padding, query_columns[:, :1], query_columns)
-        return query_columns, slot_of_row
 
     def residuals(
         self,
@@ -457,8 +370,8 @@ class Pi05Prefix(nn.Module):
             skip_masked_images, trim_padding, attention: exact speed savings, on by default; turning them
                 off reproduces openpi's full computation (used by the tests).
         """
-        wanted = self._check_layers(layers)
-        self._check_inputs(images, image_masks, tokens, token_mask)
+        wanted = self.check_layers(layers)
+        self.check_inputs(images, image_masks, tokens, token_mask)
         tokens = tokens.to(self.device, torch.long)
         token_mask = token_mask.to(self.device)
         image_masks = [mask.to(self.device) for mask in image_masks]
@@ -484,7 +397,7 @@ class Pi05Prefix(nn.Module):
                 out[layer] = full
             return out
 
-    def _check_layers(self, layers: Iterable[int]) -> list[int]:
+    def check_layers(self, layers: Iterable[int]) -> list[int]:
         """Return the requested layers sorted, or raise naming the ones this model cannot produce."""
         wanted = sorted(set(layers))
         bad = [layer for layer in wanted if isinstance(layer, bool) or not isinstance(layer, int)]
@@ -497,7 +410,7 @@ class Pi05Prefix(nn.Module):
             )
         return wanted
 
-    def _check_inputs(
+    def check_inputs(
         self,
         images: Sequence[torch.Tensor],
         image_masks: Sequence[torch.Tensor],
@@ -544,48 +457,6 @@ class KeyValueRecorder:
     def update(self, keys: torch.Tensor, values: torch.Tensor, layer_idx: int, cache_kwargs: Any = None):
         self.layers[layer_idx] = (keys, values)
         return keys, values
-
-
-def _selected_rows_layer(
-    layer: GemmaDecoderLayer,
-    hidden: torch.Tensor,
-    mask: torch.Tensor,
-    position_embeddings: tuple[torch.Tensor, torch.Tensor],
-    query_columns: torch.Tensor,
-) -> torch.Tensor:
-    """Return a Gemma decoder layer's output (B, Lq, width) at columns `query_columns` (B, Lq) only.
-
-    The same operations as `GemmaDecoderLayer.forward` (and the same attention function), but keys and
-    values are projected for every column while the queries, the attention output, the residual adds and
-    the MLP run for the selected columns alone. `hidden` (B, S, width), `mask` and `position_embeddings`
-    come from `Pi05Prefix._layer_inputs`.
-    """
-    attention = layer.self_attn
-    batch, length = query_columns.shape
-    head_dim = attention.head_dim
-
-    def take(values: torch.Tensor) -> torch.Tensor:  # (B, S, d) -> (B, Lq, d)
-        return values.gather(1, query_columns[..., None].expand(batch, length, values.shape[-1]))
-
-    normed = layer.input_layernorm(hidden)
-    queries = attention.q_proj(take(normed)).view(batch, length, -1, head_dim).transpose(1, 2)
-    keys = attention.k_proj(normed).view(batch, normed.shape[1], -1, head_dim).transpose(1, 2)
-    values = attention.v_proj(normed).view(batch, normed.shape[1], -1, head_dim).transpose(1, 2)
-    cos, sin = position_embeddings
-    queries, keys = _rotate(queries, take(cos), take(sin)), _rotate(keys, cos, sin)
-    if mask.shape[2] > 1:  # eager: (B, 1, S, S) additive mask, one row per query
-        mask = mask.gather(2, query_columns[:, None, :, None].expand(batch, 1, length, mask.shape[3]))
-    implementation = attention.config._attn_implementation
-    interface = eager_attention_forward if implementation == "eager" else ALL_ATTENTION_FUNCTIONS[implementation]
-    mixed, _ = interface(attention, queries, keys, values, mask, dropout=0.0, scaling=attention.scaling)
-    after_attention = take(hidden) + attention.o_proj(mixed.reshape(batch, length, -1))
-    return after_attention + layer.mlp(layer.post_attention_layernorm(after_attention))
-
-
-def _rotate(states: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Return rotary-embedded states (B, heads, L, head_dim) for cos, sin (B, L, head_dim): the operations
-    of transformers' `apply_rotary_pos_emb`, for one tensor at a time."""
-    return (states * cos[:, None]) + (rotate_half(states) * sin[:, None])
 
 
 def attention_mask(pad: torch.Tensor, attention: Attention) -> torch.Tensor:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from steering_core.fileio import read_json
+from steering_core.storage.fileio import read_json
 
 NORM_STATS_FILE = "norm_stats.json"
 ASSETS_DIR = "assets"

@@ -242,7 +242,7 @@ class Pi05Policy(nn.Module):
         generator: torch.Generator | None,
     ) -> torch.Tensor:
         """Return (len(entries), B, H, A) actions; each entry's steerings apply to its own copy of the batch."""
-        self.prefix._check_inputs(images, image_masks, tokens, token_mask)
+        self.prefix.check_inputs(images, image_masks, tokens, token_mask)
         batch, n_tokens = tokens.shape
         check_steerings([s for entry in entries for s in entry], self.arch, self.expert_arch, batch, n_tokens,
                         len(images))

@@ -22,11 +22,11 @@ from safetensors.torch import load_file, save_file
 
 from steering_core.capture.slicing import safe_file_name
 from steering_core.devices import SAFETENSORS_DTYPES
-from steering_core.fileio import atomic_path, read_json, sha256_json, write_json
-from steering_core.identity import file_digest
-from steering_core.locks import output_lock
-from steering_core.progress import Progress, ProgressCallback
+from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.sae.model import Sae
+from steering_core.storage.fileio import atomic_path, read_json, sha256_json, write_json
+from steering_core.storage.fingerprints import file_digest
+from steering_core.storage.locks import output_lock
 
 logger = logging.getLogger(__name__)
 

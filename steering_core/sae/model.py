@@ -19,7 +19,6 @@ from typing import Any, ClassVar
 
 import torch
 
-from steering_core.fileio import sha256_file, sha256_json
 from steering_core.sae.formats import (
     DTYPES,
     STATE_DICT_SUFFIXES,
@@ -39,6 +38,7 @@ from steering_core.sae.registry import (
     get_entry,
     resolve_release,
 )
+from steering_core.storage.fileio import sha256_file, sha256_json
 
 logger = logging.getLogger(__name__)
 

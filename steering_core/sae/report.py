@@ -14,15 +14,15 @@ import numpy as np
 import torch
 from safetensors.torch import load_file
 
-from steering_core.fileio import atomic_path, read_json, write_json
-from steering_core.layout import (
+from steering_core.reporting.plots import figure, save_png
+from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
+from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.layout import (
     PAIR_SUMMARY_FILE,
     PAIRWISE_STATS_FILE,
     SUMMARY_JSON,
     SUMMARY_MD,
 )
-from steering_core.plots import figure, save_png
-from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
 
 logger = logging.getLogger(__name__)
 

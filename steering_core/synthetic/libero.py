@@ -24,8 +24,8 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from steering_core.data.libero import DATA_GROUP, DEMO_KEY, LiberoDemo, task_file_name
-from steering_core.fileio import atomic_path
-from steering_core.schema import StrictModel
+from steering_core.storage.fileio import atomic_path
+from steering_core.storage.schema import StrictModel
 
 STATE_AXES = ("ee_x", "ee_y", "ee_z", "ee_rx", "ee_ry", "ee_rz", "gripper_left", "gripper_right")
 CONTROL_HZ = 20                 # LIBERO's control frequency

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from steering_core.fileio import atomic_dir
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
 from steering_core.pi05.checkpoint import (
     CONFIG_FILE,
@@ -27,7 +26,8 @@ from steering_core.pi05.checkpoint import (
     prefix_tensor_shapes,
 )
 from steering_core.pi05.norm_stats import ASSETS_DIR, LIBERO_ASSET_ID, NORM_STATS_FILE
-from steering_core.tensor_files import safetensors_layout
+from steering_core.storage.fileio import atomic_dir
+from steering_core.storage.tensor_files import safetensors_layout
 
 ACTION_DIM = 32  # pi0.5 pads actions and state to 32
 ACTION_HORIZON = 10  # pi05_libero

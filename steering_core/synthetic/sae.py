@@ -12,7 +12,6 @@ from typing import Literal
 import torch
 from safetensors.torch import save_file
 
-from steering_core.fileio import atomic_dir, atomic_path, write_json
 from steering_core.sae.formats import (
     CFG_FILE,
     DTYPES,
@@ -22,6 +21,7 @@ from steering_core.sae.formats import (
     NormalizeActivations,
 )
 from steering_core.sae.registry import HUB_REPO_DIR, RELEASES, get_entry
+from steering_core.storage.fileio import atomic_dir, atomic_path, write_json
 
 CURRENT_VERSION = "6.18.0"  # SAELens version written into current-layout configs
 SNAPSHOT_REVISION = "0" * 40  # fake commit hash of a hub-cache snapshot

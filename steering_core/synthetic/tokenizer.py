@@ -11,7 +11,7 @@ import os
 from collections.abc import Iterable
 from pathlib import Path
 
-from steering_core.fileio import atomic_path
+from steering_core.storage.fileio import atomic_path
 
 TOKENIZER_FILE = "tokenizer.model"
 VOCAB_SIZE = 384  # 256 byte pieces + 4 specials + "\n" + room for characters and merges; < tiny_arch's 512

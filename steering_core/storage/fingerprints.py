@@ -20,10 +20,10 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from steering_core.fileio import sha256_file, sha256_json, write_json
+from steering_core.storage.fileio import sha256_file, sha256_json, write_json
 
 PROJECT_PACKAGES = ("steering_core",)  # imports followed when versioning code
-_PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the folder holding steering_core/
+_PROJECT_ROOT = Path(__file__).resolve().parents[2]  # the folder holding steering_core/
 
 logger = logging.getLogger(__name__)
 

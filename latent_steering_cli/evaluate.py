@@ -6,8 +6,8 @@ from pathlib import Path
 
 import typer
 
-from cli.app import app, input_errors
-from cli.capture import layer_list
+from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.capture import layer_list
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
@@ -24,10 +24,10 @@ from steering_core.evaluate.run import (
     run_config_job,
     slice_decision_run,
 )
-from steering_core.fileio import read_json
-from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD
 from steering_core.pi05 import Pi05Arch
-from steering_core.sae.steering import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
+from steering_core.sae.vectors import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
+from steering_core.storage.fileio import read_json
+from steering_core.storage.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD
 
 _DEFAULTS = EvaluateSettings()
 NO_SAE = "none"

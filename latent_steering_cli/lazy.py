@@ -1,4 +1,4 @@
-"""Commands found without importing them: each `cli/<module>.py` is imported only when its command runs.
+"""Commands found without importing them: each `latent_steering_cli/<module>.py` is imported only when its command runs.
 
 A command module imports what its commands need (torch, lerobot, Prefect: 5-15 s); `latent-steering
 --help` and the light commands (`filter`, `manifest`, ...) must not pay for the others. The command
@@ -36,7 +36,7 @@ class CommandSource:
 
 @functools.cache
 def command_sources() -> dict[str, CommandSource]:
-    """Return command name -> its module and docstring, for every `@app.command` in cli/*.py, in file order."""
+    """Return command name -> its module and docstring, for every `@app.command` in latent_steering_cli/*.py, in file order."""
     found: dict[str, CommandSource] = {}
     for path in sorted(CLI_DIR.glob("*.py")):
         if path.stem in _NOT_COMMANDS:
@@ -48,7 +48,7 @@ def command_sources() -> dict[str, CommandSource]:
             for decorator in node.decorator_list:
                 name = _command_name(decorator, node.name)
                 if name is not None:
-                    found[name] = CommandSource(name, f"cli.{path.stem}", ast.get_docstring(node) or "")
+                    found[name] = CommandSource(name, f"latent_steering_cli.{path.stem}", ast.get_docstring(node) or "")
     return found
 
 
@@ -87,7 +87,7 @@ class LazyCommands(TyperGroup):
 
 def load_command(name: str) -> Any:
     """Import the module defining `name` and return its (typer's) click command."""
-    from cli.app import app
+    from latent_steering_cli.app import app
 
     importlib.import_module(command_sources()[name].module)
     info = next(info for info in app.registered_commands

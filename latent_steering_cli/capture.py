@@ -6,14 +6,14 @@ from pathlib import Path
 
 import typer
 
-from cli.app import app, input_errors
+from latent_steering_cli.app import app, input_errors
 from steering_core.capture import CaptureResult, CaptureSettings, capture
 from steering_core.capture.shards import StorageDtype, TokenType
 from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
-from steering_core.data.split import read_split
 from steering_core.config import load_run_config
-from steering_core.fileio import read_json
+from steering_core.data.split import read_split
 from steering_core.pi05 import Pi05Arch, PromptFormat
+from steering_core.storage.fileio import read_json
 
 _CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
 

@@ -8,7 +8,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from steering_core.fileio import read_json, sha256_json
+from steering_core.storage.fileio import read_json, sha256_json
 
 
 class StrictModel(BaseModel):

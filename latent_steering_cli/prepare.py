@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cli.app import app, input_errors
+from latent_steering_cli.app import app, input_errors
 from steering_core.data.convert import (
     CodebaseVersion,
     ConvertSettings,

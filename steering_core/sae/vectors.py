@@ -31,16 +31,7 @@ from pydantic import Field, field_validator, model_validator
 from safetensors.torch import load_file
 
 from steering_core.devices import resolve_device
-from steering_core.fileio import atomic_dir, atomic_path, read_json, write_json
-from steering_core.layout import (
-    PAIR_SUMMARY_FILE,
-    PAIRWISE_STATS_FILE,
-    SLICE_INDEX_FILE,
-    STEERING_ROOT,
-    layer_dir,
-)
-from steering_core.locks import output_lock
-from steering_core.progress import ProgressCallback
+from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.concept_stats import (
     FORMAT_VERSION,
     ConceptReader,
@@ -51,8 +42,17 @@ from steering_core.sae.concept_stats import (
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
 from steering_core.sae.report import write_report
-from steering_core.schema import StrictModel, read_model
-from steering_core.tensor_files import save_safetensors, save_torch
+from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
+from steering_core.storage.layout import (
+    PAIR_SUMMARY_FILE,
+    PAIRWISE_STATS_FILE,
+    SLICE_INDEX_FILE,
+    STEERING_ROOT,
+    layer_dir,
+)
+from steering_core.storage.locks import output_lock
+from steering_core.storage.schema import StrictModel, read_model
+from steering_core.storage.tensor_files import save_safetensors, save_torch
 
 logger = logging.getLogger(__name__)
 

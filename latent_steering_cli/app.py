@@ -11,7 +11,7 @@ import typer
 from pydantic import ValidationError
 from typer.core import TyperGroup
 
-from cli.lazy import LazyCommands, current_options
+from latent_steering_cli.lazy import LazyCommands, current_options
 
 # Options holding one string that lists several values (e.g. `--layers "12 14"`); the seed passes them
 # space-separated as separate words, which are joined back into that one value.
@@ -66,7 +66,7 @@ class SeedSpellingGroup(TyperGroup):
 
 
 class Commands(SeedSpellingGroup, LazyCommands):
-    """The command group: commands imported on first use (`cli.lazy`), the seed's flag spellings accepted."""
+    """The command group: commands imported on first use (`latent_steering_cli.lazy`), the seed's flag spellings accepted."""
 
 
 app = typer.Typer(

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from steering_core.fileio import atomic_path
+from steering_core.storage.fileio import atomic_path
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import typer
 
-from cli.app import app, input_errors
-from steering_core.fileio import read_json
-from steering_core.layout import STEERING_ROOT
+from latent_steering_cli.app import app, input_errors
 from steering_core.pi05 import Pi05Arch, PromptFormat
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
 from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog, parse_steering, parse_steering_option
 from steering_core.serve.server import DEFAULT_MAX_MESSAGE_BYTES
+from steering_core.storage.fileio import read_json
+from steering_core.storage.layout import STEERING_ROOT
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT
 TOKENIZER_FILE = "paligemma_tokenizer.model"

@@ -1,0 +1,178 @@
+"""The run config's sections: where demos come from, the dataset, pairs, model, SAEs, orchestration, and
+each step's own settings minus the fields the run config supplies itself (`SUPPLIED`)."""
+
+from __future__ import annotations
+
+import copy
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, Field, ValidationInfo, create_model, model_validator
+
+from steering_core.capture import CaptureSettings
+from steering_core.capture.slicing import SliceSettings
+from steering_core.data.contrast import ContrastSettings
+from steering_core.data.convert import ConvertSettings
+from steering_core.data.filtering import FilterSettings
+from steering_core.evaluate import EvaluateSettings
+from steering_core.pi05 import Pi05Arch
+from steering_core.sae.vectors import SteeringSettings
+from steering_core.storage.schema import StrictModel
+
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+# Step settings the run config supplies itself, and where to set them instead.
+SUPPLIED = {
+    "capture": {"checkpoint_path": "model.checkpoint", "tokenizer_path": "model.tokenizer",
+                "norm_stats_path": "model.norm_stats", "arch": "model.arch", "layers": "layers"},
+    "slicing": {"layers": "layers", "token_type": "capture.token_type", "holdout_episodes": "evaluate.holdout_fraction"},
+    "steering": {"pairs_config": "pairs", "output_root": "output_root", "layer": "layers", "sae": "sae.<layer>",
+                 "sae_id": "sae.<layer>.sae_id", "sae_dir": "sae.<layer>.local_dir",
+                 "sae_cfg_from": "sae.<layer>.cfg_from", "paths_relative_to": "output_root"},
+    "evaluate": {"top_k": "steering.top_k"},
+}
+
+
+def _resolve_path(value: Path, info: ValidationInfo) -> Path:
+    """Return `value` made absolute against the config file's folder (validation context `base_dir`)."""
+    value = value.expanduser()
+    base = (info.context or {}).get("base_dir")
+    return value if value.is_absolute() or base is None else Path(base) / value
+
+
+ConfigPath = Annotated[Path, AfterValidator(_resolve_path)]
+
+
+def options_model(settings: type[StrictModel], supplied: tuple[str, ...], name: str, **extra: Any) -> type[StrictModel]:
+    """Return a model with the fields of `settings` minus `supplied` (plus `extra`): a config section.
+
+    Fields keep their types, defaults and constraints, so a section is checked where it is written;
+    the full settings model (with its own validators) is built later from section + supplied values.
+    """
+    unknown = set(supplied) - set(settings.model_fields)
+    if unknown:
+        raise TypeError(f"{settings.__name__} has no fields {sorted(unknown)}")
+    fields: dict[str, Any] = {
+        key: (info.annotation, copy.copy(info)) for key, info in settings.model_fields.items() if key not in supplied
+    }
+    return create_model(name, __base__=StrictModel, __doc__=f"{settings.__name__} minus {', '.join(supplied)}.",
+                        **fields, **extra)
+
+
+# Sections derived from the steps' own settings (the run config supplies the removed fields).
+_ConvertOptions = options_model(ConvertSettings, (), "_ConvertOptions", root=(ConfigPath | None, None))
+CaptureSection = options_model(CaptureSettings, tuple(SUPPLIED["capture"]), "CaptureSection")
+SliceSection = options_model(SliceSettings, tuple(SUPPLIED["slicing"]), "SliceSection")
+SteeringSection = options_model(SteeringSettings, tuple(SUPPLIED["steering"]), "SteeringSection")
+
+
+def _expert_layers(layers: tuple[int, ...]) -> tuple[int, ...]:
+    """Return the expert layers sorted and without repeats; refuse negative ones."""
+    if any(layer < 0 for layer in layers):
+        raise ValueError(f"expert_layers {list(layers)} include a negative index; expert layers count from 0")
+    return tuple(sorted(set(layers)))
+
+
+# The evaluation settings plus the run-level choice of action-expert layers: capturing their `decision` rows is
+# a second capture run, so the list belongs to the run config, not to each (pair, layer) evaluation.
+EvaluateSection = options_model(
+    EvaluateSettings, tuple(SUPPLIED["evaluate"]), "EvaluateSection",
+    expert_layers=(Annotated[tuple[int, ...], AfterValidator(_expert_layers)], ()),
+)
+
+
+class DatasetSection(_ConvertOptions):
+    """The LeRobot dataset of the run: converted from `sources` (ConvertSettings fields, optional `root`
+    to write it elsewhere), or an `existing` dataset folder read in place, never written into."""
+
+    existing: ConfigPath | None = None   # a LeRobot v2.0/v2.1/v3.0 dataset root (a read-only HF cache is fine)
+    repo_id: str | None = Field(None, min_length=1)  # existing: defaults to the folder's name
+
+    @model_validator(mode="after")
+    def _existing_or_converted(self) -> DatasetSection:
+        if self.existing is None:
+            if self.repo_id is None:
+                raise ValueError("give `repo_id` (the name of the dataset converted from `sources`), "
+                                 "or `existing` with the path of a LeRobot dataset to read in place")
+            return self
+        if converting := sorted(self.model_fields_set - {"existing", "repo_id"}):
+            raise ValueError(f"{converting} apply only when converting hdf5 `sources`; an `existing` dataset "
+                             "is read as it is: remove them")
+        return self
+
+    @property
+    def name(self) -> str:
+        """Return the dataset's repo id: as given, else the existing folder's name."""
+        return self.repo_id or self.existing.name
+
+
+class SourcesSection(StrictModel):
+    """Where demo files come from and which are selected."""
+
+    folders: tuple[ConfigPath, ...] = Field(min_length=1)
+    select: FilterSettings = FilterSettings()  # no tasks and no globs: the task texts of the pairs
+    suite: str = Field("demos", pattern=SAFE_NAME.pattern)  # libero_filtered/<suite>/
+
+
+class PairSection(StrictModel):
+    """One concept pair: two task texts of the dataset, contrasted by a manifest."""
+
+    name: str = Field(pattern=SAFE_NAME.pattern)  # folder and file names: manifests/<name>.json
+    positive: str = Field(min_length=1)            # task text of the positive concept (task A)
+    negative: str = Field(min_length=1)            # task text of the negative concept (task B)
+    rename: dict[str, str] = {}                    # task text -> concept name, as in the seed
+    manifest: ContrastSettings = ContrastSettings()
+
+    @model_validator(mode="after")
+    def _two_tasks(self) -> PairSection:
+        if self.positive.strip().casefold() == self.negative.strip().casefold():
+            raise ValueError(f"positive and negative are both {self.positive!r}; a pair needs two different tasks")
+        return self
+
+    def concept(self, task: str) -> str:
+        """Return the concept name of one of the pair's task texts (after `rename`)."""
+        return self.rename.get(task, task)
+
+
+class ModelSection(StrictModel):
+    """The pi0.5 checkpoint and what reads it."""
+
+    checkpoint: ConfigPath                 # openpi PyTorch checkpoint folder or its model.safetensors
+    tokenizer: ConfigPath                  # PaliGemma SentencePiece model
+    norm_stats: ConfigPath | None = None   # discrete-state prompts only; default: the checkpoint's assets
+    arch: Pi05Arch = Pi05Arch()            # real pi0.5 dimensions; tiny models pass theirs
+
+
+class SaeSection(StrictModel):
+    """One layer's SAE: a release of the registry (+ sae id) or a path (folder or state dict)."""
+
+    release: str | None = None
+    sae_id: str | None = None              # default blocks.<layer>.hook_resid_post
+    path: ConfigPath | None = None
+    local_dir: ConfigPath | None = None    # folder of release folders, searched before the HF cache
+    cfg_from: str | None = None            # state-dict SAE: folder or release whose cfg.json applies
+
+    @model_validator(mode="after")
+    def _one_source(self) -> SaeSection:
+        if (self.release is None) == (self.path is None):
+            raise ValueError("give exactly one of `release` (with optional `sae_id`) or `path`")
+        if self.sae_id is not None and self.release is None and self.cfg_from is None:
+            raise ValueError("`sae_id` needs `release` (or `cfg_from` for a state dict)")
+        return self
+
+    @property
+    def source(self) -> str:
+        """Return what `steering_core.sae.load_sae` takes as its source."""
+        return self.release if self.release is not None else str(self.path)
+
+
+class OrchestrationSection(StrictModel):
+    """How the Prefect flows run the steps (no effect on any output)."""
+
+    capture: Literal["auto", "deployment", "local"] = "auto"  # GPU phases (capture, evaluate): auto = deployments
+    capture_deployment: str = "latent-steering-capture/gpu"  # when run from one
+    evaluate_deployment: str = "latent-steering-evaluate/gpu-evaluate"
+    pipeline_deployment: str = "latent-steering/pipeline"     # what a scheduled refresh starts
+    shards_per_capture_run: int = Field(8, ge=1)  # episode groups per GPU flow run (one model load each)
+    poll_seconds: float = Field(5.0, gt=0)        # how often the parent checks its capture runs
+    worker_wait_seconds: float = Field(600.0, gt=0)  # capture runs still unstarted, no gpu worker online: fail

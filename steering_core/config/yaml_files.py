@@ -1,0 +1,79 @@
+"""run.yaml on disk: read and validated with every problem as `<file>: <key path>: <message>`, or written back."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from steering_core.config.run import RunConfig
+from steering_core.config.sections import SUPPLIED
+from steering_core.storage.fileio import atomic_path
+
+CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
+
+
+def load_run_config(path: str | os.PathLike) -> RunConfig:
+    """Return the validated run config of a YAML file; relative paths resolve against its folder.
+
+    Raises FileNotFoundError when the file is missing, ValueError listing every problem as
+    `<file>: <key path>: <message>` otherwise.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: run config not found; pass --config with a YAML file (see README)")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        raise ValueError(f"{path}: not valid YAML ({where}{getattr(err, 'problem', None) or err})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping of sections (sources, dataset, pairs, ...), found {type(data).__name__}")
+    try:
+        return RunConfig.model_validate(data, context={"base_dir": path.resolve().parent})
+    except ValidationError as err:
+        raise ValueError("\n".join(f"{path}: {line}" for line in format_errors(err, data))) from None
+
+
+def format_errors(err: ValidationError, data: Any = None) -> list[str]:
+    """Return one `key path: message` line per validation error, e.g. `pairs[1].positive: field required`.
+
+    With the validated `data`, list positions print as `[i]` and mapping keys as `.key` (`sae.12`).
+    """
+    lines = []
+    for error in err.errors(include_url=False):
+        key = _key_path(error["loc"], data)
+        message = error["msg"].removeprefix("Value error, ")
+        message = message[:1].lower() + message[1:]
+        if error["type"] == "extra_forbidden":
+            section, _, field = key.partition(".")
+            instead = SUPPLIED.get(section, {}).get(field)
+            message = f"set by the run config: use `{instead}`" if instead else "unknown key (check its spelling and section)"
+        lines.append(f"{key}: {message}" if key else message)
+    return lines
+
+
+def _key_path(loc: tuple[Any, ...], data: Any) -> str:
+    """Return a YAML key path for an error location: `pairs[1].manifest.pad`."""
+    parts, node = [], data
+    for part in loc:
+        in_list = isinstance(node, list) or (node is None and isinstance(part, int))
+        parts.append(f"[{part}]" if in_list else f".{part}")
+        try:
+            node = node[part] if isinstance(node, (list, dict)) else None
+        except (IndexError, KeyError):
+            node = None
+    return "".join(parts).lstrip(".")
+
+
+def write_run_config(config: RunConfig, path: str | os.PathLike) -> Path:
+    """Write `config` as YAML (absolute paths, non-default values only) and return the path."""
+    path = Path(path)
+    payload = config.model_dump(mode="json", exclude_defaults=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(yaml.safe_dump(payload, sort_keys=False, allow_unicode=True), encoding="utf-8")
+    return path

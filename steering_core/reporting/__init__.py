@@ -1,0 +1,1 @@
+"""What people look at: progress bars and callbacks (`progress`), terminal tables (`tables`), PNG plots (`plots`)."""
