@@ -14,7 +14,7 @@ from steering_core.data.split import read_split
 from steering_core.evaluate import report
 from steering_core.evaluate import run as evaluate_run
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.sae import steering
+from steering_core.sae import vectors
 from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage import layout
 from steering_core.storage.fingerprints import file_digest, plain
@@ -82,7 +82,7 @@ def evaluate_pair(
     """
     progress = ProgressArtifact(artifact_key("evaluate", job.pair, job.output_dir.parent.name), "policy calls",
                                 f"evaluate {job.pair} at {job.label}")
-    sae = steering.load_steering_sae(steering_settings) if steering_settings is not None else None
+    sae = vectors.load_steering_sae(steering_settings) if steering_settings is not None else None
     folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress)
     progress.finish()
     get_run_logger().info("%s %s: %s", job.pair, job.label, folder)

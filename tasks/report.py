@@ -7,7 +7,7 @@ from typing import Any
 
 from prefect import task
 
-from steering_core.sae import report, steering
+from steering_core.sae import report, vectors
 from steering_core.storage import layout
 from steering_core.storage.fingerprints import file_digest
 from tasks.cache import OUTPUTS, RESULTS, content_key
@@ -33,7 +33,7 @@ def pairwise_digest(inputs: dict[str, Any]) -> str:
 )
 def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:
     """Write cosines and norms between every two pairs' directions of one layer; return the files."""
-    pt_path = steering.compute_pairwise_stats(Path(layer_path), pair_names)
+    pt_path = vectors.compute_pairwise_stats(Path(layer_path), pair_names)
     return {OUTPUTS: [str(pt_path), str(pt_path.with_suffix(".json"))]}
 
 

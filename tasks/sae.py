@@ -7,7 +7,7 @@ from typing import Any
 
 from prefect import task
 
-from steering_core.sae import concept_stats, steering
+from steering_core.sae import concept_stats, vectors
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.registry import resolve_release
 from steering_core.sae.vectors import PairsConfig, PairSpec, SteeringSettings
@@ -84,7 +84,7 @@ def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:
 )
 def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str, settings: SteeringSettings) -> dict:
     """Stream one concept's residuals through the layer's SAE; return the statistics file."""
-    sae = steering.load_steering_sae(settings)
+    sae = vectors.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
     source = concept_stats.ConceptSource(label=label, path=Path(slice_path))
     progress = ProgressArtifact(artifact_key("encode", pair, side, layer_dir(layer)), "rows",
@@ -103,9 +103,9 @@ def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str
 )
 def pair_directions(pair: PairSpec, layer: int, positive_stats: str, negative_stats: str, settings: SteeringSettings) -> dict:
     """Write one pair's latent and residual directions; return the pair folder's summary file."""
-    sae = steering.load_steering_sae(settings)
+    sae = vectors.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    folder = steering.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
+    folder = vectors.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
                                    include_decoder_bias=settings.include_decoder_bias)
     summary = folder / layout.PAIR_SUMMARY_FILE
     return {OUTPUTS: [str(summary)], "folder": str(folder)}
