@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> Result:
 
     def ours() -> torch.Tensor:
         return run_sweep(policy, Steering, frames, lambda _: inputs, prompts, directions, layer=layer, alphas=alphas,
-                         residual_norm=1.0, noise_seeds=NOISE_SEEDS, seed=0, num_steps=NUM_STEPS,
+                         mean_residual_norm=1.0, noise_seeds=NOISE_SEEDS, seed=0, num_steps=NUM_STEPS,
                          batch_size=n_frames, entries_per_call=EvaluateSettings().entries_per_call).steered
 
     def naive() -> torch.Tensor:

@@ -111,38 +111,29 @@ def capture_command(
     """
     if config is not None:
         _capture_from_config(ctx, config)
-        return
+    else:
+        _capture_from_flags(**{name: value for name, value in ctx.params.items() if name != "config"})
+
+
+def _capture_from_flags(
+    *, checkpoint_path: Path | None, tokenizer_path: Path | None, lerobot_root: Path | None, output_dir: Path | None,
+    repo_id: str | None, layers: str, capture_instructions: bool, token_type: TokenType | None, norm_stats: Path | None,
+    asset_id: str, arch_file: Path | None, max_samples_per_layer: int | None, **fields,
+) -> None:
+    """Run the capture the flags describe; `fields` are the flags named as CaptureSettings fields."""
     missing = [flag for flag, value in (("--checkpoint-path", checkpoint_path), ("--tokenizer-path", tokenizer_path),
                                         ("--lerobot-root", lerobot_root), ("--output-dir", output_dir))
                if value is None]
     if missing:
         raise typer.BadParameter(f"{', '.join(missing)} required (or give --config)", param_hint=missing[0])
     if capture_instructions and token_type not in (None, "instructions"):
-        raise typer.BadParameter(
-            f"--capture-instructions contradicts --token-type {token_type}; pass one of them",
-            param_hint="--capture-instructions",
-        )
+        raise typer.BadParameter(f"--capture-instructions contradicts --token-type {token_type}; pass one of them",
+                                 param_hint="--capture-instructions")
     with input_errors():
-        arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
         settings = CaptureSettings(
-            checkpoint_path=checkpoint_path,
-            tokenizer_path=tokenizer_path,
-            layers=layer_list(layers),
-            token_type=token_type or "instructions",
-            num_steps=num_steps,
-            noise_seed=noise_seed,
-            prompt_format=prompt_format,
-            norm_stats_path=norm_stats,
-            norm_stats_asset_id=asset_id,
-            skip_norm_stats=skip_norm_stats,
-            arch=arch,
-            batch_size=batch_size,
-            device=device,
-            dtype=dtype,
-            storage_dtype=storage_dtype,
-            episodes_per_shard=episodes_per_shard,
-            num_workers=num_workers,
-            video_backend=video_backend,
+            **fields, checkpoint_path=checkpoint_path, tokenizer_path=tokenizer_path, layers=layer_list(layers),
+            token_type=token_type or "instructions", norm_stats_path=norm_stats, norm_stats_asset_id=asset_id,
+            arch=Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch(),
         )
         result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings,
                          max_frames=max_samples_per_layer)

@@ -50,7 +50,7 @@ def split_command(
         typer.echo(f"{task}: train {list(sides.train)}, held out {list(sides.holdout)}")
 
 
-def _floats(value: str) -> tuple[float, ...]:
+def _parse_floats(value: str) -> tuple[float, ...]:
     try:
         return tuple(float(part) for part in value.replace(",", " ").split())
     except ValueError:
@@ -59,6 +59,7 @@ def _floats(value: str) -> tuple[float, ...]:
 
 @app.command("evaluate")
 def evaluate_command(
+    ctx: typer.Context,
     config: Path | None = typer.Option(
         None, "--config", help="Run config (YAML): evaluate its pairs and layers with its model, SAE and evaluate "
         "settings (the flags below then override the evaluate section; path flags are not allowed)."),
@@ -105,67 +106,103 @@ def evaluate_command(
     pairs); with --config, its evaluate.expert_layers are evaluated too (--layer or --expert-layers alone
     select one pathway).
     """
-    overrides = {name: value for name, value in (
-        ("alphas", _floats(alphas) if alphas else None), ("max_frames", max_frames), ("noise_seeds", noise_seeds),
-        ("random_directions", random_directions), ("top_k", top_k), ("batch_size", batch_size), ("device", device),
-        ("dtype", dtype)) if value is not None}
     expert = layer_list(expert_layers, "--expert-layers") if expert_layers is not None else None
     with input_errors():
-        if config is not None:
-            step_flags = [flag for flag, value in (("--pairs-config", pairs_config), ("--lerobot-root", lerobot_root),
-                                                   ("--checkpoint-path", checkpoint_path), ("--tokenizer-path", tokenizer_path),
-                                                   ("--steering-root", steering_root), ("--output-root", output_root),
-                                                   ("--decision-run", decision_run))
-                          if value is not None]
-            if step_flags:
-                raise typer.BadParameter(f"{', '.join(step_flags)} cannot be combined with --config", param_hint="--config")
-            run = load_run_config(config)
-            if stray := sorted(set(expert or ()) - set(run.expert_layers)):
-                raise typer.BadParameter(f"{stray}: the run config's evaluate.expert_layers are "
-                                         f"{list(run.expert_layers)}", param_hint="--expert-layers")
-            layers = [layer] if layer is not None else [] if expert is not None else list(run.layers)
-            expert = expert if expert is not None else [] if layer is not None else run.expert_layers
-            names = pair or [p.name for p in run.pairs]
-            settings = EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
-            jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
-            jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
-            model = run.capture_settings()
-        else:
-            needed = ((("--pairs-config", pairs_config), ("--layer", layer)) if layer is not None or decision_run is None
-                      else (("--pair or --pairs-config", pair or pairs_config),))
-            missing = [flag for flag, value in (*needed, ("--lerobot-root", lerobot_root),
-                                                ("--checkpoint-path", checkpoint_path),
-                                                ("--tokenizer-path", tokenizer_path),
-                                                *((("--expert-layers", expert),) if decision_run is not None else ()))
-                       if value is None]
-            if missing:
-                raise typer.BadParameter(f"{', '.join(missing)} required (or give --config)", param_hint=missing[0])
-            if expert is not None and decision_run is None:
-                raise typer.BadParameter("needs --decision-run (a `capture --token-type decision` run)",
-                                         param_hint="--expert-layers")
-            settings = EvaluateSettings(**overrides)
-            model = CaptureSettings(checkpoint_path=checkpoint_path, tokenizer_path=tokenizer_path,
-                                    layers=(layer,) if layer is not None else expert, norm_stats_path=norm_stats,
-                                    arch=Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch())
-            names = pair or [p.name for p in read_pairs_config(pairs_config).pairs]
-            places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=repo_id or lerobot_root.name,
-                          output_root=output_root or data_root / STEERING_EVAL_ROOT)
-            jobs = []
-            if layer is not None:
-                steering = SteeringSettings(pairs_config=pairs_config, layer=layer, device=settings.device,
-                                            sae=None if sae.lower() == NO_SAE else sae, sae_id=sae_id, sae_dir=sae_dir)
-                base_dir = Path.cwd() if paths_relative_to == "cwd" else pairs_config.parent
-                jobs += [(pair_job(pairs_config, name, layer, base_dir=base_dir,
-                                   steering_root=steering_root or data_root / STEERING_ROOT, **places), steering)
-                         for name in names]
-            if decision_run is not None:
-                for lay in expert:
-                    check_model(model, lay, "expert")
-                check_decision_run(decision_run, expert, model, settings.num_steps)  # before anything is written
-                slices = {name: slice_decision_run(decision_run, name, expert, data_root=data_root) for name in names}
-                jobs += [(expert_job(name, lay, slices_root=slices[name], **places), None)
-                         for lay in expert for name in names]
-        _run(jobs, model, settings)
+        plan = _config_plan if config is not None else _flags_plan
+        _run(*plan(ctx.params, expert, _setting_overrides(ctx.params)))
+
+
+Plan = tuple[list[tuple[EvaluateJob, SteeringSettings | None]], CaptureSettings, EvaluateSettings]
+
+
+def _setting_overrides(flags: dict) -> dict:
+    """Return the evaluation settings the flags give (the rest keep the run config's or the defaults)."""
+    names = ("max_frames", "noise_seeds", "random_directions", "top_k", "batch_size", "device", "dtype")
+    overrides = {name: flags[name] for name in names if flags[name] is not None}
+    return overrides | ({"alphas": _parse_floats(flags["alphas"])} if flags["alphas"] else {})
+
+
+def _config_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
+    """Return the jobs of a run config: its pairs (or --pair) at its layers and expert layers (or --layer,
+    --expert-layers), with its model and evaluate settings."""
+    path_flags = ("pairs_config", "lerobot_root", "checkpoint_path", "tokenizer_path", "steering_root", "output_root",
+                  "decision_run")
+    if given := [_flag(name) for name in path_flags if flags[name] is not None]:
+        raise typer.BadParameter(f"{', '.join(given)} cannot be combined with --config", param_hint="--config")
+    run = load_run_config(flags["config"])
+    if stray := sorted(set(expert or ()) - set(run.expert_layers)):
+        raise typer.BadParameter(f"{stray}: the run config's evaluate.expert_layers are {list(run.expert_layers)}",
+                                 param_hint="--expert-layers")
+    layer = flags["layer"]
+    layers = [layer] if layer is not None else [] if expert is not None else list(run.layers)
+    expert = expert if expert is not None else [] if layer is not None else run.expert_layers
+    names = flags["pair"] or [p.name for p in run.pairs]
+    jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
+    jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
+    return jobs, run.capture_settings(), EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
+
+
+def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
+    """Return the jobs the path flags describe: a pairs config's pairs at --layer, and/or the expert directions
+    of a --decision-run at --expert-layers."""
+    _require_flags(flags, expert)
+    settings = EvaluateSettings(**overrides)
+    layer, data_root, lerobot_root = flags["layer"], flags["data_root"], flags["lerobot_root"]
+    model = CaptureSettings(
+        checkpoint_path=flags["checkpoint_path"], tokenizer_path=flags["tokenizer_path"],
+        layers=(layer,) if layer is not None else expert, norm_stats_path=flags["norm_stats"],
+        arch=Pi05Arch.model_validate(read_json(flags["arch_file"])) if flags["arch_file"] else Pi05Arch(),
+    )
+    names = flags["pair"] or [p.name for p in read_pairs_config(flags["pairs_config"]).pairs]
+    places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=flags["repo_id"] or lerobot_root.name,
+                  output_root=flags["output_root"] or data_root / STEERING_EVAL_ROOT)
+    jobs = _layer_jobs(flags, names, places, settings) if layer is not None else []
+    if flags["decision_run"] is not None:
+        jobs += _expert_jobs(flags["decision_run"], expert, names, places, model, settings)
+    return jobs, model, settings
+
+
+def _require_flags(flags: dict, expert: list[int] | None) -> None:
+    """Refuse a flag set that names no complete job (--config missing)."""
+    decision_run = flags["decision_run"]
+    needed = (("pairs_config", "layer") if flags["layer"] is not None or decision_run is None else ())
+    needed += ("lerobot_root", "checkpoint_path", "tokenizer_path")
+    missing = [_flag(name) for name in needed if flags[name] is None]
+    if decision_run is not None and flags["layer"] is None and not (flags["pair"] or flags["pairs_config"]):
+        missing.insert(0, "--pair or --pairs-config")
+    if decision_run is not None and expert is None:
+        missing.append("--expert-layers")
+    if missing:
+        raise typer.BadParameter(f"{', '.join(missing)} required (or give --config)", param_hint=missing[0])
+    if expert is not None and decision_run is None:
+        raise typer.BadParameter("needs --decision-run (a `capture --token-type decision` run)",
+                                 param_hint="--expert-layers")
+
+
+def _layer_jobs(flags: dict, names: list[str], places: dict, settings: EvaluateSettings) -> list:
+    """Return the language-model jobs of each named pair of --pairs-config at --layer."""
+    sae, pairs_config, data_root = flags["sae"], flags["pairs_config"], flags["data_root"]
+    steering = SteeringSettings(pairs_config=pairs_config, layer=flags["layer"], device=settings.device,
+                                sae=None if sae.lower() == NO_SAE else sae, sae_id=flags["sae_id"],
+                                sae_dir=flags["sae_dir"])
+    base_dir = Path.cwd() if flags["paths_relative_to"] == "cwd" else pairs_config.parent
+    steering_root = flags["steering_root"] or data_root / STEERING_ROOT
+    return [(pair_job(pairs_config, name, flags["layer"], base_dir=base_dir, steering_root=steering_root, **places),
+             steering) for name in names]
+
+
+def _expert_jobs(decision_run: Path, expert: list[int], names: list[str], places: dict, model: CaptureSettings,
+                 settings: EvaluateSettings) -> list:
+    """Return the expert jobs of each named pair: its decision slices cut here (held-out episodes left out)."""
+    for layer in expert:
+        check_model(model, layer, "expert")
+    check_decision_run(decision_run, expert, model, settings.num_steps)  # before anything is written
+    slices = {name: slice_decision_run(decision_run, name, expert, data_root=places["data_root"]) for name in names}
+    return [(expert_job(name, layer, slices_root=slices[name], **places), None) for layer in expert for name in names]
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
 
 
 def _run(jobs: list[tuple[EvaluateJob, SteeringSettings | None]], model: CaptureSettings,

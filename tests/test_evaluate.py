@@ -105,7 +105,7 @@ def test_planted_direction_reproduces_the_swap_and_random_ones_do_not(tmp_path):
     # α in vector units: α R / ||d|| with ||d|| = 3 ||u||
     norm = 3.0 * float(planted().norm())
     assert planted_entry["alphas_vector_units"][at] == pytest.approx(2.0 * NORM / norm, rel=1e-5)
-    assert record["residual_norm"] == pytest.approx(NORM, rel=1e-6)
+    assert record["mean_residual_norm"] == pytest.approx(NORM, rel=1e-6)
     for name in record["random"]["names"]:
         assert abs(record["directions"][name]["efficacy"][at]) < 0.25
     assert planted_entry["z"][at] > 5
@@ -284,7 +284,7 @@ def test_planted_expert_direction_reproduces_the_swap_and_random_ones_do_not(tmp
     for name in record["random"]["names"]:
         assert abs(record["directions"][name]["efficacy"][at]) < 0.25
     # α unit: the decision rows' mean norm; in vector units α R / ||d|| with d = 2 HALF_GAP û
-    assert record["residual_norm"] == pytest.approx(NORM, rel=1e-5)
+    assert record["mean_residual_norm"] == pytest.approx(NORM, rel=1e-5)
     assert record["direction_norms"]["decision_mean_difference"] == pytest.approx(2 * HALF_GAP, rel=1e-5)
     assert entry["alphas_vector_units"][at] == pytest.approx(2.0 * NORM / (2 * HALF_GAP), rel=1e-5)
     # random directions of equal norm, in expert width; the direction itself is kept with the outputs

@@ -165,7 +165,8 @@ def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     assert residual["residual_norm"] == pytest.approx(float(np.linalg.norm(expected)), rel=1e-5)
 
     mean_diff = torch.load(pair_dir / "mean_difference_direction.pt", weights_only=True)
-    np.testing.assert_allclose(mean_diff["residual_direction"].numpy(), pos_x.mean(0) - neg_x.mean(0), rtol=1e-5, atol=1e-6)
+    assert mean_diff["mean_difference_norm"] == pytest.approx(float(np.linalg.norm(pos_x.mean(0) - neg_x.mean(0))), rel=1e-5)
+    np.testing.assert_allclose(mean_diff["mean_difference_direction"].numpy(), pos_x.mean(0) - neg_x.mean(0), rtol=1e-5, atol=1e-6)
     summary = json.loads((pair_dir / "directions.json").read_text())
     cos = expected @ (pos_x.mean(0) - neg_x.mean(0)) / np.linalg.norm(expected) / np.linalg.norm(pos_x.mean(0) - neg_x.mean(0))
     assert summary["decoded_vs_mean_difference_cosine"] == pytest.approx(cos, rel=1e-5)

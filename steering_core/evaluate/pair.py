@@ -23,7 +23,8 @@ from steering_core.evaluate.metrics import (
 )
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.evaluate.sweep import Progress, Prompt, SweepPolicy, run_sweep
+from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep
+from steering_core.reporting.progress import ProgressCallback
 from steering_core.storage.fileio import atomic_dir
 
 logger = logging.getLogger(__name__)
@@ -70,7 +71,7 @@ def evaluate_pair(
     settings: EvaluateSettings,
     output_dir: Path,
     metadata: dict[str, Any] | None = None,
-    progress: Progress | None = None,
+    progress: ProgressCallback | None = None,
     stream: str = "lm",
 ) -> Path:
     """Run the dose-response of every direction for one pair and write `output_dir` atomically; return it.
@@ -83,10 +84,10 @@ def evaluate_pair(
     if not any(name.startswith(RANDOM_PREFIX) for name in directions):
         raise ValueError(f"pair {pair.name!r}: no random directions; the null band needs them")
     frames = select_frames(pair.manifest, pair.concept_map, pair.split, pair.tasks, settings.max_frames)
-    residual_norm = mean_residual_norm(pair.slices)
+    residual_norm = mean_residual_norm(pair.slices)  # R: the α unit
     actions = run_sweep(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
-        residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
+        mean_residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
         num_steps=settings.num_steps, batch_size=settings.batch_size, entries_per_call=settings.entries_per_call,
         progress=progress, stream=stream,
     )
@@ -103,7 +104,7 @@ def evaluate_pair(
     vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
     head = {
         "pair": pair.name, "layer": layer, "stream": stream, "positive": pair.tasks[0], "negative": pair.tasks[1],
-        "residual_norm": residual_norm, "direction_norms": dict(zip(names, norms.tolist(), strict=True)),
+        "mean_residual_norm": residual_norm, "direction_norms": dict(zip(names, norms.tolist(), strict=True)),
         "contrast_axis": {"state_index": axis.index, "action_dim": action_dim_of_state_axis(axis.index),
                           "sign": sign},
         "split": pair.split.model_dump(mode="json"), "in_sample": pair.split.in_sample,

@@ -43,12 +43,12 @@ ALPHA_UNITS = {
 }
 
 
-def _floats(tensor: torch.Tensor) -> Any:
+def _json_floats(tensor: torch.Tensor) -> Any:
     """Return a tensor as nested Python floats, NaN/inf as None (JSON has neither)."""
     values = tensor.double().tolist()
     if isinstance(values, float):
         return values if math.isfinite(values) else None
-    return [_floats(torch.tensor(v, dtype=torch.float64)) if isinstance(v, list) else
+    return [_json_floats(torch.tensor(v, dtype=torch.float64)) if isinstance(v, list) else
             (v if math.isfinite(v) else None) for v in values]
 
 
@@ -65,10 +65,10 @@ def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...
     groups = list(ACTION_GROUPS)
     directions = {}
     for d, name in enumerate(names):
-        entry = {key: _floats(metrics[key][d]) for key in _PER_DIRECTION}
-        entry["alphas_vector_units"] = _floats(vector_scale[d])
-        entry["shift"] = {g: _floats(metrics["shift"][d, :, i]) for i, g in enumerate(groups)}
-        entry["shift_ci"] = {g: _floats(metrics["shift_ci"][d, :, i]) for i, g in enumerate(groups)}
+        entry = {key: _json_floats(metrics[key][d]) for key in _PER_DIRECTION}
+        entry["alphas_vector_units"] = _json_floats(vector_scale[d])
+        entry["shift"] = {g: _json_floats(metrics["shift"][d, :, i]) for i, g in enumerate(groups)}
+        entry["shift_ci"] = {g: _json_floats(metrics["shift_ci"][d, :, i]) for i, g in enumerate(groups)}
         best = best_alpha_index(metrics["efficacy"][d], zero_index)
         entry["best"] = {"alpha": alphas[best], "efficacy": entry["efficacy"][best],
                          "efficacy_ci": entry["efficacy_ci"][best], "z": entry["z"][best],
@@ -83,10 +83,10 @@ def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...
         "metric": "efficacy",
         "action_groups": groups,
         "directions": directions,
-        "random": {"names": random, **{k.removeprefix("random_"): _floats(metrics[k])
+        "random": {"names": random, **{k.removeprefix("random_"): _json_floats(metrics[k])
                                        for k in ("random_mean", "random_std", "random_min", "random_max")}},
-        "swap": {"shift": dict(zip(groups, _floats(metrics["swap_shift"]), strict=True)),
-                 "contrast_shift": _floats(metrics["swap_contrast_shift"])},
+        "swap": {"shift": dict(zip(groups, _json_floats(metrics["swap_shift"]), strict=True)),
+                 "contrast_shift": _json_floats(metrics["swap_contrast_shift"])},
     }
 
 

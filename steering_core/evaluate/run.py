@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,9 +26,10 @@ from steering_core.evaluate.frames import EvalFrame, load_frames
 from steering_core.evaluate.pair import PairInputs, evaluate_pair
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.evaluate.sweep import Progress, Prompt
+from steering_core.evaluate.sweep import Prompt
 from steering_core.pi05 import PromptFormat, PromptTokenizer
 from steering_core.pi05.steering import Stream
+from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pairs_config
 from steering_core.storage import layout
@@ -76,15 +77,10 @@ def pair_job(
     spec = next((p for p in read_pairs_config(pairs_config).pairs if p.name == pair), None)
     if spec is None:
         raise ValueError(f"{pairs_config}: no pair {pair!r}; run the SAE phase for layer {layer} first")
-    manifest = data_root / layout.MANIFEST_FILE.format(pair=pair)
-    positive, negative = read_manifest(manifest).axis.mean_delta_per_task  # (task A, task B) = (positive, negative)
-    return EvaluateJob(
-        pair=pair, layer=layer, positive=positive, negative=negative, manifest=manifest,
-        concept_map=data_root / layout.CONCEPT_MAP_FILE.format(pair=pair),
-        split=data_root / layout.SPLIT_FILE.format(pair=pair),
-        positive_slice=base_dir / spec.positive_path, negative_slice=base_dir / spec.negative_path,
-        directions=steering_root / layout.layer_dir(layer) / pair, dataset_root=dataset_root, repo_id=repo_id,
-        output_dir=output_root / layout.layer_dir(layer) / pair,
+    return _job(
+        pair, layer, "lm", data_root, dataset_root, repo_id, output_root,
+        slices=(base_dir / spec.positive_path, base_dir / spec.negative_path),
+        directions=steering_root / layout.layer_dir(layer) / pair,
     )
 
 
@@ -95,17 +91,27 @@ def expert_job(
 
     `slices_root` is the pair's decision slices folder (`residuals/<pair>_decision_slices`, holding layerKK/).
     """
+    return _job(pair, layer, "expert", data_root, dataset_root, repo_id, output_root,
+                slices=lambda concepts: slice_files(slices_root / layout.layer_dir(layer), concepts), directions=None)
+
+
+def _job(
+    pair: str, layer: int, stream: Stream, data_root: Path, dataset_root: Path, repo_id: str, output_root: Path,
+    *, slices: tuple[Path, Path] | Callable[[tuple[str, ...]], list[Path]], directions: Path | None,
+) -> EvaluateJob:
+    """Return a pair's job: its manifest, concept map and split under `data_root`, and its two slices
+    (given, or found from the concepts of the manifest's two tasks)."""
     manifest_path = data_root / layout.MANIFEST_FILE.format(pair=pair)
     concept_map = data_root / layout.CONCEPT_MAP_FILE.format(pair=pair)
     manifest = read_manifest(manifest_path)
-    positive, negative = manifest.axis.mean_delta_per_task  # (task A, task B) = (positive, negative)
-    concepts = task_concepts(read_concept_map(concept_map), manifest, (positive, negative), concept_map)
-    files = slice_files(slices_root / layout.layer_dir(layer), concepts)
+    tasks = tuple(manifest.axis.mean_delta_per_task)  # (task A, task B) = (positive, negative)
+    if callable(slices):
+        slices = tuple(slices(task_concepts(read_concept_map(concept_map), manifest, tasks, concept_map)))
     return EvaluateJob(
-        pair=pair, layer=layer, positive=positive, negative=negative, manifest=manifest_path, concept_map=concept_map,
-        split=data_root / layout.SPLIT_FILE.format(pair=pair), positive_slice=files[0], negative_slice=files[1],
-        directions=None, dataset_root=dataset_root, repo_id=repo_id,
-        output_dir=output_root / layout.stream_layer_dir(layer, "expert") / pair, stream="expert",
+        pair=pair, layer=layer, positive=tasks[0], negative=tasks[1], manifest=manifest_path,
+        concept_map=concept_map, split=data_root / layout.SPLIT_FILE.format(pair=pair),
+        positive_slice=slices[0], negative_slice=slices[1], directions=directions, dataset_root=dataset_root,
+        repo_id=repo_id, output_dir=output_root / layout.stream_layer_dir(layer, stream) / pair, stream=stream,
     )
 
 
@@ -211,9 +217,7 @@ def task_prompts(tokenizer: PromptTokenizer, positive: str, negative: str) -> di
     prompts = {}
     for side, task in (("positive", positive), ("negative", negative)):
         prompt = tokenizer.tokenize(task)
-        instruction = torch.zeros(1, len(prompt.ids), dtype=torch.bool)
-        instruction[0, prompt.instruction[0] : prompt.instruction[1]] = True
-        prompts[side] = Prompt(torch.from_numpy(prompt.ids)[None], torch.from_numpy(prompt.mask)[None], instruction)
+        prompts[side] = Prompt(*(torch.from_numpy(a)[None] for a in (prompt.ids, prompt.mask, prompt.instruction_mask())))
     return prompts
 
 
@@ -224,7 +228,7 @@ def evaluate_job(
     sae: Sae | None,
     *,
     policy: Any = None,
-    progress: Progress | None = None,
+    progress: ProgressCallback | None = None,
 ) -> Path:
     """Evaluate one (pair, layer) and return its output folder; `policy` defaults to `load_policy(model, ...)`."""
     check_model(model, job.layer, job.stream)

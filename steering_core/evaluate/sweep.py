@@ -21,10 +21,9 @@ import numpy as np
 import torch
 
 from steering_core.evaluate.frames import EvalFrame
+from steering_core.reporting.progress import ProgressCallback
 
 logger = logging.getLogger(__name__)
-
-Progress = Callable[[int, int], None]  # (calls done, calls in total)
 
 
 class SweepPolicy(Protocol):
@@ -79,13 +78,13 @@ def run_sweep(
     *,
     layer: int,
     alphas: tuple[float, ...],
-    residual_norm: float,
+    mean_residual_norm: float,
     noise_seeds: int,
     seed: int,
     num_steps: int,
     batch_size: int,
     entries_per_call: int,
-    progress: Progress | None = None,
+    progress: ProgressCallback | None = None,  # (policy calls done, in total)
     stream: str = "lm",
 ) -> SweepActions:
     """Return the robot actions of every (direction, α, frame, seed) and the instruction-swap reference.
@@ -96,7 +95,7 @@ def run_sweep(
     "positive"/"negative" to their prompt. At most `entries_per_call` steered entries go into one sweep call.
     """
     names = list(directions)
-    unit = {name: directions[name].float() / directions[name].float().norm() * residual_norm for name in names}
+    unit = {name: directions[name].float() / directions[name].float().norm() * mean_residual_norm for name in names}
     nonzero = [(d, a) for d, name in enumerate(names) for a, alpha in enumerate(alphas) if alpha != 0.0]
     zero = alphas.index(0.0)
     horizon, dim = policy.action_horizon, policy.action_dim

@@ -340,10 +340,7 @@ class Pi05Policy(nn.Module):
 
     def instruction_mask(self, prompt: str) -> torch.Tensor:
         """Return (1, T) bool: True at the language positions of the prompt's instruction tokens."""
-        span = self._require_tokenizer().tokenize(prompt).instruction
-        mask = torch.zeros(1, self.tokenizer.max_len, dtype=torch.bool)
-        mask[0, span[0] : span[1]] = True
-        return mask
+        return torch.from_numpy(self._require_tokenizer().tokenize(prompt).instruction_mask())[None]
 
     def tokenize(self, prompts: Sequence[str], states: np.ndarray | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Return tokens (B, T) int64 and token_mask (B, T) bool of the prompts, as capture builds them.

@@ -47,6 +47,12 @@ class TokenizedPrompt:
     n_valid: int
     instruction: tuple[int, int]  # language indices (prefix index = n_images * tokens_per_image + index)
 
+    def instruction_mask(self) -> np.ndarray:
+        """Return (max_len,) bool: True at the instruction's tokens, where steering adds at the prompt."""
+        mask = np.zeros(len(self.ids), dtype=bool)
+        mask[self.instruction[0] : self.instruction[1]] = True
+        return mask
+
 
 def clean_instruction(task: str) -> str:
     """Return the task text as openpi feeds it: stripped, "_" and newlines replaced by spaces, case kept."""

@@ -252,8 +252,9 @@ def compute_pair(
                   {**head, "latent_direction": latent, "latent_norm": float(latent.norm()), "counts": counts})
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",
                   {**head, "residual_direction": residual, "residual_norm": float(residual.norm()), "counts": counts})
-            write(MEAN_DIFFERENCE_FILE, "residual_direction",
-                  {**head, "residual_direction": mean_difference, "residual_norm": float(mean_difference.norm()),
+            write(MEAN_DIFFERENCE_FILE, "mean_difference_direction",
+                  {**head, "mean_difference_direction": mean_difference,
+                   "mean_difference_norm": float(mean_difference.norm()),
                    "counts": counts})
             summary |= {
                 "latent_norm": float(latent.norm()),
@@ -397,8 +398,11 @@ def _write_tensor_dict(folder: Path, files: dict[str, str], stem: str, tensor_ke
 def read_pair_vectors(pair_path: Path) -> dict[str, torch.Tensor]:
     """Return a pair's directions from its safetensors copies: residual, and latent + mean when an SAE was used."""
     files = read_json(pair_path / PAIR_SUMMARY_FILE)["files"]
-    vectors = {"residual": load_file(pair_path / files[RESIDUAL_DIRECTION_FILE]["safetensors"])["residual_direction"]}
+
+    def vector(stem: str) -> torch.Tensor:
+        return load_file(pair_path / files[stem]["safetensors"])[files[stem]["tensor"]]
+
+    vectors = {"residual": vector(RESIDUAL_DIRECTION_FILE)}
     if LATENT_DIRECTION_FILE in files:
-        vectors["latent"] = load_file(pair_path / files[LATENT_DIRECTION_FILE]["safetensors"])["latent_direction"]
-        vectors["mean"] = load_file(pair_path / files[MEAN_DIFFERENCE_FILE]["safetensors"])["residual_direction"]
+        vectors |= {"latent": vector(LATENT_DIRECTION_FILE), "mean": vector(MEAN_DIFFERENCE_FILE)}
     return vectors
