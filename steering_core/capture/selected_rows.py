@@ -7,13 +7,15 @@ values still from every valid token), which is most of a capture's saving at ins
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
 
 import torch
-from transformers.modeling_utils import ALL_ATTENTION_FUNCTIONS
-from transformers.models.gemma.modeling_gemma import GemmaDecoderLayer, eager_attention_forward, rotate_half
 
-from steering_core.pi05.arch import Pi05Arch
-from steering_core.pi05.model import Attention, Pi05Prefix
+if TYPE_CHECKING:  # transformers costs seconds: imported when a capture runs, not when the CLI starts
+    from transformers.models.gemma.modeling_gemma import GemmaDecoderLayer
+
+    from steering_core.pi05.arch import Pi05Arch
+    from steering_core.pi05.model import Attention, Pi05Prefix
 
 
 def selected_residuals(
@@ -116,6 +118,9 @@ def _selected_rows_layer(
     the MLP run for the selected columns alone. `hidden` (B, S, width), `mask` and `position_embeddings`
     come from `Pi05Prefix.layer_inputs`.
     """
+    from transformers.modeling_utils import ALL_ATTENTION_FUNCTIONS
+    from transformers.models.gemma.modeling_gemma import eager_attention_forward
+
     attention = layer.self_attn
     batch, length = query_columns.shape
     head_dim = attention.head_dim
@@ -141,4 +146,6 @@ def _selected_rows_layer(
 def _rotate(states: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
     """Return rotary-embedded states (B, heads, L, head_dim) for cos, sin (B, L, head_dim): the operations
     of transformers' `apply_rotary_pos_emb`, for one tensor at a time."""
+    from transformers.models.gemma.modeling_gemma import rotate_half
+
     return (states * cos[:, None]) + (rotate_half(states) * sin[:, None])
