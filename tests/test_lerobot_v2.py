@@ -300,7 +300,7 @@ def test_pipeline_on_v21_equals_v30(datasets, tmp_path):
 
 
 def test_video_frames_equal_lerobot_s(tmp_path):
-    """A v2.1 video dataset written by lerobot (AV1, 64x96, 2 x 15 frames; make_lerobot_v21.py): our frames are lerobot's."""
+    """A v2.1 video dataset lerobot wrote (AV1, 64x96, 2 x 15 frames; make_lerobot_v21.py): our frames are lerobot's."""
     from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
 
     fixture = Path(__file__).parent / "fixtures" / "lerobot_v21_video"
