@@ -73,7 +73,8 @@ def reference_actions(model_file, arch, images, image_masks, tokens, token_mask,
 
     steering: dicts {"stream": "lm" | "expert", "layer", "vector", "alpha", "columns": (B, P) bool (lm)}.
     record: a dict that receives ("decision", b, step, layer) -> the layer's output at the last action row
-    and ("adarms", step) -> the conditioning vector, both float64 (W,).
+    and ("adarms", step) -> the conditioning vector, both float64 (W,); also ("layer", b, step, layer) -> the
+    layer's output at every action row (H, W) and ("velocity", b, step) -> the step's velocity (H, A).
     """
     w = read_weights(model_file, prefix="")
     batch, horizon, _ = noise.shape
@@ -102,12 +103,16 @@ def reference_actions(model_file, arch, images, image_masks, tokens, token_mask,
                 a = expert_layer(w, arch, layer, a, cond, positions, cache[layer])
                 if record is not None:
                     record["decision", b, step, layer] = a[-1].clone()
+                    record["layer", b, step, layer] = a.clone()
                     record["adarms", step] = cond.clone()
                 for s in steering:
                     if s["stream"] == "expert" and s["layer"] == layer:
                         a = a + s["alpha"] * s["vector"].double()
             a, _ = ada_rms(w, E + "norm", a, cond)
-            x = x + float(dt) * linear(w, "action_out_proj", a)
+            velocity = linear(w, "action_out_proj", a)
+            if record is not None:
+                record["velocity", b, step] = velocity
+            x = x + float(dt) * velocity
             t = np.float32(t + dt)
             step += 1
         out[b] = x

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import stat
 from pathlib import Path
@@ -144,7 +145,8 @@ def test_v21_layout_is_openpi_s(datasets):
 
 
 def test_writer_reproduces_lerobot_s_meta_files(tmp_path):
-    """The fixtures are lerobot 0.1 (openpi's pin) output for these seeded frames (3 episodes, 12/130/7 frames)."""
+    """The fixtures are lerobot's v2.1 output for these seeded frames (3 episodes, 12/130/7 frames), written by
+    tests/fixtures/make_lerobot_v21.py (GENERATOR.json names the lerobot release)."""
     features = {
         "image": {"dtype": "image", "shape": (256, 256, 3), "names": ["height", "width", "channel"]},
         "wrist_image": {"dtype": "image", "shape": (256, 256, 3), "names": ["height", "width", "channel"]},
@@ -169,6 +171,13 @@ def test_writer_reproduces_lerobot_s_meta_files(tmp_path):
             for name, expected in values.items():  # image std differs in the last bits across numpy versions
                 np.testing.assert_allclose(o["stats"][feature][name], expected, rtol=1e-12, err_msg=f"{feature}/{name}")
     assert pq.ParquetFile(tmp_path / "data/chunk-000/episode_000001.parquet").metadata.num_row_groups == 2  # 100 + 30
+
+
+def test_fixtures_record_the_lerobot_that_wrote_them():
+    for folder in (FIXTURES, FIXTURES.parent / "lerobot_v21_video"):
+        record = json.loads((folder / "GENERATOR.json").read_text())
+        assert record["generator"] == "tests/fixtures/make_lerobot_v21.py" and record["codebase_version"] == "v2.1"
+        assert re.fullmatch(r"\d+\.\d+\.\d+\S*", record["versions"]["lerobot"]), record
 
 
 def test_v20_without_stats_reads(datasets, tmp_path):
@@ -291,7 +300,7 @@ def test_pipeline_on_v21_equals_v30(datasets, tmp_path):
 
 
 def test_video_frames_equal_lerobot_s(tmp_path):
-    """A v2.1 video dataset written by openpi's pinned lerobot (AV1, 64x96, 2 x 15 frames): our frames are lerobot's."""
+    """A v2.1 video dataset lerobot wrote (AV1, 64x96, 2 x 15 frames; make_lerobot_v21.py): our frames are lerobot's."""
     from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
 
     fixture = Path(__file__).parent / "fixtures" / "lerobot_v21_video"
