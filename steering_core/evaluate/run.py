@@ -28,7 +28,7 @@ from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt
 from steering_core.pi05 import PromptFormat, PromptTokenizer
-from steering_core.pi05.steering import Stream
+from steering_core.pi05.steering import LAST_LM_LAYER, Stream
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pairs_config
@@ -150,7 +150,8 @@ def run_config_job(config: RunConfig, pair: str, layer: int, stream: Stream = "l
 
 
 def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> None:
-    """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks, per-frame prompts.
+    """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks (or the last
+    language-model layer, whose steering cannot change actions), per-frame prompts.
 
     The action expert has as many layers as the language model (spec 10.1).
     """
@@ -161,6 +162,8 @@ def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> No
         what = "action-expert layer" if stream == "expert" else "layer"
         raise ValueError(f"{what} {layer} is not a layer of the policy: it has {model.arch.depth} decoder layers "
                          f"(0..{model.arch.depth - 1})")
+    if stream == "lm" and layer == model.arch.depth - 1:
+        raise ValueError(f"layer {layer}: {LAST_LM_LAYER}; evaluate layers 0..{layer - 1}")
     if model.prompt_format is not PromptFormat.LIBERO:
         raise ValueError(f"prompt_format {model.prompt_format.value!r}: the evaluation steers one prompt per task, "
                          "which needs the libero format (the state stays out of the prompt)")
