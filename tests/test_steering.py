@@ -253,6 +253,29 @@ def test_each_concept_is_encoded_once(project, sae_folder):
     assert sum(encoded) == rows
 
 
+def test_a_pair_reversed_against_its_slices_manifest_is_refused(project, sae_folder):
+    """The research group's files: the slices' index.json names the concept map, which names the manifest."""
+    manifest, concept_map = project / "open_vs_close.json", project / "open_vs_close_concept_map.json"
+    shutil.copy(FORMATS / "open_vs_close.json", manifest)
+    payload = json.loads((FORMATS / "open_vs_close_concept_map.json").read_text())
+    concept_map.write_text(json.dumps(payload | {"manifest": str(manifest)}))
+    folder = project / "data/residuals/open_vs_close_slices/layer12"
+    (folder / "index.json").write_text(json.dumps({"concept_map": str(concept_map), "concepts": {
+        task: {"pt": f"{task}.pt", "safetensors": f"{task}.safetensors"}
+        for task in ("open the top drawer of the cabinet", "close the top drawer of the cabinet")}}))
+    compute_steering(settings(project, None))  # the order of the reference files is the manifest's
+    config = json.loads(REFERENCE_PAIRS.read_text())
+    spec = config["pairs"][0]
+    for key in ("label", "path"):
+        spec[f"positive_{key}"], spec[f"negative_{key}"] = spec[f"negative_{key}"], spec[f"positive_{key}"]
+    (project / "layer12_pairs.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=r"^\S*layer12_pairs.json: pair 'open_drawer_main' has positive 'close the "
+                                         r"top drawer of the cabinet' and negative 'open the top drawer of the "
+                                         r"cabinet', but its manifest \S*open_vs_close.json lists positive 'open"):
+        compute_steering(settings(project, None, output_root=project / "reversed"))
+    assert not (project / "reversed").exists()
+
+
 def test_current_statistics_are_reused_and_stale_ones_recomputed(project, sae_folder):
     sae = load_sae(sae_folder)
     compute_steering(settings(project, None), sae=sae)

@@ -46,6 +46,7 @@ from steering_core.sae.concept_stats import (
 )
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
+from steering_core.sae.pair_order import check_slices_order
 from steering_core.sae.report import write_report
 from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
 from steering_core.storage.layout import (
@@ -359,13 +360,17 @@ def check_sae_layer(sae: Sae, layer: int) -> None:
 def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: ProgressCallback | None = None) -> Path:
     """Run every step for one layer; return the layer folder.
 
-    Steps: concept statistics, pair directions, pairwise stats, report.
+    Steps: concept statistics, pair directions, pairwise stats, report. A pair whose slices' manifest lists its
+    concepts the other way round is refused first (`pair_order.check_slices_order`).
 
     Relative concept paths resolve as `resolve_concept_path` says. A preloaded `sae` overrides `settings.sae`.
     The layer folder is locked meanwhile: a second run on it waits, then reuses the statistics (the SAE pass).
     """
     config = read_pairs_config(settings.pairs_config)
     sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
+    for pair in config.pairs:
+        check_slices_order(pair.name, (pair.positive_label, pair.negative_label), pairs[pair.name],
+                           settings.pairs_config)
     if sae is None:
         sae = load_steering_sae(settings)
     else:
