@@ -4,7 +4,8 @@ Layout read (steering_core.sae.vectors): `<root>/layerNN/<pair>/directions.json`
 `residual_direction.safetensors` (the SAE-decoded direction, or the mean difference when no SAE was used) and,
 with an SAE, `mean_difference_direction.safetensors`. Direction kinds served: "residual" and "mean_difference".
 `latent_direction` lives in the SAE's latent space, not the residual stream, so it cannot be added and is not
-offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors.
+offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors, with the
+pair's `mean_residual_norm` (R, the residual_norm α unit) and `include_decoder_bias` from directions.json.
 """
 
 from __future__ import annotations
