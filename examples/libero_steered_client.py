@@ -5,10 +5,11 @@ UNTESTED against the real simulator: the wrapped client class is tested with the
 (the one `examples/libero/main.py` runs in), against `latent-steering serve`:
 
     python /path/to/latent-steering/examples/libero_steered_client.py \
-        --steering '{"pair": "open_vs_close", "layer": 12, "alpha": 4.0}' \
+        --steering '{"pair": "open_vs_close", "layer": 12, "alpha": 2.0}' \
         --args.host 127.0.0.1 --args.port 8000 --args.task-suite-name libero_spatial
 
-`--steering` is one entry or a JSON list of entries (keys pair, layer, alpha, optional direction); every other
+`--steering` is one entry or a JSON list of entries (keys pair, layer, alpha, optional direction and alpha_units:
+"residual_norm", the default, the evaluation's unit, or "vector"); every other
 flag goes to openpi's `eval_libero` unchanged. The LIBERO example builds its client from
 `openpi_client.websocket_client_policy.WebsocketClientPolicy` when it starts, so replacing that class before
 calling it is enough: main.py itself is not edited.

@@ -9,7 +9,15 @@ import typer
 from latent_steering_cli.app import app, input_errors
 from steering_core.pi05 import Pi05Arch, PromptFormat
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
-from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog, parse_steering, parse_steering_option
+from steering_core.serve import (
+    PolicyServer,
+    SteeredPi05Policy,
+    SteeringLimits,
+    VectorCatalog,
+    parse_steering,
+    parse_steering_option,
+)
+from steering_core.serve.request import DEFAULT_MAX_ALPHA
 from steering_core.serve.server import DEFAULT_MAX_MESSAGE_BYTES
 from steering_core.storage.fileio import read_json
 from steering_core.storage.layout import STEERING_ROOT
@@ -31,8 +39,13 @@ def serve_command(
         DEFAULT_VECTORS, "--vectors", help="The steer step's output root (layerNN/<pair>/ folders) to offer clients."
     ),
     steer: list[str] = typer.Option(
-        [], "--steer", help="Default steering for requests without a `steering` entry: pair:layer:alpha[:direction], "
-        "e.g. open_vs_close:12:4.0 (repeat to combine)."
+        [], "--steer", help="Default steering for requests without a `steering` entry: "
+        "pair:layer:alpha[:direction[:alpha_units]], e.g. open_vs_close:12:2.0 (α in residual_norm units, the "
+        "evaluation's; :residual:vector for vector units; repeat to combine)."
+    ),
+    max_alpha: float = typer.Option(
+        DEFAULT_MAX_ALPHA, "--max-alpha", min=0.0, help="Refuse steering with |α| above this, in residual_norm units "
+        "(α·R is the norm of the shift; the evaluation's grid stays within a few units)."
     ),
     host: str = typer.Option("127.0.0.1", "--host", help="Interface to listen on (0.0.0.0: every interface)."),
     port: int = typer.Option(8000, "--port", min=0, max=65535, help="Port (openpi's default 8000; 0: a free port)."),
@@ -62,15 +75,17 @@ def serve_command(
     """Serve steered pi0.5 over openpi's websocket protocol until Ctrl-C or SIGTERM.
 
     Clients add an optional `steering` entry to the observation, e.g. {"pair": "open_vs_close", "layer": 12,
-    "alpha": 4.0}; the server's metadata lists the vectors it offers.
+    "alpha": 2.0} (α in residual_norm units by default, as the evaluation's tables; "alpha_units": "vector" for
+    α times the stored vector); the server's metadata lists the vectors it offers with their R and norm.
     """
     from steering_core.pi05.policy import Pi05Policy  # deferred: loads transformers
 
     with input_errors():
         # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
         catalog = VectorCatalog.scan(vectors) if vectors != DEFAULT_VECTORS or vectors.exists() else VectorCatalog()
-        default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer")
         arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
+        default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer",
+                                 limits=SteeringLimits(max_alpha, arch.depth))
         policy = Pi05Policy.from_checkpoint(
             checkpoint_path, arch, device=device, dtype=dtype, action_horizon=action_horizon,
             tokenizer_path=tokenizer_path or _tokenizer_beside(checkpoint_path), prompt_format=prompt_format,
@@ -79,7 +94,7 @@ def serve_command(
         served = SteeredPi05Policy(policy, noise_seed=noise_seed)
         served.check_catalog(catalog)
         server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,
-                              max_message_bytes=int(max_message_mb * 2**20))
+                              max_message_bytes=int(max_message_mb * 2**20), max_alpha=max_alpha)
     server.run()
 
 

@@ -35,7 +35,8 @@ OPENPI_CLIENT = ("--with", "openpi-client==0.1.2", "--with", "typing_extensions"
 PAIRS = ("open_vs_close", "on_vs_off")
 
 
-def write_vectors(root: Path, width: int, *, sae_layer: int = 1, plain_layer: int = 2) -> Path:
+def write_vectors(root: Path, width: int, *, sae_layer: int = 1, plain_layer: int = 2,
+                  include_decoder_bias: bool = False) -> Path:
     """Run the real steer step on random concept rows: an SAE at `sae_layer` (residual, mean_difference and
     latent directions), none at `plain_layer` (residual only). Return the output root."""
     work = root.parent / f"{root.name}_inputs"
@@ -54,7 +55,8 @@ def write_vectors(root: Path, width: int, *, sae_layer: int = 1, plain_layer: in
     sae = write_sae_folder(work / "sae", d_in=width, d_sae=3 * width, hook_layer=sae_layer)
     for layer, sae_path in ((sae_layer, sae), (plain_layer, None)):
         compute_steering(SteeringSettings(pairs_config=config, output_root=root, layer=layer, device="cpu",
-                                          sae=str(sae_path) if sae_path else None))
+                                          sae=str(sae_path) if sae_path else None,
+                                          include_decoder_bias=include_decoder_bias))
     return root
 
 
@@ -97,7 +99,7 @@ class FakePolicy:
             self.max_concurrent = max(self.max_concurrent, self._running)
         try:
             time.sleep(self.delay_s)
-            return {"actions": fake_actions(observation, [(s.vector.vector, s.alpha) for s in steering]),
+            return {"actions": fake_actions(observation, [(s.vector.vector, s.vector_alpha) for s in steering]),
                     "policy_timing": {"infer_ms": 0.0}}
         finally:
             with self._lock:

@@ -231,7 +231,12 @@ def test_model_checks_name_the_problem(tmp_path):
         check_model(model, arch.depth)
     with pytest.raises(ValueError, match="needs the libero format"):
         check_model(model.model_copy(update={"prompt_format": PromptFormat.DISCRETE_STATE}), 1)
-    check_model(model, arch.depth - 1)
+    # the last language-model layer only feeds the final norm: steering it cannot change the actions
+    with pytest.raises(ValueError, match=rf"^layer {arch.depth - 1}: the last language-model layer's output only "
+                                         rf"feeds the final norm.*; evaluate layers 0..{arch.depth - 2}$"):
+        check_model(model, arch.depth - 1)
+    check_model(model, arch.depth - 2)
+    check_model(model, arch.depth - 1, "expert")  # the expert's last layer feeds the action projection
 
 
 # ----------------------------------------------------------------------------- the action-expert pathway

@@ -103,7 +103,7 @@ def prompt_columns(token_mask):
 # ----------------------------------------------------------------------------- openpi golden
 
 
-@pytest.mark.parametrize("case", [None, "a_lm_one_layer", "b_lm_two_layers", "c_expert_layer", "d_lm_last_layer_noop"])
+@pytest.mark.parametrize("case", [None, "a_lm_one_layer", "b_lm_two_layers", "c_expert_layer"])
 @pytest.mark.parametrize("attention", ["sdpa", "eager"])
 def test_matches_openpi_sample_actions(golden, golden_policy, case, attention):
     golden_policy.attention = attention
@@ -115,9 +115,16 @@ def test_matches_openpi_sample_actions(golden, golden_policy, case, attention):
     expected = golden[f"steer.{case}.actions" if case else "actions"]
     assert actions.dtype == torch.float32 and actions.shape == (2, 10, 32)
     torch.testing.assert_close(actions, expected, rtol=0, atol=1e-4)
-    if case:  # the case really steers, except the documented no-op
-        moved = (expected - golden["actions"]).abs().max()
-        assert moved == 0 if case == "d_lm_last_layer_noop" else moved > 0.1
+    if case:  # the case really steers
+        assert (expected - golden["actions"]).abs().max() > 0.1
+
+
+def test_last_lm_layer_is_refused_as_openpi_shows_it_changes_nothing(golden, golden_policy):
+    case = "d_lm_last_layer_noop"
+    assert torch.equal(golden[f"steer.{case}.actions"], golden["actions"])  # openpi's own policy: a no-op
+    with pytest.raises(ValueError, match="the last language-model layer's output only feeds the final norm"):
+        golden_policy.sample_actions(*golden_inputs(golden), noise=golden["inputs.noise"],
+                                     steering=golden_steering(golden, case))
 
 
 def test_robot_actions_match_openpi_output_transform(golden, golden_policy):
@@ -197,10 +204,15 @@ def test_alpha_zero_is_bit_identical(policy, batch, noise):
     assert torch.equal(policy.sample_actions(*batch.args(), noise=noise, num_steps=3, steering=zero), plain)
 
 
-def test_last_lm_layer_changes_nothing(policy, batch, noise):
-    plain = policy.sample_actions(*batch.args(), noise=noise, num_steps=3)
-    last = Steering(ARCH.depth - 1, vector(ARCH.width, 1), 50.0)
-    assert torch.equal(policy.sample_actions(*batch.args(), noise=noise, num_steps=3, steering=last), plain)
+def test_last_lm_layer_is_refused_in_one_line(policy, batch, noise):
+    last = [Steering(1, vector(ARCH.width, 1), 1.0), Steering(ARCH.depth - 1, vector(ARCH.width, 1), 50.0)]
+    message = (rf"^steering\[1\] \(lm layer {ARCH.depth - 1}\): the last language-model layer's output only feeds the "
+               rf"final norm, which no action reads, so steering it cannot change the actions; steer a layer below "
+               rf"{ARCH.depth - 1}$")
+    with pytest.raises(ValueError, match=message):
+        policy.sample_actions(*batch.args(), noise=noise, num_steps=3, steering=last)
+    with pytest.raises(ValueError, match=message):
+        policy.sample_actions_sweep(*batch.args(), [None, last], noise=noise, num_steps=3)
 
 
 def test_steering_invalid_positions_changes_nothing(policy, batch, noise):
@@ -219,7 +231,7 @@ def test_sweep_equals_separate_calls(policy, batch, noise):
     entries = [
         None,
         Steering(2, lm_v, 1.0),
-        [Steering(1, lm_v, -2.0), Steering(3, lm_v, 5.0)],
+        [Steering(1, lm_v, -2.0), Steering(0, lm_v, 5.0)],
         Steering(0, ex_v, 2.0, stream="expert"),
         [Steering(2, lm_v, 3.0), Steering(1, ex_v, -1.0, stream="expert")],
     ]

@@ -3,6 +3,9 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 
 from __future__ import annotations
 
+import json
+import math
+import shutil
 import signal
 import subprocess
 import sys
@@ -42,8 +45,15 @@ def observations(tmp_path_factory) -> list[dict]:
 
 
 def expected(catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
-    """The fake policy's actions computed directly, steering entries given as (pair, layer, alpha[, direction])."""
-    return fake_actions(observation, [(catalog.get(*entry[:2], *entry[3:]).vector, entry[2]) for entry in entries])
+    """The fake policy's actions computed directly, steering entries given as (pair, layer, alpha[, direction[,
+    alpha_units]]): α in residual_norm units (the default) adds α·R/‖d‖ times the vector."""
+    return fake_actions(observation, [vector_term(catalog, *entry) for entry in entries])
+
+
+def vector_term(catalog: VectorCatalog, pair: str, layer: int, alpha: float, direction: str = "residual",
+                units: str = "residual_norm") -> tuple:
+    vector = catalog.get(pair, layer, direction)
+    return vector.vector, alpha if units == "vector" else alpha * vector.mean_residual_norm / vector.norm
 
 
 # ---------------------------------------------------------------- catalog and request parsing (no sockets)
@@ -56,7 +66,7 @@ def test_catalog_offers_the_residual_space_directions_the_steer_step_wrote(catal
     assert keys == {(pair, 1, kind) for pair in pairs for kind in ("residual", "mean_difference")} \
         | {(pair, 2, "residual") for pair in pairs}  # latent directions are not residuals: not offered
     vector = catalog.get("open_vs_close", 1, "mean_difference")
-    stored = load_file(vector.path)["residual_direction"]
+    stored = load_file(vector.path)["mean_difference_direction"]
     assert vector.vector.dtype == stored.dtype and bool((vector.vector == stored).all())
     assert vector.norm == pytest.approx(float(np.linalg.norm(stored.double().numpy())), rel=1e-6)
     with pytest.raises(FileNotFoundError, match="--vectors"):
@@ -75,8 +85,51 @@ def test_steering_entry_forms(catalog):
     assert parse_steering(None, catalog) == () and parse_steering([], catalog) == ()
     assert parse_steering_option("open_vs_close:12:4.0") == {"pair": "open_vs_close", "layer": 12, "alpha": 4.0}
     assert parse_steering_option("a:3:-1:mean_difference")["direction"] == "mean_difference"
+    assert parse_steering_option("a:3:-1:residual:vector")["alpha_units"] == "vector"
     with pytest.raises(ValueError, match="pair:layer:alpha"):
         parse_steering_option("open_vs_close:12")
+
+
+def test_alpha_is_in_residual_norm_units_unless_the_entry_says_vector(catalog):
+    vector = catalog.get("open_vs_close", 1)
+    [default] = parse_steering({"pair": "open_vs_close", "layer": 1, "alpha": 2.0}, catalog)
+    [raw] = parse_steering({"pair": "open_vs_close", "layer": 1, "alpha": 2.0, "alpha_units": "vector"}, catalog)
+    assert default.alpha_units == "residual_norm" and raw.alpha_units == "vector"
+    # the shift added has norm α·R in residual_norm units, α·‖d‖ in vector units
+    assert default.vector_alpha * vector.norm == pytest.approx(2.0 * vector.mean_residual_norm)
+    assert raw.vector_alpha == 2.0
+    assert default.describe() | {"vector_alpha": None} == {
+        "pair": "open_vs_close", "layer": 1, "direction": "residual", "alpha": 2.0, "alpha_units": "residual_norm",
+        "vector_alpha": None, "norm": vector.norm, "mean_residual_norm": vector.mean_residual_norm}
+
+
+def test_metadata_lists_r_norm_and_decoder_bias_per_vector(catalog, tmp_path):
+    entries = catalog.describe()
+    for entry in entries:
+        summary = json.loads((catalog.get(entry["pair"], entry["layer"], entry["direction"]).path.parent
+                              / "directions.json").read_text())
+        assert entry["mean_residual_norm"] == summary["mean_residual_norm"] > 0 and entry["norm"] > 0
+        assert entry["include_decoder_bias"] is False
+    biased = VectorCatalog.scan(write_vectors(tmp_path / "biased", WIDTH, include_decoder_bias=True))
+    assert {(e["direction"], e["include_decoder_bias"]) for e in biased.describe() if e["layer"] == 1} == \
+        {("residual", True), ("mean_difference", False)}
+
+
+def test_vectors_without_a_recorded_r_take_vector_units_only(catalog, tmp_path):
+    folder = catalog.get("on_vs_off", 2).path.parents[2]
+    old = tmp_path / "old"
+    shutil.copytree(folder, old)
+    summary_path = old / "layer02" / "on_vs_off" / "directions.json"
+    summary = json.loads(summary_path.read_text())
+    del summary["mean_residual_norm"]  # a phase-3 output older than the record
+    summary_path.write_text(json.dumps(summary))
+    older = VectorCatalog.scan(old)
+    assert older.get("on_vs_off", 2).describe()["mean_residual_norm"] is None
+    with pytest.raises(RequestError, match=r"no recorded mean_residual_norm.*send \"alpha_units\": \"vector\"") as err:
+        parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.0}, older)
+    assert err.value.key == "steering.alpha_units" and "\n" not in str(err.value)
+    [entry] = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.5, "alpha_units": "vector"}, older)
+    assert entry.vector_alpha == 1.5
 
 
 @pytest.mark.parametrize("value, key, problem", [
@@ -90,6 +143,11 @@ def test_steering_entry_forms(catalog):
     ({"pair": "open_vs_close", "layer": 2, "alpha": 1, "direction": "mean_difference"}, "steering.direction",
      r"has \['residual'\]"),
     ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "scale": 2}, "steering", r"unknown key\(s\) \['scale'\]"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "alpha_units": "R"}, "steering.alpha_units",
+     r"expected one of \['residual_norm', 'vector'\], got str 'R'"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 1e39}, "steering.alpha",
+     r"\|alpha\| is 1e\+39 in residual_norm units, above the server's bound 100 \(serve --max-alpha\)"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": -101.0}, "steering.alpha", "above the server's bound 100"),
     ([{"pair": "open_vs_close", "layer": 1, "alpha": 1}, 3], "steering[1]", "expected a dict"),
     ("open_vs_close", "steering", "expected a dict"),
 ])
@@ -103,7 +161,7 @@ def test_bad_steering_entries_name_the_key(catalog, value, key, problem):
 
 def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, tmp_path):
     steer = {"pair": "open_vs_close", "layer": 1, "alpha": 4.0}
-    both = [steer, {"pair": "on_vs_off", "layer": 2, "alpha": -2.5}]
+    both = [steer, {"pair": "on_vs_off", "layer": 2, "alpha": -2.5, "alpha_units": "vector"}]
     requests = [{"obs": obs} for obs in observations] + [
         {"obs": observations[0] | {"steering": steer}},
         {"obs": observations[1] | {"steering": both}},
@@ -114,7 +172,7 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
     replies = [result["reply"] for result in client["results"]]
     wanted = [expected(catalog, obs) for obs in observations] + [
         expected(catalog, observations[0], ("open_vs_close", 1, 4.0)),
-        expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5)),
+        expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5, "residual", "vector")),
         expected(catalog, observations[2], ("open_vs_close", 1, 4.0, "mean_difference")),
     ]
     for reply, actions in zip(replies, wanted, strict=True):
@@ -122,9 +180,12 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
         assert reply["actions"].tobytes() == actions.tobytes()  # bit for bit
     assert not np.array_equal(replies[4]["actions"], replies[0]["actions"])  # steering changes the actions
     assert replies[0]["steering"] == []
-    assert [(s["pair"], s["layer"], s["direction"], s["alpha"]) for s in replies[5]["steering"]] == \
-        [("open_vs_close", 1, "residual", 4.0), ("on_vs_off", 2, "residual", -2.5)]
-    assert replies[5]["steering"][0]["norm"] == pytest.approx(catalog.get("open_vs_close", 1).norm)
+    assert [(s["pair"], s["layer"], s["direction"], s["alpha"], s["alpha_units"]) for s in replies[5]["steering"]] \
+        == [("open_vs_close", 1, "residual", 4.0, "residual_norm"), ("on_vs_off", 2, "residual", -2.5, "vector")]
+    vector = catalog.get("open_vs_close", 1)
+    assert replies[5]["steering"][0]["norm"] == pytest.approx(vector.norm)
+    assert replies[5]["steering"][0]["vector_alpha"] == pytest.approx(4.0 * vector.mean_residual_norm / vector.norm)
+    assert replies[5]["steering"][1]["vector_alpha"] == -2.5
     assert set(replies[0]["server_timing"]) == {"infer_ms", "queue_ms"}  # prev_total_ms from the 2nd request on
     assert set(replies[1]["server_timing"]) == {"infer_ms", "queue_ms", "prev_total_ms"}
     assert replies[0]["policy_timing"] == {"infer_ms": 0.0}
@@ -169,6 +230,22 @@ def test_bad_requests_get_an_error_naming_the_key_and_the_connection_keeps_servi
         assert after["reply"]["actions"].tobytes() == want  # the same connection serves the next request
     assert all(result["reply"]["actions"].tobytes() == want for result in other["results"])
     assert policy.calls == len(bad) + 3  # bad requests never reached the policy
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered")  # the fake policy's float32 actions overflow to inf
+def test_huge_alpha_is_refused_and_non_finite_actions_are_never_returned(catalog, observations):
+    huge = {"pair": "open_vs_close", "layer": 1, "alpha": 1e39, "alpha_units": "vector"}
+    for max_alpha, problem in ((100.0, "bad request: steering.alpha: |alpha| is "),
+                               (math.inf, "inference failed (the server keeps serving): the policy's actions are "
+                                          "not finite")):
+        with running(PolicyServer(FakePolicy(), catalog, max_alpha=max_alpha)) as server, \
+                connect(f"ws://127.0.0.1:{server.port}", max_size=None) as ws:
+            assert unpack(ws.recv())["steering"]["max_alpha"] == max_alpha
+            ws.send(pack(observations[0] | {"steering": huge}))
+            error = ws.recv()
+            assert isinstance(error, str) and error.startswith(problem) and "\n" not in error, error
+            ws.send(pack(observations[0]))
+            assert unpack(ws.recv())["actions"].tobytes() == expected(catalog, observations[0]).tobytes()
 
 
 def test_ten_concurrent_clients_twenty_requests_each(catalog, observations, tmp_path):
@@ -284,4 +361,4 @@ def test_readme_serve_commands_use_existing_flags():
     serve = typer.main.get_command(app).commands["serve"]
     known = {opt for param in serve.params for opt in param.opts}
     assert used and used <= known, used - known
-    assert "--steer open_vs_close:12:4.0" in section and parse_steering_option("open_vs_close:12:4.0")
+    assert "--steer open_vs_close:12:2.0" in section and parse_steering_option("open_vs_close:12:2.0")

@@ -45,11 +45,13 @@ def observations(tmp_path_factory):
 
 
 def direct(policy: Pi05Policy, catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
-    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha) at the instruction tokens."""
+    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha) at the instruction tokens,
+    α in residual_norm units: the vector times α·R/‖d‖."""
     noise = torch.randn(policy.action_horizon, policy.action_dim, generator=torch.Generator().manual_seed(SEED))
     mask = policy.instruction_mask(observation["prompt"])
-    steering = [Steering(layer, catalog.get(pair, layer).vector, alpha, token_mask=mask)
-                for pair, layer, alpha in entries]
+    vectors = [(catalog.get(pair, layer), alpha) for pair, layer, alpha in entries]
+    steering = [Steering(v.layer, v.vector, alpha * v.mean_residual_norm / v.norm, token_mask=mask)
+                for v, alpha in vectors]
     return policy.infer(observation, steering=steering or None, noise=noise)["actions"]
 
 
@@ -81,6 +83,30 @@ def test_vectors_that_do_not_fit_the_model_are_refused(model, tmp_path):
     with pytest.raises(ValueError, match=r"do not fit this model \(layers 0..3, width 64\)") as err:
         SteeredPi05Policy(policy).check_catalog(catalog)
     assert "layer 9, width 65" in str(err.value)
+
+
+def test_last_layer_huge_alpha_and_non_finite_actions_get_one_line_errors(model, observations, tmp_path):
+    """A finite α of 1e39 overflowed to NaN actions sent as a normal reply; the last LM layer was accepted."""
+    _, _, _, policy = model
+    catalog = VectorCatalog.scan(write_vectors(tmp_path / "vectors", ARCH.width, plain_layer=ARCH.depth - 1))
+    served = SteeredPi05Policy(policy, noise_seed=SEED)
+    huge = {"pair": "open_vs_close", "layer": 1, "alpha": 1e39}
+    last = {"pair": "open_vs_close", "layer": ARCH.depth - 1, "alpha": 1.0}
+    cases = [(100.0, huge, "bad request: steering.alpha: |alpha| is 1e+39 in residual_norm units, above"),
+             (100.0, last, f"bad request: steering.layer: layer {ARCH.depth - 1}: the last language-model layer"),
+             (float("inf"), huge | {"alpha_units": "vector"}, "inference failed (the server keeps serving): the "
+                                                              "policy's actions are not finite")]
+    for max_alpha, entry, problem in cases:
+        with running(PolicyServer(served, catalog, max_alpha=max_alpha)) as server, \
+                connect(f"ws://127.0.0.1:{server.port}", max_size=None) as ws:
+            ws.recv()
+            ws.send(pack(observations[0] | {"steering": entry}))
+            reply = ws.recv(timeout=60)
+            assert isinstance(reply, str) and reply.startswith(problem) and "\n" not in reply, reply
+    mask = policy.instruction_mask(observations[0]["prompt"])
+    with pytest.raises(ValueError, match=r"steering\[0\] \(lm layer 3\): the last language-model layer's output"):
+        policy.infer(observations[0], steering=Steering(ARCH.depth - 1, catalog.get("open_vs_close", 1).vector,
+                                                        token_mask=mask))
 
 
 @pytest.mark.slow

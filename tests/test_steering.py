@@ -39,7 +39,9 @@ SEED_KEYS = {
     "latent_direction": {"pair", "positive_concept", "negative_concept", "latent_direction", "latent_norm", "counts"},
     "residual_direction": {"pair", "positive_concept", "negative_concept", "residual_direction", "residual_norm", "counts"},
 }
-OUR_DIRECTION_KEYS = {"reduce"}  # added to the seed's direction dicts: how the concept rows were cut
+# added to the seed's direction dicts: how the concept rows were cut, and R (the α unit)
+OUR_DIRECTION_KEYS = {"reduce", "mean_residual_norm"}
+OUR_RESIDUAL_KEYS = OUR_DIRECTION_KEYS | {"include_decoder_bias"}
 PAIRWISE_KEYS = {"latent_cosine", "residual_cosine", "latent_norm_a", "latent_norm_b", "residual_norm_a", "residual_norm_b"}
 
 
@@ -159,7 +161,7 @@ def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     assert latent["latent_norm"] == pytest.approx(float(np.linalg.norm(pos_mean - neg_mean)), rel=1e-5)
 
     residual = torch.load(pair_dir / "residual_direction.pt", weights_only=True)
-    assert set(residual) == SEED_KEYS["residual_direction"] | OUR_DIRECTION_KEYS
+    assert set(residual) == SEED_KEYS["residual_direction"] | OUR_RESIDUAL_KEYS
     expected = (pos_mean - neg_mean) @ ref.W_dec  # no b_dec
     np.testing.assert_allclose(residual["residual_direction"].numpy(), expected, rtol=1e-5, atol=1e-5)
     assert residual["residual_norm"] == pytest.approx(float(np.linalg.norm(expected)), rel=1e-5)
@@ -188,6 +190,31 @@ def test_decoder_bias_option_reproduces_the_seed(project, sae_folder):
     ref = reference(sae_folder)
     np.testing.assert_allclose(residual.numpy(), latent.double().numpy() @ ref.W_dec + ref.b_dec, rtol=1e-5, atol=1e-5)
     assert json.loads((layer_path / "back_plate" / "directions.json").read_text())["include_decoder_bias"] is True
+    with safe_open(layer_path / "back_plate" / "residual_direction.safetensors", framework="pt") as handle:
+        assert json.loads(handle.metadata()["include_decoder_bias"]) is True
+
+
+def test_every_direction_records_the_mean_residual_norm_of_both_concepts_rows(project, sae_folder):
+    layer_path = compute_steering(settings(project, sae_folder))
+    rows = [torch.load(project / f"data/residuals/on_vs_off_slices/layer12/turn {side} the stove.pt",
+                       weights_only=True).double() for side in ("on", "off")]
+    expected = float(torch.cat(rows).norm(dim=-1).mean())
+    pair_dir = layer_path / "on_stove"
+    assert json.loads((pair_dir / "directions.json").read_text())["mean_residual_norm"] == pytest.approx(expected)
+    for stem in ("residual_direction", "mean_difference_direction", "latent_direction"):
+        with safe_open(pair_dir / f"{stem}.safetensors", framework="pt") as handle:
+            assert json.loads(handle.metadata()["mean_residual_norm"]) == pytest.approx(expected)
+        assert torch.load(pair_dir / f"{stem}.pt", weights_only=True)["mean_residual_norm"] == pytest.approx(expected)
+
+
+def test_statistics_without_the_row_norm_sum_are_recomputed(project, sae_folder):
+    layer_path = compute_steering(settings(project, None))
+    for stats in (layer_path / "concepts").glob("*.json"):
+        meta = json.loads(stats.read_text())
+        del meta["residual_norm_sum"]  # a statistics file written before the α unit was recorded
+        stats.write_text(json.dumps(meta))
+    compute_steering(settings(project, None))
+    assert json.loads((layer_path / "on_stove" / "directions.json").read_text())["mean_residual_norm"] > 0
 
 
 def test_pairwise_stats_by_hand(project, sae_folder):
@@ -226,6 +253,29 @@ def test_each_concept_is_encoded_once(project, sae_folder):
     assert sum(encoded) == rows
 
 
+def test_a_pair_reversed_against_its_slices_manifest_is_refused(project, sae_folder):
+    """The research group's files: the slices' index.json names the concept map, which names the manifest."""
+    manifest, concept_map = project / "open_vs_close.json", project / "open_vs_close_concept_map.json"
+    shutil.copy(FORMATS / "open_vs_close.json", manifest)
+    payload = json.loads((FORMATS / "open_vs_close_concept_map.json").read_text())
+    concept_map.write_text(json.dumps(payload | {"manifest": str(manifest)}))
+    folder = project / "data/residuals/open_vs_close_slices/layer12"
+    (folder / "index.json").write_text(json.dumps({"concept_map": str(concept_map), "concepts": {
+        task: {"pt": f"{task}.pt", "safetensors": f"{task}.safetensors"}
+        for task in ("open the top drawer of the cabinet", "close the top drawer of the cabinet")}}))
+    compute_steering(settings(project, None))  # the order of the reference files is the manifest's
+    config = json.loads(REFERENCE_PAIRS.read_text())
+    spec = config["pairs"][0]
+    for key in ("label", "path"):
+        spec[f"positive_{key}"], spec[f"negative_{key}"] = spec[f"negative_{key}"], spec[f"positive_{key}"]
+    (project / "layer12_pairs.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=r"^\S*layer12_pairs.json: pair 'open_drawer_main' has positive 'close the "
+                                         r"top drawer of the cabinet' and negative 'open the top drawer of the "
+                                         r"cabinet', but its manifest \S*open_vs_close.json lists positive 'open"):
+        compute_steering(settings(project, None, output_root=project / "reversed"))
+    assert not (project / "reversed").exists()
+
+
 def test_current_statistics_are_reused_and_stale_ones_recomputed(project, sae_folder):
     sae = load_sae(sae_folder)
     compute_steering(settings(project, None), sae=sae)
@@ -246,7 +296,7 @@ def test_without_sae_directions_are_mean_differences(project):
     assert sorted(p.name for p in pair_dir.iterdir()) == [
         "directions.json", "residual_direction.pt", "residual_direction.safetensors"]
     residual = torch.load(pair_dir / "residual_direction.pt", weights_only=True)
-    assert set(residual) == SEED_KEYS["residual_direction"] | OUR_DIRECTION_KEYS
+    assert set(residual) == SEED_KEYS["residual_direction"] | OUR_RESIDUAL_KEYS
     pos = torch.load(project / "data/residuals/open_vs_close_slices/layer12/open the top drawer of the cabinet.pt", weights_only=True)
     neg = torch.load(project / "data/residuals/open_vs_close_slices/layer12/close the top drawer of the cabinet.pt", weights_only=True)
     np.testing.assert_allclose(residual["residual_direction"].numpy(), (pos.double().mean(0) - neg.double().mean(0)).numpy(),

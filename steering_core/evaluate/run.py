@@ -18,8 +18,8 @@ import torch
 
 from steering_core.capture.settings import CaptureSettings
 from steering_core.capture.shards import read_run_metadata
-from steering_core.data.concept_map import ConceptMap, read_concept_map
-from steering_core.data.contrast import ContrastManifest, read_manifest
+from steering_core.data.concept_map import read_concept_map
+from steering_core.data.contrast import read_manifest
 from steering_core.data.split import read_split
 from steering_core.evaluate.directions import decision_directions, pair_directions
 from steering_core.evaluate.frames import EvalFrame, load_frames
@@ -28,9 +28,10 @@ from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt
 from steering_core.pi05 import PromptFormat, PromptTokenizer
-from steering_core.pi05.steering import Stream
+from steering_core.pi05.steering import LAST_LM_LAYER, Stream
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
+from steering_core.sae.pair_order import check_pair_order, manifest_concepts, side_concepts, task_concepts
 from steering_core.sae.vectors import read_pairs_config
 from steering_core.storage import layout
 from steering_core.storage.fileio import read_json
@@ -77,11 +78,14 @@ def pair_job(
     spec = next((p for p in read_pairs_config(pairs_config).pairs if p.name == pair), None)
     if spec is None:
         raise ValueError(f"{pairs_config}: no pair {pair!r}; run the SAE phase for layer {layer} first")
-    return _job(
+    job = _job(
         pair, layer, "lm", data_root, dataset_root, repo_id, output_root,
         slices=(base_dir / spec.positive_path, base_dir / spec.negative_path),
         directions=steering_root / layout.layer_dir(layer) / pair,
     )
+    found = side_concepts((spec.positive_label, spec.negative_label), (job.positive_slice, job.negative_slice))
+    check_pair_order(pair, found, manifest_concepts(job.manifest, job.concept_map), job.manifest, pairs_config)
+    return job
 
 
 def expert_job(
@@ -115,15 +119,6 @@ def _job(
     )
 
 
-def task_concepts(concept_map: ConceptMap, manifest: ContrastManifest, tasks: tuple[str, ...], where: Path) -> tuple[str, ...]:
-    """Return the concept name of each task text (the map's names, after any `rename`), via its segments."""
-    owner = {manifest.segments[row.segment_id].task: name for name, rows in concept_map.concepts.items() for row in rows}
-    missing = [task for task in tasks if task not in owner]
-    if missing:
-        raise ValueError(f"{where}: no concept covers task(s) {missing}; the concept map belongs to another manifest")
-    return tuple(owner[task] for task in tasks)
-
-
 def slice_files(folder: Path, concepts: tuple[str, ...]) -> list[Path]:
     """Return the .pt slice of each concept (task text) in one layer folder of slices, from its index.json."""
     index_path = folder / layout.SLICE_INDEX_FILE
@@ -150,7 +145,8 @@ def run_config_job(config: RunConfig, pair: str, layer: int, stream: Stream = "l
 
 
 def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> None:
-    """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks, per-frame prompts.
+    """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks (or the last
+    language-model layer, whose steering cannot change actions), per-frame prompts.
 
     The action expert has as many layers as the language model (spec 10.1).
     """
@@ -161,9 +157,28 @@ def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> No
         what = "action-expert layer" if stream == "expert" else "layer"
         raise ValueError(f"{what} {layer} is not a layer of the policy: it has {model.arch.depth} decoder layers "
                          f"(0..{model.arch.depth - 1})")
+    if stream == "lm" and layer == model.arch.depth - 1:
+        raise ValueError(f"layer {layer}: {LAST_LM_LAYER}; evaluate layers 0..{layer - 1}")
     if model.prompt_format is not PromptFormat.LIBERO:
         raise ValueError(f"prompt_format {model.prompt_format.value!r}: the evaluation steers one prompt per task, "
                          "which needs the libero format (the state stays out of the prompt)")
+
+
+def check_slices_split(slices: Sequence[Path], holdout: Sequence[int], split_path: Path) -> None:
+    """Raise (one line naming both lists) unless each slice's index.json records the split's held-out episodes.
+
+    Slices cut without the split (or before a new one) hold evaluation frames: they would enter d and R.
+    """
+    for path in slices:
+        index_path = path.parent / layout.SLICE_INDEX_FILE
+        index = read_json(index_path) if index_path.is_file() else {}
+        recorded = index.get("settings", {}).get("holdout_episodes") if isinstance(index, dict) else None
+        if recorded is None and holdout:
+            raise ValueError(f"{path}: its slices record no held-out episodes (no {index_path}), but the split "
+                             f"{split_path} holds out episodes {list(holdout)}; re-slice with `slice --split {split_path}`")
+        if recorded is not None and sorted(recorded) != list(holdout):
+            raise ValueError(f"{index_path}: slices cut holding out episodes {sorted(recorded)}, but the split "
+                             f"{split_path} holds out episodes {list(holdout)}; re-slice with `slice --split {split_path}`")
 
 
 def check_decision_run(run_dir: Path, layers: Sequence[int], model: CaptureSettings, num_steps: int,
@@ -238,6 +253,7 @@ def evaluate_job(
         concept_map=read_concept_map(job.concept_map), split=read_split(job.split),
         slices=(job.positive_slice, job.negative_slice),
     )
+    check_slices_split(pair.slices, pair.split.holdout_episodes, job.split)
     if job.stream == "expert":
         directions = decision_directions(pair.slices, random_count=settings.random_directions, seed=settings.seed)
     else:

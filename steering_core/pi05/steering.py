@@ -16,6 +16,8 @@ import torch
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
 
 Stream = Literal["lm", "expert"]
+LAST_LM_LAYER = ("the last language-model layer's output only feeds the final norm, which no action reads, "
+                 "so steering it cannot change the actions")
 STREAMS: tuple[Stream, ...] = ("lm", "expert")
 
 
@@ -80,7 +82,8 @@ def as_list(steering: SteeringArg) -> list[Steering]:
 def check_steerings(
     steerings: Sequence[Steering], arch: Pi05Arch, expert: ExpertArch, batch: int, n_tokens: int, n_images: int
 ) -> None:
-    """Raise one ValueError naming every steering whose layer, vector width or mask shape does not fit."""
+    """Raise one ValueError naming every steering whose layer, vector width or mask shape does not fit, or that
+    steers the last language-model layer (it cannot change the actions)."""
     widths = {"lm": arch.width, "expert": expert.width}
     depths = {"lm": arch.depth, "expert": expert.depth}
     prefix_len = arch.prefix_length(n_images, n_tokens)
@@ -92,6 +95,8 @@ def check_steerings(
                 f"{where}: layer out of range, the {item.stream} stream has {depths[item.stream]} layers "
                 f"(0..{depths[item.stream] - 1})"
             )
+        elif item.stream == "lm" and item.layer == arch.depth - 1:
+            problems.append(f"{where}: {LAST_LM_LAYER}; steer a layer below {item.layer}")
         width = item.vector.shape[0]
         if width != widths[item.stream]:
             fits = [stream for stream, w in widths.items() if w == width]

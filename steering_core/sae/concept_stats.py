@@ -1,7 +1,7 @@
 """Streaming statistics of one concept's residuals through an SAE: the only pass over a concept's rows.
 
 Rows are read from the concept file's memory map in batches, encoded and decoded, and only sums are
-kept (latent sum, firing counts, residual sum and squared norms, reconstruction error), so memory stays
+kept (latent sum, firing counts, residual sum, row norms and squared norms, reconstruction error), so memory stays
 at one batch of latents whatever the row count. The statistics go to
 `<output-root>/layerNN/concepts/<concept>-<hash>.safetensors|.json` and are reused while the concept
 file and the SAE are unchanged.
@@ -53,6 +53,7 @@ class ConceptStats:
     path: Path
     count: int
     residual_mean: torch.Tensor  # (d_in,) float64
+    residual_norm_sum: float | None  # sum of the rows' L2 norms (their mean is the α unit); None: older file
     latent_mean: torch.Tensor | None  # (d_sae,) float64
     firing_rate: torch.Tensor | None  # (d_sae,) float64, fraction of rows with f > 0
     fvu: float | None  # fraction of variance unexplained by the SAE reconstruction
@@ -130,7 +131,7 @@ def encode_concept(
     identity = _concept_identity(source, sae)
     json_path = stem.with_suffix(".json")
     with output_lock(json_path):  # another run encoding this concept: wait, then reuse its statistics
-        if json_path.is_file() and read_json(json_path).get("identity") == identity:
+        if json_path.is_file() and _current(read_json(json_path), identity):
             logger.info("%s: statistics are current, reusing %s", source.path, json_path)
             return json_path
         sums = _Sums(sae, min(batch_size, max(reader.rows, 1)))
@@ -149,6 +150,7 @@ def encode_concept(
             "label": source.label,
             "identity": identity,
             "count": stats.count,
+            "residual_norm_sum": stats.residual_norm_sum,
             "fvu": stats.fvu,
             "mean_l0": stats.mean_l0,
             "batch_size": batch_size,
@@ -170,6 +172,7 @@ def read_concept_stats(json_path: Path) -> ConceptStats:
         path=Path(meta["identity"]["path"]),
         count=meta["count"],
         residual_mean=tensors["residual_mean"],
+        residual_norm_sum=meta.get("residual_norm_sum"),
         latent_mean=tensors.get("latent_mean"),
         firing_rate=tensors.get("firing_rate"),
         fvu=meta["fvu"],
@@ -195,6 +198,7 @@ class _Sums:
         self.count = 0
         self.residual_sum: torch.Tensor | float = 0.0   # (d_in,) float64
         self.residual_sq: torch.Tensor | float = 0.0    # sum of squared norms, for the total variance
+        self.norm_sum: torch.Tensor | float = 0.0       # sum of row norms, for the mean residual norm
         self.latent_sum: torch.Tensor | float = 0.0     # (d_sae,) float64
         self.firing: torch.Tensor | int = 0             # (d_sae,) float64: rows where each latent fired
         self.squared_error: torch.Tensor | float = 0.0  # sum of ||x - x_hat||^2
@@ -209,7 +213,9 @@ class _Sums:
             raise ValueError(f"{path}: rows {start}..{start + len(batch) - 1} hold NaN or inf; re-run capture")
         self.count += len(batch)
         self.residual_sum = self.residual_sum + column_sum
-        self.residual_sq = self.residual_sq + torch.linalg.vector_norm(batch, dtype=torch.float64).square()
+        norms = torch.linalg.vector_norm(batch, dim=-1, dtype=torch.float64)
+        self.residual_sq = self.residual_sq + norms.square().sum()
+        self.norm_sum = self.norm_sum + norms.sum()
         if sae is None:
             return
         reconstruction, latents = sae.reconstruct(batch, tuple(buffer[: len(batch)] for buffer in self.buffers))
@@ -229,6 +235,7 @@ class _Sums:
             path=source.path,
             count=self.count,
             residual_mean=mean,
+            residual_norm_sum=float(self.norm_sum),
             latent_mean=self.latent_sum.cpu() / self.count if has_latents else None,
             firing_rate=firing / self.count if has_latents else None,
             fvu=float(self.squared_error) / total_variance if has_latents and total_variance > 0 else None,
@@ -245,6 +252,11 @@ def _fired(latents: torch.Tensor) -> torch.Tensor:
     """
     signs = latents.sign_() if latents.dtype in (torch.float32, torch.float64) else latents.sign().float()
     return (torch.ones(len(signs), dtype=signs.dtype, device=signs.device) @ signs).double()
+
+
+def _current(meta: Any, identity: dict[str, Any]) -> bool:
+    """Return whether a statistics file was made from these inputs and holds every statistic read today."""
+    return isinstance(meta, dict) and meta.get("identity") == identity and "residual_norm_sum" in meta
 
 
 def _concept_identity(source: ConceptSource, sae: Sae | None) -> dict[str, Any]:

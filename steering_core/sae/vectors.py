@@ -14,6 +14,9 @@ Outputs (the seed's layout and keys, plus safetensors/JSON copies):
     <output-root>/layerNN/<pair>/positive_latent_mean.pt, negative_latent_mean.pt, latent_direction.pt,
         residual_direction.pt, mean_difference_direction.pt (each also .safetensors), directions.json
     <output-root>/layerNN/pairwise_stats.pt, pairwise_stats.json
+
+Every direction file and directions.json record `mean_residual_norm` (R, the mean L2 norm of both concepts'
+rows: the α unit of the evaluation and the server); the residual direction records `include_decoder_bias`.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import functools
 import json
 import logging
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -36,11 +40,13 @@ from steering_core.sae.concept_stats import (
     FORMAT_VERSION,
     ConceptReader,
     ConceptSource,
+    ConceptStats,
     encode_concept,
     read_concept_stats,
 )
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
+from steering_core.sae.pair_order import check_slices_order
 from steering_core.sae.report import write_report
 from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
 from steering_core.storage.layout import (
@@ -210,9 +216,11 @@ def compute_pair(
 ) -> Path:
     """Write one pair's direction files from its two concept statistics; return the pair folder."""
     stats = dict(zip(SIDES, (read_concept_stats(positive_stats), read_concept_stats(negative_stats)), strict=True))
-    head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label,
-            "reduce": {side: slice_reduction(stats[side].path) for side in SIDES}}
     counts = {side: stats[side].count for side in SIDES}
+    head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label,
+            "reduce": {side: slice_reduction(stats[side].path) for side in SIDES},
+            "mean_residual_norm": mean_residual_norm(stats.values())}
+    bias = include_decoder_bias and sae is not None
     mean_difference = (stats["positive"].residual_mean - stats["negative"].residual_mean).float()
     summary: dict[str, Any] = {
         "format_version": FORMAT_VERSION,
@@ -220,7 +228,7 @@ def compute_pair(
         "counts": counts,
         "sae": sae.describe() if sae is not None else None,
         "method": "sae_decoder" if sae is not None else "mean_difference",
-        "include_decoder_bias": include_decoder_bias and sae is not None,
+        "include_decoder_bias": bias,
         "direction_space": _direction_space(sae),
         "mean_difference_norm": float(mean_difference.norm()),
         "concepts": {
@@ -237,7 +245,7 @@ def compute_pair(
         if sae is None:
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",
                   {**head, "residual_direction": mean_difference, "residual_norm": float(mean_difference.norm()),
-                   "counts": counts})
+                   "counts": counts, "include_decoder_bias": False})
         else:
             for side in SIDES:
                 write(LATENT_MEAN_FILE.format(side=side), "mean",
@@ -251,7 +259,8 @@ def compute_pair(
             write(LATENT_DIRECTION_FILE, "latent_direction",
                   {**head, "latent_direction": latent, "latent_norm": float(latent.norm()), "counts": counts})
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",
-                  {**head, "residual_direction": residual, "residual_norm": float(residual.norm()), "counts": counts})
+                  {**head, "residual_direction": residual, "residual_norm": float(residual.norm()), "counts": counts,
+                   "include_decoder_bias": bias})
             write(MEAN_DIFFERENCE_FILE, "mean_difference_direction",
                   {**head, "mean_difference_direction": mean_difference,
                    "mean_difference_norm": float(mean_difference.norm()),
@@ -264,6 +273,15 @@ def compute_pair(
         write_json(staging / PAIR_SUMMARY_FILE, summary)
     logger.info("%s: wrote %s", pair.name, ", ".join(sorted(summary["files"])))
     return layer_path / pair.name
+
+
+def mean_residual_norm(stats: Iterable[ConceptStats]) -> float | None:
+    """Return the mean L2 norm of every row of the concepts (R, the evaluation's and server's α unit);
+    None when a statistics file predates the recorded norm sums."""
+    stats = list(stats)
+    if any(item.residual_norm_sum is None for item in stats):
+        return None
+    return sum(item.residual_norm_sum for item in stats) / sum(item.count for item in stats)
 
 
 def slice_reduction(concept_file: Path) -> str | None:
@@ -342,13 +360,17 @@ def check_sae_layer(sae: Sae, layer: int) -> None:
 def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: ProgressCallback | None = None) -> Path:
     """Run every step for one layer; return the layer folder.
 
-    Steps: concept statistics, pair directions, pairwise stats, report.
+    Steps: concept statistics, pair directions, pairwise stats, report. A pair whose slices' manifest lists its
+    concepts the other way round is refused first (`pair_order.check_slices_order`).
 
     Relative concept paths resolve as `resolve_concept_path` says. A preloaded `sae` overrides `settings.sae`.
     The layer folder is locked meanwhile: a second run on it waits, then reuses the statistics (the SAE pass).
     """
     config = read_pairs_config(settings.pairs_config)
     sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
+    for pair in config.pairs:
+        check_slices_order(pair.name, (pair.positive_label, pair.negative_label), pairs[pair.name],
+                           settings.pairs_config)
     if sae is None:
         sae = load_steering_sae(settings)
     else:

@@ -2,7 +2,13 @@
 
 from steering_core.serve.catalog import SteeringVector, VectorCatalog
 from steering_core.serve.policy import ServedPolicy, SteeredPi05Policy
-from steering_core.serve.request import AppliedSteering, RequestError, parse_steering, parse_steering_option
+from steering_core.serve.request import (
+    AppliedSteering,
+    RequestError,
+    SteeringLimits,
+    parse_steering,
+    parse_steering_option,
+)
 from steering_core.serve.server import PolicyServer
 
 __all__ = [
@@ -11,6 +17,7 @@ __all__ = [
     "RequestError",
     "ServedPolicy",
     "SteeredPi05Policy",
+    "SteeringLimits",
     "SteeringVector",
     "VectorCatalog",
     "parse_steering",

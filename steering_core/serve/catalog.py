@@ -4,12 +4,14 @@ Layout read (steering_core.sae.vectors): `<root>/layerNN/<pair>/directions.json`
 `residual_direction.safetensors` (the SAE-decoded direction, or the mean difference when no SAE was used) and,
 with an SAE, `mean_difference_direction.safetensors`. Direction kinds served: "residual" and "mean_difference".
 `latent_direction` lives in the SAE's latent space, not the residual stream, so it cannot be added and is not
-offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors.
+offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors, with the
+pair's `mean_residual_norm` (R, the residual_norm α unit) and `include_decoder_bias` from directions.json.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -31,7 +33,11 @@ _LAYER_FOLDER = re.compile(r"layer(\d+)")
 
 @dataclass(frozen=True)
 class SteeringVector:
-    """One stored direction: float32 (width,) `vector`, its L2 `norm`, and where it came from."""
+    """One stored direction: float32 (width,) `vector`, its L2 `norm` (‖d‖), and where it came from.
+
+    `mean_residual_norm` is R, the mean norm of the rows it was computed from (None: phase-3 outputs older than
+    the record, usable in vector units only); `include_decoder_bias`: the SAE's b_dec is part of the vector.
+    """
 
     pair: str
     layer: int
@@ -40,10 +46,13 @@ class SteeringVector:
     norm: float
     path: Path
     direction_space: str
+    mean_residual_norm: float | None = None
+    include_decoder_bias: bool = False
 
     def describe(self) -> dict:
         """Return the JSON-ready entry a client sees in the server metadata."""
         return {"pair": self.pair, "layer": self.layer, "direction": self.direction, "norm": self.norm,
+                "mean_residual_norm": self.mean_residual_norm, "include_decoder_bias": self.include_decoder_bias,
                 "width": int(self.vector.numel()), "direction_space": self.direction_space}
 
 
@@ -124,5 +133,16 @@ def _read_pair(pair_path: Path, layer: int) -> list[SteeringVector]:
         vectors.append(SteeringVector(
             pair=summary.get("pair", pair_path.name), layer=layer, direction=direction, vector=vector,
             norm=float(vector.norm()), path=path, direction_space=str(summary.get("direction_space", "residual")),
+            mean_residual_norm=_positive_number(summary.get("mean_residual_norm"), summary_path),
+            include_decoder_bias=direction == "residual" and summary.get("include_decoder_bias") is True,
         ))
     return vectors
+
+
+def _positive_number(value: object, where: Path) -> float | None:
+    """Return a recorded mean residual norm (None when absent); raise unless it is a positive finite number."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
+        raise ValueError(f"{where}: mean_residual_norm is {value!r}, expected a positive finite number")
+    return float(value)

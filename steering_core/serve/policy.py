@@ -63,13 +63,13 @@ class SteeredPi05Policy:
         return torch.randn(self.policy.action_horizon, self.policy.action_dim, generator=generator)
 
     def steerings(self, prompt: str, steering: Sequence[AppliedSteering]) -> list:
-        """Return the `Steering`s adding each vector times alpha at the instruction tokens of `prompt`."""
+        """Return the `Steering`s adding each vector times its `vector_alpha` at the instruction tokens of `prompt`."""
         from steering_core.pi05.steering import Steering
 
         if not steering:
             return []
         mask = self.policy.instruction_mask(prompt)
-        return [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.alpha,
+        return [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
                          token_mask=mask) for s in steering]
 
     def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:

@@ -14,11 +14,19 @@ from typing import Any
 import numpy as np
 
 from steering_core.pi05.observation import IMAGE_KEY, PROMPT_KEY, STATE_KEY, WRIST_IMAGE_KEY
+from steering_core.pi05.steering import LAST_LM_LAYER
 from steering_core.serve.catalog import DEFAULT_DIRECTION, SteeringVector, VectorCatalog
 
 STEERING_KEY = "steering"
 IMAGE_KEYS = (IMAGE_KEY, WRIST_IMAGE_KEY)
-ENTRY_KEYS = ("pair", "layer", "alpha", "direction")
+ENTRY_KEYS = ("pair", "layer", "alpha", "direction", "alpha_units")
+# residual_norm: α·R/‖d‖·d is added, a shift of norm |α|·R (R: the vector's mean residual norm), the unit of the
+# evaluation's tables; vector: α·d, the stored vector times α
+ALPHA_UNITS = ("residual_norm", "vector")
+DEFAULT_ALPHA_UNITS = "residual_norm"
+# |α| in residual_norm units: a shift 100 times the typical residual norm swamps the residual stream (the
+# evaluation's grid stays within a few units); larger values only reach float overflow (NaN actions)
+DEFAULT_MAX_ALPHA = 100.0
 
 
 class RequestError(ValueError):
@@ -31,15 +39,25 @@ class RequestError(ValueError):
 
 @dataclass(frozen=True)
 class AppliedSteering:
-    """One steering vector of a request: `alpha` times the stored direction."""
+    """One steering vector of a request: `alpha` in `alpha_units` (see ALPHA_UNITS)."""
 
     vector: SteeringVector
     alpha: float
+    alpha_units: str = DEFAULT_ALPHA_UNITS
+
+    @property
+    def vector_alpha(self) -> float:
+        """Return the factor the stored vector is multiplied by (α in vector units)."""
+        if self.alpha_units == "vector":
+            return self.alpha
+        return self.alpha * self.vector.mean_residual_norm / self.vector.norm
 
     def describe(self) -> dict:
         """Return the JSON-ready record reported back in the result's `steering` list."""
         v = self.vector
-        return {"pair": v.pair, "layer": v.layer, "direction": v.direction, "alpha": self.alpha, "norm": v.norm}
+        return {"pair": v.pair, "layer": v.layer, "direction": v.direction, "alpha": self.alpha,
+                "alpha_units": self.alpha_units, "vector_alpha": self.vector_alpha, "norm": v.norm,
+                "mean_residual_norm": v.mean_residual_norm}
 
 
 def check_observation(observation: Any) -> None:
@@ -61,37 +79,49 @@ def check_observation(observation: Any) -> None:
         raise RequestError(PROMPT_KEY, f"expected a str, got {_describe(prompt)}")
 
 
-def parse_steering(value: Any, catalog: VectorCatalog, key: str = STEERING_KEY) -> tuple[AppliedSteering, ...]:
+@dataclass(frozen=True)
+class SteeringLimits:
+    """What a server accepts beyond its catalog: |α| up to `max_alpha` (residual_norm units), and language-model
+    layers below `lm_depth - 1` (the last layer's output only feeds the final norm, which no action reads)."""
+
+    max_alpha: float = DEFAULT_MAX_ALPHA
+    lm_depth: int | None = None  # None: the model's depth is unknown, every catalog layer passes
+
+
+def parse_steering(
+    value: Any, catalog: VectorCatalog, key: str = STEERING_KEY, limits: SteeringLimits = SteeringLimits()
+) -> tuple[AppliedSteering, ...]:
     """Return the vectors a `steering` entry selects: None or [] selects none.
 
-    An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str}` (direction default "residual");
-    `value` is one entry or a list of them.
+    An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str, "alpha_units"?: str}`
+    (direction default "residual", alpha_units default "residual_norm"); `value` is one entry or a list of them.
     """
     if value is None:
         return ()
     if isinstance(value, Mapping):
-        return (_parse_entry(value, catalog, key),)
+        return (_parse_entry(value, catalog, key, limits),)
     if isinstance(value, list | tuple):
-        return tuple(_parse_entry(entry, catalog, f"{key}[{i}]") for i, entry in enumerate(value))
+        return tuple(_parse_entry(entry, catalog, f"{key}[{i}]", limits) for i, entry in enumerate(value))
     raise RequestError(key, f"expected a dict like {{'pair': 'open_vs_close', 'layer': 12, 'alpha': 4.0}} "
                             f"or a list of them, got {_describe(value)}")
 
 
 def parse_steering_option(text: str) -> dict:
-    """Return the steering entry of a command-line spec `pair:layer:alpha[:direction]`."""
+    """Return the steering entry of a command-line spec `pair:layer:alpha[:direction[:alpha_units]]`."""
     parts = text.split(":")
-    if len(parts) not in (3, 4):
-        raise ValueError(f"steering {text!r} must look like pair:layer:alpha[:direction], e.g. open_vs_close:12:4.0")
+    if len(parts) not in (3, 4, 5):
+        raise ValueError(f"steering {text!r} must look like pair:layer:alpha[:direction[:alpha_units]], "
+                         "e.g. open_vs_close:12:2.0")
     try:
         entry = {"pair": parts[0], "layer": int(parts[1]), "alpha": float(parts[2])}
     except ValueError:
         raise ValueError(f"steering {text!r}: layer must be an integer and alpha a number") from None
-    return entry | ({"direction": parts[3]} if len(parts) == 4 else {})
+    return entry | dict(zip(ENTRY_KEYS[3:], parts[3:], strict=False))
 
 
-def _parse_entry(entry: Any, catalog: VectorCatalog, key: str) -> AppliedSteering:
+def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringLimits) -> AppliedSteering:
     if not isinstance(entry, Mapping):
-        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction), "
+        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction, alpha_units), "
                                 f"got {_describe(entry)}")
     unknown = sorted(str(k) for k in entry if k not in ENTRY_KEYS)
     if unknown:
@@ -112,11 +142,32 @@ def _parse_entry(entry: Any, catalog: VectorCatalog, key: str) -> AppliedSteerin
     if int(layer) not in catalog.layers(pair):
         raise RequestError(f"{key}.layer", f"pair {pair!r} has no vectors at layer {int(layer)}; "
                                            f"it has layers {catalog.layers(pair)}")
+    if limits.lm_depth is not None and int(layer) == limits.lm_depth - 1:
+        raise RequestError(f"{key}.layer", f"layer {int(layer)}: {LAST_LM_LAYER}; use a layer below {int(layer)}")
     vector = catalog.get(pair, int(layer), direction)
     if vector is None:
         raise RequestError(f"{key}.direction", f"pair {pair!r} at layer {int(layer)} has no {direction!r} direction; "
                                                f"it has {catalog.directions(pair, int(layer))}")
-    return AppliedSteering(vector, float(alpha))
+    units = entry.get("alpha_units", DEFAULT_ALPHA_UNITS)
+    if units not in ALPHA_UNITS:
+        raise RequestError(f"{key}.alpha_units", f"expected one of {list(ALPHA_UNITS)}, got {_describe(units)}")
+    if units == "residual_norm" and (vector.mean_residual_norm is None or not vector.norm > 0):
+        problem = "no recorded mean_residual_norm (phase-3 output older than the record; re-run the steer step)" \
+            if vector.mean_residual_norm is None else "norm 0"
+        raise RequestError(f"{key}.alpha_units", f"{vector.path} has {problem}, so alpha cannot be in residual_norm "
+                                                 "units; send \"alpha_units\": \"vector\"")
+    _check_bound(float(alpha), units, vector, limits.max_alpha, f"{key}.alpha")
+    return AppliedSteering(vector, float(alpha), units)
+
+
+def _check_bound(alpha: float, units: str, vector: SteeringVector, max_alpha: float, key: str) -> None:
+    """Raise unless |α| in residual_norm units (vector units for a vector without a recorded R) is within the bound."""
+    size, unit = abs(alpha), units
+    if units == "vector" and vector.mean_residual_norm is not None:
+        size, unit = size * vector.norm / vector.mean_residual_norm, "residual_norm"
+    if size > max_alpha:
+        raise RequestError(key, f"|alpha| is {size:g} in {unit} units, above the server's bound {max_alpha:g} "
+                                "(serve --max-alpha)")
 
 
 def _required(mapping: Mapping, name: str, key: str | None = None) -> Any:

@@ -22,6 +22,7 @@ import traceback
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
+import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
@@ -31,9 +32,13 @@ from steering_core.serve import codec
 from steering_core.serve.catalog import VectorCatalog
 from steering_core.serve.policy import ServedPolicy
 from steering_core.serve.request import (
+    ALPHA_UNITS,
+    DEFAULT_ALPHA_UNITS,
+    DEFAULT_MAX_ALPHA,
     STEERING_KEY,
     AppliedSteering,
     RequestError,
+    SteeringLimits,
     check_observation,
     parse_steering,
 )
@@ -46,7 +51,11 @@ TRANSPORT_LIMIT_FACTOR = 4  # messages above limit x factor are cut off by webso
 
 
 class PolicyServer:
-    """Serve `policy` with the vectors of `catalog` on host:port (port 0: a free port, see `port` once ready)."""
+    """Serve `policy` with the vectors of `catalog` on host:port (port 0: a free port, see `port` once ready).
+
+    Requests with |α| above `max_alpha` (residual_norm units) are refused, and so are steerings of the last
+    language-model layer when the policy's metadata gives its depth (`steerable.lm.layers`, as Pi05Policy's does).
+    """
 
     def __init__(
         self,
@@ -57,9 +66,11 @@ class PolicyServer:
         host: str = "127.0.0.1",
         port: int = 8000,
         max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+        max_alpha: float = DEFAULT_MAX_ALPHA,
     ) -> None:
         self.policy = policy
         self.catalog = catalog or VectorCatalog()
+        self.limits = SteeringLimits(max_alpha, lm_depth(policy.metadata))
         self.default_steering = tuple(default_steering)
         self.host, self.port = host, port
         self.max_message_bytes = max_message_bytes
@@ -142,6 +153,10 @@ class PolicyServer:
                 result = await asyncio.to_thread(self.policy.infer, observation, steering)
                 finished = time.monotonic()
             result = dict(result)
+            if not np.isfinite(result["actions"]).all():
+                logger.warning("non-finite actions withheld (steering %s)", [s.describe() for s in steering])
+                return ("inference failed (the server keeps serving): the policy's actions are not finite; "
+                        "lower |alpha| of the steering entry")
             result[STEERING_KEY] = [s.describe() for s in steering]
             result["server_timing"] = {"infer_ms": (finished - started) * 1000, "queue_ms": (started - queued) * 1000}
             if previous_total_ms is not None:
@@ -163,7 +178,7 @@ class PolicyServer:
         observation = codec.unpack(message)
         check_observation(observation)
         if STEERING_KEY in observation:
-            return observation, parse_steering(observation.pop(STEERING_KEY), self.catalog)
+            return observation, parse_steering(observation.pop(STEERING_KEY), self.catalog, limits=self.limits)
         return observation, self.default_steering
 
     def _metadata(self) -> dict[str, Any]:
@@ -171,7 +186,11 @@ class PolicyServer:
             **self.policy.metadata,
             "steering": {
                 "request_key": STEERING_KEY,
-                "entry": {"pair": "str", "layer": "int", "alpha": "float", "direction": "str (default residual)"},
+                "entry": {"pair": "str", "layer": "int", "alpha": "float", "direction": "str (default residual)",
+                          "alpha_units": f"one of {list(ALPHA_UNITS)} (default {DEFAULT_ALPHA_UNITS})"},
+                "alpha_units": {"residual_norm": "alpha * mean_residual_norm / norm * vector is added (the "
+                                                 "evaluation's unit)", "vector": "alpha * vector is added"},
+                "max_alpha": self.limits.max_alpha,
                 "applied_at": "language-model residual stream, the prompt's instruction tokens",
                 "default": [s.describe() for s in self.default_steering],
                 "vectors": self.catalog.describe(),
@@ -182,6 +201,12 @@ class PolicyServer:
                 "max_message_bytes": self.max_message_bytes,
             },
         }
+
+
+def lm_depth(metadata: dict[str, Any]) -> int | None:
+    """Return the language-model depth a policy's metadata gives (`steerable.lm.layers`), or None."""
+    depth = metadata.get("steerable", {}).get("lm", {}).get("layers")
+    return depth if isinstance(depth, int) else None
 
 
 @contextlib.contextmanager
