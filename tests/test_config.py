@@ -261,6 +261,15 @@ def test_expert_layers_add_a_decision_capture_and_are_checked_against_the_expert
         "of the sampler the evaluation steers; set both to the same value"]
 
 
+
+def test_the_last_decoder_layer_is_refused_when_the_run_evaluates(tmp_path):
+    last = VALID.replace("layers: [2, 1]", "layers: [1, 3]").replace("  2: {release", "  3: {release")
+    assert load_error(tmp_path, last) == [
+        "layers include 3, the last decoder layer: its output only feeds the final norm the actions never read, "
+        "so steering it cannot move them; evaluate earlier layers or set `evaluate: null`"]
+    config = load_run_config(write_yaml(tmp_path, last + "evaluate: null\n", name="off.yaml"))
+    assert config.layers == (1, 3)  # capturing and steering vectors at the last layer stay possible
+
 EXISTING = VALID.replace("sources:\n  folders: [demos, /abs/more_demos]\n", "").replace(
     "dataset: {repo_id: libero_ds, image_size: 64}", "dataset: {existing: hf/physical-intelligence/libero}")
 

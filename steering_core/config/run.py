@@ -75,6 +75,10 @@ class RunConfig(StrictModel):
         depth = self.model.arch.depth
         if too_deep := [layer for layer in self.layers if layer >= depth]:
             problems.append(f"layers {too_deep} out of range: model.arch has {depth} decoder layers (0..{depth - 1})")
+        if self.evaluate is not None and depth - 1 in self.layers:
+            problems.append(f"layers include {depth - 1}, the last decoder layer: its output only feeds the final "
+                            "norm the actions never read, so steering it cannot move them; evaluate earlier layers "
+                            "or set `evaluate: null`")
         if stray := sorted(set(self.sae) - set(self.layers)):
             problems.append(f"sae has entries for layers {stray} that are not in layers {list(self.layers)}")
         if self.expert_layers:
