@@ -1,5 +1,5 @@
-"""Policy-server test helpers: steer-step vectors, LIBERO observations, a fake policy, a server thread and the
-real openpi client run in its own environment."""
+"""Policy-server test helpers: steer-step vectors, LIBERO observations, a fake policy, a server thread, the
+real openpi client run in its own environment, and equal kernel settings for comparing actions across processes."""
 
 from __future__ import annotations
 
@@ -33,6 +33,18 @@ from steering_core.synthetic.sae import write_sae_folder
 CLIENT_SCRIPT = Path(__file__).with_name("openpi_client_script.py")
 OPENPI_CLIENT = ("--with", "openpi-client==0.1.2", "--with", "typing_extensions")  # 0.1.2 omits typing_extensions
 PAIRS = ("open_vs_close", "on_vs_off")
+
+# Equal results across processes need equal kernels. The intra-op thread count changes how gemm and sum split
+# their work (so the last bits of float32 results), and oneMKL's default MKL_DYNAMIC=TRUE lets it use fewer
+# threads than asked at run time; torch turns that off only in a process that calls torch.set_num_threads.
+# A server subprocess gets this environment, the test process `fixed_threads()`: one thread on both sides.
+FIXED_THREADS_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OMP_DYNAMIC": "FALSE", "MKL_DYNAMIC": "FALSE"}
+# Served and direct float32 actions may still differ by rounding if a kernel sums in another order: each action
+# ends 10 Euler steps of the model, each a few ulps of the largest value from the order. Measured on the tiny
+# checkpoint: ATen's AVX2 kernels instead of AVX-512 move actions by 2 eps * max|action| (6e-7 at 2.6). The
+# bound, 64 eps * max(1, max|action|) (2e-5 at 2.6), leaves room for that and is 4000x below the steering's
+# effect on these actions (0.08), so a server that ignored or misapplied steering still fails.
+ACTION_ROUNDING_EPS = 64
 
 
 def write_vectors(root: Path, width: int, *, sae_layer: int = 1, plain_layer: int = 2,
@@ -141,6 +153,33 @@ def run_openpi_client(
     )
     assert completed.returncode == 0, f"openpi client failed:\n{completed.stdout}\n{completed.stderr}"
     return codec.unpack(out.read_bytes())["clients"]
+
+
+@contextlib.contextmanager
+def fixed_threads() -> Iterator[None]:
+    """Run the block with one torch intra-op thread, as a server started with FIXED_THREADS_ENV; restore after.
+
+    (torch.set_num_threads also sets MKL's thread count and turns MKL_DYNAMIC off.)
+    """
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def server_env() -> dict[str, str]:
+    """This process's environment with FIXED_THREADS_ENV: for a server subprocess whose actions are compared."""
+    return {**os.environ, **FIXED_THREADS_ENV}
+
+
+def assert_actions_match(got: np.ndarray, want: np.ndarray) -> None:
+    """Actions computed in another process: equal shape and dtype, values within ACTION_ROUNDING_EPS float32
+    eps of the largest |action| (float32 rounding of a different summation order; see its comment)."""
+    assert got.shape == want.shape and got.dtype == want.dtype, (got.shape, got.dtype, want.shape, want.dtype)
+    bound = ACTION_ROUNDING_EPS * float(np.finfo(np.float32).eps) * max(1.0, float(np.abs(want).max()))
+    np.testing.assert_allclose(got, want, rtol=0, atol=bound)
 
 
 def port_from_log(process: subprocess.Popen, timeout: float = 120) -> int:

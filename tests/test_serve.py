@@ -356,9 +356,11 @@ def test_readme_serve_commands_use_existing_flags():
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
     section = readme.split("## Steered rollouts in LIBERO", 1)[1].split("\n## ", 1)[0]
-    command = re.search(r"latent-steering serve (.*?)\ncurl", section, re.S).group(1)
-    used = set(re.findall(r"(--[a-z][a-z-]+)", command))
+    commands = re.findall(r"latent-steering serve (.*?)\n(?:until )?curl", section, re.S)  # real and demo
     serve = typer.main.get_command(app).commands["serve"]
     known = {opt for param in serve.params for opt in param.opts}
-    assert used and used <= known, used - known
+    assert len(commands) == 2
+    for command in commands:
+        used = set(re.findall(r"(--[a-z][a-z-]+)", command))
+        assert used and used <= known, used - known
     assert "--steer open_vs_close:12:2.0" in section and parse_steering_option("open_vs_close:12:2.0")

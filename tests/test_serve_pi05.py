@@ -1,5 +1,6 @@
 """The served pi0.5 policy (tiny checkpoint) through the real openpi client equals `Pi05Policy.infer` bit for
-bit, plain and steered at the instruction tokens; `latent-steering serve` starts, serves and stops on a signal."""
+bit, plain and steered at the instruction tokens; `latent-steering serve` starts, serves and stops on a signal,
+its actions (another process, the same kernel settings) equal to direct ones up to float32 rounding."""
 
 from __future__ import annotations
 
@@ -12,7 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers_serve import libero_observations, port_from_log, run_openpi_client, running, write_vectors
+from helpers_serve import (
+    assert_actions_match,
+    fixed_threads,
+    libero_observations,
+    port_from_log,
+    run_openpi_client,
+    running,
+    server_env,
+    write_vectors,
+)
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -37,6 +47,13 @@ def model(tmp_path_factory):
     vectors = write_vectors(folder / "latent_steering", ARCH.width)
     policy = Pi05Policy.from_checkpoint(checkpoint, ARCH, device="cpu", tokenizer_path=tokenizer)
     return checkpoint, tokenizer, vectors, policy
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Each test computes actions with one intra-op thread, like the server subprocess (FIXED_THREADS_ENV)."""
+    with fixed_threads():
+        yield
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +133,7 @@ def test_serve_command_serves_until_sigint(model, observations, tmp_path):
     command = [LATENT_STEERING, "serve", "--checkpoint-path", str(checkpoint), "--tokenizer-path", str(tokenizer),
                "--arch-file", str(arch_file), "--vectors", str(vectors), "--port", "0", "--device", "cpu",
                "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0"]
-    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=server_env())
     try:
         port = port_from_log(process)
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10) as response:
@@ -128,8 +145,7 @@ def test_serve_command_serves_until_sigint(model, observations, tmp_path):
             ws.send(pack(observations[0]))
             reply = unpack(ws.recv(timeout=60))
             catalog = VectorCatalog.scan(vectors)
-            assert reply["actions"].tobytes() == direct(policy, catalog, observations[0],
-                                                        ("open_vs_close", 2, 5.0)).tobytes()
+            assert_actions_match(reply["actions"], direct(policy, catalog, observations[0], ("open_vs_close", 2, 5.0)))
             process.send_signal(signal.SIGINT)
             with pytest.raises(ConnectionClosed) as closed:
                 ws.recv(timeout=20)
