@@ -471,3 +471,72 @@ def test_a_reversed_direction_is_flagged(tmp_path):
     row = next(line for line in write_layer_summary(out.parent, ["p"]).read_text().splitlines()
              if line.startswith("| p | residual_direction |"))
     assert f"| -2 / {best['alpha_vector']:.4g} reversed? |" in row
+
+
+def test_null_directions_follow_the_rows_covariance_and_permute_episode_labels():
+    from steering_core.evaluate.metrics import null_comparison
+    from steering_core.evaluate.nulls import covariance_directions, permuted_directions
+
+    generator = torch.Generator().manual_seed(0)
+    # rows vary 100x more along axis 0 than elsewhere; the two groups' means differ along axis 1 only
+    rows = [torch.randn(400, 16, generator=generator) * torch.tensor([100.0] + [1.0] * 15) + 50 * k * torch.eye(16)[1]
+            for k in range(2)]
+    draws = covariance_directions(rows, 3.0, 32, seed=0)
+    assert all(float(v.norm()) == pytest.approx(3.0, rel=1e-5) for v in draws)
+    assert sum(abs(float(v[0])) / 3.0 for v in draws) / 32 > 0.9   # matched anisotropy: mostly axis 0
+    assert max(abs(float(v[1])) for v in draws) / 3.0 < 0.2         # the mean difference is not in it
+    # permutation: each direction is the mean difference of some relabelling keeping 2 "positive" episodes
+    ep_rows = [torch.full((2, 3), float(e)) + torch.eye(3)[e % 3] for e in range(4)]  # episode e: rows of value e
+    slice_rows = [torch.cat(ep_rows[:2]), torch.cat(ep_rows[2:])]
+    episodes = [torch.tensor([0, 0, 1, 1]), torch.tensor([2, 2, 3, 3])]
+    expected = []
+    for chosen in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+        pos = torch.cat([ep_rows[e] for e in chosen]).mean(0)
+        neg = torch.cat([ep_rows[e] for e in range(4) if e not in chosen]).mean(0)
+        expected.append((pos - neg) / (pos - neg).norm())
+    for v in permuted_directions(slice_rows, episodes, 1.0, 8, seed=0):
+        assert min(float((v - e).norm()) for e in expected) < 1e-5
+    # empirical p: (1 + #null ≥ value) / (1 + N)
+    values = torch.tensor([3.0, 1.0, 2.0, 0.5])
+    out = null_comparison(values, [1, 2, 3])
+    assert out["p"].tolist() == pytest.approx([1 / 4, 3 / 4, 2 / 4, 4 / 4])
+
+
+def test_slices_of_other_positions_are_refused(tmp_path):
+    from steering_core.evaluate.positions import check_positions
+
+    paths = slices(tmp_path / "layer02")
+    assert "not checked" in check_positions(paths, "lm")
+    index = {"settings": {"reduce": "token", "token_type": "instructions"}, "token_selection": {"token_type": "instructions"}}
+    (tmp_path / "layer02" / "index.json").write_text(json.dumps(index))
+    assert check_positions(paths, "lm") is None
+    with pytest.raises(ValueError, match=r"index.json: token_type 'instructions', reduce 'token'; .* each `decision`"):
+        check_positions(paths, "expert")
+    for bad, found in (({"reduce": "frame"}, "reduce 'frame'"), ({"token_type": "prompt"}, "token_type 'prompt'")):
+        wrong = {"settings": index["settings"] | bad, "token_selection": {"token_type": index["settings"]["token_type"]}
+                 | ({"token_type": bad["token_type"]} if "token_type" in bad else {})}
+        (tmp_path / "layer02" / "index.json").write_text(json.dumps(wrong))
+        with pytest.raises(ValueError, match=found):
+            check_positions(paths, "lm")
+        m = manifest(EPISODES)
+        pair = PairInputs(name="p", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
+                          split=split_episodes(m, 0.4), slices=paths)
+        out = tmp_path / "eval" / "p"
+        with pytest.raises(ValueError, match=found):
+            evaluate_pair(pair, {"residual_direction": planted()}, FakePolicy(WIDTH, planted(), GAP), FakeSteering,
+                          load, prompts(), layer=LAYER, width=WIDTH, settings=EvaluateSettings(), output_dir=out)
+        assert not out.exists()
+
+
+def test_ui_artifact_inlines_the_efficacy_plot_in_a_narrow_table(tmp_path):
+    from tasks.evaluate import ui_summary
+
+    out, _ = run(tmp_path, tmp_path / "eval" / "open_vs_close")
+    write_layer_summary(out.parent, ["open_vs_close"])
+    text = ui_summary(out.parent)
+    png = (out / "efficacy_vs_alpha.png").read_bytes()
+    import base64
+
+    assert f"data:image/png;base64,{base64.b64encode(png).decode('ascii')}" in text
+    table = [line for line in text.splitlines() if line.startswith("| open_vs_close, ")]
+    assert len(table) == 2 and all(line.count("|") == 6 for line in table)

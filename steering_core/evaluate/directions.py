@@ -28,7 +28,6 @@ TOP_K = "top_k_latents"
 RANDOM = "random_{index:02d}"
 PERMUTED = "permuted_{index:02d}"
 NULL_PREFIXES = ("random_", "permuted_")
-RANDOM_PREFIX = "random_"
 
 
 def is_null(name: str) -> bool:
