@@ -4,7 +4,8 @@ Ours is `steering_core.evaluate.sweep.run_sweep`: per frame and noise seed, one 
 per chunk of (direction, α) entries, the prefix below the steered layer computed once per call and the
 unsteered α = 0 entry shared by every direction, plus one call with the other task's instruction (the
 swap reference). The naive loop runs one full `sample_actions` per frame × α × direction × seed (and the
-same swap calls). Both use the same mid-size pi0.5 (as the capture benchmark), frames, prompts, noise and
+same swap calls). Both steer a frame of each task toward the other one (the positive one at −α) and
+carry 3 named + 32 null directions (the default null). Both use the same mid-size pi0.5 (as the capture benchmark), frames, prompts, noise and
 directions, and must give the same actions.
 
 Next to the measured ratio: the analytic FLOPs (matrix products) and H100 time of one pair at one layer
@@ -38,22 +39,22 @@ from bench.common import Result, cache_dir, command, finish, parser, timed
 from steering_core.devices import resolve_device
 from steering_core.evaluate import EvaluateSettings
 from steering_core.evaluate.frames import EvalFrame
-from steering_core.evaluate.sweep import frame_noise, run_sweep
+from steering_core.evaluate.sweep import frame_noise, run_sweep, toward_other
 from steering_core.pi05 import Pi05Arch, PromptTokenizer, libero_camera_slots
 from steering_core.synthetic.pi05 import tiny_arch
 
 # ----------------------------------------------------------------------------- settings
 
 LAYER = 12                      # the seed's SAE layer
-FRAMES = 1                      # frames of the negative task
+FRAMES = 2                      # one frame of each task: both sides steered toward the other
 NOISE_SEEDS = 1
-DIRECTIONS = 3                  # e.g. residual, mean difference, top-k: every direction costs the same
+DIRECTIONS = 3 + 32             # residual, mean difference, top-k and the 32 random null directions
 ALPHAS = (-4.0, -2.0, 0.0, 2.0, 4.0)
 NUM_STEPS = 10                  # openpi's denoising steps
 ROUNDS = 2                      # alternating ours/naive rounds, best kept (load from other jobs hits both)
 TARGET = 0.4                    # ours / naive wall time at most
 POSITIVE, NEGATIVE = "open the top drawer of the cabinet", "close the top drawer of the cabinet"
-QUICK = {"arch": tiny_arch(), "layer": 2, "frames": 2, "directions": 2, "alphas": (-2.0, 0.0, 2.0)}
+QUICK = {"arch": tiny_arch(), "layer": 2, "frames": 2, "directions": 4, "alphas": (-2.0, 0.0, 2.0)}
 
 
 # ----------------------------------------------------------------------------- analytic cost
@@ -111,10 +112,11 @@ def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prom
     """Return robot actions (directions, alphas, frames, seeds, H, 7): one full sample_actions each, plus swaps."""
     from steering_core.pi05.steering import Steering
 
-    own, other = prompts["negative"], prompts["positive"]
     out = torch.zeros(len(directions), len(alphas), len(frames), seeds, policy.action_horizon, 7, dtype=torch.float64)
     device = policy.device
     for f, frame in enumerate(frames):
+        own, other = prompts[frame.side], prompts["positive" if frame.side == "negative" else "negative"]
+        toward = toward_other(frame.side)
         images = [t[f : f + 1].to(device) for t in inputs["images"]]
         masks = [t[f : f + 1].to(device) for t in inputs["image_masks"]]
         for s in range(seeds):
@@ -122,7 +124,7 @@ def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prom
             for d, vector in enumerate(directions.values()):
                 unit = (vector / vector.norm()).to(device)
                 for a, alpha in enumerate(alphas):
-                    steering = None if alpha == 0 else Steering(layer=layer, vector=unit, alpha=alpha,
+                    steering = None if alpha == 0 else Steering(layer=layer, vector=unit, alpha=toward * alpha,
                                                                 token_mask=own.instruction_mask.to(device))
                     actions = policy.sample_actions(images, masks, own.tokens.to(device), own.token_mask.to(device),
                                                     noise=noise, num_steps=NUM_STEPS, steering=steering)
@@ -146,7 +148,7 @@ def main(argv: list[str] | None = None) -> Result:
     policy, tokenizer = build_policy(cache_dir(args) / "evaluate", arch, device)
     prompts = task_prompts(PromptTokenizer(tokenizer), POSITIVE, NEGATIVE)
     inputs = frame_inputs(arch, n_frames)
-    frames = [EvalFrame("negative", 0, i, i) for i in range(n_frames)]
+    frames = [EvalFrame("positive" if i % 2 else "negative", i, i, i) for i in range(n_frames)]
     generator = torch.Generator().manual_seed(1)
     directions = {f"d{i}": torch.randn(arch.width, generator=generator) for i in range(n_directions)}
 
@@ -168,7 +170,9 @@ def main(argv: list[str] | None = None) -> Result:
         differences.append(float((mine - reference).abs().max()))
     ratio = min(ours_times) / min(naive_times)
     calls = n_frames * NOISE_SEEDS * (n_directions * len(alphas) + 1)
-    real = pair_layer_flops(REAL_ARCH, LAYER, EvaluateSettings(), 3 + EvaluateSettings().random_directions)
+    defaults = EvaluateSettings()
+    real_directions = 3 + defaults.random_directions + defaults.permutations
+    real = pair_layer_flops(REAL_ARCH, LAYER, defaults, real_directions)
     rows = [
         {"case": f"measured {device.type}, layer {layer}", "frames x seeds": f"{n_frames} x {NOISE_SEEDS}",
          "directions x alphas": f"{n_directions} x {len(alphas)}", "ours s": min(ours_times),
@@ -176,7 +180,7 @@ def main(argv: list[str] | None = None) -> Result:
          "H100 naive s": ""},
         {"case": f"real pi0.5, layer {LAYER}, one pair (analytic)", "frames x seeds":
          f"{EvaluateSettings().max_frames} x {EvaluateSettings().noise_seeds}",
-         "directions x alphas": f"{3 + EvaluateSettings().random_directions} x {len(EvaluateSettings().alphas)}",
+         "directions x alphas": f"{real_directions} x {len(defaults.alphas)}",
          "ours s": "", "naive s": "", "ratio": real["ours"] / real["naive"], "ours TFLOP": real["ours"] / 1e12,
          "naive TFLOP": real["naive"] / 1e12, "H100 ours s": h100_seconds(real["ours"]),
          "H100 naive s": h100_seconds(real["naive"])},
@@ -197,7 +201,8 @@ def main(argv: list[str] | None = None) -> Result:
             f"{arch.vision_width} x depth {arch.vision_depth}; {NUM_STEPS} denoising steps; naive: {calls} full "
             f"sample_actions calls; best of {ROUNDS} round(s) after a warm-up.",
             f"same actions on both sides: max |ours - naive| over every robot action = {max(differences):.2e}.",
-            "real size: the default evaluate settings (3 named + 8 random directions, 9 alphas, 32 frames, 4 seeds, "
+            f"real size: the default evaluate settings (3 named + {defaults.random_directions} random + "
+            f"{defaults.permutations} permuted directions, 9 alphas, 32 frames, 4 seeds, "
             f"{EvaluateSettings().entries_per_call} entries per sweep call) and {LANGUAGE_SLOTS} language slots; "
             f"FLOPs count matrix products only; H100 at {MFU:.0%} of {H100_BF16_DENSE_TFLOPS:.0f} TFLOP/s dense bf16.",
         ],

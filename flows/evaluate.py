@@ -72,7 +72,7 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]
         result = rooted(evaluate_tasks.evaluation_summary, config.output_root)(
             layer_label(layer, stream), str(layer_path), names)
         summaries[folder] = result["summary"]
-        create_markdown_artifact(Path(result["summary"]).read_text(encoding="utf-8"),
+        create_markdown_artifact(evaluate_tasks.ui_summary(layer_path),
                                  key=artifact_key(config.name, "evaluation", folder),
                                  description=f"Steering evaluation, {folder} ({layer_path})")
     if config.expert_layers:

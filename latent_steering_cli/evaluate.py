@@ -92,7 +92,7 @@ def evaluate_command(
                                       f"(default {','.join(f'{a:g}' for a in _DEFAULTS.alphas)})."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=2, help=f"Frames per pair (default {_DEFAULTS.max_frames})."),
     noise_seeds: int | None = typer.Option(None, "--noise-seeds", min=1, help=f"Noise draws per frame (default {_DEFAULTS.noise_seeds})."),
-    random_directions: int | None = typer.Option(None, "--random-directions", min=8, help="Random directions in the null band (default 8)."),
+    random_directions: int | None = typer.Option(None, "--random-directions", min=8, help=f"Random directions of the null (default {_DEFAULTS.random_directions})."),
     top_k: int | None = typer.Option(None, "--top-k", min=1, help=f"SAE latents of the top-k direction (default {_DEFAULTS.top_k})."),
     batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Frames per policy call."),
     device: str | None = typer.Option(None, "--device", help="auto (CUDA when available), cuda, cuda:1 or cpu."),

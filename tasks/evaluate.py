@@ -3,6 +3,7 @@ comparison of the two pathways (language model vs action expert)."""
 
 from __future__ import annotations
 
+import base64
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.sae import vectors
 from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage import layout
+from steering_core.storage.fileio import read_json
 from steering_core.storage.fingerprints import file_digest, plain
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
@@ -125,3 +127,22 @@ def evaluation_pathways(eval_root: str, layers: list[tuple[int, str]], pair_name
     """Write pathways.md and pathways.json: per pair, the best language-model direction vs the action expert's."""
     md_path = report.write_pathways(Path(eval_root), [(int(layer), stream) for layer, stream in layers], pair_names)
     return {OUTPUTS: [str(md_path), str(md_path.with_suffix(".json"))], "pathways": str(md_path)}
+
+
+def ui_summary(layer_path: Path) -> str:
+    """Return the Prefect artifact of one layer's evaluation: its notes, a five-column table (the full one is in
+    summary.md) and each pair's efficacy plot inline as a PNG data URI."""
+    summary = read_json(layer_path / layout.SUMMARY_JSON)
+    lines = [f"# Steering evaluation, {summary['layer']}", ""] + [f"**{note}**" for note in summary["notes"]]
+    lines += ["", "Efficacy: cross-fitted, 1 = reproduces the instruction swap; α in R / in vector units; p: vs the "
+                  "random null.", "", "| pair, direction | α | efficacy [95% CI] | −/+ side | p |", "|---|---|---|---|---|"]
+    for row in summary["rows"]:
+        lines.append(f"| {row['pair']}, {row['direction']} | {report.alpha_text(row)} | "
+                     f"{report.with_ci(row['efficacy'], row['efficacy_ci'])} | "
+                     f"{report.fmt(row['efficacy_negative'])} / {report.fmt(row['efficacy_positive'])} | "
+                     f"{report.fmt(row.get('p_random'))} |")
+    for pair, plot in summary["plots"].items():
+        encoded = base64.b64encode((layer_path / plot).read_bytes()).decode("ascii")
+        lines += ["", f"![{pair}](data:image/png;base64,{encoded})"]
+    lines += ["", f"Full table, request entries and shifts: `{layer_path / layout.SUMMARY_MD}`"]
+    return "\n".join(lines) + "\n"

@@ -6,7 +6,9 @@ the planted direction, A a fixed (H, 32) pattern and (w_f, b_f) a per-frame nonl
 little between frames). The two instructions' embeddings differ by `gap` · u, so steering with u reproduces the
 instruction swap at α = gap / R (R: the residual norm unit): efficacy exactly 1 up to the nonlinearity.
 With `stream="expert"` the same residual stands for the action expert's (steered at every action token, no
-token mask): the evaluation's expert pathway must build its steerings that way.
+token mask): the evaluation's expert pathway must build its steerings that way. With `saturate=True` the
+actions are tanh(⟨r, u⟩ − midpoint) · A + 0.1 · noise instead: each instruction sits on a plateau, so pushing a
+frame past its own instruction changes nothing.
 """
 
 from __future__ import annotations
@@ -19,8 +21,11 @@ import torch
 
 from steering_core.evaluate.frames import EvalFrame
 from steering_core.evaluate.sweep import Prompt
+from steering_core.pi05.norm_stats import NormStats
 
 HORIZON, ACTION_DIM, T = 4, 32, 6
+# robot actions = model actions[:7] * 2 + 0.5; the norm stats' std per robot dimension (the efficacy's unit)
+ACTION_STD = np.array([1.0, 1.0, 2.0, 0.5, 0.5, 0.5, 4.0] + [1.0] * (ACTION_DIM - 7))
 POSITIVE_IDS, NEGATIVE_IDS = [0, 1, 2, 3, 7, 8], [0, 4, 5, 6, 7, 8]
 INSTRUCTION = torch.tensor([[False, True, True, True, False, False]])
 
@@ -40,13 +45,15 @@ class FakePolicy:
     action_horizon, action_dim = HORIZON, ACTION_DIM
 
     def __init__(self, width: int, planted: torch.Tensor, gap: float, *, depth: int = 4, beta: float = 3.0,
-                 stream: str = "lm"):
+                 stream: str = "lm", saturate: bool = False):
         gen = torch.Generator().manual_seed(123)
-        self.width, self.depth, self.beta, self.stream = width, depth, beta, stream
+        self.width, self.depth, self.beta, self.stream, self.saturate = width, depth, beta, stream, saturate
+        self.norm_stats = {"actions": NormStats(np.zeros(ACTION_DIM), ACTION_STD, None, None)}
         self.u = planted.double() / planted.double().norm()
         self.embed = torch.randn(10, width, generator=gen, dtype=torch.float64)
         # the instruction tokens' mean embeddings differ by exactly gap * u
         self.embed[4:7] = self.embed[1:4] - gap * self.u
+        self.gap = gap
         self.pattern = torch.randn(HORIZON, ACTION_DIM, generator=gen, dtype=torch.float64)
         self.calls = {"sample_actions": 0, "sweep_entries": 0, "sweep_calls": 0}
         self.seen: set[tuple] = set()
@@ -87,6 +94,10 @@ class FakePolicy:
             else:
                 assert steering.token_mask is None
             r = r + steering.alpha * steering.vector.double()
+        if self.saturate:  # the two instructions' projections sit at midpoint ± gap / 2: both on a plateau
+            midpoint = float(self.embed[1:4].mean(0) @ self.u) - self.gap / 2
+            return (torch.tanh((r @ self.u - midpoint) * 6 / self.gap)[:, None, None] * self.pattern
+                    + 0.1 * noise.double()).float()
         out = []
         for b, (base, w, bias) in enumerate(self._frame_terms(images)):
             resid = r[b] + base

@@ -117,7 +117,7 @@ def test_real_size_section_runs_at_tiny_size(cache, tmp_path):
 def test_evaluation_sweep_gives_the_naive_loops_actions(cache, tmp_path):
     result = run_quick(evaluate_cost, cache, tmp_path)
     assert result.checks["max_abs_difference"] < 1e-4
-    assert result.checks["naive_calls"] == 2 * 1 * (2 * 3 + 1)  # frames x seeds x (directions x alphas + swap)
+    assert result.checks["naive_calls"] == 2 * 1 * (4 * 3 + 1)  # frames x seeds x (directions x alphas + swap)
     assert [row["case"] for row in result.table] == ["measured cpu, layer 2",
                                                      "real pi0.5, layer 12, one pair (analytic)"]
 

@@ -44,3 +44,19 @@ def test_the_random_demo_sae_is_explained_not_flagged():
     text = format_summary(summary(5.3), random_sae=True)
     assert " !" not in text and "0.410 / 5.300" in text
     assert "The demo's SAEs are random (untrained, tiny)" in text and "nothing is broken" in text
+
+
+def test_the_evaluation_answer_ends_the_summary():
+    from steering_core.demo import TINY_MODEL_NOTE
+
+    row = {"pair": "open_vs_close", "layer": "layer 2", "direction": "residual_direction", "alpha": 2.0,
+           "alpha_vector": 0.25, "reversed": False, "efficacy": 0.9, "efficacy_negative": 0.8,
+           "efficacy_negative_ci": [0.5, 1.0], "efficacy_positive": 1.0, "efficacy_positive_ci": [0.75, 1.25],
+           "p_random": 0.02, "note": TINY_MODEL_NOTE}
+    lines = format_summary(summary(0.5) | {"evaluation": [row]}, random_sae=True).splitlines()
+    assert "open_vs_close  residual_direction, layer 2  2 / 0.25" in lines[-4]
+    assert "0.800 [0.500, 1.000]" in lines[-4] and "1.000 [0.750, 1.250]" in lines[-4] and lines[-4].endswith("0.020")
+    assert lines[-2] == ("open_vs_close: residual_direction at layer 2 moves the actions 0.900 of the way to the other "
+                         "task's instruction (cross-fitted), better than random directions of the residual stream "
+                         "(p = 0.020).")
+    assert lines[-1].startswith("The demo's policy is tiny and random") and "mean nothing" in lines[-1]

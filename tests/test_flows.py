@@ -268,14 +268,15 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
         assert tasks[f"evaluate {pair} expert layer 2"].tags == ["gpu"]
         record = read_json(config.eval_layer_path(2, "expert") / pair / "dose_response.json")
         assert record["stream"] == "expert" and list(record["directions"])[0] == "decision_mean_difference"
-        assert len(record["random"]["names"]) == 8 and {f["episode_index"] for f in record["frames"]} == held_out
+        assert len(record["random"]["names"]) == 32 and {f["episode_index"] for f in record["frames"]} == held_out
         lm = read_json(config.eval_layer_path(2) / pair / "dose_response.json")
         assert record["frames"] == lm["frames"]  # the same held-out frames (and noise) as the language model's
         vectors = load_file(config.eval_layer_path(2, "expert") / pair / "dose_response.safetensors")["directions"]
-        assert vectors.shape == (9, decision.run.width)
+        assert vectors.shape == (1 + 32 + len(record["random"]["permuted"]), decision.run.width)
     assert {"evaluation summary expert layer 2", "evaluation pathways"} <= set(tasks)
     pathways = read_json(config.eval_root / "pathways.json")
-    assert [(r["pair"], r["lm"]["layer"] in config.layers, r["expert"]["layer"]) for r in pathways["rows"]] == [
+    assert [(r["pair"], r["lm"]["chosen"][0]["layer"] in config.layers, r["expert"]["chosen"][0]["layer"])
+            for r in pathways["rows"]] == [
         ("open_vs_close", True, 2), ("on_vs_off", True, 2)]
     assert "these numbers mean nothing" in (config.eval_root / "pathways.md").read_text()
     assert read_run_metadata(config.run_dir).episodes == tuple(range(8))

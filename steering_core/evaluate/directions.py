@@ -6,8 +6,7 @@ Language model (layer L, from phase 3's files):
 - `top_k_latents`: only the k largest |latent differences|, decoded without b_dec;
 Action expert (expert layer K, from the pair's `decision` slices, `evaluate.expert_layers`):
 - `decision_mean_difference`: mean(positive decision rows) − mean(negative decision rows);
-Both:
-- `random_00..`: Gaussian directions of the same norm as the first direction (the null band).
+The null directions (`random_NN`, `permuted_NN`) are added by `steering_core.evaluate.nulls`.
 
 Without an SAE, phase 3's `residual_direction` is the mean difference itself; it is evaluated once.
 """
@@ -27,7 +26,13 @@ DECISION = "decision_mean_difference"
 MEAN_DIFFERENCE = "mean_difference_direction"
 TOP_K = "top_k_latents"
 RANDOM = "random_{index:02d}"
-RANDOM_PREFIX = "random_"
+PERMUTED = "permuted_{index:02d}"
+NULL_PREFIXES = ("random_", "permuted_")
+
+
+def is_null(name: str) -> bool:
+    """Return True for a null direction's name (random or permuted)."""
+    return name.startswith(NULL_PREFIXES)
 
 
 def top_k_direction(latent_direction: torch.Tensor, sae: Sae, k: int) -> torch.Tensor:
@@ -38,18 +43,8 @@ def top_k_direction(latent_direction: torch.Tensor, sae: Sae, k: int) -> torch.T
     return sae.decode_direction(kept).detach().to("cpu", torch.float32)
 
 
-def random_directions(width: int, norm: float, count: int, seed: int) -> list[torch.Tensor]:
-    """Return `count` Gaussian (width,) float32 directions of the given norm, each from its own seed."""
-    vectors = []
-    for index in range(count):
-        generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
-        v = torch.randn(width, generator=generator, dtype=torch.float64)
-        vectors.append((v * (norm / v.norm())).float())
-    return vectors
-
-
-def pair_directions(pair_path: Path, sae: Sae | None, *, top_k: int, random_count: int, seed: int) -> dict[str, torch.Tensor]:
-    """Return name -> (width,) float32 direction for one pair folder of phase 3, controls last.
+def pair_directions(pair_path: Path, sae: Sae | None, *, top_k: int) -> dict[str, torch.Tensor]:
+    """Return name -> (width,) float32 direction for one pair folder of phase 3.
 
     Raises ValueError when a direction is zero (nothing to scale) or when the SAE does not match the
     pair's latent direction.
@@ -63,33 +58,26 @@ def pair_directions(pair_path: Path, sae: Sae | None, *, top_k: int, random_coun
                 raise ValueError(f"{pair_path}: latent_direction has {vectors['latent'].numel()} latents, the SAE "
                                  f"{sae.name} has {sae.cfg.d_sae}; evaluate with the SAE phase 3 used")
             directions[TOP_K] = top_k_direction(vectors["latent"].float(), sae, top_k)
-    return with_random_band(directions, str(pair_path), random_count, seed)
+    return nonzero(directions, str(pair_path))
 
 
-def decision_directions(slices: tuple[Path, Path], *, random_count: int, seed: int) -> dict[str, torch.Tensor]:
-    """Return name -> (expert width,) float32 direction of one pair at one expert layer, controls last.
+def decision_directions(slices: tuple[Path, Path]) -> dict[str, torch.Tensor]:
+    """Return name -> (expert width,) float32 direction of one pair at one expert layer.
 
     `slices` are the (positive, negative) `decision` slices of the layer (training episodes only); the
     direction is the difference of their row means (computed in float64).
     """
     means = [read_slice_rows(path).double().mean(0) for path in slices]
     directions = {DECISION: (means[0] - means[1]).float()}
-    return with_random_band(directions, f"decision slices {slices[0].parent}", random_count, seed)
+    return nonzero(directions, f"decision slices {slices[0].parent}")
 
 
-def with_random_band(
-    directions: dict[str, torch.Tensor], where: str, random_count: int, seed: int
-) -> dict[str, torch.Tensor]:
-    """Return `directions` (the first one the reference) followed by `random_count` random ones of its norm.
-
-    Raises ValueError naming `where` when a direction is zero (nothing to scale).
-    """
+def nonzero(directions: dict[str, torch.Tensor], where: str) -> dict[str, torch.Tensor]:
+    """Return `directions`; raise ValueError naming `where` when one is zero (nothing to scale)."""
     zero = [name for name, v in directions.items() if not float(v.norm()) > 0]
     if zero:
         raise ValueError(f"{where}: direction(s) {zero} are zero; the two concepts have equal means")
-    reference = next(iter(directions.values()))
-    randoms = random_directions(reference.numel(), float(reference.norm()), random_count, seed)
-    return directions | {RANDOM.format(index=index): v for index, v in enumerate(randoms)}
+    return directions
 
 
 def read_slice_rows(path: Path) -> torch.Tensor:
@@ -99,6 +87,15 @@ def read_slice_rows(path: Path) -> torch.Tensor:
         with safe_open(str(tensors), "pt") as handle:
             return handle.get_tensor("residuals")
     return torch.load(path, weights_only=True)
+
+
+def read_slice_episodes(path: Path) -> torch.Tensor | None:
+    """Return a concept slice's (rows,) int64 `episode_index` column, or None when its .safetensors has none."""
+    tensors = path.with_suffix(".safetensors")
+    if not tensors.is_file():
+        return None
+    with safe_open(str(tensors), "pt") as handle:
+        return handle.get_tensor("episode_index") if "episode_index" in handle.keys() else None
 
 
 def check_width(directions: dict[str, torch.Tensor], width: int, where: str, stream: str = "lm") -> None:

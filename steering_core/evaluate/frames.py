@@ -64,6 +64,26 @@ def select_frames(
     return frames
 
 
+def frame_halves(frames: Sequence[EvalFrame]) -> tuple[list[int], str]:
+    """Return each frame's half (0 or 1) for cross-fitting, and what was split: "episodes" or "frames".
+
+    Per side, its episodes alternate between the halves (in episode order); a side with one episode
+    alternates its frames instead (then the halves share an episode: not independent, and said so).
+    """
+    halves, by = [0] * len(frames), "episodes"
+    for side in SIDES:
+        members = [i for i, f in enumerate(frames) if f.side == side]
+        episodes = sorted({frames[i].episode_index for i in members})
+        if len(episodes) >= 2:
+            for i in members:
+                halves[i] = episodes.index(frames[i].episode_index) % 2
+        else:
+            by = "frames"
+            for j, i in enumerate(sorted(members, key=lambda i: frames[i].frame_index)):
+                halves[i] = j % 2
+    return halves, by
+
+
 def load_frames(
     dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], image_size: int, video_backend: str | None = None
 ) -> dict[str, Any]:

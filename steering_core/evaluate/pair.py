@@ -13,17 +13,21 @@ import torch
 from steering_core.data.concept_map import ConceptMap
 from steering_core.data.contrast import ContrastManifest
 from steering_core.data.split import HoldoutSplit
-from steering_core.evaluate.directions import RANDOM_PREFIX, check_width, read_slice_rows
-from steering_core.evaluate.frames import EvalFrame, select_frames
+from steering_core.evaluate.directions import check_width, is_null, read_slice_rows
+from steering_core.evaluate.frames import SIDES, EvalFrame, frame_halves, select_frames
 from steering_core.evaluate.metrics import (
-    action_dim_of_state_axis,
-    bootstrap_indices,
+    LIBERO_ORIENTATION,
+    ROBOT_DIM,
     dose_response_metrics,
-    random_band_z,
+    null_band,
+    null_comparison,
+    state_axis_weights,
 )
+from steering_core.evaluate.nulls import null_directions
+from steering_core.evaluate.positions import check_positions
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep
+from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep, toward_other
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.storage.fileio import atomic_dir
 
@@ -58,6 +62,19 @@ def mean_residual_norm(slice_paths: Sequence[Path]) -> float:
     return total / rows
 
 
+def action_scale(policy: SweepPolicy) -> torch.Tensor:
+    """Return the (7,) float64 std of each robot action dimension, from the policy's `actions` norm stats."""
+    where = getattr(policy, "norm_stats_file", "the policy's norm stats")
+    stats = policy.norm_stats.get("actions")
+    if stats is None:
+        raise ValueError(f"{where}: no `actions` entry; the evaluation reports actions in units of their std")
+    std = torch.as_tensor(stats.std, dtype=torch.float64)[:ROBOT_DIM]
+    if std.numel() < ROBOT_DIM or not bool((std > 0).all()):
+        raise ValueError(f"{where}: actions.std {std.tolist()} must hold {ROBOT_DIM} positive values "
+                         "(the robot action dimensions)")
+    return std
+
+
 def evaluate_pair(
     pair: PairInputs,
     directions: dict[str, torch.Tensor],
@@ -77,14 +94,22 @@ def evaluate_pair(
     """Run the dose-response of every direction for one pair and write `output_dir` atomically; return it.
 
     `directions` maps a name to a (width,) residual direction of `layer` of `stream` ("lm": the language
-    model, steered at the instruction tokens; "expert": the action expert, at every action token), random
-    controls named `random_NN`; `metadata` (the policy's description, input digests) is recorded as is.
+    model, steered at the instruction tokens; "expert": the action expert, at every action token), the first
+    one the reference whose norm the null directions take (they are built here from `pair.slices`);
+    `metadata` (the policy's description, input digests) is recorded as is.
     """
     check_width(directions, width, f"pair {pair.name!r}", stream)
-    if not any(name.startswith(RANDOM_PREFIX) for name in directions):
-        raise ValueError(f"pair {pair.name!r}: no random directions; the null band needs them")
+    reserved = [name for name in directions if is_null(name)]
+    if reserved:
+        raise ValueError(f"pair {pair.name!r}: direction names {reserved} are reserved for the null directions")
+    positions_note = check_positions(pair.slices, stream)
+    scale = action_scale(policy)
     frames = select_frames(pair.manifest, pair.concept_map, pair.split, pair.tasks, settings.max_frames)
     residual_norm = mean_residual_norm(pair.slices)  # R: the α unit
+    nulls, null_note = null_directions(pair.slices, float(next(iter(directions.values())).norm()),
+                                       random_count=settings.random_directions, permutations=settings.permutations,
+                                       seed=settings.seed)
+    directions = directions | nulls
     actions = run_sweep(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
         mean_residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
@@ -94,21 +119,34 @@ def evaluate_pair(
     axis = pair.manifest.axis
     means = axis.mean_delta_per_task
     sign = 1.0 if means[pair.tasks[0]] >= means[pair.tasks[1]] else -1.0
+    contrast = state_axis_weights(axis.index)
+    halves, halves_by = frame_halves(frames)
     names = list(directions)
     metrics = dose_response_metrics(
-        actions.steered, actions.swap, settings.zero_index, action_dim_of_state_axis(axis.index), sign,
-        bootstrap_indices(len(frames), settings.bootstrap, settings.seed),
+        actions.steered, actions.swap, scale=scale, contrast=sign * contrast,
+        toward=torch.tensor([toward_other(f.side) for f in frames], dtype=torch.float64),
+        halves=torch.tensor(halves), episodes=[f.episode_index for f in frames], zero_index=settings.zero_index,
+        samples=settings.bootstrap, seed=settings.seed,
     )
-    metrics |= random_band_z(metrics["efficacy"], [i for i, n in enumerate(names) if n.startswith(RANDOM_PREFIX)])
+    metrics |= null_metrics(metrics, names)
     norms = torch.stack([directions[n].double().norm() for n in names])
     vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
     head = {
         "pair": pair.name, "layer": layer, "stream": stream, "positive": pair.tasks[0], "negative": pair.tasks[1],
         "mean_residual_norm": residual_norm, "direction_norms": dict(zip(names, norms.tolist(), strict=True)),
-        "contrast_axis": {"state_index": axis.index, "action_dim": action_dim_of_state_axis(axis.index),
-                          "sign": sign},
+        "action_std": scale.tolist(), "efficacy_units": "action std (the checkpoint's norm stats); *_raw: robot units",
+        "contrast_axis": {"state_index": axis.index, "sign": sign, "action_weights": contrast.tolist(),
+                          "orientation": list(LIBERO_ORIENTATION)},
+        "episodes": {side: len({f.episode_index for f in frames if f.side == side}) for side in SIDES},
+        "selection": {"by": halves_by, "halves": [[f.as_json() | {"half": h} for f, h in zip(frames, halves, strict=True)
+                                                   if h == half] for half in (0, 1)],
+                      "method": "best α chosen on one half, efficacy read on the other, both ways, averaged"},
+        "null": {"random": settings.random_directions, "permuted": sum(n.startswith("permuted_") for n in names),
+                 "kind": "random: the training rows' within-task covariance; permuted: episode labels shuffled",
+                 "note": null_note},
         "split": pair.split.model_dump(mode="json"), "in_sample": pair.split.in_sample,
         "in_sample_note": IN_SAMPLE_NOTE if pair.split.in_sample else None, "note": settings.note,
+        "positions_note": positions_note,
         "settings": settings.model_dump(mode="json", exclude={"device"}),
         "frames": [f.as_json() for f in frames], "model": metadata or {},
     }
@@ -122,3 +160,19 @@ def evaluate_pair(
     logger.info("%s %s layer %d: dose-response of %d directions on %d frames in %s", pair.name, stream, layer,
                 len(names), len(frames), output_dir)
     return output_dir
+
+
+def null_metrics(metrics: dict[str, torch.Tensor], names: list[str]) -> dict[str, torch.Tensor]:
+    """Return the random null's band per α, z and p per α against it, and the cross-fitted best's z and p
+    against the random and the permuted nulls (each null direction through the same selection)."""
+    out: dict[str, torch.Tensor] = {}
+    for kind in ("random", "permuted"):
+        rows = [i for i, n in enumerate(names) if n.startswith(f"{kind}_")]
+        if not rows:
+            continue
+        per_alpha, best = null_comparison(metrics["efficacy"], rows), null_comparison(metrics["crossfit"], rows)
+        out[f"p_{kind}"], out[f"best_p_{kind}"] = per_alpha["p"], best["p"]
+        if kind == "random":
+            out["z"], out["best_z"] = per_alpha["z"], best["z"]
+            out |= {f"random_{key}": value for key, value in null_band(metrics["efficacy"], rows).items()}
+    return out

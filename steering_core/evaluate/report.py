@@ -1,15 +1,17 @@
 """Outputs of the evaluation: per pair dose_response.json/.safetensors and PNGs, per layer summary.md/json,
 and the comparison of the two pathways (language model vs action expert), pathways.md/json.
 
-`dose_response.json` names the α grid `alphas`, the metric `efficacy`, the control directions `random`
-and the reference `swap`; its tensors (every metric, interval and the raw robot actions) are in
-`dose_response.safetensors`. Nothing here reads a clock or a random state, so equal inputs give
-byte-identical files.
+`dose_response.json` names the α grid `alphas` (in units of R) and `alpha_units`, the metric `efficacy`
+(pooled, and per side: `efficacy_positive`, `efficacy_negative`; action std units, `efficacy_raw` in robot
+units), the null directions `random` (and `permuted`), their p-values per direction (`p_random`, `p_permuted`),
+the cross-fitting `selection` halves and the reference `swap`; its tensors (every metric, interval and the
+raw robot actions) are in `dose_response.safetensors`. Nothing here reads a clock or a random state, so
+equal inputs give byte-identical files.
 """
 
 from __future__ import annotations
 
-import logging
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -17,9 +19,10 @@ from typing import Any
 import torch
 from safetensors.torch import save_file
 
-from steering_core.evaluate.directions import RANDOM_PREFIX
+from steering_core.evaluate.directions import MEAN_DIFFERENCE, RESIDUAL
 from steering_core.evaluate.metrics import ACTION_GROUPS
-from steering_core.reporting.plots import figure, save_png
+from steering_core.evaluate.plots import layer_label, named, plot_efficacy, plot_shift, plot_trajectory
+from steering_core.evaluate.settings import MIN_EPISODES_PER_SIDE
 from steering_core.storage.fileio import atomic_path, read_json, write_json
 from steering_core.storage.layout import (
     DOSE_RESPONSE_FILE,
@@ -32,15 +35,20 @@ from steering_core.storage.layout import (
     stream_layer_dir,
 )
 
-logger = logging.getLogger(__name__)
+__all__ = ["layer_label", "pair_record", "write_layer_summary", "write_pair_outputs", "write_pathways"]
 
-EVAL_FORMAT_VERSION = 1
-_PER_DIRECTION = ("efficacy", "efficacy_ci", "cosine", "cosine_ci", "contrast_shift", "contrast_shift_ci", "z")
-_AXIS_NAMES = ("x", "y", "z")
+EVAL_FORMAT_VERSION = 2
+_CURVES = tuple(f"{metric}{ci}" for metric in ("efficacy", "efficacy_positive", "efficacy_negative", "efficacy_raw",
+                                                "efficacy_positive_raw", "efficacy_negative_raw", "cosine",
+                                                "contrast_shift") for ci in ("", "_ci"))  # (dirs, alphas[, 2])
 ALPHA_UNITS = {
-    "lm": "mean instruction-token residual norm at the layer / ||d||; alphas_vector_units: multiples of d",
-    "expert": "mean decision-residual norm at the expert layer / ||d||; alphas_vector_units: multiples of d",
+    "alphas": "R, the mean residual norm of the training rows at the steered positions (instruction tokens; "
+              "action tokens in the expert): α = 1 adds a vector of length R",
+    "alphas_vector_units": "multiples of the stored direction d, α·R/‖d‖: what the server's `alpha` multiplies "
+                           "(`\"alpha_units\": \"vector\"`)",
 }
+# phase 3's files the server offers, by the evaluation's direction name (the language model only)
+SERVED = {RESIDUAL: "residual", MEAN_DIFFERENCE: "mean_difference"}
 
 
 def _json_floats(tensor: torch.Tensor) -> Any:
@@ -54,38 +62,68 @@ def _json_floats(tensor: torch.Tensor) -> Any:
 
 def best_alpha_index(efficacy: torch.Tensor, zero_index: int) -> int:
     """Return the index of the α ≠ 0 whose efficacy is closest to 1 (the instruction swap); ties keep the first."""
-    distance = (efficacy.double() - 1.0).abs().clone()
+    distance = (efficacy.double() - 1.0).abs().nan_to_num(math.inf).clone()
     distance[zero_index] = math.inf
     return int(torch.argmin(distance))
 
 
+def request_entry(head: dict[str, Any], name: str, alpha_vector: float) -> dict[str, Any] | None:
+    """Return the server request's `steering` entry that pushes a negative-task frame as the evaluation did,
+    or None for a direction the server does not offer."""
+    if head["stream"] != "lm" or name not in SERVED:
+        return None
+    return {"pair": head["pair"], "layer": head["layer"], "direction": SERVED[name], "alpha": alpha_vector,
+            "alpha_units": "vector"}
+
+
+def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[float, ...], zero_index: int,
+                     metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
+    """Return one direction's curves and its `best` entry (cross-fitted efficacy, p-values, request)."""
+    groups = list(ACTION_GROUPS)
+    entry = {key: _json_floats(metrics[key][d]) for key in _CURVES}
+    entry |= {key: _json_floats(metrics[key][d]) for key in ("z", "p_random", "p_permuted") if key in metrics}
+    entry["efficacy_half"] = _json_floats(metrics["efficacy_half"][:, d])
+    entry["alphas_vector_units"] = _json_floats(vector_scale[d])
+    for key in ("shift", "shift_ci", "shift_raw"):
+        entry[key] = {g: _json_floats(metrics[key][d, :, i]) for i, g in enumerate(groups)}
+    best = best_alpha_index(metrics["efficacy"][d], zero_index)
+    alpha_vector = float(vector_scale[d, best])
+    entry["best"] = {
+        "alpha": alphas[best], "alpha_vector": alpha_vector, "reversed": alphas[best] < 0,
+        **{key.replace("crossfit", "efficacy"): _json_floats(metrics[key][d]) for key in
+           ("crossfit", "crossfit_ci", "crossfit_positive", "crossfit_positive_ci", "crossfit_negative",
+            "crossfit_negative_ci")},
+        "selected_alphas": [alphas[int(i)] for i in metrics["crossfit_alpha_index"][:, d]],
+        "efficacy_all_frames": entry["efficacy"][best],
+        **{key: _json_floats(metrics[f"best_{key}"][d]) for key in ("z", "p_random", "p_permuted")
+           if f"best_{key}" in metrics},
+        "shift": {g: entry["shift"][g][best] for g in groups},
+        "shift_raw": {g: entry["shift_raw"][g][best] for g in groups},
+        "contrast_shift": entry["contrast_shift"][best],
+        "request": request_entry(head, name, alpha_vector),
+    }
+    return entry
+
+
 def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...], zero_index: int,
                 metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
-    """Return the JSON of one pair's dose-response (`head` holds pair, layer, split, settings, frames...)."""
+    """Return the JSON of one pair's dose-response (`head` holds pair, layer, stream, split, frames, selection...)."""
     groups = list(ACTION_GROUPS)
-    directions = {}
-    for d, name in enumerate(names):
-        entry = {key: _json_floats(metrics[key][d]) for key in _PER_DIRECTION}
-        entry["alphas_vector_units"] = _json_floats(vector_scale[d])
-        entry["shift"] = {g: _json_floats(metrics["shift"][d, :, i]) for i, g in enumerate(groups)}
-        entry["shift_ci"] = {g: _json_floats(metrics["shift_ci"][d, :, i]) for i, g in enumerate(groups)}
-        best = best_alpha_index(metrics["efficacy"][d], zero_index)
-        entry["best"] = {"alpha": alphas[best], "efficacy": entry["efficacy"][best],
-                         "efficacy_ci": entry["efficacy_ci"][best], "z": entry["z"][best],
-                         "shift": {g: entry["shift"][g][best] for g in groups}}
-        directions[name] = entry
-    random = [n for n in names if n.startswith(RANDOM_PREFIX)]
+    directions = {name: _direction_entry(d, name, head, alphas, zero_index, metrics, vector_scale)
+                  for d, name in enumerate(names)}
     return {
         "format_version": EVAL_FORMAT_VERSION,
         **head,
         "alphas": list(alphas),
-        "alpha_units": ALPHA_UNITS[head.get("stream", "lm")],
+        "alpha_units": ALPHA_UNITS,
         "metric": "efficacy",
         "action_groups": groups,
         "directions": directions,
-        "random": {"names": random, **{k.removeprefix("random_"): _json_floats(metrics[k])
-                                       for k in ("random_mean", "random_std", "random_min", "random_max")}},
+        "random": {"names": [n for n in names if n.startswith("random_")],
+                   "permuted": [n for n in names if n.startswith("permuted_")],
+                   **{key: _json_floats(metrics[f"random_{key}"]) for key in ("mean", "std", "low", "high")}},
         "swap": {"shift": dict(zip(groups, _json_floats(metrics["swap_shift"]), strict=True)),
+                 "shift_raw": dict(zip(groups, _json_floats(metrics["swap_shift_raw"]), strict=True)),
                  "contrast_shift": _json_floats(metrics["swap_contrast_shift"])},
     }
 
@@ -96,101 +134,40 @@ def write_pair_outputs(folder: Path, record: dict[str, Any], tensors: dict[str, 
     save_file({k: v.contiguous() for k, v in sorted(tensors.items())}, str(folder / f"{DOSE_RESPONSE_FILE}.safetensors"))
     record = {**record, "plots": {"efficacy": EFFICACY_PLOT, "shift": SHIFT_PLOT, "trajectory": TRAJECTORY_PLOT}}
     write_json(folder / f"{DOSE_RESPONSE_FILE}.json", record)
-    _plot_efficacy(folder / EFFICACY_PLOT, record)
-    _plot_shift(folder / SHIFT_PLOT, record)
-    _plot_trajectory(folder / TRAJECTORY_PLOT, record, tensors)
+    plot_efficacy(folder / EFFICACY_PLOT, record)
+    plot_shift(folder / SHIFT_PLOT, record)
+    plot_trajectory(folder / TRAJECTORY_PLOT, record, tensors)
 
 
-def _named(record: dict[str, Any]) -> list[str]:
-    """Return the non-random directions of a record."""
-    return [n for n in record["directions"] if not n.startswith(RANDOM_PREFIX)]
+# ----------------------------------------------------------------------------- per layer
 
 
-def _plot_efficacy(path: Path, record: dict[str, Any]) -> None:
-    """Efficacy vs α per direction, intervals as error bars, the random band (min..max) shaded."""
-    alphas, random = record["alphas"], record["random"]
-    fig = figure((6.4, 4.2))
-    ax = fig.add_subplot()
-    ax.fill_between(alphas, random["min"], random["max"], color="0.85", label=f"random ({len(random['names'])})")
-    ax.plot(alphas, random["mean"], color="0.6", linestyle="--", linewidth=1)
-    for name in _named(record):
-        entry = record["directions"][name]
-        low = [v - ci[0] for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
-        high = [ci[1] - v for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
-        ax.errorbar(alphas, entry["efficacy"], yerr=[low, high], marker="o", markersize=3, capsize=2, label=name)
-    ax.axhline(1.0, color="k", linewidth=0.6, linestyle=":")
-    ax.set(xlabel="α (× mean residual norm / ‖d‖)", ylabel="efficacy (1 = instruction swap)",
-           title=f"{record['pair']}, {_layer_label(record)}")
-    ax.legend(fontsize=7)
-    save_png(fig, path)
-
-
-def _plot_shift(path: Path, record: dict[str, Any]) -> None:
-    """Mean action shift ‖Δa‖ per action group vs α, one panel per non-random direction."""
-    names = _named(record)
-    fig = figure((3.2 * len(names), 3.4))
-    for i, name in enumerate(names):
-        ax = fig.add_subplot(1, len(names), i + 1)
-        for group, values in record["directions"][name]["shift"].items():
-            ax.plot(record["alphas"], values, marker="o", markersize=3, label=group)
-        ax.set(xlabel="α", ylabel="mean ‖Δa‖ over the horizon" if i == 0 else None, title=name)
-        ax.title.set_fontsize(8)
-    fig.axes[0].legend(fontsize=7)
-    save_png(fig, path)
-
-
-def layer_label(layer: int, stream: str) -> str:
-    """Return `layer L` (language model) or `expert layer K` (action expert): task run names, titles, logs."""
-    return ("expert " if stream == "expert" else "") + f"layer {layer}"
-
-
-def _layer_label(record: dict[str, Any]) -> str:
-    return layer_label(record["layer"], record.get("stream", "lm"))
-
-
-def _plot_trajectory(path: Path, record: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
-    """x, y, z over the horizon of the first negative-task frame, seed 0: unsteered (its own instruction),
-    the first direction (residual_direction, decision_mean_difference) at its best α, and with the positive
-    task's instruction (the swap)."""
-    names, direction = list(record["directions"]), 0
-    best = record["alphas"].index(record["directions"][names[0]]["best"]["alpha"])
-    zero = record["alphas"].index(0.0)
-    f = next(i for i, frame in enumerate(record["frames"]) if frame["side"] == "negative")
-    steered, swap = tensors["actions"], tensors["swap_actions"]
-    curves = {"α = 0": steered[direction, zero, f, 0], f"{names[0]}, α = {record['alphas'][best]:g}":
-              steered[direction, best, f, 0], "positive instruction (swap)": steered[direction, zero, f, 0] + swap[f, 0]}
-    fig = figure((9.0, 3.0))
-    for axis, label in enumerate(_AXIS_NAMES):
-        ax = fig.add_subplot(1, 3, axis + 1)
-        for name, actions in curves.items():
-            ax.plot(actions[:, axis].tolist(), marker=".", label=name)
-        ax.set(xlabel="action step", ylabel=f"Δ{label}")
-    fig.axes[0].legend(fontsize=7)
-    frame = record["frames"][f]
-    fig.suptitle(f"episode {frame['episode_index']} frame {frame['frame_index']} ({frame['side']} task)", fontsize=9)
-    save_png(fig, path)
-
-
-def _add_notes(notes: list[str], record: dict[str, Any]) -> None:
-    """Append a record's notes (the settings' note, the in-sample warning) not yet in `notes`."""
-    notes += [n for n in (record.get("note"), record.get("in_sample_note")) if n and n not in notes]
-
-
-def _note_lines(notes: list[str]) -> list[str]:
-    """Return the notes as bold markdown lines, then a blank line (nothing without notes)."""
-    return [f"**{note}**" for note in notes] + ([""] if notes else [])
+def record_warnings(record: dict[str, Any]) -> list[str]:
+    """Return the record's notes and warnings: the settings' note, in-sample, too few episodes, shared halves."""
+    notes = [n for n in (record.get("note"), record.get("in_sample_note"), record.get("positions_note"),
+                         record.get("null", {}).get("note")) if n]
+    episodes = record["episodes"]
+    if min(episodes.values()) < MIN_EPISODES_PER_SIDE:
+        notes.append(f"{record['pair']}: {episodes['positive']} positive / {episodes['negative']} negative held-out "
+                     f"episodes; below {MIN_EPISODES_PER_SIDE} per side the episode bootstrap has too few distinct "
+                     "resamples: intervals unreliable")
+    if record["selection"]["by"] == "frames":
+        notes.append(f"{record['pair']}: a side has one held-out episode, so the selection and report halves split "
+                     "its frames (not independent)")
+    return notes
 
 
 def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
     """Write summary.json and summary.md of one layer from its pairs' dose_response.json; return the .md path."""
-    rows, notes = [], []
+    rows, notes, plots = [], [], {}
     for pair in pair_names:
         record = read_json(layer_path / pair / f"{DOSE_RESPONSE_FILE}.json")
-        _add_notes(notes, record)
-        for name in _named(record):
-            best = record["directions"][name]["best"]
-            rows.append({"pair": pair, "direction": name, **best})
-    summary = {"format_version": EVAL_FORMAT_VERSION, "layer": layer_path.name, "notes": notes, "rows": rows}
+        notes += [n for n in record_warnings(record) if n not in notes]
+        plots[pair] = f"{pair}/{EFFICACY_PLOT}"
+        for name in named(record):
+            rows.append({"pair": pair, "direction": name, **record["directions"][name]["best"]})
+    summary = {"format_version": EVAL_FORMAT_VERSION, "layer": layer_path.name, "notes": notes, "rows": rows,
+               "plots": plots}
     write_json(layer_path / SUMMARY_JSON, summary)
     md_path = layer_path / SUMMARY_MD
     with atomic_path(md_path) as tmp:
@@ -198,46 +175,90 @@ def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
     return md_path
 
 
-def _fmt(value: float | None) -> str:
+def fmt(value: float | None) -> str:
+    """Return a number with 3 decimals, or – for a missing one."""
     return "–" if value is None else f"{value:.3f}"
 
 
+def with_ci(value: float | None, ci: list[float | None]) -> str:
+    """Return `value [low, high]`."""
+    return f"{fmt(value)} [{fmt(ci[0])}, {fmt(ci[1])}]"
+
+
+def alpha_text(row: dict[str, Any]) -> str:
+    """Return `α (R) / α (vector)` with the reversed flag."""
+    return f"{row['alpha']:g} / {row['alpha_vector']:.4g}" + (" reversed?" if row["reversed"] else "")
+
+
+SELECTION_TEXT = (
+    "Best α (in units of R, the mean residual norm at the steered positions / in multiples of the stored vector, "
+    "what the server multiplies): the α ≠ 0 whose efficacy over all held-out frames is closest to 1; a negative "
+    "one is flagged `reversed?` (the direction pushes away from the task it names). Efficacy (action std units; "
+    "1 = steering reproduces the instruction swap, 0 = no effect) is cross-fitted: α is chosen on one half of "
+    "the held-out episodes and read on the other, both ways, averaged. Every frame is steered toward the other "
+    "task; `positive`/`negative` are the frames of that task. 95% intervals resample episodes. p: rank among the "
+    "null directions (random ones with the training rows' covariance; episode labels permuted), the same "
+    "selection applied to each, (1 + #null ≥ observed) / (1 + N).")
+
+
 def summary_markdown(summary: dict[str, Any]) -> str:
-    """Return the summary.md text: notes, then one table row per pair and direction."""
+    """Return the summary.md text: notes, the table, the request entries, the shifts and the plots."""
     groups = list(ACTION_GROUPS)
     lines = [f"# Steering evaluation, {summary['layer']}", ""]
-    lines += _note_lines(summary["notes"])
-    lines += [
-        "Best α: the α ≠ 0 whose efficacy is closest to 1 (steering reproduces the instruction swap); z: efficacy "
-        "against the random directions' band at that α; shift: mean ‖Δa‖ over the horizon per action group.", "",
-        "| pair | direction | best α | efficacy [95% CI] | z vs random | " + " | ".join(groups) + " |",
-        "|---|---|---|---|---|" + "---|" * len(groups),
-    ]
+    lines += [f"**{note}**" for note in summary["notes"]] + ([""] if summary["notes"] else [])
+    lines += [SELECTION_TEXT, "", "| pair | direction | α (R / vector) | efficacy [95% CI] | positive-task frames | "
+              "negative-task frames | p random | p permuted |", "|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
-        low, high = row["efficacy_ci"]
-        lines.append(f"| {row['pair']} | {row['direction']} | {row['alpha']:g} | {_fmt(row['efficacy'])} "
-                     f"[{_fmt(low)}, {_fmt(high)}] | {_fmt(row['z'])} | "
-                     + " | ".join(_fmt(row["shift"][g]) for g in groups) + " |")
+        lines.append(f"| {row['pair']} | {row['direction']} | {alpha_text(row)} | "
+                     f"{with_ci(row['efficacy'], row['efficacy_ci'])} | "
+                     f"{with_ci(row['efficacy_positive'], row['efficacy_positive_ci'])} | "
+                     f"{with_ci(row['efficacy_negative'], row['efficacy_negative_ci'])} | "
+                     f"{fmt(row.get('p_random'))} | {fmt(row.get('p_permuted'))} |")
+    requests = [row for row in summary["rows"] if row["request"] is not None]
+    if requests:
+        lines += ["", "Server request entry of each row (`steering`: pushes a negative-task frame toward the "
+                      "positive task, as evaluated; negate `alpha` for the other way):", ""]
+        lines += [f"- {row['pair']}, {row['direction']}: `{json.dumps(row['request'])}`" for row in requests]
+    lines += ["", "Action shift at the best α, mean ‖Δa‖ over the horizon in action std units (raw units in "
+                  "dose_response.json); contrast: the contrast state axis's rate toward the other task:", "",
+              "| pair | direction | " + " | ".join(groups) + " | contrast |", "|---|---|" + "---|" * (len(groups) + 1)]
+    for row in summary["rows"]:
+        lines.append(f"| {row['pair']} | {row['direction']} | " + " | ".join(fmt(row["shift"][g]) for g in groups)
+                     + f" | {fmt(row['contrast_shift'])} |")
+    lines += [""] + [f"![{pair}]({path})" for pair, path in summary["plots"].items()]
     return "\n".join(lines) + "\n"
 
 
-def _from_swap(best: dict[str, Any]) -> float:
-    """Return how far a `best` entry's efficacy is from 1 (the instruction swap); a missing one is farthest."""
-    return math.inf if best["efficacy"] is None else abs(best["efficacy"] - 1.0)
+# ----------------------------------------------------------------------------- pathways
 
 
-def best_named(record: dict[str, Any]) -> tuple[str, dict[str, Any]]:
-    """Return the non-random direction whose efficacy at its best α is closest to 1, and its `best` entry."""
-    name = min(_named(record), key=lambda n: _from_swap(record["directions"][n]["best"]))
-    return name, record["directions"][name]["best"]
+def cross_fitted_choice(candidates: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Return the cross-fitted best of (layer, direction, α) candidates, each with `efficacy_half` (2, alphas).
+
+    On each half the candidate and α ≠ 0 closest to 1 is chosen and its efficacy read on the other half;
+    `efficacy` is the mean of both reads, `chosen` the two choices (selected on half 0, on half 1).
+    """
+    if not candidates:
+        return None
+    chosen, reads = [], []
+    for half in (0, 1):
+        options = [(abs(c["efficacy_half"][half][a] - 1.0), i, a) for i, c in enumerate(candidates)
+                   for a, alpha in enumerate(c["alphas"]) if alpha != 0 and c["efficacy_half"][half][a] is not None]
+        if not options:
+            return None
+        _, i, a = min(options)
+        c = candidates[i]
+        chosen.append({"layer": c["layer"], "direction": c["direction"], "alpha": c["alphas"][a],
+                       "alpha_vector": c["alphas_vector_units"][a]})
+        reads.append(c["efficacy_half"][1 - half][a])
+    value = None if None in reads else sum(reads) / 2
+    return {"chosen": chosen, "efficacy_reads": reads, "efficacy": value}
 
 
 def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: list[str]) -> Path:
     """Write pathways.json and pathways.md: per pair, the best language-model direction against the best
-    action-expert one; `layers` are the evaluated (layer, stream). Return the .md path.
-
-    "Best" is the direction (and layer) whose efficacy at its best α is closest to 1, as in the layer summaries.
-    """
+    action-expert one, each chosen (layer, direction, α) on one half of the held-out episodes and read on the
+    other, both ways; `layers` are the evaluated (layer, stream). Return the .md path."""
     rows, notes = [], []
     for pair in pair_names:
         row: dict[str, Any] = {"pair": pair}
@@ -246,10 +267,11 @@ def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: l
             for layer, where in layers:
                 if where == stream:
                     record = read_json(eval_root / stream_layer_dir(layer, stream) / pair / f"{DOSE_RESPONSE_FILE}.json")
-                    _add_notes(notes, record)
-                    name, best = best_named(record)
-                    candidates.append({"layer": layer, "direction": name, **best})
-            row[stream] = min(candidates, key=_from_swap, default=None)
+                    notes += [n for n in record_warnings(record) if n not in notes]
+                    candidates += [{"layer": layer, "direction": name, "alphas": record["alphas"],
+                                    **{k: record["directions"][name][k] for k in ("efficacy_half", "alphas_vector_units")}}
+                                   for name in named(record)]
+            row[stream] = cross_fitted_choice(candidates)
         rows.append(row)
     pathways = {"format_version": EVAL_FORMAT_VERSION, "notes": notes, "rows": rows}
     write_json(eval_root / f"{PATHWAYS_FILE}.json", pathways)
@@ -259,28 +281,30 @@ def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: l
     return md_path
 
 
+def _choice_text(choice: dict[str, Any]) -> str:
+    return f"{choice['direction']}, layer {choice['layer']}, α = {choice['alpha']:g} R ({choice['alpha_vector']:.4g} d)"
+
+
 def pathways_markdown(pathways: dict[str, Any]) -> str:
     """Return the pathways.md text: one row per pair, the language model's best direction beside the expert's."""
     lines = ["# Steering pathways: language model vs action expert", ""]
-    lines += _note_lines(pathways["notes"])
+    lines += [f"**{note}**" for note in pathways["notes"]] + ([""] if pathways["notes"] else [])
     lines += [
-        "Per pair, the direction (over layers) whose efficacy at its best α is closest to 1 (the instruction "
-        "swap), in the language model (SAE and mean-difference directions at the instruction tokens) and in the "
-        "action expert (mean difference of the decision rows, at every action token); z: against the random "
-        "directions of that layer.", "",
-        "| pair | LM direction | LM efficacy [95% CI] | LM z | expert direction | expert efficacy [95% CI] | expert z |",
-        "|---|---|---|---|---|---|---|",
+        "Per pair and pathway, the (layer, direction, α) whose efficacy is closest to 1 (the instruction swap) on "
+        "one half of the held-out episodes, read on the other half, both ways: language model (SAE and "
+        "mean-difference directions at the instruction tokens) and action expert (mean difference of the decision "
+        "rows, at every action token). Efficacy: the mean of the two reads (action std units).", "",
+        "| pair | LM: chosen on half 0 / on half 1 | LM efficacy | expert: chosen on half 0 / on half 1 | "
+        "expert efficacy |", "|---|---|---|---|---|",
     ]
     for row in pathways["rows"]:
         cells = [row["pair"]]
         for stream in ("lm", "expert"):
             best = row[stream]
             if best is None:
-                cells += ["–", "–", "–"]
+                cells += ["–", "–"]
                 continue
-            low, high = best["efficacy_ci"]
-            cells += [f"{best['direction']}, layer {best['layer']}, α = {best['alpha']:g}",
-                      f"{_fmt(best['efficacy'])} [{_fmt(low)}, {_fmt(high)}]",
-                      _fmt(best["z"])]
+            texts = [_choice_text(c) for c in best["chosen"]]
+            cells += [texts[0] if texts[0] == texts[1] else " / ".join(texts), fmt(best["efficacy"])]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

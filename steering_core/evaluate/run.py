@@ -255,10 +255,9 @@ def evaluate_job(
     )
     check_slices_split(pair.slices, pair.split.holdout_episodes, job.split)
     if job.stream == "expert":
-        directions = decision_directions(pair.slices, random_count=settings.random_directions, seed=settings.seed)
+        directions = decision_directions(pair.slices)
     else:
-        directions = pair_directions(job.directions, sae, top_k=settings.top_k,
-                                     random_count=settings.random_directions, seed=settings.seed)
+        directions = pair_directions(job.directions, sae, top_k=settings.top_k)
     policy = policy if policy is not None else load_policy(model, settings.device, settings.dtype)
     width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
     from steering_core.pi05.steering import Steering

@@ -9,10 +9,13 @@ from pydantic import AfterValidator, Field
 
 from steering_core.storage.schema import StrictModel
 
-# α in units of (mean instruction-token residual norm at the layer) / ‖d‖: α = 1 adds a vector as long as a
-# typical residual, whatever the direction's own norm.
+# α in units of R, the mean residual norm of the training rows at the steered positions: α = 1 adds a vector as
+# long as a typical residual, whatever the direction's own norm (α_vector = α · R / ‖d‖ multiplies d itself).
 DEFAULT_ALPHAS = (-8.0, -4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0, 8.0)
 MIN_RANDOM_DIRECTIONS = 8  # the null band needs enough draws for a mean and a spread
+# Below this many held-out episodes per task the episode bootstrap has too few distinct resamples (C(2n-1, n):
+# 35 at n = 4, 10 at n = 3, 1 at n = 1) for a percentile interval to cover: the summary warns.
+MIN_EPISODES_PER_SIDE = 5
 
 
 def _grid_with_zero(alphas: tuple[float, ...]) -> tuple[float, ...]:
@@ -39,10 +42,11 @@ class EvaluateSettings(StrictModel):
     max_frames: int = Field(32, ge=2)          # evaluation frames per pair, shared by both tasks
     alphas: AlphaGrid = DEFAULT_ALPHAS       # must hold 0 (the unsteered reference)
     noise_seeds: int = Field(4, gt=0)          # flow-matching noise draws per frame, the same across α
-    random_directions: int = Field(8, ge=MIN_RANDOM_DIRECTIONS)  # null band: random directions of equal norm
+    random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS)  # null: directions drawn from the rows' covariance
+    permutations: int = Field(8, ge=0)         # null: mean differences with episode labels shuffled between tasks
     top_k: int = Field(20, gt=0)               # SAE latents kept for the top-k direction
     num_steps: int = Field(10, gt=0)           # denoising steps of sample_actions
-    bootstrap: int = Field(1000, gt=0)         # resamples of the frames for 95% intervals
+    bootstrap: int = Field(1000, gt=0)         # resamples of the episodes (frames nested) for 95% intervals
     seed: int = 0                              # random directions, noise and bootstrap
     batch_size: int = Field(8, gt=0)           # frames per policy sweep call
     entries_per_call: int = Field(40, gt=0)    # steered (direction, α) entries per sweep call (bounds GPU memory)

@@ -4,7 +4,9 @@ Per batch of frames of one task and per noise seed, one `sample_actions_sweep` c
 unsteered entry (α = 0, shared by every direction) and one entry per (direction, α ≠ 0), so the
 prefix below the steered layer is computed once for all of them; one `sample_actions` call with
 the other task's instruction gives the swap reference. No frame runs twice with the same inputs.
-Steering adds α · R · d / ‖d‖ (R: the layer's mean residual norm), i.e. α · R / ‖d‖ in units of the
+Every frame is steered toward the other task: a negative-task frame at +α, a positive-task frame at −α
+(d points from the negative task to the positive one), against its own swap (other − own instruction).
+Steering adds ±α · R · d / ‖d‖ (R: the layer's mean residual norm), i.e. α · R / ‖d‖ in units of the
 direction itself: in the language model (`stream="lm"`) at the instruction tokens of the prefix, in the
 action expert (`stream="expert"`) at every action token of every denoising step.
 """
@@ -31,6 +33,7 @@ class SweepPolicy(Protocol):
 
     action_horizon: int
     action_dim: int
+    norm_stats: dict[str, Any]  # feature -> NormStats; `actions` gives the std the metrics divide by
 
     def sample_actions(self, images: list[torch.Tensor], image_masks: list[torch.Tensor], tokens: torch.Tensor,
                        token_mask: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int = 10,
@@ -54,7 +57,8 @@ class Prompt:
 
 @dataclass
 class SweepActions:
-    """Robot actions of a dose-response: steered (dirs, alphas, frames, seeds, H, 7), swap (frames, seeds, H, 7)."""
+    """Robot actions of a dose-response: steered (dirs, alphas, frames, seeds, H, 7) toward the other task,
+    swap (frames, seeds, H, 7) = the other task's instruction − the frame's own."""
 
     steered: torch.Tensor
     swap: torch.Tensor
@@ -120,12 +124,13 @@ def run_sweep(
         where = ({"stream": "expert"} if stream == "expert" else
                  {"token_mask": mine.instruction_mask.expand(size, -1).to(device)})
         theirs = Prompt(*(t.to(device) for t in (theirs.tokens, theirs.token_mask, theirs.instruction_mask)))
+        toward = toward_other(side)
         for s in range(noise_seeds):
             noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
             for number, chunk in enumerate(chunks):
                 # the unsteered entry rides with the first chunk only: it is shared by every direction
                 entries = ([None] if number == 0 else []) + [
-                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=alphas[a], **where)
+                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=toward * alphas[a], **where)
                     for d, a in chunk]
                 actions = policy.sample_actions_sweep(inputs["images"], inputs["image_masks"], tokens, token_mask,
                                                       entries, noise=noise, num_steps=num_steps)  # (E, B, H, 32)
@@ -141,10 +146,13 @@ def run_sweep(
             swapped = policy.sample_actions(inputs["images"], inputs["image_masks"], theirs.tokens.expand(size, -1),
                                             theirs.token_mask.expand(size, -1), noise=noise, num_steps=num_steps)
             other[index, s] = _robot(policy, swapped)
-    sign = torch.tensor([1.0 if f.side == "negative" else -1.0 for f in frames], dtype=torch.float64)
-    swap = (other - own) * sign[:, None, None, None]  # positive-instruction actions minus negative-instruction ones
     logger.info("sweep: %d frames x %d seeds x %d entries", len(frames), noise_seeds, 1 + len(nonzero))
-    return SweepActions(steered=steered, swap=swap, own=own)
+    return SweepActions(steered=steered, swap=other - own, own=own)
+
+
+def toward_other(side: str) -> float:
+    """Return the sign of α that pushes a frame of `side` toward the other task: +1 negative, −1 positive."""
+    return 1.0 if side == "negative" else -1.0
 
 
 def _robot(policy: SweepPolicy, actions: torch.Tensor) -> torch.Tensor:
