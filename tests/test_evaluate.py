@@ -490,17 +490,24 @@ def test_null_directions_follow_the_rows_covariance_and_permute_episode_labels()
     assert all(float(v.norm()) == pytest.approx(3.0, rel=1e-5) for v in draws)
     assert sum(abs(float(v[0])) / 3.0 for v in draws) / 32 > 0.9   # matched anisotropy: mostly axis 0
     assert max(abs(float(v[1])) for v in draws) / 3.0 < 0.2         # the mean difference is not in it
+    constant = [torch.ones(5, 16), -torch.ones(5, 16)]  # no row differs from its task's mean (a planted concept)
+    flat = torch.stack(covariance_directions(constant, 3.0, 32, seed=0))
+    assert torch.isfinite(flat).all() and torch.allclose(flat.norm(dim=1), torch.full((32,), 3.0))
+    assert flat.abs().argmax(dim=1).unique().numel() > 4  # isotropic draws, not one repeated axis
     # permutation: each direction is the mean difference of some relabelling keeping 2 "positive" episodes
     ep_rows = [torch.full((2, 3), float(e)) + torch.eye(3)[e % 3] for e in range(4)]  # episode e: rows of value e
     slice_rows = [torch.cat(ep_rows[:2]), torch.cat(ep_rows[2:])]
     episodes = [torch.tensor([0, 0, 1, 1]), torch.tensor([2, 2, 3, 3])]
-    expected = []
+    real = slice_rows[0].mean(0) - slice_rows[1].mean(0)
+    expected = []  # in units of the real difference: a shuffle keeps its size relative to it
     for chosen in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
         pos = torch.cat([ep_rows[e] for e in chosen]).mean(0)
         neg = torch.cat([ep_rows[e] for e in range(4) if e not in chosen]).mean(0)
-        expected.append((pos - neg) / (pos - neg).norm())
-    for v in permuted_directions(slice_rows, episodes, 1.0, 8, seed=0):
+        expected.append((pos - neg) / real.norm())
+    shuffles = permuted_directions(slice_rows, episodes, 1.0, 8, seed=0)
+    for v in shuffles:
         assert min(float((v - e).norm()) for e in expected) < 1e-5
+    assert max(float(v.norm()) for v in shuffles) <= 1.0 + 1e-6  # here no split is larger than the real one
     # empirical p: (1 + #null ≥ value) / (1 + N)
     values = torch.tensor([3.0, 1.0, 2.0, 0.5])
     out = null_comparison(values, [1, 2, 3])

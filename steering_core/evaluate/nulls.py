@@ -5,10 +5,14 @@
   (width, width) matrix. The two tasks' mean difference is left out, so a draw is ordinary variation, not
   the contrast.
 - `permuted_NN`: the mean difference with the training episodes' task labels shuffled (as many "positive"
-  episodes as the positive task has), from the slices' per-row `episode_index`.
+  episodes as the positive task has), from the slices' per-row `episode_index`. It keeps its size relative to
+  the real mean difference: a shuffle that mixes the tasks shrinks the difference, and steering pushes it
+  that much less at the same α (`push`), so a real concept beats its shuffles even when every shuffle points
+  the same way (as when the rows vary only between the tasks).
 
-Steering adds α · R · d/‖d‖, so a direction's norm does not change its push; each null is stored with the
-reference direction's norm (norm-matched) so that α in vector units reads the same.
+Steering adds α · R · push · d/‖d‖ (push 1 but for the permuted null), so a random direction's norm does not
+change its push; each null is stored with the reference direction's norm times its push, so that α in vector
+units reads the same.
 """
 
 from __future__ import annotations
@@ -22,17 +26,21 @@ from steering_core.evaluate.directions import PERMUTED, RANDOM, read_slice_episo
 
 def covariance_directions(groups: list[torch.Tensor], norm: float, count: int, seed: int) -> list[torch.Tensor]:
     """Return `count` (width,) float32 draws from the pooled within-group covariance of `groups` (rows, width),
-    each scaled to `norm`."""
+    each scaled to `norm`; isotropic draws when no row differs from its group's mean (a zero covariance)."""
     centred = torch.cat([g.double() - g.double().mean(0) for g in groups])
     generator = torch.Generator().manual_seed(seed)
-    z = torch.randn(count, centred.shape[0], generator=generator, dtype=torch.float64)
-    draws = z @ centred / max(centred.shape[0] - 1, 1) ** 0.5
+    if not bool(centred.any()):  # no row varies within its task: there is no anisotropy to match
+        draws = torch.randn(count, centred.shape[1], generator=generator, dtype=torch.float64)
+    else:
+        z = torch.randn(count, centred.shape[0], generator=generator, dtype=torch.float64)
+        draws = z @ centred / max(centred.shape[0] - 1, 1) ** 0.5
     return [(v * (norm / v.norm())).float() for v in draws]
 
 
 def permuted_directions(rows: list[torch.Tensor], episodes: list[torch.Tensor], norm: float, count: int,
                         seed: int) -> list[torch.Tensor]:
-    """Return `count` mean differences (positive − negative) with the episodes' labels shuffled, each of `norm`.
+    """Return `count` mean differences (positive − negative) with the episodes' labels shuffled, each scaled by
+    norm / ‖real mean difference‖ (so a shuffle half as large as the real difference has norm `norm` / 2).
 
     `rows`/`episodes` are the (positive, negative) slices' rows and per-row episode indices; a shuffle keeps
     the number of positive episodes. Rows are pooled per pseudo-task, as the real mean difference pools them.
@@ -43,13 +51,15 @@ def permuted_directions(rows: list[torch.Tensor], episodes: list[torch.Tensor], 
     sums = torch.zeros(len(ids), all_rows.shape[1], dtype=torch.float64).index_add_(0, inverse, all_rows)
     counts = torch.bincount(inverse, minlength=len(ids)).double()
     positives = len(torch.unique(episodes[0]))
+    real = rows[0].double().mean(0) - rows[1].double().mean(0)
+    scale = norm / float(real.norm()) if real.any() else 0.0
     generator = torch.Generator().manual_seed(seed)
     out = []
     for _ in range(count):
         chosen = torch.zeros(len(ids), dtype=torch.bool)
         chosen[torch.randperm(len(ids), generator=generator)[:positives]] = True
         d = sums[chosen].sum(0) / counts[chosen].sum() - sums[~chosen].sum(0) / counts[~chosen].sum()
-        out.append((d * (norm / d.norm())).float() if d.norm() > 0 else d.float())
+        out.append((d * scale).float())
     return out
 
 

@@ -25,7 +25,7 @@ from steering_core.evaluate.metrics import (
 )
 from steering_core.evaluate.nulls import null_directions
 from steering_core.evaluate.positions import check_positions
-from steering_core.evaluate.report import pair_record, write_pair_outputs
+from steering_core.evaluate.report import best_alpha_index, pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep, toward_other
 from steering_core.reporting.progress import ProgressCallback
@@ -106,15 +106,16 @@ def evaluate_pair(
     scale = action_scale(policy)
     frames = select_frames(pair.manifest, pair.concept_map, pair.split, pair.tasks, settings.max_frames)
     residual_norm = mean_residual_norm(pair.slices)  # R: the α unit
-    nulls, null_note = null_directions(pair.slices, float(next(iter(directions.values())).norm()),
-                                       random_count=settings.random_directions, permutations=settings.permutations,
-                                       seed=settings.seed)
-    directions = directions | nulls
+    reference_norm = float(next(iter(directions.values())).norm())
+    nulls, null_note = null_directions(pair.slices, reference_norm, random_count=settings.random_directions,
+                                       permutations=settings.permutations, seed=settings.seed)
+    directions = directions | {name: v for name, v in nulls.items() if v.any()}
+    push = {name: float(v.norm()) / reference_norm for name, v in directions.items() if name.startswith("permuted_")}
     actions = run_sweep(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
         mean_residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
         num_steps=settings.num_steps, batch_size=settings.batch_size, entries_per_call=settings.entries_per_call,
-        progress=progress, stream=stream,
+        progress=progress, stream=stream, push=push,
     )
     axis = pair.manifest.axis
     means = axis.mean_delta_per_task
@@ -128,8 +129,8 @@ def evaluate_pair(
         halves=torch.tensor(halves), episodes=[f.episode_index for f in frames], zero_index=settings.zero_index,
         samples=settings.bootstrap, seed=settings.seed,
     )
-    metrics |= null_metrics(metrics, names)
-    norms = torch.stack([directions[n].double().norm() for n in names])
+    metrics |= null_metrics(metrics, names, settings.zero_index)
+    norms = torch.stack([directions[n].double().norm() / push.get(n, 1.0) for n in names])
     vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
     head = {
         "pair": pair.name, "layer": layer, "stream": stream, "positive": pair.tasks[0], "negative": pair.tasks[1],
@@ -162,17 +163,26 @@ def evaluate_pair(
     return output_dir
 
 
-def null_metrics(metrics: dict[str, torch.Tensor], names: list[str]) -> dict[str, torch.Tensor]:
-    """Return the random null's band per α, z and p per α against it, and the cross-fitted best's z and p
-    against the random and the permuted nulls (each null direction through the same selection)."""
+def null_metrics(metrics: dict[str, torch.Tensor], names: list[str], zero_index: int) -> dict[str, torch.Tensor]:
+    """Return the random null's band per α, z and p per α against it, and the best's z and p against both nulls.
+
+    Against the random null the cross-fitted best is compared with each random direction's own cross-fitted
+    best (the same selection). The permuted null is pushed at the tested direction's α in vector units, so
+    the best is compared with it at that same α (all frames), where a shuffled, smaller difference pushes less.
+    """
     out: dict[str, torch.Tensor] = {}
+    best_index = torch.tensor([best_alpha_index(row, zero_index) for row in metrics["efficacy"]])
     for kind in ("random", "permuted"):
         rows = [i for i, n in enumerate(names) if n.startswith(f"{kind}_")]
         if not rows:
             continue
-        per_alpha, best = null_comparison(metrics["efficacy"], rows), null_comparison(metrics["crossfit"], rows)
-        out[f"p_{kind}"], out[f"best_p_{kind}"] = per_alpha["p"], best["p"]
-        if kind == "random":
+        per_alpha = null_comparison(metrics["efficacy"], rows)
+        out[f"p_{kind}"] = per_alpha["p"]
+        if kind == "permuted":
+            out["best_p_permuted"] = per_alpha["p"].gather(1, best_index[:, None])[:, 0]
+        else:
+            best = null_comparison(metrics["crossfit"], rows)
+            out["best_p_random"] = best["p"]
             out["z"], out["best_z"] = per_alpha["z"], best["z"]
             out |= {f"random_{key}": value for key, value in null_band(metrics["efficacy"], rows).items()}
     return out

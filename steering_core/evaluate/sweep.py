@@ -90,6 +90,7 @@ def run_sweep(
     entries_per_call: int,
     progress: ProgressCallback | None = None,  # (policy calls done, in total)
     stream: str = "lm",
+    push: dict[str, float] | None = None,
 ) -> SweepActions:
     """Return the robot actions of every (direction, α, frame, seed) and the instruction-swap reference.
 
@@ -97,9 +98,12 @@ def run_sweep(
     (`make_steering(layer=, vector=, alpha=, stream="expert")` of the action expert); `load(frames)` returns
     {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device); `prompts` maps
     "positive"/"negative" to their prompt. At most `entries_per_call` steered entries go into one sweep call.
+    A direction is added as α · R · push · d/‖d‖ (R = `mean_residual_norm`; `push` 1 unless given).
     """
     names = list(directions)
-    unit = {name: directions[name].float() / directions[name].float().norm() * mean_residual_norm for name in names}
+    push = push or {}
+    unit = {name: directions[name].float() / directions[name].float().norm() * mean_residual_norm * push.get(name, 1.0)
+            for name in names}
     nonzero = [(d, a) for d, name in enumerate(names) for a, alpha in enumerate(alphas) if alpha != 0.0]
     zero = alphas.index(0.0)
     horizon, dim = policy.action_horizon, policy.action_dim

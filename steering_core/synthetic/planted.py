@@ -2,7 +2,8 @@
 
 Two instructions whose tokens pair up one to one. Layer 0 of the language model is made the identity (its
 attention output and MLP down projections zeroed), so resid_post[0] at a language position is the token's
-embedding times √width. The paired tokens' embedding rows are rewritten as u_i ∓ v/2 with u_i ⟂ v and
+embedding times √width; its key and value projections are zeroed too, because the action expert attends to
+every layer's keys and values and layer 0's come from its input, which steering its output cannot change. The paired tokens' embedding rows are rewritten as u_i ∓ v/2 with u_i ⟂ v and
 ‖u_i‖ = (√3/2)‖v‖: every instruction row then has the same norm √width·‖v‖, the two tasks' rows differ by
 exactly d = √width·v at every instruction position, and ‖d‖ equals R, the mean row norm. Adding d at the
 instruction tokens of layer 0 turns one task's prefix into the other's exactly, so the mean-difference
@@ -35,7 +36,8 @@ PLANTED_TASKS = (
 )
 # Repeated in the tokenizer's training text, so each instruction is whole-word pieces of its own.
 PLANTED_CORPUS = tuple(text for text in (PLANTED_POSITIVE, PLANTED_NEGATIVE) for _ in range(50))
-LAYER0_ZEROED = ("self_attn.o_proj.weight", "mlp.down_proj.weight")
+LAYER0_ZEROED = ("self_attn.k_proj.weight", "self_attn.v_proj.weight", "self_attn.o_proj.weight",
+                 "mlp.down_proj.weight")
 
 
 def instruction_pairs(tokenizer: PromptTokenizer, positive: str, negative: str) -> list[tuple[int, int]]:
@@ -57,7 +59,7 @@ def instruction_pairs(tokenizer: PromptTokenizer, positive: str, negative: str) 
 
 def plant_concept(
     checkpoint: str | os.PathLike, tokenizer_path: str | os.PathLike, arch: Pi05Arch, *,
-    positive: str = PLANTED_POSITIVE, negative: str = PLANTED_NEGATIVE, seed: int = 0,
+    positive: str = PLANTED_POSITIVE, negative: str = PLANTED_NEGATIVE, seed: int = 1,
 ) -> torch.Tensor:
     """Rewrite the checkpoint folder's weights so `positive` and `negative` differ by one residual direction at
     layer 0 (module docstring); return that direction d = resid_post[0](positive) − resid_post[0](negative)."""

@@ -1,0 +1,121 @@
+"""The pipeline finds a concept that truly exists (`steering_core.synthetic.planted`), and nothing else.
+
+Two one-word tasks whose layer-0 residuals differ by exactly one direction d, with ‖d‖ = R. Through the real
+filter -> convert -> manifest -> capture -> split -> slice -> steer -> evaluate path (the CLI steps), the
+mean-difference direction must reproduce the instruction swap at α = 1 (efficacy ≈ 1), random directions
+must not, and a pairs config with the concepts reversed must be refused.
+"""
+
+from __future__ import annotations
+
+import json
+import pytest
+import torch
+from helpers_pipeline import run_cli_steps
+from typer.testing import CliRunner
+
+from latent_steering_cli import app
+from steering_core.config import (
+    DatasetSection,
+    EvaluateSection,
+    ModelSection,
+    PairSection,
+    RunConfig,
+    SaeSection,
+    SourcesSection,
+)
+from steering_core.storage.fileio import read_json
+from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
+from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.planted import (
+    PLANTED_CORPUS,
+    PLANTED_LAYER,
+    PLANTED_NEGATIVE,
+    PLANTED_POSITIVE,
+    PLANTED_TASKS,
+    plant_concept,
+)
+from steering_core.synthetic.sae import write_sae_folder
+from steering_core.synthetic.tokenizer import LIBERO_INSTRUCTIONS, write_tokenizer
+
+pytestmark = pytest.mark.slow
+PAIR = "planted"
+
+
+@pytest.fixture(scope="module")
+def planted(tmp_path_factory):
+    """Run the CLI steps on the planted inputs; return (output folder, run config, planted direction)."""
+    root = tmp_path_factory.mktemp("planted")
+    arch = tiny_arch()
+    write_demo_suite(root / "demos", demos_per_task=6, tasks=PLANTED_TASKS,
+                     settings=SyntheticSettings(image_size=32, num_steps=16, length_jitter=2))
+    tokenizer = write_tokenizer(root / "tokenizer.model", [*LIBERO_INSTRUCTIONS, *PLANTED_CORPUS])
+    write_pi05_checkpoint(root / "pi05", arch)
+    direction = plant_concept(root / "pi05", tokenizer, arch)
+    write_sae_folder(root / "sae", d_in=arch.width, d_sae=128, hook_layer=PLANTED_LAYER, seed=0)
+    config = RunConfig(
+        output_root=root / "data", sources=SourcesSection(folders=(root / "demos",)),
+        dataset=DatasetSection(repo_id="planted_lerobot", image_size=32),
+        pairs=(PairSection(name=PAIR, positive=PLANTED_POSITIVE, negative=PLANTED_NEGATIVE),),
+        layers=(PLANTED_LAYER,), model=ModelSection(checkpoint=root / "pi05", tokenizer=tokenizer, arch=arch),
+        sae={PLANTED_LAYER: SaeSection(path=root / "sae")},
+        evaluate=EvaluateSection(holdout_fraction=0.5, max_frames=12, noise_seeds=2, bootstrap=200, batch_size=6,
+                                 device="cpu"),
+    )
+    out = root / "out"
+    run_cli_steps(config, out)
+    return out, config, direction
+
+
+def test_the_mean_difference_is_the_planted_direction(planted):
+    out, _, direction = planted
+    pair = out / "latent_steering" / f"layer{PLANTED_LAYER:02d}" / PAIR
+    summary = read_json(pair / "directions.json")
+    stem = summary["files"]["mean_difference_direction"]
+    from safetensors.torch import load_file
+
+    found = load_file(pair / stem["safetensors"])[stem["tensor"]]
+    torch.testing.assert_close(found, direction, rtol=0, atol=1e-5)
+    assert summary["mean_residual_norm"] == pytest.approx(float(direction.norm()), rel=1e-5)  # ‖d‖ = R
+
+
+def test_evaluation_finds_the_planted_concept_and_nothing_else(planted):
+    out, _, _ = planted
+    record = read_json(out / "steering_eval" / f"layer{PLANTED_LAYER:02d}" / PAIR / "dose_response.json")
+    assert min(record["episodes"].values()) >= 2  # selection and report halves are different episodes
+    at_one = record["alphas"].index(1.0)
+    planted_entry = record["directions"]["mean_difference_direction"]
+    for curve in ("efficacy", "efficacy_positive", "efficacy_negative"):  # both sides reproduce their swap
+        assert planted_entry[curve][at_one] == pytest.approx(1.0, abs=0.02), curve
+    best = planted_entry["best"]
+    assert best["alpha"] == 1.0 and not best["reversed"]
+    assert best["alpha_vector"] == pytest.approx(1.0, rel=1e-4)  # ‖d‖ = R: the same push in both units
+    assert best["efficacy"] == pytest.approx(1.0, abs=0.02)      # cross-fitted: chosen and read on other halves
+    low, high = best["efficacy_ci"]
+    assert low > 0.9 and high < 1.1
+    n_random, n_permuted = len(record["random"]["names"]), len(record["random"]["permuted"])
+    assert n_random >= 32
+    assert best["p_random"] == pytest.approx(1 / (n_random + 1)) and best["p_random"] < 0.05
+    if n_permuted:  # every relabelling of the episodes mixes the tasks, so none reaches the planted direction
+        assert best["p_permuted"] == pytest.approx(1 / (n_permuted + 1))
+    randoms = [record["directions"][name]["efficacy"][at_one] for name in record["random"]["names"]]
+    assert abs(sum(randoms) / len(randoms)) < 0.2 and max(abs(value) for value in randoms) < 0.75  # near 0
+
+
+def test_a_reversed_pairs_config_is_refused(planted, tmp_path):
+    out, config, _ = planted
+    pairs = json.loads((out / f"layer{PLANTED_LAYER}_pairs.json").read_text())
+    entry = pairs["pairs"][0]
+    reversed_entry = {"name": PAIR, "positive_label": entry["negative_label"], "positive_path": entry["negative_path"],
+                      "negative_label": entry["positive_label"], "negative_path": entry["positive_path"]}
+    reversed_file = tmp_path / "reversed_pairs.json"
+    reversed_file.write_text(json.dumps({"pairs": [reversed_entry]}))
+    arch_file = out / "arch.json"
+    result = CliRunner().invoke(app, [
+        "evaluate", "--pairs-config", str(reversed_file), "--layer", str(PLANTED_LAYER), "--sae", "none",
+        "--data-root", str(out), "--lerobot-root", str(out / "libero_lerobot" / config.dataset.repo_id),
+        "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
+        "--arch-file", str(arch_file), "--output-root", str(tmp_path / "eval"), "--device", "cpu"])
+    assert result.exit_code != 0
+    assert "reversed" in result.output.lower() or "positive" in result.output.lower(), result.output
+    assert not (tmp_path / "eval").exists()
