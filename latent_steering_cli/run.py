@@ -72,17 +72,27 @@ def demo_command(
 ) -> None:
     """Generate demos for two concept pairs, a tiny pi0.5, tokenizer and SAEs; run the whole flow; summarise.
 
+    First a one-pair run whose concept is planted in its model checks that the evaluation finds it.
+
     Runs offline on Prefect's embedded server.
     Prefect's state is kept in <output-dir>/.prefect (beside the run config, as for `run`), unless PREFECT_HOME is set.
     Running it again reuses every cached step.
     """
     output_dir = output_dir.resolve()
     prefect_environment(home=output_dir / PREFECT_HOME_DIR)
+    planted_path = demo.build_planted(output_dir / demo.PLANTED_DIR)
     config_path = demo.build_demo(output_dir, demos_per_task=demos_per_task)
     typer.echo(f"inputs written under {output_dir / demo.INPUTS_DIR}; run config {config_path}")
+    typer.echo(f"first, the planted-concept check: run config {planted_path}")
+    planted = load_run_config(planted_path)
+    run_pipeline(planted_path, planted)
     run_config = load_run_config(config_path)
     run_pipeline(config_path, run_config)
     _echo_outcome(run_config, random_sae=True)
+    typer.echo("")
+    typer.echo("The planted-concept check (a concept that truly exists in its model; the right answer is the mean "
+               "difference at α = 1, efficacy 1 on both sides):")
+    typer.echo(demo.format_evaluation(demo.evaluation_answer(planted)))
 
 
 def _echo_outcome(run_config: RunConfig, random_sae: bool) -> None:

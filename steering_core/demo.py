@@ -4,7 +4,9 @@
 drawer of the cabinet, turn on/off the stove), a tiny random pi0.5 checkpoint, a tiny SentencePiece
 tokenizer, one tiny SAE per layer, and the run config (`run.yaml`) that ties them together; the
 CLI then runs the Prefect flow on it. `summarise` reads the per-layer reports back into tables.
-Sizes are tiny on purpose; the real defaults stay in each step's settings.
+`build_planted` writes a second, one-pair run whose concept truly exists in its model
+(`steering_core.synthetic.planted`): the evaluation must find it. Sizes are tiny on purpose; the real
+defaults stay in each step's settings.
 """
 
 from __future__ import annotations
@@ -42,8 +44,16 @@ from steering_core.synthetic.libero import (
     write_demo_suite,
 )
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.planted import (
+    PLANTED_CORPUS,
+    PLANTED_LAYER,
+    PLANTED_NEGATIVE,
+    PLANTED_POSITIVE,
+    PLANTED_TASKS,
+    plant_concept,
+)
 from steering_core.synthetic.sae import write_sae_folder
-from steering_core.synthetic.tokenizer import write_tokenizer
+from steering_core.synthetic.tokenizer import LIBERO_INSTRUCTIONS, write_tokenizer
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +66,9 @@ DEMO_IMAGE_SIZE = 64           # dataset frames (real: 256); the tiny model resi
 DEMO_STEPS = 24                # steps per generated demo (real demos: 100-300)
 # The tiny model is random: its dose-responses exercise the whole phase but measure nothing.
 TINY_MODEL_NOTE = "Tiny random demo model: these numbers mean nothing; on a real checkpoint they are the result."
+PLANTED_NOTE = ("Planted concept: the two tasks' layer-0 rows differ by exactly one direction, so the right answer "
+                "is the mean difference at α = 1 with efficacy 1 on both sides")
+PLANTED_DIR = "planted"        # the planted run's folder inside the demo folder
 DEMO_PAIRS = (
     ("open_vs_close", DRAWER_OPEN, DRAWER_CLOSE),
     ("on_vs_off", STOVE_ON, STOVE_OFF),
@@ -99,6 +112,37 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
                                  note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),
+    )
+    return write_run_config(config, folder / CONFIG_FILE)
+
+
+def build_planted(folder: str | os.PathLike, *, demos_per_task: int = 6) -> Path:
+    """Write the planted-concept run (inputs not already there, and its run config) under `folder`; return the
+    config path. Half the episodes are held out, so selection and report halves hold different episodes."""
+    folder = Path(folder).resolve()
+    inputs = folder / INPUTS_DIR
+    arch = tiny_arch()
+    if not (inputs / "demos").is_dir():
+        write_demo_suite(inputs / "demos", demos_per_task=demos_per_task, tasks=PLANTED_TASKS,
+                         settings=SyntheticSettings(image_size=32, num_steps=16, length_jitter=2))
+    tokenizer, checkpoint, sae = inputs / "tokenizer.model", inputs / "pi05_planted", inputs / "sae"
+    if not tokenizer.is_file():
+        write_tokenizer(tokenizer, [*LIBERO_INSTRUCTIONS, *PLANTED_CORPUS])
+    if not checkpoint.is_dir():
+        write_pi05_checkpoint(checkpoint, arch)
+        plant_concept(checkpoint, tokenizer, arch)
+    if not sae.is_dir():
+        write_sae_folder(sae, d_in=arch.width, d_sae=2 * arch.width, hook_layer=PLANTED_LAYER, seed=0)
+    config = RunConfig(
+        name="planted", output_root=folder / "data", sources=SourcesSection(folders=(inputs / "demos",)),
+        dataset=DatasetSection(repo_id="planted_lerobot", image_size=32),
+        pairs=(PairSection(name="planted", positive=PLANTED_POSITIVE, negative=PLANTED_NEGATIVE),),
+        layers=(PLANTED_LAYER,), model=ModelSection(checkpoint=checkpoint, tokenizer=tokenizer, arch=arch),
+        capture=CaptureSection(batch_size=16, device="cpu", num_workers=0),
+        sae={PLANTED_LAYER: SaeSection(path=sae)},
+        steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
+        evaluate=EvaluateSection(holdout_fraction=0.5, max_frames=12, noise_seeds=2, bootstrap=200, batch_size=6,
+                                 device="cpu", note=PLANTED_NOTE),
     )
     return write_run_config(config, folder / CONFIG_FILE)
 

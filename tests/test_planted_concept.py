@@ -9,34 +9,20 @@ must not, and a pairs config with the concepts reversed must be refused.
 from __future__ import annotations
 
 import json
+
 import pytest
 import torch
 from helpers_pipeline import run_cli_steps
+from safetensors.torch import load_file
 from typer.testing import CliRunner
 
 from latent_steering_cli import app
-from steering_core.config import (
-    DatasetSection,
-    EvaluateSection,
-    ModelSection,
-    PairSection,
-    RunConfig,
-    SaeSection,
-    SourcesSection,
-)
+from steering_core.config import load_run_config
+from steering_core.demo import build_planted
+from steering_core.pi05.checkpoint import EMBEDDING_KEY, MODEL_FILE
+from steering_core.pi05.tokenizer import PromptTokenizer
 from steering_core.storage.fileio import read_json
-from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
-from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
-from steering_core.synthetic.planted import (
-    PLANTED_CORPUS,
-    PLANTED_LAYER,
-    PLANTED_NEGATIVE,
-    PLANTED_POSITIVE,
-    PLANTED_TASKS,
-    plant_concept,
-)
-from steering_core.synthetic.sae import write_sae_folder
-from steering_core.synthetic.tokenizer import LIBERO_INSTRUCTIONS, write_tokenizer
+from steering_core.synthetic.planted import PLANTED_LAYER, PLANTED_NEGATIVE, PLANTED_POSITIVE, instruction_pairs
 
 pytestmark = pytest.mark.slow
 PAIR = "planted"
@@ -44,43 +30,30 @@ PAIR = "planted"
 
 @pytest.fixture(scope="module")
 def planted(tmp_path_factory):
-    """Run the CLI steps on the planted inputs; return (output folder, run config, planted direction)."""
+    """Run the CLI steps on the demo's planted inputs; return (output folder, run config)."""
     root = tmp_path_factory.mktemp("planted")
-    arch = tiny_arch()
-    write_demo_suite(root / "demos", demos_per_task=6, tasks=PLANTED_TASKS,
-                     settings=SyntheticSettings(image_size=32, num_steps=16, length_jitter=2))
-    tokenizer = write_tokenizer(root / "tokenizer.model", [*LIBERO_INSTRUCTIONS, *PLANTED_CORPUS])
-    write_pi05_checkpoint(root / "pi05", arch)
-    direction = plant_concept(root / "pi05", tokenizer, arch)
-    write_sae_folder(root / "sae", d_in=arch.width, d_sae=128, hook_layer=PLANTED_LAYER, seed=0)
-    config = RunConfig(
-        output_root=root / "data", sources=SourcesSection(folders=(root / "demos",)),
-        dataset=DatasetSection(repo_id="planted_lerobot", image_size=32),
-        pairs=(PairSection(name=PAIR, positive=PLANTED_POSITIVE, negative=PLANTED_NEGATIVE),),
-        layers=(PLANTED_LAYER,), model=ModelSection(checkpoint=root / "pi05", tokenizer=tokenizer, arch=arch),
-        sae={PLANTED_LAYER: SaeSection(path=root / "sae")},
-        evaluate=EvaluateSection(holdout_fraction=0.5, max_frames=12, noise_seeds=2, bootstrap=200, batch_size=6,
-                                 device="cpu"),
-    )
+    config = load_run_config(build_planted(root))
     out = root / "out"
     run_cli_steps(config, out)
-    return out, config, direction
+    return out, config
 
 
 def test_the_mean_difference_is_the_planted_direction(planted):
-    out, _, direction = planted
+    out, config = planted
+    embedding = load_file(config.model.checkpoint / MODEL_FILE)[EMBEDDING_KEY].double()
+    (positive, negative), = instruction_pairs(PromptTokenizer(config.model.tokenizer), PLANTED_POSITIVE,
+                                              PLANTED_NEGATIVE)  # one token each
+    planted_direction = (embedding[positive] - embedding[negative]) * config.model.arch.width ** 0.5
     pair = out / "latent_steering" / f"layer{PLANTED_LAYER:02d}" / PAIR
     summary = read_json(pair / "directions.json")
     stem = summary["files"]["mean_difference_direction"]
-    from safetensors.torch import load_file
-
     found = load_file(pair / stem["safetensors"])[stem["tensor"]]
-    torch.testing.assert_close(found, direction, rtol=0, atol=1e-5)
-    assert summary["mean_residual_norm"] == pytest.approx(float(direction.norm()), rel=1e-5)  # ‖d‖ = R
+    torch.testing.assert_close(found.double(), planted_direction, rtol=0, atol=1e-5)
+    assert summary["mean_residual_norm"] == pytest.approx(float(planted_direction.norm()), rel=1e-5)  # ‖d‖ = R
 
 
 def test_evaluation_finds_the_planted_concept_and_nothing_else(planted):
-    out, _, _ = planted
+    out, _ = planted
     record = read_json(out / "steering_eval" / f"layer{PLANTED_LAYER:02d}" / PAIR / "dose_response.json")
     assert min(record["episodes"].values()) >= 2  # selection and report halves are different episodes
     at_one = record["alphas"].index(1.0)
@@ -103,7 +76,7 @@ def test_evaluation_finds_the_planted_concept_and_nothing_else(planted):
 
 
 def test_a_reversed_pairs_config_is_refused(planted, tmp_path):
-    out, config, _ = planted
+    out, config = planted
     pairs = json.loads((out / f"layer{PLANTED_LAYER}_pairs.json").read_text())
     entry = pairs["pairs"][0]
     reversed_entry = {"name": PAIR, "positive_label": entry["negative_label"], "positive_path": entry["negative_path"],
