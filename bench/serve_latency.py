@@ -94,7 +94,7 @@ def round_trips(served: Any, catalog: Any, device: torch.device, rounds: int) ->
     from steering_core.serve.server import serving_in_thread
 
     obs = observation()
-    entry = {"pair": PAIR, "layer": LAYER, "alpha": ALPHA}
+    entry = {"pair": PAIR, "layer": LAYER, "alpha": ALPHA, "alpha_units": "vector"}  # its vector records no R
     steering = parse_steering(entry, catalog)
     times: dict[str, list[float]] = {key: [] for key in ("direct", "server", "direct steered", "server steered")}
     same = True
@@ -170,7 +170,7 @@ def steering_cost(served: Any, catalog: Any, device: torch.device, rounds: int) 
     from steering_core.serve import parse_steering
 
     obs = observation()
-    steering = parse_steering({"pair": PAIR, "layer": LAYER, "alpha": ALPHA}, catalog)
+    steering = parse_steering({"pair": PAIR, "layer": LAYER, "alpha": ALPHA, "alpha_units": "vector"}, catalog)
     times: dict[str, list[float]] = {"plain": [], "steered": []}
     for index in range(rounds + 1):
         for name, steer in (("plain", ()), ("steered", steering)):

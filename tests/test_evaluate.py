@@ -186,6 +186,17 @@ def test_in_sample_evaluation_says_so(tmp_path):
     assert "| p | residual_direction | 2 / " in md
 
 
+def test_efficacy_plot_takes_an_interval_that_misses_its_estimate_by_rounding(tmp_path):
+    from steering_core.evaluate.plots import plot_efficacy
+
+    out, _ = run(tmp_path, tmp_path / "eval" / "p")
+    record = json.loads((out / "dose_response.json").read_text())
+    entry = record["directions"]["residual_direction"]
+    entry["efficacy_ci"] = [[v + 1e-12, v + 1e-12] for v in entry["efficacy"]]  # one episode per side, rounded
+    plot_efficacy(tmp_path / "efficacy.png", record)
+    assert (tmp_path / "efficacy.png").read_bytes()[:4] == b"\x89PNG"
+
+
 def test_split_is_deterministic_per_task_and_keeps_one_on_each_side(tmp_path):
     m = manifest(EPISODES)
     split = split_episodes(m, 0.2)

@@ -47,7 +47,7 @@ from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
-from steering_core.demo import DEMO_STEPS, build_demo, format_summary, summarise
+from steering_core.demo import DEMO_STEPS, PLANTED_DIR, build_demo, format_summary, summarise
 from steering_core.storage import fileio
 from steering_core.storage.fileio import read_json, sha256_file
 from steering_core.storage.fingerprints import code_modules, code_version, file_digest
@@ -195,14 +195,16 @@ def shard_files(config) -> dict[str, tuple[int, str]]:
 
 @pytest.fixture(scope="module")
 def first_run(demo_dir):
-    """`latent-steering demo`, with the first slicing call failing on an I/O error (retried)."""
+    """`latent-steering demo`, with the first slicing call of its main run failing on an I/O error (retried);
+    the planted-concept check runs before it."""
     real = slicing.slice_concepts
     lock, calls = threading.Lock(), []
 
     def flaky(*args, **kwargs):
+        main_run = PLANTED_DIR not in Path(args[2]).parts
         with lock:
-            calls.append(args[2])
-            first = len(calls) == 1
+            calls.extend([args[2]] if main_run else [])
+            first = main_run and len(calls) == 1
         if first:
             raise OSError(errno.EIO, "injected: shared file system hiccup")
         return real(*args, **kwargs)
@@ -318,7 +320,9 @@ def test_closing_table_names_every_task_run_with_its_state(first_run, demo_confi
     tasks = task_runs_under(first_run[0])
     assert f"{len(tasks)} task runs: {len(tasks)} ran" in output
     lines = output.splitlines()
-    assert any(line.split()[:2] == ["step", "pair"] and line.endswith(f"output (under {root})") for line in lines)
+    header = max(i for i, line in enumerate(lines) if line.split()[:2] == ["step", "pair"])
+    assert lines[header].endswith(f"output (under {root})")  # the main run's table, after the planted check's
+    lines = lines[header:]
     slices = [line.split() for line in lines if line.startswith("slice-concepts ")]
     # 2 pairs x (2 layers + 1 expert layer, whose rows read `expert 2`); one retried (the fault)
     assert len(slices) == 6 and sum(" ran (2 attempts) " in " ".join(line) for line in slices) == 1
@@ -328,6 +332,14 @@ def test_closing_table_names_every_task_run_with_its_state(first_run, demo_confi
     assert any(line.split()[:4] == ["capture-residuals", "decision", "episodes", "0-7"] for line in lines)
     assert any(line.split()[1:4] == ["on_vs_off", "expert", "2"] and line.endswith("steering_eval/expert_layer02/on_vs_off/")
                for line in lines)
+
+
+def test_demo_ends_with_the_planted_concept_found(first_run):
+    check = first_run[1].split("The planted-concept check", 1)[1]
+    row = next(line for line in check.splitlines() if line.startswith("planted "))
+    assert "mean_difference_direction, layer 0" in row and " 1 / 1 " in row
+    assert row.count("1.000 [1.000, 1.000]") == 2 and row.split()[-1] == "0.030"  # both sides; p = 1/33
+    assert "better than random directions" in check
 
 
 def test_injected_fault_is_retried_and_recorded(first_run):

@@ -33,8 +33,9 @@ def plot_efficacy(path: Path, record: dict[str, Any]) -> None:
     ax.plot(alphas, null["mean"], color="0.6", linestyle="--", linewidth=1)
     for name in named(record):
         entry = record["directions"][name]
-        low = [v - ci[0] for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
-        high = [ci[1] - v for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
+        # a percentile interval need not contain its estimate (a ratio over resampled episodes): bars stop there
+        low = [max(v - ci[0], 0.0) for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
+        high = [max(ci[1] - v, 0.0) for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
         line = ax.errorbar(alphas, entry["efficacy"], yerr=[low, high], marker="o", markersize=3, capsize=2,
                            label=name)
         for side, style in (("positive", ":"), ("negative", "--")):
