@@ -79,7 +79,7 @@ def planted() -> torch.Tensor:
 
 
 def run(tmp_path: Path, out: Path, *, fraction: float = 0.4, saturate: bool = False, sign: float = 1.0,
-        **overrides) -> tuple[Path, FakePolicy]:
+        include_decoder_bias: bool = False, **overrides) -> tuple[Path, FakePolicy]:
     m = manifest(EPISODES)
     pair = PairInputs(name="open_vs_close", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
                       split=split_episodes(m, fraction), slices=slices(tmp_path / "slices"))
@@ -89,7 +89,8 @@ def run(tmp_path: Path, out: Path, *, fraction: float = 0.4, saturate: bool = Fa
     settings = EvaluateSettings(**{"max_frames": 8, "noise_seeds": 2, "bootstrap": 200, "batch_size": 3,
                                    "device": "cpu", "random_directions": 8, "permutations": 4} | overrides)
     evaluate_pair(pair, directions, policy, FakeSteering, load, prompts(), layer=LAYER, width=WIDTH,
-                  settings=settings, output_dir=out, metadata={"policy": "fake"})
+                  settings=settings, output_dir=out, metadata={"policy": "fake"},
+                  include_decoder_bias=include_decoder_bias)
     return out, policy
 
 
@@ -195,6 +196,15 @@ def test_efficacy_plot_takes_an_interval_that_misses_its_estimate_by_rounding(tm
     entry["efficacy_ci"] = [[v + 1e-12, v + 1e-12] for v in entry["efficacy"]]  # one episode per side, rounded
     plot_efficacy(tmp_path / "efficacy.png", record)
     assert (tmp_path / "efficacy.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_decoder_bias_vectors_are_marked(tmp_path):
+    plain, _ = run(tmp_path, tmp_path / "plain" / "p")
+    assert json.loads((plain / "dose_response.json").read_text())["include_decoder_bias"] is False
+    assert "include-decoder-bias" not in write_layer_summary(plain.parent, ["p"]).read_text()
+    biased, _ = run(tmp_path, tmp_path / "biased" / "p", include_decoder_bias=True)
+    assert json.loads((biased / "dose_response.json").read_text())["include_decoder_bias"] is True
+    assert "written with --include-decoder-bias" in write_layer_summary(biased.parent, ["p"]).read_text()
 
 
 def test_split_is_deterministic_per_task_and_keeps_one_on_each_side(tmp_path):

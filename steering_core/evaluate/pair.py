@@ -90,13 +90,15 @@ def evaluate_pair(
     metadata: dict[str, Any] | None = None,
     progress: ProgressCallback | None = None,
     stream: str = "lm",
+    include_decoder_bias: bool = False,
 ) -> Path:
     """Run the dose-response of every direction for one pair and write `output_dir` atomically; return it.
 
     `directions` maps a name to a (width,) residual direction of `layer` of `stream` ("lm": the language
     model, steered at the instruction tokens; "expert": the action expert, at every action token), the first
     one the reference whose norm the null directions take (they are built here from `pair.slices`);
-    `metadata` (the policy's description, input digests) is recorded as is.
+    `metadata` (the policy's description, input digests) is recorded as is; `include_decoder_bias` marks a
+    phase-3 residual direction that carries the SAE's b_dec (recorded, and noted in the layer summary).
     """
     check_width(directions, width, f"pair {pair.name!r}", stream)
     reserved = [name for name in directions if is_null(name)]
@@ -147,6 +149,7 @@ def evaluate_pair(
                  "note": null_note},
         "split": pair.split.model_dump(mode="json"), "in_sample": pair.split.in_sample,
         "in_sample_note": IN_SAMPLE_NOTE if pair.split.in_sample else None, "note": settings.note,
+        "include_decoder_bias": include_decoder_bias,
         "positions_note": positions_note,
         "settings": settings.model_dump(mode="json", exclude={"device"}),
         "frames": [f.as_json() for f in frames], "model": metadata or {},

@@ -151,6 +151,9 @@ def record_warnings(record: dict[str, Any]) -> list[str]:
         notes.append(f"{record['pair']}: {episodes['positive']} positive / {episodes['negative']} negative held-out "
                      f"episodes; below {MIN_EPISODES_PER_SIDE} per side the episode bootstrap has too few distinct "
                      "resamples: intervals unreliable")
+    if record.get("include_decoder_bias"):
+        notes.append(f"{record['pair']}: residual_direction was written with --include-decoder-bias (the seed's "
+                     "decode(Δ)): it carries the SAE's b_dec, a constant offset, not only the concepts' difference")
     if record["selection"]["by"] == "frames":
         notes.append(f"{record['pair']}: a side has one held-out episode, so the selection and report halves split "
                      "its frames (not independent)")

@@ -271,4 +271,6 @@ def evaluate_job(
         pair, directions, policy, Steering, load, task_prompts(tokenizer, job.positive, job.negative),
         layer=job.layer, width=width, settings=settings, output_dir=job.output_dir,
         metadata=policy.metadata, progress=progress, stream=job.stream,
+        include_decoder_bias=job.stream == "lm" and bool(
+            read_json(job.directions / layout.PAIR_SUMMARY_FILE).get("include_decoder_bias")),
     )
