@@ -196,8 +196,8 @@ def test_decoder_bias_option_reproduces_the_seed(project, sae_folder):
 
 def test_every_direction_records_the_mean_residual_norm_of_both_concepts_rows(project, sae_folder):
     layer_path = compute_steering(settings(project, sae_folder))
-    rows = [torch.load(project / f"data/residuals/on_vs_off_slices/layer12/turn {side} the stove.pt",
-                       weights_only=True).double() for side in ("on", "off")]
+    slices = project / "data/residuals/on_vs_off_slices/layer12"
+    rows = [torch.load(slices / f"turn {side} the stove.pt", weights_only=True).double() for side in ("on", "off")]
     expected = float(torch.cat(rows).norm(dim=-1).mean())
     pair_dir = layer_path / "on_stove"
     assert json.loads((pair_dir / "directions.json").read_text())["mean_residual_norm"] == pytest.approx(expected)

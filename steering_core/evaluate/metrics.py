@@ -93,8 +93,9 @@ def _interval(boot: torch.Tensor) -> torch.Tensor:
     return torch.nanquantile(boot, torch.tensor(QUANTILES, dtype=boot.dtype), dim=-1).movedim(0, -1)
 
 
-def _closest_to_one(efficacy: torch.Tensor, zero_index: int) -> torch.Tensor:
-    """Return the α index (dim 1 of (D, A, ...)) whose efficacy is closest to 1, α = 0 and NaN excluded."""
+def closest_to_one(efficacy: torch.Tensor, zero_index: int) -> torch.Tensor:
+    """Return the α index (dim 1 of (D, A, ...)) whose efficacy is closest to 1 (the instruction swap), α = 0
+    and NaN excluded; ties keep the first."""
     distance = (efficacy - 1.0).abs().nan_to_num(math.inf)
     distance[:, zero_index] = math.inf
     return distance.argmin(1)
@@ -134,6 +135,7 @@ def dose_response_metrics(
             value, boot = _ratio(cosine, torch.ones_like(cosine), masks["pooled"], weights)
             out["cosine"], out["cosine_ci"] = value, _interval(boot)
             out |= _crossfit(inner, swap_sq, masks, halves, weights, zero_index)
+            out["best_alpha_index"] = closest_to_one(out["efficacy"], zero_index)  # the recommended α, all frames
     along = toward * (delta @ contrast.double()).sum(-1).mean(-1)        # (D, A, F): over horizon, mean over seeds
     value, boot = _ratio(along, torch.ones_like(along), masks["pooled"], weights)
     out["contrast_shift"], out["contrast_shift_ci"] = value, _interval(boot)
@@ -150,8 +152,8 @@ def _crossfit(inner: torch.Tensor, swap_sq: torch.Tensor, masks: dict[str, torch
     """
     half_masks = [halves == h for h in (0, 1)]
     pooled = [_ratio(inner, swap_sq, m, weights) for m in half_masks]           # per half: (D, A), (D, A, B)
-    chosen = torch.stack([_closest_to_one(value, zero_index) for value, _ in pooled])               # (2, D)
-    chosen_boot = torch.stack([_closest_to_one(boot, zero_index) for _, boot in pooled])           # (2, D, B)
+    chosen = torch.stack([closest_to_one(value, zero_index) for value, _ in pooled])               # (2, D)
+    chosen_boot = torch.stack([closest_to_one(boot, zero_index) for _, boot in pooled])           # (2, D, B)
     out = {"efficacy_half": torch.stack([value for value, _ in pooled]), "crossfit_alpha_index": chosen}
     for side, mask in masks.items():
         reads = [_ratio(inner, swap_sq, mask & half_masks[h], weights) for h in (0, 1)]

@@ -25,7 +25,7 @@ from steering_core.evaluate.metrics import (
 )
 from steering_core.evaluate.nulls import null_directions
 from steering_core.evaluate.positions import check_positions
-from steering_core.evaluate.report import best_alpha_index, pair_record, write_pair_outputs
+from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep, toward_other
 from steering_core.reporting.progress import ProgressCallback
@@ -111,7 +111,7 @@ def evaluate_pair(
     reference_norm = float(next(iter(directions.values())).norm())
     nulls, null_note = null_directions(pair.slices, reference_norm, random_count=settings.random_directions,
                                        permutations=settings.permutations, seed=settings.seed)
-    directions = directions | {name: v for name, v in nulls.items() if v.any()}
+    directions = directions | nulls
     push = {name: float(v.norm()) / reference_norm for name, v in directions.items() if name.startswith("permuted_")}
     actions = run_sweep(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
@@ -131,7 +131,7 @@ def evaluate_pair(
         halves=torch.tensor(halves), episodes=[f.episode_index for f in frames], zero_index=settings.zero_index,
         samples=settings.bootstrap, seed=settings.seed,
     )
-    metrics |= null_metrics(metrics, names, settings.zero_index)
+    metrics |= null_metrics(metrics, names)
     norms = torch.stack([directions[n].double().norm() / push.get(n, 1.0) for n in names])
     vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
     head = {
@@ -154,7 +154,7 @@ def evaluate_pair(
         "settings": settings.model_dump(mode="json", exclude={"device"}),
         "frames": [f.as_json() for f in frames], "model": metadata or {},
     }
-    record = pair_record(head, names, settings.alphas, settings.zero_index, metrics, vector_scale)
+    record = pair_record(head, names, settings.alphas, metrics, vector_scale)
     tensors = {key: value.float() for key, value in metrics.items()}
     tensors |= {"alphas": torch.tensor(settings.alphas, dtype=torch.float32), "alphas_vector_units": vector_scale.float(),
                 "actions": actions.steered.float(), "swap_actions": actions.swap.float(),
@@ -166,7 +166,7 @@ def evaluate_pair(
     return output_dir
 
 
-def null_metrics(metrics: dict[str, torch.Tensor], names: list[str], zero_index: int) -> dict[str, torch.Tensor]:
+def null_metrics(metrics: dict[str, torch.Tensor], names: list[str]) -> dict[str, torch.Tensor]:
     """Return the random null's band per α, z and p per α against it, and the best's z and p against both nulls.
 
     Against the random null the cross-fitted best is compared with each random direction's own cross-fitted
@@ -174,7 +174,6 @@ def null_metrics(metrics: dict[str, torch.Tensor], names: list[str], zero_index:
     the best is compared with it at that same α (all frames), where a shuffled, smaller difference pushes less.
     """
     out: dict[str, torch.Tensor] = {}
-    best_index = torch.tensor([best_alpha_index(row, zero_index) for row in metrics["efficacy"]])
     for kind in ("random", "permuted"):
         rows = [i for i, n in enumerate(names) if n.startswith(f"{kind}_")]
         if not rows:
@@ -182,7 +181,7 @@ def null_metrics(metrics: dict[str, torch.Tensor], names: list[str], zero_index:
         per_alpha = null_comparison(metrics["efficacy"], rows)
         out[f"p_{kind}"] = per_alpha["p"]
         if kind == "permuted":
-            out["best_p_permuted"] = per_alpha["p"].gather(1, best_index[:, None])[:, 0]
+            out["best_p_permuted"] = per_alpha["p"].gather(1, metrics["best_alpha_index"][:, None])[:, 0]
         else:
             best = null_comparison(metrics["crossfit"], rows)
             out["best_p_random"] = best["p"]

@@ -60,13 +60,6 @@ def _json_floats(tensor: torch.Tensor) -> Any:
             (v if math.isfinite(v) else None) for v in values]
 
 
-def best_alpha_index(efficacy: torch.Tensor, zero_index: int) -> int:
-    """Return the index of the α ≠ 0 whose efficacy is closest to 1 (the instruction swap); ties keep the first."""
-    distance = (efficacy.double() - 1.0).abs().nan_to_num(math.inf).clone()
-    distance[zero_index] = math.inf
-    return int(torch.argmin(distance))
-
-
 def request_entry(head: dict[str, Any], name: str, alpha_vector: float) -> dict[str, Any] | None:
     """Return the server request's `steering` entry that pushes a negative-task frame as the evaluation did,
     or None for a direction the server does not offer."""
@@ -76,7 +69,7 @@ def request_entry(head: dict[str, Any], name: str, alpha_vector: float) -> dict[
             "alpha_units": "vector"}
 
 
-def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[float, ...], zero_index: int,
+def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[float, ...],
                      metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
     """Return one direction's curves and its `best` entry (cross-fitted efficacy, p-values, request)."""
     groups = list(ACTION_GROUPS)
@@ -86,7 +79,7 @@ def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[floa
     entry["alphas_vector_units"] = _json_floats(vector_scale[d])
     for key in ("shift", "shift_ci", "shift_raw"):
         entry[key] = {g: _json_floats(metrics[key][d, :, i]) for i, g in enumerate(groups)}
-    best = best_alpha_index(metrics["efficacy"][d], zero_index)
+    best = int(metrics["best_alpha_index"][d])
     alpha_vector = float(vector_scale[d, best])
     entry["best"] = {
         "alpha": alphas[best], "alpha_vector": alpha_vector, "reversed": alphas[best] < 0,
@@ -105,11 +98,11 @@ def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[floa
     return entry
 
 
-def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...], zero_index: int,
+def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...],
                 metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
     """Return the JSON of one pair's dose-response (`head` holds pair, layer, stream, split, frames, selection...)."""
     groups = list(ACTION_GROUPS)
-    directions = {name: _direction_entry(d, name, head, alphas, zero_index, metrics, vector_scale)
+    directions = {name: _direction_entry(d, name, head, alphas, metrics, vector_scale)
                   for d, name in enumerate(names)}
     return {
         "format_version": EVAL_FORMAT_VERSION,
@@ -200,8 +193,9 @@ SELECTION_TEXT = (
     "1 = steering reproduces the instruction swap, 0 = no effect) is cross-fitted: α is chosen on one half of "
     "the held-out episodes and read on the other, both ways, averaged. Every frame is steered toward the other "
     "task; `positive`/`negative` are the frames of that task. 95% intervals resample episodes. p: rank among the "
-    "null directions (random ones with the training rows' covariance; episode labels permuted), the same "
-    "selection applied to each, (1 + #null ≥ observed) / (1 + N).")
+    "null directions, (1 + #null ≥ observed) / (1 + N): random ones with the training rows' covariance, each "
+    "through the same selection; mean differences of episode labels permuted, at their own (smaller) size and "
+    "the row's α.")
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:
