@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 PROJECT_DIR = Path(__file__).resolve().parent.parent
 PREFECT_FILE = "deployments/prefect.yaml"   # relative to the repository root
 CONFIG_ENV = "LATENT_STEERING_CONFIG"        # read by prefect.yaml's `{{ $LATENT_STEERING_CONFIG }}`
-GPU_POOL, CPU_POOL = "gpu", "cpu"
+GPU_POOL, CPU_POOL, SIM_POOL = "gpu", "cpu", "sim"
 GPU_TAG = "gpu"                              # tag of every GPU task; its limit = GPUs across all workers
 
 
@@ -38,7 +38,7 @@ def require_api_url() -> str:
     return url
 
 
-def ensure_pools(pools: tuple[str, ...] = (GPU_POOL, CPU_POOL)) -> list[str]:
+def ensure_pools(pools: tuple[str, ...] = (GPU_POOL, CPU_POOL, SIM_POOL)) -> list[str]:
     """Create the missing process work pools; return the names of those created."""
     created = []
     with get_client(sync_client=True) as client:

@@ -14,6 +14,9 @@
 4. Evaluation (GPU): the `latent-steering-evaluate` flow, one run per (pair, layer) of the language
    model and of the expert on the `gpu` pool or in-process (`flows.evaluate.run_evaluation`), then
    each layer's evaluation summary and, with expert layers, the pathways table.
+5. Rollouts (CPU simulator; `rollout` section): the `latent-steering-rollout` flow, one run per (pair, layer,
+   side) on the `sim` pool or in-process (`flows.rollout.run_rollouts`): closed-loop LIBERO episodes per
+   steering dose and control, then each layer's rollout summary.
 
 Every task is cached on the content of its inputs (`tasks.cache`): a re-run on unchanged inputs
 reads every result from the cache, and a new demo file recomputes only what depends on it. After a
@@ -33,6 +36,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.capture import capture_mode, run_capture
 from flows.evaluate import run_evaluation
+from flows.rollout import run_rollouts
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
@@ -76,11 +80,12 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     for layer_path in reports.values():
         publish_layer_report(Path(layer_path), config.name)
     evaluations = run_evaluation(config, config_path) if config.evaluate is not None else {}
+    rollouts = run_rollouts(config, config_path) if config.rollout is not None else {}
     write_sources_record(record_path, sources.with_config(config.fingerprint()))
     logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
     return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
             "reports": {str(layer): path for layer, path in reports.items()},
-            "evaluations": evaluations}
+            "evaluations": evaluations, "rollouts": rollouts}
 
 
 def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:

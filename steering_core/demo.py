@@ -23,6 +23,7 @@ from steering_core.config import (
     EvaluateSection,
     ModelSection,
     PairSection,
+    RolloutSection,
     RunConfig,
     SaeSection,
     SourcesSection,
@@ -32,6 +33,7 @@ from steering_core.config import (
 from steering_core.evaluate.plots import layer_label, named
 from steering_core.evaluate.report import alpha_text, cross_fitted_choice, fmt, with_ci
 from steering_core.reporting.tables import text_table
+from steering_core.rollout.settings import LiberoTask, RolloutPair
 from steering_core.sae.report import FVU_LIMIT
 from steering_core.storage.fileio import read_json, write_json
 from steering_core.storage.layout import DOSE_RESPONSE_FILE, PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
@@ -69,6 +71,12 @@ TINY_MODEL_NOTE = "Tiny random demo model: these numbers mean nothing; on a real
 PLANTED_NOTE = ("Planted concept: the two tasks' layer-0 rows differ by exactly one direction, so the right answer "
                 "is the mean difference at α = 1 with efficacy 1 on both sides")
 PLANTED_DIR = "planted"        # the planted run's folder inside the demo folder
+# The closed-loop section: one pair in LIBERO's own scenes (libero_90 task 7 opens the top drawer of KITCHEN_SCENE1,
+# task 0 closes the one of KITCHEN_SCENE10), both sides, α toward the other task 0 and 2, 2 episodes of 30 steps.
+DEMO_ROLLOUT_PAIR = "open_vs_close"
+DEMO_ROLLOUT = RolloutPair(positive=LiberoTask(suite="libero_90", task=7), negative=LiberoTask(suite="libero_90", task=0))
+ROLLOUT_NOTE = ("Tiny random demo policy: its success rate (0) says nothing about a real policy; the section shows the "
+                "closed loop runs end to end (LIBERO's scenes, openpi's protocol, steering at each α).")
 DEMO_PAIRS = (
     ("open_vs_close", DRAWER_OPEN, DRAWER_CLOSE),
     ("on_vs_off", STOVE_ON, STOVE_OFF),
@@ -112,6 +120,9 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
                                  note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),
+        rollout=RolloutSection(pairs={DEMO_ROLLOUT_PAIR: DEMO_ROLLOUT}, layers=layers[:1], alphas=(0.0, 2.0),
+                               episodes=2, max_steps=30, random_directions=0, wrong_concept=False,
+                               instruction_swap=False, device="cpu", note=ROLLOUT_NOTE),
     )
     return write_run_config(config, folder / CONFIG_FILE)
 

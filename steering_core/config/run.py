@@ -20,6 +20,7 @@ from steering_core.config.sections import (
     ModelSection,
     OrchestrationSection,
     PairSection,
+    RolloutSection,
     SaeSection,
     SliceSection,
     SourcesSection,
@@ -50,6 +51,7 @@ class RunConfig(StrictModel):
     sae: dict[int, SaeSection | None] = {}
     steering: SteeringSection = SteeringSection()
     evaluate: EvaluateSection | None = EvaluateSection()  # null: no phase 4 and no held-out episodes
+    rollout: RolloutSection | None = None  # phase 5: closed-loop LIBERO episodes of the pairs it maps to tasks
     orchestration: OrchestrationSection = OrchestrationSection()
 
     @field_validator("pairs")
@@ -89,6 +91,14 @@ class RunConfig(StrictModel):
                 problems.append(f"evaluate.num_steps {self.evaluate.num_steps} differs from capture.num_steps "
                                 f"{self.capture.num_steps}: the expert direction comes from the decision rows of "
                                 "the sampler the evaluation steers; set both to the same value")
+        if self.rollout is not None and (stray := sorted(set(self.rollout.pairs) - {p.name for p in self.pairs})):
+            problems.append(f"rollout.pairs names {stray}, not pairs of this run ({[p.name for p in self.pairs]})")
+        if self.rollout is not None and self.rollout.layers is not None and (
+                stray := sorted(set(self.rollout.layers) - set(self.layers))):
+            problems.append(f"rollout.layers {stray} are not layers of this run ({list(self.layers)})")
+        if self.rollout is not None and depth - 1 in self.rollout_layers:
+            problems.append(f"layers include {depth - 1}, the last decoder layer: steering it cannot move the actions, "
+                            "so its rollouts would only repeat α = 0; roll out earlier layers")
         if (self.sources is None) == (self.dataset.existing is None):
             problems.append("give exactly one of `sources` (hdf5 demo folders to filter and convert) and "
                             f"`dataset.existing` (a LeRobot dataset to read in place); found "
@@ -196,6 +206,27 @@ class RunConfig(StrictModel):
         if self.evaluate is None:
             return []
         return [(layer, "lm") for layer in self.layers] + [(layer, "expert") for layer in self.expert_layers]
+
+    @property
+    def rollout_root(self) -> Path:
+        """Return `rollouts/` (phase 5: layerNN/<pair>/<cell>/ and the per-layer summaries)."""
+        return self.output_root / layout.ROLLOUTS_ROOT
+
+    def rollout_layer_path(self, layer: int) -> Path:
+        """Return `rollouts/layerNN`."""
+        return self.rollout_root / layout.layer_dir(layer)
+
+    @property
+    def rollout_layers(self) -> tuple[int, ...]:
+        """Return the layers rolled out (none without a rollout section)."""
+        if self.rollout is None:
+            return ()
+        return self.layers if self.rollout.layers is None else tuple(sorted(set(self.rollout.layers)))
+
+    def rollout_targets(self) -> list[tuple[str, int]]:
+        """Return every rolled-out (pair, layer), layer by layer, in the config's pair order."""
+        return [(pair.name, layer) for layer in self.rollout_layers for pair in self.pairs
+                if pair.name in self.rollout.pairs]
 
     def pair(self, name: str) -> PairSection:
         """Return the pair called `name`."""

@@ -17,6 +17,7 @@ from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
 from steering_core.pi05 import Pi05Arch
+from steering_core.rollout.settings import RolloutPair, RolloutSettings
 from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage.schema import StrictModel
 
@@ -169,10 +170,23 @@ class SaeSection(StrictModel):
 class OrchestrationSection(StrictModel):
     """How the Prefect flows run the steps (no effect on any output)."""
 
-    capture: Literal["auto", "deployment", "local"] = "auto"  # GPU phases (capture, evaluate): auto = deployments
+    capture: Literal["auto", "deployment", "local"] = "auto"  # capture, evaluate, rollouts: auto = deployments
     capture_deployment: str = "latent-steering-capture/gpu"  # when run from one
     evaluate_deployment: str = "latent-steering-evaluate/gpu-evaluate"
+    rollout_deployment: str = "latent-steering-rollout/sim-rollout"
     pipeline_deployment: str = "latent-steering/pipeline"     # what a scheduled refresh starts
     shards_per_capture_run: int = Field(8, ge=1)  # episode groups per GPU flow run (one model load each)
     poll_seconds: float = Field(5.0, gt=0)        # how often the parent checks its capture runs
     worker_wait_seconds: float = Field(600.0, gt=0)  # capture runs still unstarted, no gpu worker online: fail
+
+
+class RolloutSection(RolloutSettings):
+    """Phase 5: the rollout settings plus the LIBERO tasks of each pair rolled out (paths relative to the config)."""
+
+    pairs: dict[str, RolloutPair] = Field(min_length=1)  # pair name -> its two LIBERO tasks
+    layers: tuple[int, ...] | None = None                # None: every layer of the run
+    api_key_file: ConfigPath | None = None
+
+    def settings(self) -> RolloutSettings:
+        """Return the settings every (pair, layer) shares."""
+        return RolloutSettings(**self.model_dump(exclude={"pairs", "layers"}))

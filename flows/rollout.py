@@ -1,0 +1,77 @@
+"""The rollout flow `latent-steering-rollout`: closed-loop LIBERO episodes of (pair, layer, side)s, on the `sim` pool.
+
+With a server, the parent flow starts one deployment run per (pair, layer, side), so several CPU simulation
+workers share the grid (each reaching the policy in-process or through a `latent-steering serve` on a GPU
+machine: `rollout.policy`); without one, it calls this flow in-process. Every chunk of a cell is a cached task:
+a re-run after a crash resumes at the first chunk not yet written.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+from prefect.artifacts import create_markdown_artifact
+from prefect.deployments import run_deployment
+
+from flows.capture import capture_mode, wait_for_runs
+from steering_core.config import RunConfig, load_run_config
+from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
+from steering_core.rollout.secrets import read_api_key
+from steering_core.storage.layout import ROLLOUTS_JSON, layer_dir
+from tasks import rollout as rollout_tasks
+from tasks.artifacts import artifact_key
+from tasks.cache import rooted
+
+ROLLOUT_FLOW = "latent-steering-rollout"
+
+
+def rollout_targets(config: RunConfig) -> list[tuple[str, int, str]]:
+    """Return every (pair, layer, side) the run rolls out."""
+    return [(name, layer, side) for name, layer in config.rollout_targets() for side in config.rollout.sides]
+
+
+@flow(name=ROLLOUT_FLOW)
+def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
+    """Roll out `targets` (default every (pair, layer, side)), one task per chunk, then merge each cell."""
+    config = load_run_config(config_path)
+    settings, model = config.rollout.settings(), config.capture_settings()
+    api_key = read_api_key(settings.api_key_file)
+    chunk_task = rooted(rollout_tasks.rollout_chunk, config.output_root)
+    cell_task = rooted(rollout_tasks.rollout_cell, config.output_root)
+    cells = []
+    for name, layer, side in targets or rollout_targets(config):  # one after another: one simulator per worker
+        for cell_dir, jobs in by_cell(config_jobs(config, name, layer, (side,))).items():
+            chunks = [chunk_task(job, model, settings, api_key)["chunk"] for job in jobs]
+            cells.append(cell_task(str(cell_dir), chunks, settings.videos)["rollouts"])
+    return {"cells": cells}
+
+
+def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
+    """Roll out every (pair, layer, side) on the `sim` pool or in-process, then write and publish each layer's
+    summary; return layer folder name -> its summary.md."""
+    logger = get_run_logger()
+    targets = rollout_targets(config)
+    if capture_mode(config) == "deployment":
+        started = [run_deployment(config.orchestration.rollout_deployment,
+                                  parameters={"config_path": str(config_path), "targets": [[name, layer, side]]},
+                                  flow_run_name=f"rollout {name} {layer_dir(layer)} {side}", timeout=0)
+                   for name, layer, side in targets]
+        logger.info("started %d rollout run(s); waiting", len(started))
+        failed = [run.name for run in wait_for_runs(started, config.orchestration.poll_seconds)
+                  if run.state is None or not run.state.is_completed()]
+        if failed:
+            raise RuntimeError(f"rollout run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI")
+    else:
+        rollout_flow(str(config_path), targets)
+    summaries = {}
+    for layer in sorted({layer for _, layer, _ in targets}):
+        layer_path = config.rollout_layer_path(layer)
+        cells = [str(cell_dir / ROLLOUTS_JSON) for cell_dir in layer_cells(config, layer)]
+        result = rooted(rollout_tasks.rollout_summary, config.output_root)(
+            layer, str(layer_path), cells, config.rollout.note)
+        summaries[layer_dir(layer)] = result["summary"]
+        create_markdown_artifact(Path(result["summary"]).read_text(encoding="utf-8"),
+                                 key=artifact_key(config.name, "rollouts", layer_dir(layer)),
+                                 description=f"Closed-loop rollouts, {layer_dir(layer)} ({layer_path})")
+    return summaries

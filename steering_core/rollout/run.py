@@ -1,0 +1,120 @@
+"""Run one chunk of a rollout cell: build the LIBERO scene of the cell's side, reach the policy (in-process or a
+`latent-steering serve`), run the chunk's episodes under openpi's protocol and write them as one record."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field
+
+from steering_core.capture import CaptureSettings
+from steering_core.reporting.progress import ProgressCallback
+from steering_core.rollout.grid import Cell, other_side
+from steering_core.rollout.settings import LiberoTask, RolloutPair, RolloutSettings
+from steering_core.storage.schema import StrictModel
+
+logger = logging.getLogger(__name__)
+
+
+class RolloutJob(StrictModel):
+    """One task run: a cell's episodes on some initial states, and where its record goes."""
+
+    cell_pair: str
+    layer: int
+    side: str
+    condition: str
+    alpha_toward: float
+    tasks: RolloutPair
+    init_states: tuple[int, ...] = Field(min_length=1)
+    chunk: int = Field(ge=0)
+    vectors_root: Path        # the steer step's output root (layerNN/<pair>/directions.json)
+    output_dir: Path          # the cell's folder
+
+    @property
+    def cell(self) -> Cell:
+        return Cell(self.cell_pair, self.layer, self.side, self.condition, self.alpha_toward)
+
+    @property
+    def scene_task(self) -> LiberoTask:
+        """Return the task whose scene, initial states and success (`done`) the episodes use: the side's own."""
+        return getattr(self.tasks, self.side)
+
+    @property
+    def toward_task(self) -> LiberoTask:
+        """Return the other side's task, whose goal is watched on the same state."""
+        return getattr(self.tasks, other_side(self.side))
+
+
+def steering_entries(cell: Cell, settings: RolloutSettings) -> list[dict[str, Any]]:
+    """Return the cell's steering as the server's request entries (empty when unsteered)."""
+    direction = cell.direction(settings.direction)
+    if direction is None:
+        return []
+    return [{"pair": cell.steering_pair, "layer": cell.layer, "alpha": cell.alpha, "direction": direction,
+             "alpha_units": "residual_norm"}]
+
+
+def make_policy(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, api_key: str | None) -> Any:
+    """Return the cell's `RolloutPolicy`: the served policy with its steering entries, or the in-process one."""
+    from steering_core.rollout.client import LocalPolicy, RemotePolicy
+
+    entries = steering_entries(job.cell, settings)
+    if settings.policy != "local":
+        return RemotePolicy(settings.policy, steering=entries, api_key=api_key)
+    from steering_core.evaluate.run import load_policy
+    from steering_core.serve import SteeredPi05Policy, SteeringLimits, VectorCatalog, parse_steering
+
+    policy = load_policy(model, settings.device, settings.dtype)
+    catalog = VectorCatalog.scan(job.vectors_root) if entries else VectorCatalog()
+    steering = parse_steering(entries, catalog, key="rollout", limits=SteeringLimits(float("inf"), model.arch.depth))
+    return LocalPolicy(SteeredPi05Policy(policy, noise_seed=settings.noise_seed), steering,
+                       num_steps=settings.num_steps)
+
+
+_open_env: dict[str, Any] = {}  # the last scene's env, kept for the next chunk of this process (one at a time)
+
+
+def _scene_env(task: Any) -> Any:
+    """Return an env of `task`'s scene: the one the previous chunk used when it is the same task (construction takes
+    seconds; each episode resets the env anyway), else a new one (closing the old)."""
+    from steering_core.rollout import libero_env
+
+    key = f"{task.problem_folder}/{task.bddl_file}"
+    if key not in _open_env:
+        for old in _open_env.values():
+            old.close()
+        _open_env.clear()
+        _open_env[key] = libero_env.make_env(task)
+    return _open_env[key]
+
+
+def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, *, api_key: str | None = None,
+              progress: ProgressCallback | None = None) -> Path:
+    """Run the job's episodes; write `<cell>/chunk_NNN.{json,safetensors}` and return the JSON's path."""
+    from steering_core.rollout import episode, libero_env, records
+    from steering_core.rollout.assets import resolve_assets
+    from steering_core.rollout.predicates import Goal
+    from steering_core.rollout.protocol import MAX_STEPS
+
+    libero_env.prepare_libero(resolve_assets(settings.libero_assets))
+    scene = libero_env.find_task(job.scene_task.suite, job.scene_task.task)
+    toward = libero_env.find_task(job.toward_task.suite, job.toward_task.task)
+    prompt = (toward if job.cell.prompt_side != job.side else scene).language
+    env = _scene_env(scene)
+    goal = Goal.of_task(toward, env)
+    states = libero_env.initial_states(scene)
+    policy = make_policy(job, model, settings, api_key)
+    max_steps = settings.max_steps or MAX_STEPS[job.scene_task.suite]
+    done = []
+    for i, index in enumerate(job.init_states):
+        done.append(episode.run_episode(
+            env, policy, prompt=prompt, init_state=states[index], init_index=index, max_steps=max_steps,
+            toward_goal=goal, record_frames=settings.videos and index == settings.first_init_state,
+            seed=settings.seed, episode_id=index))
+        if progress is not None:
+            progress(i + 1, len(job.init_states))
+    identity = {"cell": job.cell.name, "chunk": job.chunk, "prompt": prompt, "scene_task": scene.language,
+                "toward_task": toward.language}
+    return records.write_chunk(job.output_dir, job.chunk, identity, done)

@@ -1,0 +1,104 @@
+"""Settings of the closed-loop rollouts (phase 5): which LIBERO task each side of a pair runs, the α grid, the
+controls, episodes per cell, and how the policy is reached."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from steering_core.storage.schema import StrictModel
+
+SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
+# α toward the other task, in residual_norm units (the evaluation's): the shift is |α| typical residual norms.
+DEFAULT_ALPHAS = (0.0, 1.0, 2.0, 4.0)
+MIN_RANDOM_DIRECTIONS = 4  # below this the random band is too thin to call a steered rate above it (summary warns)
+
+
+class LiberoTask(StrictModel):
+    """One LIBERO benchmark task: its suite and its index there or its instruction text."""
+
+    suite: Literal[SUITES]  # type: ignore[valid-type]
+    task: int | str         # index in the suite, or the task's instruction ("turn on the stove")
+
+    @field_validator("task")
+    @classmethod
+    def _task(cls, task: int | str) -> int | str:
+        if isinstance(task, int) and task < 0:
+            raise ValueError(f"task index {task} is negative; LIBERO tasks count from 0")
+        if isinstance(task, str) and not task.strip():
+            raise ValueError("task is an empty instruction; give an index or the task's instruction text")
+        return task
+
+    def describe(self) -> str:
+        return f"{self.suite}[{self.task!r}]"
+
+
+class RolloutPair(StrictModel):
+    """The LIBERO tasks of a pair's two concepts; each side's episodes run in its own task's scene and initial
+    states, and the other side's goal is evaluated on the same state (its objects must be in that scene)."""
+
+    positive: LiberoTask
+    negative: LiberoTask
+
+
+class RolloutSettings(StrictModel):
+    """How each (pair, layer) is rolled out; defaults follow openpi's LIBERO evaluation and the issue's grid."""
+
+    alphas: tuple[float, ...] = DEFAULT_ALPHAS  # α toward the other task (residual_norm units); must hold 0
+    episodes: int = Field(10, gt=0)             # episodes per cell (the same initial states for every cell)
+    first_init_state: int = Field(0, ge=0)      # episodes use initial states first .. first + episodes - 1
+    sides: tuple[Literal["positive", "negative"], ...] = ("positive", "negative")  # instructions to run under
+    direction: Literal["residual", "mean_difference"] = "residual"
+    random_directions: int = Field(MIN_RANDOM_DIRECTIONS, ge=0)  # norm-matched random controls at each α ≠ 0
+    wrong_concept: bool = True                  # another pair's direction at the same α (needs two pairs)
+    instruction_swap: bool = True               # the other task's instruction, unsteered: the ceiling
+    chunk_episodes: int = Field(5, gt=0)        # episodes per task run (the fan-out's unit)
+    max_steps: int | None = Field(None, gt=0)   # None: openpi's per suite
+    seed: int = 7                               # the environment seed (openpi's)
+    noise_seed: int | None = 0                  # the policy's initial noise (None: fresh per call, as openpi)
+    num_steps: int = Field(10, gt=0)            # denoising steps per policy call
+    videos: bool = True                         # an MP4 of each cell's first episode
+    policy: str = "local"                       # "local" (in-process) or ws://host:port of `latent-steering serve`
+    api_key_file: Path | None = None            # the server's key (`serve --api-key-file`)
+    libero_assets: str = "installed"            # "installed" (PyPI packages, verified), "download", or a folder
+    device: str = "auto"
+    dtype: str | None = None                    # None: bfloat16 on CUDA, float32 on CPU (as openpi)
+    note: str | None = None                     # printed at the top of the summary (e.g. "tiny random model")
+
+    @field_validator("alphas")
+    @classmethod
+    def _alphas(cls, alphas: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(math.isfinite(a) and a >= 0 for a in alphas):
+            raise ValueError(f"alphas {list(alphas)} must be finite and >= 0: each is a push toward the other task "
+                             "(the mirror side gets the opposite sign)")
+        grid = tuple(sorted(set(alphas)))
+        if grid[:1] != (0.0,) or len(grid) < 2:
+            raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")
+        return grid
+
+    @field_validator("policy")
+    @classmethod
+    def _policy(cls, policy: str) -> str:
+        if policy != "local" and not policy.startswith(("ws://", "wss://")):
+            raise ValueError(f"policy {policy!r}: expected \"local\" or the ws:// address of `latent-steering serve`")
+        return policy
+
+    @model_validator(mode="after")
+    def _unique_sides(self) -> RolloutSettings:
+        if not self.sides or len(set(self.sides)) != len(self.sides):
+            raise ValueError(f"sides {list(self.sides)}: give positive and/or negative, each once")
+        return self
+
+    @property
+    def pushes(self) -> tuple[float, ...]:
+        """Return the α values above 0."""
+        return self.alphas[1:]
+
+    @property
+    def init_states(self) -> tuple[int, ...]:
+        """Return the initial-state indices every cell runs."""
+        return tuple(range(self.first_init_state, self.first_init_state + self.episodes))
+

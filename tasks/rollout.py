@@ -1,0 +1,93 @@
+"""Phase 5 tasks: one chunk of a rollout cell in the LIBERO simulator, a cell's merged record, and the per-layer
+summary. Chunks are cached on everything that changes their episodes: the code, the cell, the steering vectors
+read (the pair's and, for the wrong-concept control, the other pair's), the model and the settings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import get_run_logger, task
+
+from steering_core.capture import CaptureSettings
+from steering_core.rollout import records, report
+from steering_core.rollout.run import RolloutJob, run_chunk
+from steering_core.rollout.settings import RolloutSettings
+from steering_core.storage import layout
+from steering_core.storage.fingerprints import file_digest, plain
+from tasks.artifacts import ProgressArtifact, artifact_key
+from tasks.cache import OUTPUTS, RESULTS, content_key, retry_if
+from tasks.capture import model_inputs
+from tasks.evaluate import folder_digests
+
+# Connection errors reach a policy server that is restarting; a second attempt can succeed. Nothing else retries.
+SIM_RETRIES, SIM_RETRY_DELAYS = 2, [10, 60]
+
+
+def job_inputs(job: RolloutJob) -> dict[str, Any]:
+    """Return the job and the content of the steering vectors it reads (none when unsteered)."""
+    pair = job.cell.steering_pair
+    vectors = folder_digests(job.vectors_root / layout.layer_dir(job.layer) / pair) if pair else None
+    return {"job": plain(job.model_dump(mode="json", exclude={"vectors_root", "output_dir"})), "vectors": vectors,
+            "output": job.output_dir.name}
+
+
+def settings_inputs(settings: RolloutSettings) -> dict[str, Any]:
+    """Return the settings that change an episode (not how the policy is reached nor where assets are read)."""
+    return plain(settings.model_dump(mode="json", exclude={"policy", "api_key_file", "libero_assets", "device",
+                                                           "note", "chunk_episodes"}))
+
+
+def transient_connection(exc: BaseException) -> bool:
+    """Return True for an error a policy server's restart explains."""
+    return isinstance(exc, ConnectionError | TimeoutError)
+
+
+@task(
+    name="rollout-chunk",
+    task_run_name="rollout {job.cell_pair} layer {job.layer} {job.output_dir.name} chunk {job.chunk}",
+    cache_policy=content_key("steering_core.rollout", "steering_core.pi05", "steering_core.serve", job=job_inputs,
+                             model=model_inputs, settings=settings_inputs, ignore=("api_key",)),
+    retries=SIM_RETRIES, retry_delay_seconds=SIM_RETRY_DELAYS, retry_condition_fn=retry_if(transient_connection),
+    **RESULTS,
+)
+def rollout_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, api_key: str | None) -> dict:
+    """Run one chunk of a cell in the simulator; return its record files."""
+    progress = ProgressArtifact(artifact_key("rollout", job.cell_pair, job.layer, job.output_dir.name, job.chunk),
+                                "episodes", f"rollout {job.cell_pair} layer {job.layer} {job.output_dir.name}")
+    path = run_chunk(job, model, settings, api_key=api_key, progress=progress)
+    progress.finish()
+    return {OUTPUTS: [str(p) for p in records.chunk_files(path)], "chunk": str(path)}
+
+
+def chunk_contents(inputs: dict[str, Any]) -> list[str]:
+    return [file_digest(path) for path in inputs["chunks"]]
+
+
+@task(
+    name="rollout-cell",
+    task_run_name="rollout cell {cell_dir}",
+    cache_policy=content_key("steering_core.rollout", derived={"chunks": chunk_contents}),
+    **RESULTS,
+)
+def rollout_cell(cell_dir: str, chunks: list[str], videos: bool) -> dict:
+    """Merge a cell's chunks into rollouts.json/.safetensors (and its first episode's MP4)."""
+    files = records.merge_cell(Path(cell_dir), [Path(p) for p in chunks], videos=videos)
+    return {OUTPUTS: [str(p) for p in files], "rollouts": str(files[0])}
+
+
+def cell_records(inputs: dict[str, Any]) -> dict[str, str]:
+    return {Path(path).parent.name: file_digest(path) for path in inputs["cells"]}
+
+
+@task(
+    name="rollout-summary",
+    task_run_name="rollout summary layer {layer}",
+    cache_policy=content_key("steering_core.rollout", derived={"cells": cell_records}),
+    **RESULTS,
+)
+def rollout_summary(layer: int, layer_path: str, cells: list[str], note: str | None) -> dict:
+    """Write each pair's table and plots and the layer's summary.md / summary.json."""
+    md_path = report.write_layer_summary(Path(layer_path), [Path(p) for p in cells], note=note)
+    get_run_logger().info("rollout summary: %s", md_path)
+    return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))], "summary": str(md_path)}
