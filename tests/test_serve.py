@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from helpers_serve import (
     FakePolicy,
     fake_actions,
@@ -28,7 +30,15 @@ from helpers_serve import (
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from steering_core.serve import PolicyServer, RequestError, VectorCatalog, parse_steering, parse_steering_option
+from steering_core.serve import (
+    PolicyServer,
+    RequestError,
+    SteeringVector,
+    VectorCatalog,
+    parse_steering,
+    parse_steering_option,
+)
+from steering_core.serve.catalog import random_control, random_direction
 from steering_core.serve.codec import pack, unpack
 
 WIDTH = 64
@@ -132,6 +142,52 @@ def test_vectors_without_a_recorded_r_take_vector_units_only(catalog, tmp_path):
     assert entry.vector_alpha == 1.5
 
 
+def test_random_controls_are_norm_matched_seeded_by_name_and_the_same_in_any_process(catalog):
+    residual = catalog.get("open_vs_close", 1)
+    control = catalog.get("open_vs_close", 1, "random_3")
+    assert (control.pair, control.layer, control.direction, control.vector.dtype, control.vector.shape) == \
+        ("open_vs_close", 1, "random_3", torch.float32, residual.vector.shape)
+    assert control.mean_residual_norm == residual.mean_residual_norm and not control.include_decoder_bias
+    assert float(control.vector.double().norm()) == pytest.approx(residual.norm, rel=1e-6)
+    assert control.norm == pytest.approx(residual.norm, rel=1e-6)
+    assert torch.equal(catalog.get("open_vs_close", 1, "random_3").vector, control.vector)
+    others = [catalog.get(*key).vector for key in (("open_vs_close", 1, "random_4"), ("on_vs_off", 1, "random_3"),
+                                                   ("open_vs_close", 2, "random_3"))]
+    assert all(not torch.equal(other, control.vector) for other in others)
+    # another process drawing with ATen's scalar kernels (as a CPU without AVX2, where float32 draws differ)
+    script = ("from steering_core.serve.catalog import random_direction; "
+              f"print(random_direction('open_vs_close', 1, 3, {WIDTH}, {residual.norm!r}).numpy().tobytes().hex())")
+    other = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                           env={**os.environ, "ATEN_CPU_CAPABILITY": "default", "OMP_NUM_THREADS": "2"})
+    assert other.stdout.strip() == control.vector.numpy().tobytes().hex()
+    # pinned: a machine or torch build drawing other numbers fails here
+    assert random_direction("open_vs_close", 12, 0, 2048, 1.0)[:3].tolist() == \
+        [0.023906700313091278, 0.039484839886426926, 0.029711419716477394]
+
+
+def test_random_controls_are_nearly_orthogonal_in_pi05_width():
+    # a unit vector uniform on the sphere in d dimensions has P(|cos| > t) <= 2 exp(-d t^2 / 2) against any fixed
+    # direction: under 1e-5 at t = 5 / sqrt(d). Controls against three residuals (all ones: the mean) and each other.
+    width = 2048
+    residuals = [SteeringVector("p", 3, "residual", v, float(v.norm()), Path("p"), "residual", 40.0)
+                 for v in (torch.ones(width), torch.arange(width, dtype=torch.float32), torch.eye(width)[7] * 5)]
+    controls = [random_control(residuals[0], k).vector for k in range(8)]
+    assert all(c.norm() == pytest.approx(residuals[0].norm, rel=1e-6) for c in controls)
+    pairs = [(c, r.vector) for c in controls for r in residuals] + \
+        [(a, b) for i, a in enumerate(controls) for b in controls[i + 1:]]
+    assert max(abs(float(a @ b / (a.norm() * b.norm()))) for a, b in pairs) < 5 / math.sqrt(width)
+
+
+def test_random_controls_in_requests(catalog):
+    [entry] = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 3.0, "direction": "random_0"}, catalog)
+    assert entry.vector.direction == "random_0" and entry.describe()["direction"] == "random_0"
+    assert entry.vector_alpha * entry.vector.norm == pytest.approx(3.0 * catalog.get("on_vs_off", 2).mean_residual_norm)
+    for name in ("random_1000", "random_01", "random_", "random_-1", "Random_0", "random_0x", "random"):
+        with pytest.raises(RequestError, match=r"has \['residual'\] and random_0..random_999") as err:
+            parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.0, "direction": name}, catalog)
+        assert err.value.key == "steering.direction"
+
+
 @pytest.mark.parametrize("value, key, problem", [
     ({"pair": "nope", "layer": 1, "alpha": 1.0}, "steering.pair", "unknown pair 'nope'"),
     ({"pair": "open_vs_close", "layer": 7, "alpha": 1.0}, "steering.layer", r"layers \[1, 2\]"),
@@ -166,6 +222,7 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
         {"obs": observations[0] | {"steering": steer}},
         {"obs": observations[1] | {"steering": both}},
         {"obs": observations[2] | {"steering": {**steer, "direction": "mean_difference"}}},
+        {"obs": observations[3] | {"steering": {**steer, "direction": "random_2"}}},
     ]
     with running(PolicyServer(FakePolicy(), catalog)) as server:
         [client] = run_openpi_client(tmp_path, server.port, [requests])
@@ -174,6 +231,7 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
         expected(catalog, observations[0], ("open_vs_close", 1, 4.0)),
         expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5, "residual", "vector")),
         expected(catalog, observations[2], ("open_vs_close", 1, 4.0, "mean_difference")),
+        expected(catalog, observations[3], ("open_vs_close", 1, 4.0, "random_2")),
     ]
     for reply, actions in zip(replies, wanted, strict=True):
         assert reply["actions"].dtype == np.float32 and reply["actions"].shape == (10, 7)
