@@ -4,6 +4,7 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import shutil
@@ -38,8 +39,10 @@ from steering_core.serve import (
     parse_steering,
     parse_steering_option,
 )
+from steering_core.serve.auth import API_KEY_ENV, authorized, read_api_key
 from steering_core.serve.catalog import random_control, random_direction
 from steering_core.serve.codec import pack, unpack
+from steering_core.serve.episodes import EpisodeLog
 
 WIDTH = 64
 
@@ -249,7 +252,8 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
     assert replies[0]["policy_timing"] == {"infer_ms": 0.0}
     metadata = client["metadata"]
     assert metadata["policy"] == "fake" and metadata["steering"]["vectors"] == catalog.describe()
-    assert "serialised" in metadata["server"]["inference"]
+    assert "serialised" in metadata["server"]["inference"] and metadata["server"]["api_key_required"] is False
+    assert "zlib.crc32(b'<pair>/<layer>/random_<k>')" in metadata["steering"]["random_controls"]
 
 
 def test_libero_example_wrapper_adds_the_steering_entry(catalog, observations, tmp_path):
@@ -322,6 +326,111 @@ def test_ten_concurrent_clients_twenty_requests_each(catalog, observations, tmp_
             want = expected(catalog, obs, ("open_vs_close", 1 + i % 2, c + i / 10))
             assert result["reply"]["actions"].tobytes() == want.tobytes(), (c, i)
     assert policy.calls == 200 and policy.max_concurrent == 1  # one inference at a time
+
+
+# ---------------------------------------------------------------- episodes and api key (openpi's current client)
+
+def start(experiment: str, episode_id: int, task: str = "open the top drawer of the cabinet") -> dict:
+    """openpi's current WebsocketClientPolicy.episode_start message."""
+    return {"ctrl": {"__ctrl__": "episode_start", "__experiment__": experiment, "__task__": task,
+                     "__episode_id__": episode_id}}
+
+
+def end(success) -> dict:
+    """openpi's current WebsocketClientPolicy.episode_end message."""
+    return {"ctrl": {"__ctrl__": "episode_end", "__success__": success}}
+
+
+def test_episode_control_messages_are_acknowledged_recorded_logged_and_written(catalog, observations, tmp_path,
+                                                                              caplog):
+    caplog.set_level(logging.INFO, logger="steering_core.serve.episodes")
+    obs = {"obs": observations[0]}
+    first = [obs, end(False),                                     # an end without a start: recorded as it is
+             start("sweep", 7), {"obs": observations[1] | {"steering": {"pair": "on_vs_off", "layer": 1,
+                                                                        "alpha": 2.0, "direction": "random_0"}}},
+             obs, end(True),
+             start("sweep", 8), {"ctrl": {"__ctrl__": "episode_pause"}}, end("yes"),
+             {"ctrl": {"__ctrl__": "episode_end", "__sucess__": True}}, obs, end(False),
+             start("sweep", 9), start("sweep", 10)]                # 9 ends when 10 starts; 10 when the client exits
+    second = [start("other", 1, task="turn on the stove"), obs, obs, obs, end(True)]
+    episodes_file = tmp_path / "episodes.jsonl"
+    before = time.time()
+    with running(PolicyServer(FakePolicy(), catalog, episode_log=EpisodeLog(episodes_file))) as server:
+        a, b = run_openpi_client(tmp_path, server.port, [first, second])
+    after = time.time()
+    acks = {"episode_start": {"__ack__": "episode_start"}, "episode_end": {"__ack__": "episode_end"}}
+    for request, result in zip(first + second, a["results"] + b["results"], strict=True):
+        if "obs" in request:  # inference works between (and after refused) control messages
+            steering = request["obs"].get("steering")
+            want = expected(catalog, request["obs"], *([tuple(steering.values())] if steering else []))
+            assert result["reply"]["actions"].tobytes() == want.tobytes()
+        elif "reply" in result:  # the refused ones are checked below
+            assert result["reply"] == acks[request["ctrl"]["__ctrl__"]]
+    errors = [r["error"] for r in a["results"] if "error" in r]
+    assert [e.split("\n")[1] for e in errors] == [
+        "bad request: __ctrl__: unknown control message 'episode_pause'; expected 'episode_start' or 'episode_end'",
+        "bad request: __success__: expected bool, got str 'yes'",
+        "bad request: episode_end: unknown key(s) ['__sucess__']; expected ['__success__']"]
+    records = server.episodes
+    lines = episodes_file.read_text().splitlines()
+    assert [json.loads(line) for line in lines] == records  # one whole JSON line per finished episode
+    assert {r["client"] for r in records if r["experiment"] != "other"} != {r["client"] for r in records
+                                                                            if r["experiment"] == "other"}
+    fields = ("experiment", "task", "episode_id", "success", "inferences", "ended_by")
+    drawer, stove = "open the top drawer of the cabinet", "turn on the stove"
+    assert sorted((tuple(r[f] for f in fields) for r in records), key=str) == sorted([
+        (None, None, None, False, 1, "episode_end"),
+        ("sweep", drawer, 7, True, 2, "episode_end"),
+        ("sweep", drawer, 8, False, 1, "episode_end"),
+        ("sweep", drawer, 9, None, 0, "episode_start"),
+        ("sweep", drawer, 10, None, 0, "disconnect"),
+        ("other", stove, 1, True, 3, "episode_end"),
+    ], key=str)
+    for r in records:
+        assert r["start_time"] is None if r["experiment"] is None else before <= r["start_time"] <= r["end_time"]
+        assert before <= r["end_time"] <= after
+    logged = [m for m in caplog.messages if m.startswith("episode ") and " from 127.0.0.1:" in m]
+    assert len(logged) == len(records)
+    for line, r in zip(logged, records, strict=True):  # logged as recorded
+        assert line.endswith(f"from {r['client']}: success {r['success']}, {r['inferences']} inference(s), "
+                             f"ended by {r['ended_by']}")
+    assert any("episode_end from 127.0.0.1:" in m and "without episode_start" in m for m in caplog.messages)
+
+
+def test_api_key_refuses_the_upgrade_with_401_and_leaves_healthz_open(catalog, observations, tmp_path, caplog):
+    key = "k3y-0f-th1s-server"
+    with running(PolicyServer(FakePolicy(), catalog, api_key=key)) as server:
+        with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=10) as response:
+            assert response.status == 200 and response.read() == b"OK\n"
+        keyed, none, wrong = run_openpi_client(
+            tmp_path, server.port, [[{"obs": observations[0]}, start("keyed", 0), end(True)], [], []],
+            api_keys=[key, None, key[:-1] + "X"])
+    assert keyed["results"][0]["reply"]["actions"].tobytes() == expected(catalog, observations[0]).tobytes()
+    assert keyed["results"][2]["reply"] == {"__ack__": "episode_end"}
+    assert keyed["metadata"]["server"]["api_key_required"] is True and key not in json.dumps(keyed["metadata"])
+    assert none["status"] == wrong["status"] == 401 and "HTTP 401" in none["error"]
+    refused = [m for m in caplog.messages if m.startswith("refused a connection")]
+    assert sorted(m.split(": ")[1] for m in refused) == ["no api key", "wrong api key"]
+    assert not any(key[:-1] in m for m in caplog.messages)  # neither the key nor the wrong one is logged
+
+
+def test_api_key_from_a_file_or_the_environment(tmp_path):
+    path = tmp_path / "key"
+    path.write_text("  s3cret\n")
+    assert read_api_key(path, {}) == "s3cret"
+    assert read_api_key(path, {API_KEY_ENV: "other"}) == "s3cret"  # the file given explicitly wins
+    assert read_api_key(None, {API_KEY_ENV: " env-key "}) == "env-key"
+    assert read_api_key(None, {}) is None
+    for text, problem in (("\n  \n", "is empty"), ("two words", "printable ASCII without spaces")):
+        path.write_text(text)
+        with pytest.raises(ValueError, match=problem) as err:
+            read_api_key(path, {})
+        assert str(path) in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ValueError, match=rf"\${API_KEY_ENV} is empty"):
+        read_api_key(None, {API_KEY_ENV: ""})
+    assert authorized(["Api-Key s3cret"], "s3cret")
+    assert not any(authorized(values, "s3cret") for values in
+                   ([], ["Api-Key s3cre"], ["Api-Key s3cret "], ["Bearer s3cret"], ["Api-Key s3cret"] * 2))
 
 
 # ---------------------------------------------------------------- health, keepalive, default steering, shutdown

@@ -4,6 +4,7 @@ its actions (another process, the same kernel settings) equal to direct ones up 
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from helpers_serve import (
     server_env,
     write_vectors,
 )
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from steering_core.pi05.policy import Pi05Policy
@@ -130,18 +131,26 @@ def test_last_layer_huge_alpha_and_non_finite_actions_get_one_line_errors(model,
 def test_serve_command_serves_until_sigint(model, observations, tmp_path):
     checkpoint, tokenizer, vectors, policy = model
     arch_file = write_json(tmp_path / "arch.json", ARCH.model_dump())
+    key_file, episodes_file = tmp_path / "api_key", tmp_path / "episodes.jsonl"
+    key_file.write_text("s3cret\n")
     command = [LATENT_STEERING, "serve", "--checkpoint-path", str(checkpoint), "--tokenizer-path", str(tokenizer),
                "--arch-file", str(arch_file), "--vectors", str(vectors), "--port", "0", "--device", "cpu",
-               "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0"]
+               "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0", "--api-key-file", str(key_file),
+               "--episodes-file", str(episodes_file)]
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=server_env())
     try:
         port = port_from_log(process)
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10) as response:
             assert response.read() == b"OK\n"
-        with connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
+        with pytest.raises(InvalidStatus, match="HTTP 401"):
+            connect(f"ws://127.0.0.1:{port}")
+        with connect(f"ws://127.0.0.1:{port}", max_size=None, additional_headers={"Authorization": "Api-Key s3cret"}) \
+                as ws:
             metadata = unpack(ws.recv())
             assert [(s["pair"], s["layer"], s["alpha"]) for s in metadata["steering"]["default"]] == \
                 [("open_vs_close", 2, 5.0)]
+            ws.send(pack({"__ctrl__": "episode_start", "__experiment__": "cli", "__task__": "t", "__episode_id__": 4}))
+            assert unpack(ws.recv(timeout=10)) == {"__ack__": "episode_start"}
             ws.send(pack(observations[0]))
             reply = unpack(ws.recv(timeout=60))
             catalog = VectorCatalog.scan(vectors)
@@ -151,6 +160,9 @@ def test_serve_command_serves_until_sigint(model, observations, tmp_path):
                 ws.recv(timeout=20)
             assert closed.value.rcvd.code == 1001
         assert process.wait(timeout=20) == 0
+        [record] = [json.loads(line) for line in episodes_file.read_text().splitlines()]
+        assert (record["experiment"], record["episode_id"], record["inferences"], record["ended_by"]) == \
+            ("cli", 4, 1, "disconnect")
     finally:
         process.kill()
 
