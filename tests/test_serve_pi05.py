@@ -63,11 +63,11 @@ def observations(tmp_path_factory):
 
 
 def direct(policy: Pi05Policy, catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
-    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha) at the instruction tokens,
-    α in residual_norm units: the vector times α·R/‖d‖."""
+    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha[, direction]) at the
+    instruction tokens, α in residual_norm units: the vector times α·R/‖d‖."""
     noise = torch.randn(policy.action_horizon, policy.action_dim, generator=torch.Generator().manual_seed(SEED))
     mask = policy.instruction_mask(observation["prompt"])
-    vectors = [(catalog.get(pair, layer), alpha) for pair, layer, alpha in entries]
+    vectors = [(catalog.get(pair, layer, *direction), alpha) for pair, layer, alpha, *direction in entries]
     steering = [Steering(v.layer, v.vector, alpha * v.mean_residual_norm / v.norm, token_mask=mask)
                 for v, alpha in vectors]
     return policy.infer(observation, steering=steering or None, noise=noise)["actions"]
@@ -77,19 +77,23 @@ def test_openpi_client_gets_pi05_infer_bit_for_bit(model, observations, tmp_path
     _, _, vectors, policy = model
     catalog = VectorCatalog.scan(vectors)
     steer = [{"pair": "open_vs_close", "layer": 1, "alpha": 6.0}, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}]
-    requests = [{"obs": obs} for obs in observations] + [{"obs": obs | {"steering": steer}} for obs in observations]
+    control = {"pair": "open_vs_close", "layer": 1, "alpha": 6.0, "direction": "random_1"}
+    requests = [{"obs": obs} for obs in observations] + [{"obs": obs | {"steering": steer}} for obs in observations] \
+        + [{"obs": observations[0] | {"steering": control}}]
     served = SteeredPi05Policy(policy, noise_seed=SEED)
     served.check_catalog(catalog)
     with running(PolicyServer(served, catalog)) as server:
         [client] = run_openpi_client(tmp_path, server.port, [requests])
     replies = [result["reply"]["actions"] for result in client["results"]]
     wanted = [direct(policy, catalog, obs) for obs in observations] + \
-        [direct(policy, catalog, obs, ("open_vs_close", 1, 6.0), ("on_vs_off", 2, -3.0)) for obs in observations]
+        [direct(policy, catalog, obs, ("open_vs_close", 1, 6.0), ("on_vs_off", 2, -3.0)) for obs in observations] \
+        + [direct(policy, catalog, observations[0], ("open_vs_close", 1, 6.0, "random_1"))]
     for reply, actions in zip(replies, wanted, strict=True):
         assert reply.shape == (10, 7) and reply.dtype == actions.dtype
         assert reply.tobytes() == actions.tobytes()
-    for plain, steered in zip(replies[:3], replies[3:], strict=True):
+    for plain, steered in zip(replies[:3], replies[3:6], strict=True):
         assert np.abs(plain - steered).max() > 1e-4  # steering changes the actions
+    assert np.abs(replies[6] - replies[0]).max() > 1e-4  # and so does its random control
     metadata = client["metadata"]
     assert metadata["model"] == "pi05" and metadata["noise_seed"] == SEED
     assert metadata["steering"]["vectors"] == catalog.describe()
