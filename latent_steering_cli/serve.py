@@ -17,6 +17,8 @@ from steering_core.serve import (
     parse_steering,
     parse_steering_option,
 )
+from steering_core.serve.auth import API_KEY_ENV, read_api_key
+from steering_core.serve.episodes import EpisodeLog
 from steering_core.serve.request import DEFAULT_MAX_ALPHA
 from steering_core.serve.server import DEFAULT_MAX_MESSAGE_BYTES
 from steering_core.storage.fileio import read_json
@@ -71,16 +73,26 @@ def serve_command(
     max_message_mb: float = typer.Option(
         DEFAULT_MAX_MESSAGE_BYTES / 2**20, "--max-message-mb", min=0.001, help="Largest observation message accepted."
     ),
+    api_key_file: Path | None = typer.Option(
+        None, "--api-key-file", help=f"File holding an api key clients must send (Authorization: Api-Key <key>, as "
+        f"openpi's client does; others get HTTP 401). Default: ${API_KEY_ENV} if set, else no key."
+    ),
+    episodes_file: Path | None = typer.Option(
+        None, "--episodes-file", help="Append one JSON line per finished episode (openpi's episode_start / "
+        "episode_end control messages) to this file."
+    ),
 ) -> None:
     """Serve steered pi0.5 over openpi's websocket protocol until Ctrl-C or SIGTERM.
 
     Clients add an optional `steering` entry to the observation, e.g. {"pair": "open_vs_close", "layer": 12,
     "alpha": 2.0} (α in residual_norm units by default, as the evaluation's tables; "alpha_units": "vector" for
-    α times the stored vector); the server's metadata lists the vectors it offers with their R and norm.
+    α times the stored vector, "direction": "random_<k>" for a norm-matched random control); the server's metadata
+    lists the vectors it offers with their R and norm. openpi's episode_start / episode_end messages are recorded.
     """
     from steering_core.pi05.policy import Pi05Policy  # deferred: loads transformers
 
     with input_errors():
+        api_key, episode_log = read_api_key(api_key_file), EpisodeLog(episodes_file)
         # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
         catalog = VectorCatalog.scan(vectors) if vectors != DEFAULT_VECTORS or vectors.exists() else VectorCatalog()
         arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
@@ -94,7 +106,8 @@ def serve_command(
         served = SteeredPi05Policy(policy, noise_seed=noise_seed)
         served.check_catalog(catalog)
         server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,
-                              max_message_bytes=int(max_message_mb * 2**20), max_alpha=max_alpha)
+                              max_message_bytes=int(max_message_mb * 2**20), max_alpha=max_alpha, api_key=api_key,
+                              episode_log=episode_log)
     server.run()
 
 

@@ -137,16 +137,19 @@ def running(server: PolicyServer) -> Iterator[PolicyServer]:
 
 
 def run_openpi_client(
-    tmp_path: Path, port: int, clients: list[list[dict]], timeout: float = 240, wrapper_steering=None
+    tmp_path: Path, port: int, clients: list[list[dict]], timeout: float = 240, wrapper_steering=None,
+    api_keys: list[str | None] | None = None,
 ) -> list[dict]:
     """Send each client's requests through the real openpi-client (one thread per client); return per client
-    {"metadata", "results": [{"reply": ...} | {"error": "Type: message"}]}. With `wrapper_steering`, the
-    clients are examples/libero_steered_client.py's class adding that entry."""
+    {"metadata", "results": [{"reply": ...} | {"error": "Type: message"}]}, or {"error", "status"} when it could
+    not connect. With `wrapper_steering`, the clients are examples/libero_steered_client.py's class adding that
+    entry; `api_keys` gives each client's api key. Requests: see openpi_client_script.py."""
     uv = os.environ.get("UV") or shutil.which("uv")
     assert uv, "uv not found: the openpi client runs in its own environment made by `uv run --isolated`"
     plan, out = tmp_path / "plan.msgpack", tmp_path / "out.msgpack"
-    wrapper = {} if wrapper_steering is None else {"wrapper_steering": wrapper_steering}
-    plan.write_bytes(codec.pack({"host": "127.0.0.1", "port": port, "clients": clients, **wrapper}))
+    options = {"wrapper_steering": wrapper_steering, "api_keys": api_keys}
+    plan.write_bytes(codec.pack({"host": "127.0.0.1", "port": port, "clients": clients,
+                                 **{k: v for k, v in options.items() if v is not None}}))
     completed = subprocess.run(
         [uv, "run", "--isolated", "--no-project", *OPENPI_CLIENT, "python", str(CLIENT_SCRIPT), str(plan), str(out)],
         capture_output=True, text=True, timeout=timeout, cwd=tmp_path,

@@ -5,9 +5,12 @@ Usage: uv run --isolated --no-project --with openpi-client==0.1.2 --with typing_
 PLAN (written with the project's codec, read here with openpi_client.msgpack_numpy):
     {"host": str, "port": int, "clients": [[request, ...], ...]}   one list of requests per concurrent client
     optional "wrapper_steering": build the clients with examples/libero_steered_client.py's class for that entry
-    request: {"obs": observation dict} sent with WebsocketClientPolicy.infer, or {"raw": bytes} sent as is on the
-    client's own connection (for bytes that infer could not produce).
-OUT: {"clients": [{"metadata": ..., "results": [{"reply": dict} | {"error": "Type: message"}, ...]}, ...]}
+    optional "api_keys": [str | None, ...], one per client (WebsocketClientPolicy's api_key)
+    request: {"obs": observation dict} sent with WebsocketClientPolicy.infer, {"ctrl": control message} sent and
+    answered as openpi's current client's episode_start / episode_end do (0.1.2 lacks them), or {"raw": bytes}
+    sent as is on the client's own connection (for bytes that infer could not produce).
+OUT: {"clients": [{"metadata": ..., "results": [{"reply": dict} | {"error": "Type: message"}, ...]}
+                  | {"error": "Type: message", "status": HTTP status} (connecting failed), ...]}
 """
 
 import sys
@@ -19,8 +22,8 @@ from openpi_client.websocket_client_policy import WebsocketClientPolicy
 
 
 def send(client, request):
-    if "raw" in request:  # the same handling as WebsocketClientPolicy.infer, for bytes it would not pack
-        client._ws.send(request["raw"])
+    if "raw" in request or "ctrl" in request:  # the handling of WebsocketClientPolicy.infer and episode_start
+        client._ws.send(request["raw"] if "raw" in request else client._packer.pack(request["ctrl"]))
         response = client._ws.recv()
         if isinstance(response, str):
             raise RuntimeError(f"Error in inference server:\n{response}")
@@ -37,8 +40,13 @@ def client_class(plan):
     return steered_client_class(plan["wrapper_steering"])
 
 
-def run(cls, host, port, requests, out, index):
-    client = cls(host, port)
+def run(cls, host, port, requests, api_key, out, index):
+    try:
+        client = cls(host, port, api_key=api_key)
+    except Exception as err:  # e.g. websockets' InvalidStatus for an upgrade refused with 401
+        response = getattr(err, "response", None)
+        out[index] = {"error": f"{type(err).__name__}: {err}", "status": getattr(response, "status_code", None)}
+        return
     results = []
     for request in requests:
         try:
@@ -53,7 +61,8 @@ def main(plan_path, out_path):
         plan = msgpack_numpy.unpackb(f.read())
     out = [None] * len(plan["clients"])
     cls = client_class(plan)
-    threads = [threading.Thread(target=run, args=(cls, plan["host"], plan["port"], requests, out, i))
+    api_keys = plan.get("api_keys") or [None] * len(plan["clients"])
+    threads = [threading.Thread(target=run, args=(cls, plan["host"], plan["port"], requests, api_keys[i], out, i))
                for i, requests in enumerate(plan["clients"])]
     for thread in threads:
         thread.start()

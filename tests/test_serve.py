@@ -4,7 +4,9 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from helpers_serve import (
     FakePolicy,
     fake_actions,
@@ -28,8 +31,18 @@ from helpers_serve import (
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from steering_core.serve import PolicyServer, RequestError, VectorCatalog, parse_steering, parse_steering_option
+from steering_core.serve import (
+    PolicyServer,
+    RequestError,
+    SteeringVector,
+    VectorCatalog,
+    parse_steering,
+    parse_steering_option,
+)
+from steering_core.serve.auth import API_KEY_ENV, authorized, read_api_key
+from steering_core.serve.catalog import random_control, random_direction
 from steering_core.serve.codec import pack, unpack
+from steering_core.serve.episodes import EpisodeLog
 
 WIDTH = 64
 
@@ -132,6 +145,52 @@ def test_vectors_without_a_recorded_r_take_vector_units_only(catalog, tmp_path):
     assert entry.vector_alpha == 1.5
 
 
+def test_random_controls_are_norm_matched_seeded_by_name_and_the_same_in_any_process(catalog):
+    residual = catalog.get("open_vs_close", 1)
+    control = catalog.get("open_vs_close", 1, "random_3")
+    assert (control.pair, control.layer, control.direction, control.vector.dtype, control.vector.shape) == \
+        ("open_vs_close", 1, "random_3", torch.float32, residual.vector.shape)
+    assert control.mean_residual_norm == residual.mean_residual_norm and not control.include_decoder_bias
+    assert float(control.vector.double().norm()) == pytest.approx(residual.norm, rel=1e-6)
+    assert control.norm == pytest.approx(residual.norm, rel=1e-6)
+    assert torch.equal(catalog.get("open_vs_close", 1, "random_3").vector, control.vector)
+    others = [catalog.get(*key).vector for key in (("open_vs_close", 1, "random_4"), ("on_vs_off", 1, "random_3"),
+                                                   ("open_vs_close", 2, "random_3"))]
+    assert all(not torch.equal(other, control.vector) for other in others)
+    # another process drawing with ATen's scalar kernels (as a CPU without AVX2, where float32 draws differ)
+    script = ("from steering_core.serve.catalog import random_direction; "
+              f"print(random_direction('open_vs_close', 1, 3, {WIDTH}, {residual.norm!r}).numpy().tobytes().hex())")
+    other = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                           env={**os.environ, "ATEN_CPU_CAPABILITY": "default", "OMP_NUM_THREADS": "2"})
+    assert other.stdout.strip() == control.vector.numpy().tobytes().hex()
+    # pinned: a machine or torch build drawing other numbers fails here
+    assert random_direction("open_vs_close", 12, 0, 2048, 1.0)[:3].tolist() == \
+        [0.023906700313091278, 0.039484839886426926, 0.029711419716477394]
+
+
+def test_random_controls_are_nearly_orthogonal_in_pi05_width():
+    # a unit vector uniform on the sphere in d dimensions has P(|cos| > t) <= 2 exp(-d t^2 / 2) against any fixed
+    # direction: under 1e-5 at t = 5 / sqrt(d). Controls against three residuals (all ones: the mean) and each other.
+    width = 2048
+    residuals = [SteeringVector("p", 3, "residual", v, float(v.norm()), Path("p"), "residual", 40.0)
+                 for v in (torch.ones(width), torch.arange(width, dtype=torch.float32), torch.eye(width)[7] * 5)]
+    controls = [random_control(residuals[0], k).vector for k in range(8)]
+    assert all(c.norm() == pytest.approx(residuals[0].norm, rel=1e-6) for c in controls)
+    pairs = [(c, r.vector) for c in controls for r in residuals] + \
+        [(a, b) for i, a in enumerate(controls) for b in controls[i + 1:]]
+    assert max(abs(float(a @ b / (a.norm() * b.norm()))) for a, b in pairs) < 5 / math.sqrt(width)
+
+
+def test_random_controls_in_requests(catalog):
+    [entry] = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 3.0, "direction": "random_0"}, catalog)
+    assert entry.vector.direction == "random_0" and entry.describe()["direction"] == "random_0"
+    assert entry.vector_alpha * entry.vector.norm == pytest.approx(3.0 * catalog.get("on_vs_off", 2).mean_residual_norm)
+    for name in ("random_1000", "random_01", "random_", "random_-1", "Random_0", "random_0x", "random"):
+        with pytest.raises(RequestError, match=r"has \['residual'\] and random_0..random_999") as err:
+            parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.0, "direction": name}, catalog)
+        assert err.value.key == "steering.direction"
+
+
 @pytest.mark.parametrize("value, key, problem", [
     ({"pair": "nope", "layer": 1, "alpha": 1.0}, "steering.pair", "unknown pair 'nope'"),
     ({"pair": "open_vs_close", "layer": 7, "alpha": 1.0}, "steering.layer", r"layers \[1, 2\]"),
@@ -166,6 +225,7 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
         {"obs": observations[0] | {"steering": steer}},
         {"obs": observations[1] | {"steering": both}},
         {"obs": observations[2] | {"steering": {**steer, "direction": "mean_difference"}}},
+        {"obs": observations[3] | {"steering": {**steer, "direction": "random_2"}}},
     ]
     with running(PolicyServer(FakePolicy(), catalog)) as server:
         [client] = run_openpi_client(tmp_path, server.port, [requests])
@@ -174,6 +234,7 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
         expected(catalog, observations[0], ("open_vs_close", 1, 4.0)),
         expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5, "residual", "vector")),
         expected(catalog, observations[2], ("open_vs_close", 1, 4.0, "mean_difference")),
+        expected(catalog, observations[3], ("open_vs_close", 1, 4.0, "random_2")),
     ]
     for reply, actions in zip(replies, wanted, strict=True):
         assert reply["actions"].dtype == np.float32 and reply["actions"].shape == (10, 7)
@@ -191,7 +252,8 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
     assert replies[0]["policy_timing"] == {"infer_ms": 0.0}
     metadata = client["metadata"]
     assert metadata["policy"] == "fake" and metadata["steering"]["vectors"] == catalog.describe()
-    assert "serialised" in metadata["server"]["inference"]
+    assert "serialised" in metadata["server"]["inference"] and metadata["server"]["api_key_required"] is False
+    assert "zlib.crc32(b'<pair>/<layer>/random_<k>')" in metadata["steering"]["random_controls"]
 
 
 def test_libero_example_wrapper_adds_the_steering_entry(catalog, observations, tmp_path):
@@ -264,6 +326,111 @@ def test_ten_concurrent_clients_twenty_requests_each(catalog, observations, tmp_
             want = expected(catalog, obs, ("open_vs_close", 1 + i % 2, c + i / 10))
             assert result["reply"]["actions"].tobytes() == want.tobytes(), (c, i)
     assert policy.calls == 200 and policy.max_concurrent == 1  # one inference at a time
+
+
+# ---------------------------------------------------------------- episodes and api key (openpi's current client)
+
+def start(experiment: str, episode_id: int, task: str = "open the top drawer of the cabinet") -> dict:
+    """openpi's current WebsocketClientPolicy.episode_start message."""
+    return {"ctrl": {"__ctrl__": "episode_start", "__experiment__": experiment, "__task__": task,
+                     "__episode_id__": episode_id}}
+
+
+def end(success) -> dict:
+    """openpi's current WebsocketClientPolicy.episode_end message."""
+    return {"ctrl": {"__ctrl__": "episode_end", "__success__": success}}
+
+
+def test_episode_control_messages_are_acknowledged_recorded_logged_and_written(catalog, observations, tmp_path,
+                                                                              caplog):
+    caplog.set_level(logging.INFO, logger="steering_core.serve.episodes")
+    obs = {"obs": observations[0]}
+    first = [obs, end(False),                                     # an end without a start: recorded as it is
+             start("sweep", 7), {"obs": observations[1] | {"steering": {"pair": "on_vs_off", "layer": 1,
+                                                                        "alpha": 2.0, "direction": "random_0"}}},
+             obs, end(True),
+             start("sweep", 8), {"ctrl": {"__ctrl__": "episode_pause"}}, end("yes"),
+             {"ctrl": {"__ctrl__": "episode_end", "__sucess__": True}}, obs, end(False),
+             start("sweep", 9), start("sweep", 10)]                # 9 ends when 10 starts; 10 when the client exits
+    second = [start("other", 1, task="turn on the stove"), obs, obs, obs, end(True)]
+    episodes_file = tmp_path / "episodes.jsonl"
+    before = time.time()
+    with running(PolicyServer(FakePolicy(), catalog, episode_log=EpisodeLog(episodes_file))) as server:
+        a, b = run_openpi_client(tmp_path, server.port, [first, second])
+    after = time.time()
+    acks = {"episode_start": {"__ack__": "episode_start"}, "episode_end": {"__ack__": "episode_end"}}
+    for request, result in zip(first + second, a["results"] + b["results"], strict=True):
+        if "obs" in request:  # inference works between (and after refused) control messages
+            steering = request["obs"].get("steering")
+            want = expected(catalog, request["obs"], *([tuple(steering.values())] if steering else []))
+            assert result["reply"]["actions"].tobytes() == want.tobytes()
+        elif "reply" in result:  # the refused ones are checked below
+            assert result["reply"] == acks[request["ctrl"]["__ctrl__"]]
+    errors = [r["error"] for r in a["results"] if "error" in r]
+    assert [e.split("\n")[1] for e in errors] == [
+        "bad request: __ctrl__: unknown control message 'episode_pause'; expected 'episode_start' or 'episode_end'",
+        "bad request: __success__: expected bool, got str 'yes'",
+        "bad request: episode_end: unknown key(s) ['__sucess__']; expected ['__success__']"]
+    records = server.episodes
+    lines = episodes_file.read_text().splitlines()
+    assert [json.loads(line) for line in lines] == records  # one whole JSON line per finished episode
+    assert {r["client"] for r in records if r["experiment"] != "other"} != {r["client"] for r in records
+                                                                            if r["experiment"] == "other"}
+    fields = ("experiment", "task", "episode_id", "success", "inferences", "ended_by")
+    drawer, stove = "open the top drawer of the cabinet", "turn on the stove"
+    assert sorted((tuple(r[f] for f in fields) for r in records), key=str) == sorted([
+        (None, None, None, False, 1, "episode_end"),
+        ("sweep", drawer, 7, True, 2, "episode_end"),
+        ("sweep", drawer, 8, False, 1, "episode_end"),
+        ("sweep", drawer, 9, None, 0, "episode_start"),
+        ("sweep", drawer, 10, None, 0, "disconnect"),
+        ("other", stove, 1, True, 3, "episode_end"),
+    ], key=str)
+    for r in records:
+        assert r["start_time"] is None if r["experiment"] is None else before <= r["start_time"] <= r["end_time"]
+        assert before <= r["end_time"] <= after
+    logged = [m for m in caplog.messages if m.startswith("episode ") and " from 127.0.0.1:" in m]
+    assert len(logged) == len(records)
+    for line, r in zip(logged, records, strict=True):  # logged as recorded
+        assert line.endswith(f"from {r['client']}: success {r['success']}, {r['inferences']} inference(s), "
+                             f"ended by {r['ended_by']}")
+    assert any("episode_end from 127.0.0.1:" in m and "without episode_start" in m for m in caplog.messages)
+
+
+def test_api_key_refuses_the_upgrade_with_401_and_leaves_healthz_open(catalog, observations, tmp_path, caplog):
+    key = "k3y-0f-th1s-server"
+    with running(PolicyServer(FakePolicy(), catalog, api_key=key)) as server:
+        with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=10) as response:
+            assert response.status == 200 and response.read() == b"OK\n"
+        keyed, none, wrong = run_openpi_client(
+            tmp_path, server.port, [[{"obs": observations[0]}, start("keyed", 0), end(True)], [], []],
+            api_keys=[key, None, key[:-1] + "X"])
+    assert keyed["results"][0]["reply"]["actions"].tobytes() == expected(catalog, observations[0]).tobytes()
+    assert keyed["results"][2]["reply"] == {"__ack__": "episode_end"}
+    assert keyed["metadata"]["server"]["api_key_required"] is True and key not in json.dumps(keyed["metadata"])
+    assert none["status"] == wrong["status"] == 401 and "HTTP 401" in none["error"]
+    refused = [m for m in caplog.messages if m.startswith("refused a connection")]
+    assert sorted(m.split(": ")[1] for m in refused) == ["no api key", "wrong api key"]
+    assert not any(key[:-1] in m for m in caplog.messages)  # neither the key nor the wrong one is logged
+
+
+def test_api_key_from_a_file_or_the_environment(tmp_path):
+    path = tmp_path / "key"
+    path.write_text("  s3cret\n")
+    assert read_api_key(path, {}) == "s3cret"
+    assert read_api_key(path, {API_KEY_ENV: "other"}) == "s3cret"  # the file given explicitly wins
+    assert read_api_key(None, {API_KEY_ENV: " env-key "}) == "env-key"
+    assert read_api_key(None, {}) is None
+    for text, problem in (("\n  \n", "is empty"), ("two words", "printable ASCII without spaces")):
+        path.write_text(text)
+        with pytest.raises(ValueError, match=problem) as err:
+            read_api_key(path, {})
+        assert str(path) in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ValueError, match=rf"\${API_KEY_ENV} is empty"):
+        read_api_key(None, {API_KEY_ENV: ""})
+    assert authorized(["Api-Key s3cret"], "s3cret")
+    assert not any(authorized(values, "s3cret") for values in
+                   ([], ["Api-Key s3cre"], ["Api-Key s3cret "], ["Bearer s3cret"], ["Api-Key s3cret"] * 2))
 
 
 # ---------------------------------------------------------------- health, keepalive, default steering, shutdown

@@ -4,6 +4,7 @@ its actions (another process, the same kernel settings) equal to direct ones up 
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from helpers_serve import (
     server_env,
     write_vectors,
 )
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from steering_core.pi05.policy import Pi05Policy
@@ -62,11 +63,11 @@ def observations(tmp_path_factory):
 
 
 def direct(policy: Pi05Policy, catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
-    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha) at the instruction tokens,
-    α in residual_norm units: the vector times α·R/‖d‖."""
+    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha[, direction]) at the
+    instruction tokens, α in residual_norm units: the vector times α·R/‖d‖."""
     noise = torch.randn(policy.action_horizon, policy.action_dim, generator=torch.Generator().manual_seed(SEED))
     mask = policy.instruction_mask(observation["prompt"])
-    vectors = [(catalog.get(pair, layer), alpha) for pair, layer, alpha in entries]
+    vectors = [(catalog.get(pair, layer, *direction), alpha) for pair, layer, alpha, *direction in entries]
     steering = [Steering(v.layer, v.vector, alpha * v.mean_residual_norm / v.norm, token_mask=mask)
                 for v, alpha in vectors]
     return policy.infer(observation, steering=steering or None, noise=noise)["actions"]
@@ -76,19 +77,23 @@ def test_openpi_client_gets_pi05_infer_bit_for_bit(model, observations, tmp_path
     _, _, vectors, policy = model
     catalog = VectorCatalog.scan(vectors)
     steer = [{"pair": "open_vs_close", "layer": 1, "alpha": 6.0}, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}]
-    requests = [{"obs": obs} for obs in observations] + [{"obs": obs | {"steering": steer}} for obs in observations]
+    control = {"pair": "open_vs_close", "layer": 1, "alpha": 6.0, "direction": "random_1"}
+    requests = [{"obs": obs} for obs in observations] + [{"obs": obs | {"steering": steer}} for obs in observations] \
+        + [{"obs": observations[0] | {"steering": control}}]
     served = SteeredPi05Policy(policy, noise_seed=SEED)
     served.check_catalog(catalog)
     with running(PolicyServer(served, catalog)) as server:
         [client] = run_openpi_client(tmp_path, server.port, [requests])
     replies = [result["reply"]["actions"] for result in client["results"]]
     wanted = [direct(policy, catalog, obs) for obs in observations] + \
-        [direct(policy, catalog, obs, ("open_vs_close", 1, 6.0), ("on_vs_off", 2, -3.0)) for obs in observations]
+        [direct(policy, catalog, obs, ("open_vs_close", 1, 6.0), ("on_vs_off", 2, -3.0)) for obs in observations] \
+        + [direct(policy, catalog, observations[0], ("open_vs_close", 1, 6.0, "random_1"))]
     for reply, actions in zip(replies, wanted, strict=True):
         assert reply.shape == (10, 7) and reply.dtype == actions.dtype
         assert reply.tobytes() == actions.tobytes()
-    for plain, steered in zip(replies[:3], replies[3:], strict=True):
+    for plain, steered in zip(replies[:3], replies[3:6], strict=True):
         assert np.abs(plain - steered).max() > 1e-4  # steering changes the actions
+    assert np.abs(replies[6] - replies[0]).max() > 1e-4  # and so does its random control
     metadata = client["metadata"]
     assert metadata["model"] == "pi05" and metadata["noise_seed"] == SEED
     assert metadata["steering"]["vectors"] == catalog.describe()
@@ -130,18 +135,26 @@ def test_last_layer_huge_alpha_and_non_finite_actions_get_one_line_errors(model,
 def test_serve_command_serves_until_sigint(model, observations, tmp_path):
     checkpoint, tokenizer, vectors, policy = model
     arch_file = write_json(tmp_path / "arch.json", ARCH.model_dump())
+    key_file, episodes_file = tmp_path / "api_key", tmp_path / "episodes.jsonl"
+    key_file.write_text("s3cret\n")
     command = [LATENT_STEERING, "serve", "--checkpoint-path", str(checkpoint), "--tokenizer-path", str(tokenizer),
                "--arch-file", str(arch_file), "--vectors", str(vectors), "--port", "0", "--device", "cpu",
-               "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0"]
+               "--noise-seed", str(SEED), "--steer", "open_vs_close:2:5.0", "--api-key-file", str(key_file),
+               "--episodes-file", str(episodes_file)]
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=server_env())
     try:
         port = port_from_log(process)
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10) as response:
             assert response.read() == b"OK\n"
-        with connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
+        with pytest.raises(InvalidStatus, match="HTTP 401"):
+            connect(f"ws://127.0.0.1:{port}")
+        with connect(f"ws://127.0.0.1:{port}", max_size=None, additional_headers={"Authorization": "Api-Key s3cret"}) \
+                as ws:
             metadata = unpack(ws.recv())
             assert [(s["pair"], s["layer"], s["alpha"]) for s in metadata["steering"]["default"]] == \
                 [("open_vs_close", 2, 5.0)]
+            ws.send(pack({"__ctrl__": "episode_start", "__experiment__": "cli", "__task__": "t", "__episode_id__": 4}))
+            assert unpack(ws.recv(timeout=10)) == {"__ack__": "episode_start"}
             ws.send(pack(observations[0]))
             reply = unpack(ws.recv(timeout=60))
             catalog = VectorCatalog.scan(vectors)
@@ -151,6 +164,9 @@ def test_serve_command_serves_until_sigint(model, observations, tmp_path):
                 ws.recv(timeout=20)
             assert closed.value.rcvd.code == 1001
         assert process.wait(timeout=20) == 0
+        [record] = [json.loads(line) for line in episodes_file.read_text().splitlines()]
+        assert (record["experiment"], record["episode_id"], record["inferences"], record["ended_by"]) == \
+            ("cli", 4, 1, "disconnect")
     finally:
         process.kill()
 

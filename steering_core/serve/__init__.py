@@ -1,6 +1,7 @@
 """A steered pi0.5 policy server speaking openpi's websocket protocol (codec, vector catalog, requests, server)."""
 
-from steering_core.serve.catalog import SteeringVector, VectorCatalog
+from steering_core.serve.catalog import SteeringVector, VectorCatalog, random_control, random_direction
+from steering_core.serve.episodes import EpisodeLog
 from steering_core.serve.policy import ServedPolicy, SteeredPi05Policy
 from steering_core.serve.request import (
     AppliedSteering,
@@ -13,6 +14,7 @@ from steering_core.serve.server import PolicyServer
 
 __all__ = [
     "AppliedSteering",
+    "EpisodeLog",
     "PolicyServer",
     "RequestError",
     "ServedPolicy",
@@ -22,4 +24,6 @@ __all__ = [
     "VectorCatalog",
     "parse_steering",
     "parse_steering_option",
+    "random_control",
+    "random_direction",
 ]

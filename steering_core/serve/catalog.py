@@ -6,6 +6,9 @@ with an SAE, `mean_difference_direction.safetensors`. Direction kinds served: "r
 `latent_direction` lives in the SAE's latent space, not the residual stream, so it cannot be added and is not
 offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors, with the
 pair's `mean_residual_norm` (R, the residual_norm α unit) and `include_decoder_bias` from directions.json.
+
+Controls: "random_<k>" (k = 0..RANDOM_CONTROLS - 1) is a norm-matched random direction of the pair's residual
+vector at that layer (`random_control`), derived on request rather than stored.
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ import logging
 import math
 import os
 import re
-from dataclasses import dataclass
+import zlib
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -29,6 +33,14 @@ logger = logging.getLogger(__name__)
 DEFAULT_DIRECTION = "residual"
 DIRECTION_FILES = {"residual": RESIDUAL_DIRECTION_FILE, "mean_difference": MEAN_DIFFERENCE_FILE}
 _LAYER_FOLDER = re.compile(r"layer(\d+)")
+RANDOM_CONTROLS = 1000  # random_0 .. random_999: plenty of controls, a bounded set of vectors a client can ask for
+_RANDOM = re.compile(r"random_(0|[1-9]\d*)")
+RANDOM_DERIVATION = (
+    f"random_<k> (k = 0..{RANDOM_CONTROLS - 1}): an isotropic Gaussian direction scaled to the norm of the pair's "
+    "residual vector at that layer, with its mean_residual_norm; drawn in float64 by a CPU torch.Generator seeded "
+    "with zlib.crc32(b'<pair>/<layer>/random_<k>'), then rounded to float32 "
+    "(steering_core.serve.catalog.random_direction). Not the evaluation's covariance-shaped random_NN nulls."
+)
 
 
 @dataclass(frozen=True)
@@ -90,8 +102,13 @@ class VectorCatalog:
         return iter(self._vectors.values())
 
     def get(self, pair: str, layer: int, direction: str = DEFAULT_DIRECTION) -> SteeringVector | None:
-        """Return the vector, or None when the catalog has no such entry."""
-        return self._vectors.get((pair, layer, direction))
+        """Return the vector (for "random_<k>", the residual vector's random control), or None when the catalog
+        has no such entry."""
+        match = _RANDOM.fullmatch(direction)
+        if match is None or int(match.group(1)) >= RANDOM_CONTROLS:
+            return self._vectors.get((pair, layer, direction))
+        residual = self._vectors.get((pair, layer, DEFAULT_DIRECTION))
+        return None if residual is None else random_control(residual, int(match.group(1)))
 
     @property
     def pairs(self) -> list[str]:
@@ -108,6 +125,24 @@ class VectorCatalog:
     def describe(self) -> list[dict]:
         """Return the metadata entries, sorted by pair, layer and direction."""
         return [self._vectors[key].describe() for key in sorted(self._vectors)]
+
+
+def random_direction(pair: str, layer: int, k: int, width: int, norm: float) -> torch.Tensor:
+    """Return random control `k` of (pair, layer): a float32 (width,) Gaussian direction of L2 norm `norm`.
+
+    The same on every machine and process: the seed is a CRC-32 of the name and the draw float64 on the CPU,
+    where torch draws with scalar code everywhere (its float32 draws take an AVX2 path where there is one).
+    """
+    generator = torch.Generator().manual_seed(zlib.crc32(f"{pair}/{layer}/random_{k}".encode()))
+    direction = torch.randn(width, generator=generator, dtype=torch.float64)
+    return (direction * (norm / direction.norm())).float()
+
+
+def random_control(residual: SteeringVector, k: int) -> SteeringVector:
+    """Return the "random_<k>" control of a residual vector: its norm, R and width, a random direction."""
+    vector = random_direction(residual.pair, residual.layer, k, residual.vector.numel(), residual.norm)
+    return replace(residual, direction=f"random_{k}", vector=vector, norm=float(vector.norm()),
+                   include_decoder_bias=False)
 
 
 def _read_pair(pair_path: Path, layer: int) -> list[SteeringVector]:

@@ -15,7 +15,7 @@ import numpy as np
 
 from steering_core.pi05.observation import IMAGE_KEY, PROMPT_KEY, STATE_KEY, WRIST_IMAGE_KEY
 from steering_core.pi05.steering import LAST_LM_LAYER
-from steering_core.serve.catalog import DEFAULT_DIRECTION, SteeringVector, VectorCatalog
+from steering_core.serve.catalog import DEFAULT_DIRECTION, RANDOM_CONTROLS, SteeringVector, VectorCatalog
 
 STEERING_KEY = "steering"
 IMAGE_KEYS = (IMAGE_KEY, WRIST_IMAGE_KEY)
@@ -94,7 +94,8 @@ def parse_steering(
     """Return the vectors a `steering` entry selects: None or [] selects none.
 
     An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str, "alpha_units"?: str}`
-    (direction default "residual", alpha_units default "residual_norm"); `value` is one entry or a list of them.
+    (direction default "residual", or "mean_difference", or a random control "random_<k>"; alpha_units default
+    "residual_norm"); `value` is one entry or a list of them.
     """
     if value is None:
         return ()
@@ -146,8 +147,10 @@ def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringL
         raise RequestError(f"{key}.layer", f"layer {int(layer)}: {LAST_LM_LAYER}; use a layer below {int(layer)}")
     vector = catalog.get(pair, int(layer), direction)
     if vector is None:
+        offered = catalog.directions(pair, int(layer))
+        controls = f" and random_0..random_{RANDOM_CONTROLS - 1}" if DEFAULT_DIRECTION in offered else ""
         raise RequestError(f"{key}.direction", f"pair {pair!r} at layer {int(layer)} has no {direction!r} direction; "
-                                               f"it has {catalog.directions(pair, int(layer))}")
+                                               f"it has {offered}{controls}")
     units = entry.get("alpha_units", DEFAULT_ALPHA_UNITS)
     if units not in ALPHA_UNITS:
         raise RequestError(f"{key}.alpha_units", f"expected one of {list(ALPHA_UNITS)}, got {_describe(units)}")

@@ -2,9 +2,11 @@
 
 On connect the client gets the metadata; each binary msgpack observation gets one binary msgpack result
 (`actions`, `policy_timing`, `server_timing`, and the `steering` applied). Unlike openpi's server, a bad request
-gets a text frame naming the key and the connection stays open for the next request. `GET /healthz` answers
-200 "OK\\n" on the same port. One model serves every connection: requests run in order per connection and one
-at a time overall (an asyncio lock), in a worker thread so the event loop keeps answering pings.
+gets a text frame naming the key and the connection stays open for the next request. Control messages
+(`__ctrl__` episode_start / episode_end, openpi's current client) record episodes (steering_core.serve.episodes).
+With an api key, an upgrade without `Authorization: Api-Key <key>` gets HTTP 401. `GET /healthz` answers
+200 "OK\\n" on the same port, key or not. One model serves every connection: requests run in order per
+connection and one at a time overall (an asyncio lock), in a worker thread so the event loop keeps answering pings.
 SIGINT/SIGTERM (or `request_stop`) stop accepting connections, let the request in flight finish and be
 answered, then close every connection with 1001 (going away).
 """
@@ -29,7 +31,9 @@ from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 
 from steering_core.serve import codec
-from steering_core.serve.catalog import VectorCatalog
+from steering_core.serve.auth import HEADER, SCHEME, authorized
+from steering_core.serve.catalog import RANDOM_DERIVATION, VectorCatalog
+from steering_core.serve.episodes import CTRL_KEY, END_FIELDS, START_FIELDS, ConnectionEpisodes, EpisodeLog
 from steering_core.serve.policy import ServedPolicy
 from steering_core.serve.request import (
     ALPHA_UNITS,
@@ -55,6 +59,8 @@ class PolicyServer:
 
     Requests with |α| above `max_alpha` (residual_norm units) are refused, and so are steerings of the last
     language-model layer when the policy's metadata gives its depth (`steerable.lm.layers`, as Pi05Policy's does).
+    With `api_key`, only upgrades carrying it are accepted. Finished episodes go to `episode_log` (default: one
+    kept in memory only); `episodes` lists the last EPISODES_KEPT.
     """
 
     def __init__(
@@ -67,6 +73,8 @@ class PolicyServer:
         port: int = 8000,
         max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         max_alpha: float = DEFAULT_MAX_ALPHA,
+        api_key: str | None = None,
+        episode_log: EpisodeLog | None = None,
     ) -> None:
         self.policy = policy
         self.catalog = catalog or VectorCatalog()
@@ -74,6 +82,8 @@ class PolicyServer:
         self.default_steering = tuple(default_steering)
         self.host, self.port = host, port
         self.max_message_bytes = max_message_bytes
+        self.api_key = api_key
+        self.episode_log = episode_log or EpisodeLog()
         self.metadata = self._metadata()
         self._encoded_metadata = codec.pack(self.metadata)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -93,16 +103,21 @@ class PolicyServer:
             for signum in (signal.SIGINT, signal.SIGTERM):
                 self._loop.add_signal_handler(signum, self._stop.set)
         async with serve(
-            self._handle, self.host, self.port, compression=None, process_request=self._health,
+            self._handle, self.host, self.port, compression=None, process_request=self._check_request,
             max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR,
         ) as server:
             self.port = server.sockets[0].getsockname()[1]
-            logger.info("serving on ws://%s:%d (health: http://%s:%d%s)", self.host, self.port, self.host,
-                        self.port, HEALTH_PATH)
+            logger.info("serving on ws://%s:%d (health: http://%s:%d%s)%s", self.host, self.port, self.host,
+                        self.port, HEALTH_PATH, "; clients must send the api key" if self.api_key else "")
             if ready is not None:
                 ready()
             await self._stop.wait()
             await self._shutdown(server)
+
+    @property
+    def episodes(self) -> list[dict[str, Any]]:
+        """Return the finished episodes the server keeps, oldest first (JSON-ready records)."""
+        return list(self.episode_log.records)
 
     def request_stop(self) -> None:
         """Ask a running server to shut down (thread-safe); `serve` returns once it has. Asking again, after it
@@ -118,13 +133,23 @@ class PolicyServer:
                                for ws in self._connections - self._busy))
         await server.wait_closed()
 
-    def _health(self, connection: ServerConnection, request: Request) -> Response | None:
+    def _check_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        """Answer the health check; refuse an upgrade without the api key (when one is set)."""
         if request.path == HEALTH_PATH:
             return connection.respond(http.HTTPStatus.OK, "OK\n")
-        return None
+        values = request.headers.get_all(HEADER)
+        if self.api_key is None or authorized(values, self.api_key):
+            return None
+        logger.warning("refused a connection from %s: %s api key", _address(connection),
+                       "wrong" if values else "no")
+        response = connection.respond(http.HTTPStatus.UNAUTHORIZED,
+                                      f"send the server's api key as the header {HEADER}: {SCHEME} <key>\n")
+        response.headers["WWW-Authenticate"] = SCHEME
+        return response
 
     async def _handle(self, ws: ServerConnection) -> None:
         self._connections.add(ws)
+        episodes = ConnectionEpisodes(_address(ws), self.episode_log)
         try:
             await ws.send(self._encoded_metadata)
             previous_total_ms = None
@@ -133,20 +158,28 @@ class PolicyServer:
                 start = time.monotonic()
                 self._busy.add(ws)
                 try:
-                    await ws.send(await self._answer(message, previous_total_ms))
+                    reply, control = await self._answer(message, previous_total_ms, episodes)
+                    await ws.send(reply)
                 finally:
                     self._busy.discard(ws)
-                previous_total_ms = (time.monotonic() - start) * 1000
+                if not control:  # as openpi's server: prev_total_ms is the previous observation's
+                    previous_total_ms = (time.monotonic() - start) * 1000
             await ws.close(CloseCode.GOING_AWAY, "server shutting down")
         except ConnectionClosed:
             pass
         finally:
             self._connections.discard(ws)
+            episodes.close()
 
-    async def _answer(self, message: str | bytes, previous_total_ms: float | None) -> str | bytes:
-        """Return the encoded result, or the text of the error (the connection stays usable either way)."""
+    async def _answer(self, message: str | bytes, previous_total_ms: float | None,
+                      episodes: ConnectionEpisodes) -> tuple[str | bytes, bool]:
+        """Return the encoded reply, or the text of the error (the connection stays usable either way), and
+        whether the message was a control message."""
         try:
-            observation, steering = self._read(message)
+            request = self._unpack(message)
+            if isinstance(request, dict) and CTRL_KEY in request:
+                return codec.pack(episodes.control(request)), True
+            observation, steering = self._read(request)
             queued = time.monotonic()
             async with self._inference:
                 started = time.monotonic()
@@ -156,26 +189,29 @@ class PolicyServer:
             if not np.isfinite(result["actions"]).all():
                 logger.warning("non-finite actions withheld (steering %s)", [s.describe() for s in steering])
                 return ("inference failed (the server keeps serving): the policy's actions are not finite; "
-                        "lower |alpha| of the steering entry")
+                        "lower |alpha| of the steering entry"), False
+            episodes.inferred()
             result[STEERING_KEY] = [s.describe() for s in steering]
             result["server_timing"] = {"infer_ms": (finished - started) * 1000, "queue_ms": (started - queued) * 1000}
             if previous_total_ms is not None:
                 result["server_timing"]["prev_total_ms"] = previous_total_ms
-            return codec.pack(result)
+            return codec.pack(result), False
         except (codec.WireError, RequestError) as err:
             logger.warning("bad request: %s", err)
-            return f"bad request: {err}"
+            return f"bad request: {err}", False
         except Exception:
             logger.exception("inference failed")
-            return f"inference failed (the server keeps serving):\n{traceback.format_exc()}"
+            return f"inference failed (the server keeps serving):\n{traceback.format_exc()}", False
 
-    def _read(self, message: str | bytes) -> tuple[dict[str, Any], tuple[AppliedSteering, ...]]:
+    def _unpack(self, message: str | bytes) -> Any:
         if isinstance(message, str):
             raise RequestError(None, "got a text frame; send the observation as binary msgpack (openpi-client does)")
         if len(message) > self.max_message_bytes:
             raise RequestError("message", f"{len(message)} bytes is over the server's limit of "
                                           f"{self.max_message_bytes} bytes (--max-message-mb)")
-        observation = codec.unpack(message)
+        return codec.unpack(message)
+
+    def _read(self, observation: Any) -> tuple[dict[str, Any], tuple[AppliedSteering, ...]]:
         check_observation(observation)
         if STEERING_KEY in observation:
             return observation, parse_steering(observation.pop(STEERING_KEY), self.catalog, limits=self.limits)
@@ -186,12 +222,14 @@ class PolicyServer:
             **self.policy.metadata,
             "steering": {
                 "request_key": STEERING_KEY,
-                "entry": {"pair": "str", "layer": "int", "alpha": "float", "direction": "str (default residual)",
+                "entry": {"pair": "str", "layer": "int", "alpha": "float",
+                          "direction": "str: residual (default), mean_difference or random_<k>",
                           "alpha_units": f"one of {list(ALPHA_UNITS)} (default {DEFAULT_ALPHA_UNITS})"},
                 "alpha_units": {"residual_norm": "alpha * mean_residual_norm / norm * vector is added (the "
                                                  "evaluation's unit)", "vector": "alpha * vector is added"},
                 "max_alpha": self.limits.max_alpha,
                 "applied_at": "language-model residual stream, the prompt's instruction tokens",
+                "random_controls": RANDOM_DERIVATION,
                 "default": [s.describe() for s in self.default_steering],
                 "vectors": self.catalog.describe(),
             },
@@ -199,8 +237,16 @@ class PolicyServer:
                 "inference": "serialised: one model, one request at a time across all connections",
                 "errors": "a text frame naming the key; the connection stays open",
                 "max_message_bytes": self.max_message_bytes,
+                "api_key_required": self.api_key is not None,
+                "control_messages": {"episode_start": list(START_FIELDS), "episode_end": list(END_FIELDS),
+                                     "reply": "{'__ack__': <__ctrl__ value>}, as openpi's server"},
             },
         }
+
+
+def _address(connection: ServerConnection) -> str:
+    host, port = connection.remote_address[:2]
+    return f"{host}:{port}"
 
 
 def lm_depth(metadata: dict[str, Any]) -> int | None:

@@ -1,0 +1,128 @@
+"""Episodes a client reports with openpi's control messages (its main-branch client since 2025).
+
+`{"__ctrl__": "episode_start", "__experiment__": str, "__task__": str, "__episode_id__": int}` opens an episode
+on the connection and `{"__ctrl__": "episode_end", "__success__": bool}` closes it; each is answered, as openpi's
+server does, with `{"__ack__": <ctrl>}`. A missing field takes openpi's server default; a wrong-typed or unknown
+one, or another `__ctrl__` value, is a RequestError. An episode is recorded when it ends: by episode_end (with
+its success), by the next episode_start or by the connection closing (success None: never reported). An
+episode_end without an episode_start is recorded too, with no experiment, task, id or start time.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from steering_core.serve.request import RequestError
+
+logger = logging.getLogger(__name__)
+
+CTRL_KEY = "__ctrl__"
+ACK_KEY = "__ack__"
+EPISODES_KEPT = 10_000  # finished episodes a server keeps in memory (the episodes file keeps them all)
+# message key -> (record field, accepted types, openpi's server default)
+START_FIELDS = {"__experiment__": ("experiment", (str,), "unknown"), "__task__": ("task", (str,), ""),
+                "__episode_id__": ("episode_id", (int, np.integer), -1)}
+END_FIELDS = {"__success__": ("success", (bool, np.bool_), False)}
+
+
+@dataclass
+class Episode:
+    """One episode of one connection; times are Unix seconds (None: no episode_start was sent)."""
+
+    client: str
+    experiment: str | None = None
+    task: str | None = None
+    episode_id: int | None = None
+    start_time: float | None = None
+    inferences: int = 0
+    success: bool | None = None
+    end_time: float | None = None
+    ended_by: str | None = None  # "episode_end", "episode_start" (the next one began) or "disconnect"
+
+
+class EpisodeLog:
+    """The server's finished episodes: the last EPISODES_KEPT in `records`, every one logged and, with a
+    `path`, appended to it as one JSON line (written whole and flushed)."""
+
+    def __init__(self, path: Path | None = None) -> None:
+        self.path = path
+        self.records: deque[dict[str, Any]] = deque(maxlen=EPISODES_KEPT)
+        if path is not None:
+            path.open("a", encoding="utf-8").close()  # an unwritable path fails at start, not at the first episode
+
+    def add(self, episode: Episode) -> None:
+        record = asdict(episode)
+        self.records.append(record)
+        logger.info("episode %s of %r (task %r) from %s: success %s, %d inference(s), ended by %s",
+                    episode.episode_id, episode.experiment, episode.task, episode.client, episode.success,
+                    episode.inferences, episode.ended_by)
+        if self.path is not None:
+            with self.path.open("a", encoding="utf-8") as f:
+                f.write(json.dumps(record) + "\n")
+
+
+class ConnectionEpisodes:
+    """The episode state of one connection: answers its control messages and counts its inferences."""
+
+    def __init__(self, client: str, log: EpisodeLog) -> None:
+        self.client, self.log = client, log
+        self.current: Episode | None = None
+        self.inferences = 0  # since the connection opened or the last episode began or ended
+
+    def control(self, message: Mapping[str, Any]) -> dict[str, str]:
+        """Apply one control message and return the reply; raise RequestError for a malformed one."""
+        ctrl = message[CTRL_KEY]
+        if not isinstance(ctrl, str):
+            raise RequestError(CTRL_KEY, f"expected a str, got {type(ctrl).__name__}")
+        if ctrl == "episode_start":
+            fields = _fields(message, START_FIELDS)
+            self._finish(None, "episode_start")
+            self.current = Episode(self.client, start_time=time.time(), **fields)
+            self.inferences = 0
+        elif ctrl == "episode_end":
+            fields = _fields(message, END_FIELDS)
+            if self.current is None:
+                logger.warning("episode_end from %s without episode_start: recorded without experiment, task, id "
+                               "or start time", self.client)
+                self.current = Episode(self.client)
+            self._finish(fields["success"], "episode_end")
+        else:
+            raise RequestError(CTRL_KEY, f"unknown control message {ctrl!r}; expected 'episode_start' or "
+                                         "'episode_end'")
+        return {ACK_KEY: ctrl}
+
+    def inferred(self) -> None:
+        self.inferences += 1
+
+    def close(self) -> None:
+        """Record the open episode, if any, as ended by the connection closing."""
+        self._finish(None, "disconnect")
+
+    def _finish(self, success: bool | None, ended_by: str) -> None:
+        if self.current is not None:
+            self.current.inferences, self.current.success = self.inferences, success
+            self.current.end_time, self.current.ended_by = time.time(), ended_by
+            self.log.add(self.current)
+        self.current, self.inferences = None, 0
+
+
+def _fields(message: Mapping[str, Any], spec: dict[str, tuple]) -> dict[str, Any]:
+    unknown = sorted(str(k) for k in message if k != CTRL_KEY and k not in spec)
+    if unknown:
+        raise RequestError(message[CTRL_KEY], f"unknown key(s) {unknown}; expected {list(spec)}")
+    fields = {}
+    for key, (name, types, default) in spec.items():
+        value = message.get(key, default)
+        if not isinstance(value, types) or (bool not in types and isinstance(value, bool)):
+            raise RequestError(key, f"expected {types[0].__name__}, got {type(value).__name__} {value!r:.60}")
+        fields[name] = value.item() if isinstance(value, np.generic) else value
+    return fields
