@@ -44,7 +44,7 @@ JOINT_KEY = "joints/"  # tensor name prefix of the goal-tested joints
 
 
 def condition_kind(condition: str) -> str:
-    """Return the kind of a condition, one of KINDS: `random_3` -> random, `wrong_concept:on_vs_off` -> wrong_concept."""
+    """Return the kind of a condition (one of KINDS): `random_3` -> random, `wrong_concept:a_vs_b` -> wrong_concept."""
     return condition.partition(":")[0] if ":" in condition else re.sub(r"_\d+$", "", condition)
 
 
@@ -163,6 +163,7 @@ def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Seq
         "format_version": ROLLOUT_FORMAT_VERSION,
         "cell": cell.name,
         **asdict(cell),
+        "alpha": cell.alpha + 0.0,  # no -0
         "kind": condition_kind(cell.condition),
         "alpha_toward": cell.alpha_toward,
         "alpha_units": "residual_norm: × R, the mean residual norm at the steered positions (the evaluation's unit)",
