@@ -53,10 +53,13 @@ def test_overlapping_intervals_are_no_evidence(tmp_path):
         "swap) 2/3 [0.21, 0.94]")
 
 
-def test_missing_controls_are_said(tmp_path):
+def test_missing_controls_and_joints_are_said(tmp_path):
     episodes = [make_episode(CLOSE.instruction, "toward", 5, init_index=i, seed=i) for i in range(4)]
+    for episode in episodes:
+        episode.joints = {}  # a goal on no articulated object (e.g. "put the bowl on the plate")
     cell = RolloutCell(PAIR, 12, "negative", "steered", 2.0, CLOSE, OPEN)
-    record = write_cell(tmp_path / cell.name, cell, episodes, [7] * 4, RUN)
+    record = write_cell(tmp_path / PAIR / cell.name, cell, episodes, [7] * 4, RUN)
+    assert write_pair_report(tmp_path / PAIR)["plots"] == {"success": "success_vs_alpha.png"}
     answer = side_answer([record], "negative")
     assert answer["text"] == ("no evidence: steered toward-task success at α = +2 is 4/4 [0.51, 1.00]; no random "
                               "controls at this α to compare; no α = 0 cell to compare")

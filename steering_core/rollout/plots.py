@@ -47,9 +47,10 @@ def plot_success(path: Path, records: Sequence[dict[str, Any]]) -> None:
     """Success rate vs α toward the other task, one panel per side: the steered direction's toward-task and
     instructed-task success with Wilson 95% intervals, the random controls' band, each wrong concept's marks,
     and α = 0 (unsteered) and the instruction swap (ceiling) as horizontal lines."""
-    fig = figure((11.0, 4.2))
-    for i, side in enumerate(SIDES):
-        ax = fig.add_subplot(1, len(SIDES), i + 1, sharey=fig.axes[0] if i else None)
+    sides = [s for s in SIDES if any(r["side"] == s for r in records)]
+    fig = figure((5.5 * len(sides), 4.2))
+    for i, side in enumerate(sides):
+        ax = fig.add_subplot(1, len(sides), i + 1, sharey=fig.axes[0] if i else None)
         steered = _side_cells(records, side, "steered")
         alphas = [r["alpha_toward"] for r in records]
         dodge = 0.012 * ((max(alphas) - min(alphas)) or 1.0)
@@ -68,8 +69,8 @@ def plot_success(path: Path, records: Sequence[dict[str, Any]]) -> None:
             _errorbar(ax, steered, "toward", marker="o", color="C0", label="steered: toward-task success")
             _errorbar(ax, steered, "instructed", dodge, marker="s", color="C1", linestyle="--",
                       label="steered: instructed-task success")
-        first = (steered or _side_cells(records, side, *("random", "unsteered", "instruction_swap")) or [None])[0]
-        task = f"{first['instructed']['instruction']!r} → {first['toward']['instruction']!r}" if first else "no cells"
+        first = next(r for r in records if r["side"] == side)
+        task = f"{first['instructed']['instruction']!r} → {first['toward']['instruction']!r}"
         ax.set(xlabel=ALPHA_LABEL, ylabel="success rate (Wilson 95%)" if i == 0 else None, ylim=(-0.03, 1.03),
                title=f"{side} side: {task}")
         ax.title.set_fontsize(8)
@@ -97,8 +98,10 @@ def plot_joints(path: Path, cells: Sequence[tuple[dict[str, Any], dict[str, np.n
     from matplotlib import colormaps
 
     joints = sorted({name for record, _ in cells for name in record["joints"]})
+    if not joints:
+        raise ValueError(f"{cells[0][0]['pair']}: the cells record no goal-tested joints; nothing to plot")
     sides = [s for s in SIDES if any(r["side"] == s for r, _ in cells)]
-    fig = figure((4.6 * max(len(joints), 1), 3.4 * len(sides)))
+    fig = figure((4.6 * len(joints), 3.4 * len(sides)))
     largest = max((abs(r["alpha_toward"]) for r, _ in cells), default=0.0) or 1.0
     for row, side in enumerate(sides):
         lines = sorted(((r, a) for r, a in cells if r["side"] == side and r["kind"] in ("steered", "unsteered",

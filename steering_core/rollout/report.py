@@ -107,8 +107,11 @@ def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None) -> 
     records = [record for record, _ in cells]
     tasks = {side: next(r["instructed"] for r in records if r["side"] == side)
              for side in SIDES if any(r["side"] == side for r in records)}
+    plots = {"success": SUCCESS_PLOT}
     plot_success(pair_path / SUCCESS_PLOT, records)
-    plot_joints(pair_path / JOINTS_PLOT, cells, thresholds)
+    if any(r["joints"] for r in records):  # goals on articulated objects (drawer, knob) only
+        plots["joints"] = JOINTS_PLOT
+        plot_joints(pair_path / JOINTS_PLOT, cells, thresholds)
     summary = {
         "format_version": ROLLOUT_FORMAT_VERSION,
         "pair": records[0]["pair"], "layer": records[0]["layer"],
@@ -116,7 +119,7 @@ def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None) -> 
         "tasks": tasks,
         "answers": [side_answer(records, side) for side in tasks],
         "cells": [cell_row(r) for r in records],
-        "plots": {"success": SUCCESS_PLOT, "joints": JOINTS_PLOT},
+        "plots": plots,
         "videos": {r["cell"]: f"{r['cell']}/{r['episodes'][0]['video']}" for r in records if r["episodes"][0]["video"]},
     }
     write_json(pair_path / f"{ROLLOUT_PAIR_TABLE}.json", summary)
@@ -147,7 +150,7 @@ def pair_markdown(summary: dict[str, Any]) -> str:
                      f"{row['n']} | "
                      + " | ".join(_proportion(row[o]) for o in OUTCOME_COLUMNS)
                      + f" | {_number(row['mean_steps'])} | {_number(row['mean_jerk'])} | {row['joint_limit_hits']} |")
-    lines += ["", f"![success vs α]({summary['plots']['success']})", "", f"![joints]({summary['plots']['joints']})"]
+    lines += [""] + [f"![{name}]({path})\n" for name, path in summary["plots"].items()]
     return "\n".join(lines) + "\n"
 
 
@@ -187,8 +190,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         lines += ["", f"## {name}", ""]
         lines += [f"- {row['side']} side ({pair['tasks'][row['side']]['instruction']!r} pushed toward the other "
                   f"task): {row['text']}" for row in pair["answers"]]
-        lines += ["", f"![{name}: success vs α]({name}/{pair['plots']['success']})", "",
-                  f"![{name}: joints]({name}/{pair['plots']['joints']})", ""]
+        lines += [""] + [f"![{name}: {plot}]({name}/{path})\n" for plot, path in pair["plots"].items()]
         lines += ["First episode of each cell (agentview MP4), by α toward the other task and outcome:", ""]
         by_condition: dict[str, list[str]] = {}
         for cell in pair["cells"]:
