@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 LAYER_DIR = "layer{layer:02d}"                      # data/residuals/<pair>_slices/layer12/
 FILTERED_DIR = "libero_filtered/{suite}"            # selected .hdf5 links + selection.json
 SELECTION_FILE = "selection.json"
@@ -28,6 +30,14 @@ DOSE_RESPONSE_FILE = "dose_response"  # + .json / .safetensors
 EFFICACY_PLOT = "efficacy_vs_alpha.png"
 SHIFT_PLOT = "shift_vs_alpha.png"
 TRAJECTORY_PLOT = "trajectory.png"
+# phase 5: ROLLOUTS_ROOT/layerNN/<pair>/<cell>/ per cell; the pair's table and PNGs in <pair>/, summaries in layerNN/
+ROLLOUTS_ROOT = "rollouts"
+ROLLOUT_FILE = "rollouts"  # + .json / .safetensors in a cell folder
+ROLLOUT_VIDEO = "{cell}_ep{episode}_{outcome}.mp4"  # in a cell folder: e.g. negative_steered_a+2_ep0_toward.mp4
+ROLLOUT_PAIR_TABLE = "cells"  # + .md / .json in a pair folder: one row per cell
+SUCCESS_PLOT = "success_vs_alpha.png"
+JOINTS_PLOT = "joint_trajectories.png"
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.+-]")
 
 
 def layer_dir(layer: int) -> str:
@@ -38,3 +48,14 @@ def layer_dir(layer: int) -> str:
 def stream_layer_dir(layer: int, stream: str) -> str:
     """Return the folder name of one layer of a stream: `layer12` (language model) or `expert_layer03`."""
     return EXPERT_LAYER_DIR.format(layer=layer) if stream == "expert" else layer_dir(layer)
+
+
+def rollout_cell_dir(side: str, condition: str, alpha: float) -> str:
+    """Return the folder name of one rollout cell, e.g. `negative_steered_a+2`, `positive_wrong_concept-on_vs_off_a-1.5`
+    (characters other than letters, digits and `_.+-` become `-`; α = -0 is written `+0`)."""
+    return _UNSAFE.sub("-", f"{side}_{condition}_a{alpha + 0.0:+g}")
+
+
+def rollout_video_file(cell: str, episode: int, outcome: str) -> str:
+    """Return the MP4 file name of one episode of a cell, e.g. `negative_steered_a+2_ep0_toward.mp4`."""
+    return ROLLOUT_VIDEO.format(cell=cell, episode=episode, outcome=outcome)

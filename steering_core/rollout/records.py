@@ -1,0 +1,214 @@
+"""One rollout cell's files: `rollouts.json` (identity, per-episode outcomes, success counts) and
+`rollouts.safetensors` (per-episode trajectories), plus an MP4 of each episode that recorded frames.
+
+A cell is one (side, condition, α) of a (pair, layer): `side` names the task whose scene, initial states and
+instruction the episodes start from ("positive" / "negative"); `condition` is "steered" (the pair's direction),
+"random_<k>" (a norm-matched random direction), "wrong_concept:<pair>" (another pair's direction at the same α),
+"instruction_swap" (the other task's instruction, no steering: the ceiling) or "unsteered" (α = 0). `alpha` is
+the signed α applied, in residual_norm units (× R, the evaluation's unit); `alpha_toward` = α on the negative side
+and −α on the positive side is the push toward the other task. An episode's outcome is the first goal reached:
+"instructed" (the side's own task), "toward" (the other task) or "neither" by the step limit.
+
+Tensors (E episodes, T the longest episode's steps; shorter episodes padded with NaN): `lengths` (E,) int64 steps,
+`actions` (E, T, 7) float32, `robot_qpos` (E, T + 1, 7) float64, `joints/<name>` (E, T + 1) float64 per joint a
+goal tests. The JSON is written last, so a folder with it is complete.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from steering_core.rollout.stats import proportion
+from steering_core.rollout.video import DEFAULT_FPS, write_video
+from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.layout import ROLLOUT_FILE, rollout_cell_dir, rollout_video_file
+from steering_core.storage.tensor_files import load_safetensors, save_safetensors
+
+if TYPE_CHECKING:
+    from steering_core.rollout.episode import EpisodeRecord
+
+ROLLOUT_FORMAT_VERSION = 1
+SIDES = ("positive", "negative")
+OUTCOMES = ("instructed", "toward", "neither")
+KINDS = ("steered", "random", "wrong_concept", "instruction_swap", "unsteered")
+_CONDITION = re.compile(r"steered|random_\d+|wrong_concept:.+|instruction_swap|unsteered")
+JOINT_KEY = "joints/"  # tensor name prefix of the goal-tested joints
+
+
+def condition_kind(condition: str) -> str:
+    """Return the kind of a condition (one of KINDS): `random_3` -> random, `wrong_concept:a_vs_b` -> wrong_concept."""
+    return condition.partition(":")[0] if ":" in condition else re.sub(r"_\d+$", "", condition)
+
+
+@dataclass(frozen=True)
+class TaskRef:
+    """One LIBERO task: its suite, index in the suite and instruction."""
+
+    suite: str
+    index: int
+    instruction: str
+
+
+@dataclass(frozen=True)
+class RolloutCell:
+    """What identifies a cell (see the module docstring); `instructed` is the side's task, `toward` the other."""
+
+    pair: str
+    layer: int
+    side: str
+    condition: str
+    alpha: float
+    instructed: TaskRef
+    toward: TaskRef
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.side not in SIDES:
+            problems.append(f"side {self.side!r} is not one of {list(SIDES)}")
+        if not _CONDITION.fullmatch(self.condition):
+            problems.append(f"condition {self.condition!r} is not steered, random_<k>, wrong_concept:<pair>, "
+                            "instruction_swap or unsteered")
+        if not math.isfinite(self.alpha) or (self.condition in ("unsteered", "instruction_swap") and self.alpha):
+            problems.append(f"alpha {self.alpha!r} must be finite, and 0 for the unsteered and instruction_swap cells")
+        if problems:
+            raise ValueError(f"rollout cell {self.pair} layer {self.layer}: " + "; ".join(problems))
+
+    @property
+    def alpha_toward(self) -> float:
+        """Return α as a push toward the other task: α on the negative side, −α on the positive side."""
+        return (self.alpha if self.side == "negative" else -self.alpha) + 0.0  # + 0.0: no -0
+
+    @property
+    def name(self) -> str:
+        """Return the cell's folder name, e.g. `negative_steered_a+2`."""
+        return rollout_cell_dir(self.side, self.condition, self.alpha)
+
+
+def _finite(value: float | None) -> float | None:
+    """Return a float, or None for a missing or non-finite one (JSON has no NaN)."""
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def _step(value: int | None) -> int | None:
+    return None if value is None else int(value)
+
+
+def episode_facts(episode: EpisodeRecord) -> dict[str, Any]:
+    """Return the JSON-ready scalar facts of one episode (numpy scalars as Python ones, NaN jerk as None)."""
+    return {"init_index": int(episode.init_index), "outcome": episode.outcome, "steps": int(episode.steps),
+            "success_step": _step(episode.success_step), "toward_step": _step(episode.toward_step),
+            "jerk": _finite(episode.jerk), "joint_limit_hits": int(episode.joint_limit_hits),
+            "policy_calls": int(episode.policy_calls)}
+
+
+def _check_episodes(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int]) -> None:
+    """Raise one ValueError listing every episode whose facts or arrays do not fit together."""
+    problems = [] if episodes else ["no episodes"]
+    if len(seeds) != len(episodes):
+        problems.append(f"{len(seeds)} seeds for {len(episodes)} episodes")
+    if len({e.prompt for e in episodes}) > 1:
+        problems.append(f"episodes saw different prompts {sorted({e.prompt for e in episodes})}")
+    if len({tuple(sorted(e.joints)) for e in episodes}) > 1:
+        problems.append("episodes record different joints")
+    for i, e in enumerate(episodes):
+        shapes = {"actions": (e.steps, 7), "robot_qpos": (e.steps + 1, 7)}
+        shapes |= {f"joints[{name!r}]": (e.steps + 1,) for name in e.joints}
+        arrays = {"actions": e.actions, "robot_qpos": e.robot_qpos} | {f"joints[{n!r}]": v for n, v in e.joints.items()}
+        wrong = [f"{key} is {np.shape(arrays[key])}, expected {shape}" for key, shape in shapes.items()
+                 if np.shape(arrays[key]) != shape]
+        if e.outcome not in OUTCOMES:
+            wrong.append(f"outcome {e.outcome!r} is not one of {list(OUTCOMES)}")
+        problems += [f"episode {i}: {w}" for w in wrong]
+    if problems:
+        raise ValueError(f"cell {cell.pair}/{cell.name}: " + "; ".join(problems))
+
+
+def padded(rows: Sequence[np.ndarray], length: int, dtype: type) -> np.ndarray:
+    """Return (E, length, ...) of `rows` (each (t, ...), t <= length) padded with NaN after each row's end."""
+    out = np.full((len(rows), length, *np.shape(rows[0])[1:]), np.nan, dtype=dtype)
+    for i, row in enumerate(rows):
+        out[i, : len(row)] = row
+    return out
+
+
+def cell_arrays(episodes: Sequence[EpisodeRecord]) -> dict[str, np.ndarray]:
+    """Return the cell's tensors (module docstring) as numpy arrays."""
+    longest = max(e.steps for e in episodes)
+    arrays = {
+        "lengths": np.array([e.steps for e in episodes], dtype=np.int64),
+        "actions": padded([e.actions for e in episodes], longest, np.float32),
+        "robot_qpos": padded([e.robot_qpos for e in episodes], longest + 1, np.float64),
+    }
+    for name in episodes[0].joints:
+        arrays[JOINT_KEY + name] = padded([e.joints[name] for e in episodes], longest + 1, np.float64)
+    return arrays
+
+
+def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
+                run: Mapping[str, Any], videos: Mapping[int, str]) -> dict[str, Any]:
+    """Return the JSON of one cell: identity, `run` facts, per-episode facts, outcome counts with Wilson intervals."""
+    rows = [{"episode": i, "seed": int(seed), **episode_facts(e), "video": videos.get(i)}
+            for i, (e, seed) in enumerate(zip(episodes, seeds, strict=True))]
+    n = len(episodes)
+    jerks = [row["jerk"] for row in rows if row["jerk"] is not None]
+    return {
+        "format_version": ROLLOUT_FORMAT_VERSION,
+        "cell": cell.name,
+        **asdict(cell),
+        "alpha": cell.alpha + 0.0,  # no -0
+        "kind": condition_kind(cell.condition),
+        "alpha_toward": cell.alpha_toward,
+        "alpha_units": "residual_norm: × R, the mean residual norm at the steered positions (the evaluation's unit)",
+        "prompt": episodes[0].prompt,
+        "joints": sorted(episodes[0].joints),
+        "run": dict(run),
+        "episodes": rows,
+        "success": {outcome: proportion(sum(e.outcome == outcome for e in episodes), n).to_json()
+                    for outcome in OUTCOMES},
+        "mean_steps": sum(e.steps for e in episodes) / n,
+        "mean_jerk": sum(jerks) / len(jerks) if jerks else None,
+        "joint_limit_hits": sum(row["joint_limit_hits"] for row in rows),
+    }
+
+
+def write_cell(folder: str | Path, cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
+               run: Mapping[str, Any], fps: float = DEFAULT_FPS) -> dict[str, Any]:
+    """Write one cell's files into `folder` (the cell's own folder, named `cell.name`) and return its record.
+
+    `seeds` are the episodes' env seeds; `run` the run-identity facts (JSON-ready) stored as they are. Each
+    episode with frames gets an MP4 named with its cell, index and outcome.
+    """
+    folder = Path(folder)
+    _check_episodes(cell, episodes, seeds)
+    videos = {i: rollout_video_file(cell.name, i, e.outcome) for i, e in enumerate(episodes) if len(e.frames)}
+    for i, name in videos.items():
+        write_video(folder / name, episodes[i].frames, fps=fps)
+    tensors = {key: torch.from_numpy(value) for key, value in cell_arrays(episodes).items()}
+    with atomic_path(folder / f"{ROLLOUT_FILE}.safetensors") as tmp:
+        save_safetensors(tensors, tmp, metadata={"format_version": str(ROLLOUT_FORMAT_VERSION)})
+    record = cell_record(cell, episodes, seeds, run, videos)
+    write_json(folder / f"{ROLLOUT_FILE}.json", record)
+    return record
+
+
+def read_cell(folder: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Return a cell's record (rollouts.json) and its arrays (rollouts.safetensors, as numpy)."""
+    folder = Path(folder)
+    json_path = folder / f"{ROLLOUT_FILE}.json"
+    record = read_json(json_path)
+    if record.get("format_version") != ROLLOUT_FORMAT_VERSION:
+        raise ValueError(f"{json_path}: format_version {record.get('format_version')!r}, expected "
+                         f"{ROLLOUT_FORMAT_VERSION}; re-run the rollouts of this cell")
+    arrays = {key: value.numpy() for key, value in load_safetensors(folder / f"{ROLLOUT_FILE}.safetensors").items()}
+    if len(arrays["lengths"]) != len(record["episodes"]):
+        raise ValueError(f"{folder}: {len(arrays['lengths'])} episodes in {ROLLOUT_FILE}.safetensors, "
+                         f"{len(record['episodes'])} in {ROLLOUT_FILE}.json; re-run the rollouts of this cell")
+    return record, arrays

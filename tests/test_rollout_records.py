@@ -1,0 +1,82 @@
+"""A rollout cell's files: rollouts.json and .safetensors round-trip the episodes; bad cells are refused whole."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from helpers_rollout import CLOSE, JOINT, OPEN, RUN, make_episode, write_pair_cells
+
+from steering_core.rollout.records import RolloutCell, condition_kind, read_cell, write_cell
+from steering_core.storage.layout import rollout_cell_dir
+
+
+def test_cell_names_and_condition_kinds():
+    assert rollout_cell_dir("negative", "steered", 2.0) == "negative_steered_a+2"
+    assert rollout_cell_dir("positive", "wrong_concept:on_vs_off", -1.5) == "positive_wrong_concept-on_vs_off_a-1.5"
+    assert rollout_cell_dir("positive", "unsteered", -0.0) == "positive_unsteered_a+0"
+    assert [condition_kind(c) for c in ("steered", "random_3", "wrong_concept:a_vs_b", "instruction_swap",
+                                        "unsteered")] == ["steered", "random", "wrong_concept", "instruction_swap",
+                                                          "unsteered"]
+    cell = RolloutCell("open_vs_close", 12, "positive", "steered", -2.0, OPEN, CLOSE)
+    assert (cell.name, cell.alpha_toward) == ("positive_steered_a-2", 2.0)
+
+
+def test_cell_round_trips(tmp_path):
+    cell = RolloutCell("open_vs_close", 12, "negative", "steered", 2.0, CLOSE, OPEN)
+    episodes = [make_episode(CLOSE.instruction, "toward", 12, init_index=3, seed=1, drift=-0.01, frames=3),
+                make_episode(CLOSE.instruction, "neither", 30, init_index=4, seed=2),
+                make_episode(CLOSE.instruction, "instructed", 2, init_index=5, seed=3)]
+    record = write_cell(tmp_path / cell.name, cell, episodes, seeds=[7, 7, 7], run=RUN)
+    read, arrays = read_cell(tmp_path / cell.name)
+    assert read == json.loads(json.dumps(record))
+    assert sorted(p.name for p in (tmp_path / cell.name).iterdir()) == [
+        "negative_steered_a+2_ep0_toward.mp4", "rollouts.json", "rollouts.safetensors"]
+    assert {key: read[key] for key in ("pair", "layer", "side", "condition", "kind", "alpha", "alpha_toward",
+                                       "cell", "prompt", "joints", "run")} == {
+        "pair": "open_vs_close", "layer": 12, "side": "negative", "condition": "steered", "kind": "steered",
+        "alpha": 2.0, "alpha_toward": 2.0, "cell": "negative_steered_a+2", "prompt": CLOSE.instruction,
+        "joints": [JOINT], "run": RUN}
+    assert read["instructed"] == {"suite": "libero_90", "index": 0, "instruction": CLOSE.instruction}
+    assert read["episodes"][0] == {
+        "episode": 0, "seed": 7, "init_index": 3, "outcome": "toward", "steps": 12, "success_step": None,
+        "toward_step": 12, "jerk": pytest.approx(episodes[0].jerk), "joint_limit_hits": 0, "policy_calls": 3,
+        "video": "negative_steered_a+2_ep0_toward.mp4"}
+    assert read["episodes"][2]["jerk"] is None and read["mean_jerk"] == pytest.approx(
+        (episodes[0].jerk + episodes[1].jerk) / 2)  # a 2-step episode has no third difference
+    assert read["success"]["toward"] == {"k": 1, "n": 3, "rate": 1 / 3, "low": pytest.approx(0.0615, abs=1e-4),
+                                         "high": pytest.approx(0.7923, abs=1e-4)}
+    assert [read["success"][o]["k"] for o in ("instructed", "toward", "neither")] == [1, 1, 1]
+    assert arrays["lengths"].tolist() == [12, 30, 2]
+    assert arrays["actions"].shape == (3, 30, 7) and arrays["actions"].dtype == np.float32
+    assert arrays["robot_qpos"].shape == (3, 31, 7) and arrays[f"joints/{JOINT}"].shape == (3, 31)
+    for i, episode in enumerate(episodes):
+        steps = episode.steps
+        assert np.array_equal(arrays["actions"][i, :steps], episode.actions)
+        assert np.array_equal(arrays["robot_qpos"][i, : steps + 1], episode.robot_qpos)
+        assert np.array_equal(arrays[f"joints/{JOINT}"][i, : steps + 1], episode.joints[JOINT])
+        assert np.isnan(arrays[f"joints/{JOINT}"][i, steps + 1:]).all() and np.isnan(arrays["actions"][i, steps:]).all()
+
+
+def test_bad_cells_are_refused_with_every_problem(tmp_path):
+    with pytest.raises(ValueError, match=r"side 'left' is not one of \['positive', 'negative'\]; condition 'random'"):
+        RolloutCell("p", 1, "left", "random", 1.0, OPEN, CLOSE)
+    with pytest.raises(ValueError, match="0 for the unsteered and instruction_swap cells"):
+        RolloutCell("p", 1, "positive", "unsteered", 1.0, OPEN, CLOSE)
+    cell = RolloutCell("p", 1, "positive", "steered", 1.0, OPEN, CLOSE)
+    short = make_episode(OPEN.instruction, "won", 5)
+    short.actions = short.actions[:4]
+    with pytest.raises(ValueError) as err:
+        write_cell(tmp_path / cell.name, cell, [short, make_episode(CLOSE.instruction, "toward", 3)], [7], RUN)
+    assert str(err.value) == (
+        "cell p/positive_steered_a+1: 1 seeds for 2 episodes; episodes saw different prompts "
+        f"['{CLOSE.instruction}', '{OPEN.instruction}']; episode 0: actions is (4, 7), expected (5, 7); "
+        "episode 0: outcome 'won' is not one of ['instructed', 'toward', 'neither']")
+    assert not (tmp_path / cell.name).exists()
+
+
+def test_pair_cells_share_initial_states(tmp_path):
+    records = write_pair_cells(tmp_path, n=4, frames=0)
+    assert len(records) == 2 * (3 * 6 + 2) and len({r["cell"] for r in records}) == len(records)
+    assert {tuple(e["init_index"] for e in r["episodes"]) for r in records} == {(0, 1, 2, 3)}
