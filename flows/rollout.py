@@ -17,8 +17,8 @@ from prefect.deployments import run_deployment
 from flows.capture import capture_mode, wait_for_runs
 from steering_core.config import RunConfig, load_run_config
 from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
-from steering_core.rollout.secrets import read_api_key
-from steering_core.storage.layout import ROLLOUTS_JSON, layer_dir
+from steering_core.serve.auth import read_api_key
+from steering_core.storage.layout import layer_dir
 from tasks import rollout as rollout_tasks
 from tasks.artifacts import artifact_key
 from tasks.cache import rooted
@@ -43,7 +43,7 @@ def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = 
     for name, layer, side in targets or rollout_targets(config):  # one after another: one simulator per worker
         for cell_dir, jobs in by_cell(config_jobs(config, name, layer, (side,))).items():
             chunks = [chunk_task(job, model, settings, api_key)["chunk"] for job in jobs]
-            cells.append(cell_task(str(cell_dir), chunks, settings.videos)["rollouts"])
+            cells.append(cell_task(str(cell_dir), chunks)["rollouts"])
     return {"cells": cells}
 
 
@@ -67,7 +67,7 @@ def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     summaries = {}
     for layer in sorted({layer for _, layer, _ in targets}):
         layer_path = config.rollout_layer_path(layer)
-        cells = [str(cell_dir / ROLLOUTS_JSON) for cell_dir in layer_cells(config, layer)]
+        cells = {name: [str(c) for c in folders] for name, folders in layer_cells(config, layer).items()}
         result = rooted(rollout_tasks.rollout_summary, config.output_root)(
             layer, str(layer_path), cells, config.rollout.note)
         summaries[layer_dir(layer)] = result["summary"]

@@ -32,7 +32,7 @@ def rollout_command(
     joint trajectories, an MP4 of each cell's first episode, and a summary.md per layer.
     """
     from steering_core.rollout.local_run import rollout_config
-    from steering_core.rollout.secrets import read_api_key
+    from steering_core.serve.auth import read_api_key
 
     with input_errors():
         run_config = load_run_config(config)

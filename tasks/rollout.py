@@ -55,13 +55,18 @@ def rollout_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSett
     """Run one chunk of a cell in the simulator; return its record files."""
     progress = ProgressArtifact(artifact_key("rollout", job.cell_pair, job.layer, job.output_dir.name, job.chunk),
                                 "episodes", f"rollout {job.cell_pair} layer {job.layer} {job.output_dir.name}")
-    path = run_chunk(job, model, settings, api_key=api_key, progress=progress)
+    folder = run_chunk(job, model, settings, api_key=api_key, progress=progress)
     progress.finish()
-    return {OUTPUTS: [str(p) for p in records.chunk_files(path)], "chunk": str(path)}
+    return {OUTPUTS: record_files(folder), "chunk": str(folder)}
 
 
-def chunk_contents(inputs: dict[str, Any]) -> list[str]:
-    return [file_digest(path) for path in inputs["chunks"]]
+def record_files(folder: Path) -> list[str]:
+    """Return a cell record's two files (records.write_cell)."""
+    return [str(folder / f"{layout.ROLLOUT_FILE}.{suffix}") for suffix in ("json", "safetensors")]
+
+
+def chunk_contents(inputs: dict[str, Any]) -> list[list[str]]:
+    return [[file_digest(path) for path in record_files(Path(chunk))] for chunk in inputs["chunks"]]
 
 
 @task(
@@ -70,14 +75,18 @@ def chunk_contents(inputs: dict[str, Any]) -> list[str]:
     cache_policy=content_key("steering_core.rollout", derived={"chunks": chunk_contents}),
     **RESULTS,
 )
-def rollout_cell(cell_dir: str, chunks: list[str], videos: bool) -> dict:
+def rollout_cell(cell_dir: str, chunks: list[str]) -> dict:
     """Merge a cell's chunks into rollouts.json/.safetensors (and its first episode's MP4)."""
-    files = records.merge_cell(Path(cell_dir), [Path(p) for p in chunks], videos=videos)
-    return {OUTPUTS: [str(p) for p in files], "rollouts": str(files[0])}
+    records.merge_chunks(Path(cell_dir), [Path(p) for p in chunks])
+    files = record_files(Path(cell_dir))
+    return {OUTPUTS: files, "rollouts": files[0]}
 
 
-def cell_records(inputs: dict[str, Any]) -> dict[str, str]:
-    return {Path(path).parent.name: file_digest(path) for path in inputs["cells"]}
+def cell_records(inputs: dict[str, Any]) -> dict[str, Any]:
+    """Return the digest of every current cell's rollouts.json (None: not done yet)."""
+    return {name: [file_digest(p) if p.is_file() else None for p in (Path(c) / f"{layout.ROLLOUT_FILE}.json"
+                                                                       for c in cells)]
+            for name, cells in inputs["cells"].items()}
 
 
 @task(
@@ -86,8 +95,9 @@ def cell_records(inputs: dict[str, Any]) -> dict[str, str]:
     cache_policy=content_key("steering_core.rollout", derived={"cells": cell_records}),
     **RESULTS,
 )
-def rollout_summary(layer: int, layer_path: str, cells: list[str], note: str | None) -> dict:
-    """Write each pair's table and plots and the layer's summary.md / summary.json."""
-    md_path = report.write_layer_summary(Path(layer_path), [Path(p) for p in cells], note=note)
+def rollout_summary(layer: int, layer_path: str, cells: dict[str, list[str]], note: str | None) -> dict:
+    """Write each done pair's table and plots and the layer's summary.md / summary.json."""
+    md_path = report.write_layer(Path(layer_path), {name: [Path(c) for c in folders] for name, folders in cells.items()},
+                                 note=note)
     get_run_logger().info("rollout summary: %s", md_path)
     return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))], "summary": str(md_path)}

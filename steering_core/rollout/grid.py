@@ -7,14 +7,13 @@ toward the positive task (α > 0 in the direction's own sign); side `positive` i
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 from steering_core.rollout.settings import RolloutSettings
+from steering_core.storage.layout import rollout_cell_dir
 
 STEERED, UNSTEERED, SWAP = "steered", "unsteered", "instruction_swap"
 RANDOM_PREFIX, WRONG_PREFIX = "random_", "wrong_concept:"
-_SLUG = re.compile(r"[^A-Za-z0-9_.+-]")
 
 
 def toward_sign(side: str) -> float:
@@ -63,7 +62,7 @@ class Cell:
     @property
     def name(self) -> str:
         """Return the cell's folder name, e.g. `negative_steered_a+2` or `positive_random_1_a-4`."""
-        return _SLUG.sub("-", f"{self.side}_{self.condition}_a{self.alpha:+g}")
+        return rollout_cell_dir(self.side, self.condition, self.alpha)
 
 
 def cells(pair: str, layer: int, settings: RolloutSettings, other_pairs: list[str]) -> list[Cell]:

@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from steering_core.reporting.progress import Progress
-from steering_core.rollout import records, report
-from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
+from steering_core.rollout import records
+from steering_core.rollout.plan import by_cell, config_jobs, write_layer_report
 from steering_core.rollout.run import run_chunk
-from steering_core.storage.layout import ROLLOUTS_JSON
 
 if TYPE_CHECKING:
     from steering_core.config import RunConfig
@@ -28,9 +27,8 @@ def rollout_config(config: RunConfig, targets: list[tuple[str, int]] | None = No
             for job in cell_jobs:
                 chunks.append(run_chunk(job, model, settings, api_key=api_key))
                 bar.update(len(job.init_states))
-            records.merge_cell(cell_dir, chunks, videos=settings.videos)
+            records.merge_chunks(cell_dir, chunks)
     summaries = {}
     for layer in sorted({layer for _, layer in targets}):  # every pair rolled out so far at this layer
-        done = [cell for cell in layer_cells(config, layer) if (cell / ROLLOUTS_JSON).is_file()]
-        summaries[layer] = report.write_layer_summary(config.rollout_layer_path(layer), done, note=settings.note)
+        summaries[layer] = write_layer_report(config, layer)
     return summaries

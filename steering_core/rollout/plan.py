@@ -46,7 +46,14 @@ def config_jobs(config: RunConfig, name: str, layer: int, sides: tuple[str, ...]
                      vectors_root=config.steering_root, output_dir=config.rollout_layer_path(layer) / name, sides=sides)
 
 
-def layer_cells(config: RunConfig, layer: int) -> list[Path]:
-    """Return the cell folders of every rolled-out pair at `layer`, in order."""
-    return [cell_dir for name, at in config.rollout_targets() if at == layer
-            for cell_dir in by_cell(config_jobs(config, name, layer))]
+def layer_cells(config: RunConfig, layer: int) -> dict[str, list[Path]]:
+    """Return pair -> its cell folders of the current grid, for every rolled-out pair at `layer`, in order."""
+    return {name: list(by_cell(config_jobs(config, name, layer))) for name, at in config.rollout_targets()
+            if at == layer}
+
+
+def write_layer_report(config: RunConfig, layer: int) -> Path:
+    """Write the reports of the pairs done at `layer` and the layer's summary.md (see report.write_layer)."""
+    from steering_core.rollout.report import write_layer
+
+    return write_layer(config.rollout_layer_path(layer), layer_cells(config, layer), note=config.rollout.note)

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import math
 import re
+import shutil
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -180,17 +181,25 @@ def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Seq
 
 
 def write_cell(folder: str | Path, cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
-               run: Mapping[str, Any], fps: float = DEFAULT_FPS) -> dict[str, Any]:
+               run: Mapping[str, Any], fps: float = DEFAULT_FPS, recorded: Mapping[int, Path] | None = None
+               ) -> dict[str, Any]:
     """Write one cell's files into `folder` (the cell's own folder, named `cell.name`) and return its record.
 
     `seeds` are the episodes' env seeds; `run` the run-identity facts (JSON-ready) stored as they are. Each
-    episode with frames gets an MP4 named with its cell, index and outcome.
+    episode with frames gets an MP4 named with its cell, index and outcome; `recorded` maps episodes whose MP4 is
+    already written (a chunk's) to that file, copied in under the same naming.
     """
     folder = Path(folder)
     _check_episodes(cell, episodes, seeds)
-    videos = {i: rollout_video_file(cell.name, i, e.outcome) for i, e in enumerate(episodes) if len(e.frames)}
+    recorded = recorded or {}
+    videos = {i: rollout_video_file(cell.name, i, e.outcome) for i, e in enumerate(episodes)
+              if len(e.frames) or i in recorded}
     for i, name in videos.items():
-        write_video(folder / name, episodes[i].frames, fps=fps)
+        if i in recorded:
+            with atomic_path(folder / name) as tmp:
+                shutil.copyfile(recorded[i], tmp)
+        else:
+            write_video(folder / name, episodes[i].frames, fps=fps)
     tensors = {key: torch.from_numpy(value) for key, value in cell_arrays(episodes).items()}
     with atomic_path(folder / f"{ROLLOUT_FILE}.safetensors") as tmp:
         save_safetensors(tensors, tmp, metadata={"format_version": str(ROLLOUT_FORMAT_VERSION)})
@@ -212,3 +221,59 @@ def read_cell(folder: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]
         raise ValueError(f"{folder}: {len(arrays['lengths'])} episodes in {ROLLOUT_FILE}.safetensors, "
                          f"{len(record['episodes'])} in {ROLLOUT_FILE}.json; re-run the rollouts of this cell")
     return record, arrays
+
+
+@dataclass(frozen=True)
+class StoredEpisode:
+    """An episode read back from a cell record: an `EpisodeRecord`'s facts and arrays, without its frames."""
+
+    prompt: str
+    init_index: int
+    outcome: str
+    steps: int
+    success_step: int | None
+    toward_step: int | None
+    jerk: float
+    joint_limit_hits: int
+    policy_calls: int
+    joints: dict[str, np.ndarray]
+    robot_qpos: np.ndarray
+    actions: np.ndarray
+    frames: tuple = field(default=())
+
+
+def stored_episodes(record: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> list[StoredEpisode]:
+    """Return the episodes of a cell record (read_cell), their arrays cut back to each episode's length."""
+    episodes = []
+    for i, row in enumerate(record["episodes"]):
+        steps = int(arrays["lengths"][i])
+        joints = {name: arrays[JOINT_KEY + name][i, : steps + 1] for name in record["joints"]}
+        episodes.append(StoredEpisode(
+            prompt=record["prompt"], init_index=row["init_index"], outcome=row["outcome"], steps=steps,
+            success_step=row["success_step"], toward_step=row["toward_step"],
+            jerk=math.nan if row["jerk"] is None else row["jerk"], joint_limit_hits=row["joint_limit_hits"],
+            policy_calls=row["policy_calls"], joints=joints, robot_qpos=arrays["robot_qpos"][i, : steps + 1],
+            actions=arrays["actions"][i, :steps]))
+    return episodes
+
+
+def merge_chunks(folder: str | Path, chunk_folders: Sequence[Path], fps: float = DEFAULT_FPS) -> dict[str, Any]:
+    """Write the cell of `folder` from its chunks' records (each a cell record of some of its episodes, in order):
+    one record over all episodes, the chunks' MP4s copied in under the cell's episode numbers."""
+    episodes, seeds, recorded, cell, run = [], [], {}, None, None
+    for chunk in chunk_folders:
+        record, arrays = read_cell(chunk)
+        identity = RolloutCell(**{key: record[key] for key in ("pair", "layer", "side", "condition", "alpha")},
+                               instructed=TaskRef(**record["instructed"]), toward=TaskRef(**record["toward"]))
+        if cell is not None and identity != cell:
+            raise ValueError(f"{chunk}: holds cell {identity.name} of {identity.pair}, not {cell.name}")
+        cell, run = identity, record["run"]
+        for row in record["episodes"]:
+            if row["video"]:
+                recorded[len(episodes) + row["episode"]] = Path(chunk) / row["video"]
+        episodes += stored_episodes(record, arrays)
+        seeds += [row["seed"] for row in record["episodes"]]
+    if cell is None:
+        raise ValueError(f"{folder}: no chunks to merge")
+    return write_cell(folder, cell, episodes, seeds, {k: v for k, v in run.items() if k != "chunk"}, fps=fps,
+                      recorded=recorded)

@@ -9,7 +9,7 @@ summaries in layerNN/. α is in residual_norm units (× R), the evaluation phase
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +37,13 @@ ANSWER_TEXT = (
     "gap counts). The instruction swap (the other task's instruction, no steering) is the ceiling.")
 
 
-def read_pair_cells(pair_path: Path) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]]:
-    """Return (record, arrays) of every complete cell of a pair folder, by side, kind, condition and α toward."""
-    cells = [read_cell(path.parent) for path in pair_path.glob(f"*/{ROLLOUT_FILE}.json")]
+def read_pair_cells(pair_path: Path, cell_dirs: Sequence[Path] | None = None
+                    ) -> list[tuple[dict[str, Any], dict[str, np.ndarray]]]:
+    """Return (record, arrays) of the cells `cell_dirs` (default: every complete cell of the pair folder), by side,
+    kind, condition and α toward."""
+    if cell_dirs is None:
+        cell_dirs = [path.parent for path in pair_path.glob(f"*/{ROLLOUT_FILE}.json")]
+    cells = [read_cell(path) for path in cell_dirs]
     if not cells:
         raise FileNotFoundError(f"{pair_path}: no rollout cells ({ROLLOUT_FILE}.json in its subfolders)")
     return sorted(cells, key=lambda c: (SIDES.index(c[0]["side"]), KINDS.index(c[0]["kind"]), c[0]["condition"],
@@ -98,12 +102,14 @@ def side_answer(records: Sequence[dict[str, Any]], side: str) -> dict[str, Any]:
     return row | {"answer": "no evidence", "text": f"no evidence: {head}; " + "; ".join(why) + ceiling}
 
 
-def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None) -> dict[str, Any]:
-    """Write the pair's PNGs and cells.md/cells.json from its cell folders; return the pair summary (cells.json).
+def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None,
+                      cell_dirs: Sequence[Path] | None = None) -> dict[str, Any]:
+    """Write the pair's PNGs and cells.md/cells.json from its cell folders (`cell_dirs`, default all of them);
+    return the pair summary (cells.json).
 
     `thresholds`: per goal-tested joint, (goal label, qpos threshold) drawn on the joint plot.
     """
-    cells = read_pair_cells(pair_path)
+    cells = read_pair_cells(pair_path, cell_dirs)
     records = [record for record, _ in cells]
     tasks = {side: next(r["instructed"] for r in records if r["side"] == side)
              for side in SIDES if any(r["side"] == side for r in records)}
@@ -168,6 +174,15 @@ def write_layer_summary(layer_path: Path, pair_names: Sequence[str], note: str |
     with atomic_path(md_path) as tmp:
         tmp.write_text(summary_markdown(summary), encoding="utf-8")
     return md_path
+
+
+def write_layer(layer_path: Path, cells: Mapping[str, Sequence[Path]], note: str | None = None) -> Path:
+    """Write the report of every pair whose cells (pair -> cell folders of the current grid) are all done, then the
+    layer's summary; return its .md path."""
+    done = [name for name, folders in cells.items() if all((f / f"{ROLLOUT_FILE}.json").is_file() for f in folders)]
+    for name in done:
+        write_pair_report(layer_path / name, cell_dirs=cells[name])
+    return write_layer_summary(layer_path, done, note=note)
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:

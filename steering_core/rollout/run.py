@@ -17,6 +17,8 @@ from steering_core.storage.schema import StrictModel
 
 logger = logging.getLogger(__name__)
 
+CHUNK_DIR = "chunk_{chunk:03d}"  # inside a cell's folder: one task run's episodes, merged into the cell's record
+
 
 class RolloutJob(StrictModel):
     """One task run: a cell's episodes on some initial states, and where its record goes."""
@@ -69,8 +71,7 @@ def make_policy(job: RolloutJob, model: CaptureSettings, settings: RolloutSettin
     policy = load_policy(model, settings.device, settings.dtype)
     catalog = VectorCatalog.scan(job.vectors_root) if entries else VectorCatalog()
     steering = parse_steering(entries, catalog, key="rollout", limits=SteeringLimits(float("inf"), model.arch.depth))
-    return LocalPolicy(SteeredPi05Policy(policy, noise_seed=settings.noise_seed), steering,
-                       num_steps=settings.num_steps)
+    return LocalPolicy(SteeredPi05Policy(policy, noise_seed=settings.noise_seed), steering)
 
 
 _open_env: dict[str, Any] = {}  # the last scene's env, kept for the next chunk of this process (one at a time)
@@ -92,15 +93,15 @@ def _scene_env(task: Any) -> Any:
 
 def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, *, api_key: str | None = None,
               progress: ProgressCallback | None = None) -> Path:
-    """Run the job's episodes; write `<cell>/chunk_NNN.{json,safetensors}` and return the JSON's path."""
+    """Run the job's episodes; write them as a cell record of their own in `<cell>/chunk_NNN/` and return it."""
     from steering_core.rollout import episode, libero_env, records
     from steering_core.rollout.assets import resolve_assets
     from steering_core.rollout.predicates import Goal
     from steering_core.rollout.protocol import MAX_STEPS
 
     libero_env.prepare_libero(resolve_assets(settings.libero_assets))
-    scene = libero_env.find_task(job.scene_task.suite, job.scene_task.task)
-    toward = libero_env.find_task(job.toward_task.suite, job.toward_task.task)
+    scene_index, scene = libero_env.find_task(job.scene_task.suite, job.scene_task.task)
+    toward_index, toward = libero_env.find_task(job.toward_task.suite, job.toward_task.task)
     prompt = (toward if job.cell.prompt_side != job.side else scene).language
     env = _scene_env(scene)
     goal = Goal.of_task(toward, env)
@@ -115,6 +116,17 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
             seed=settings.seed, episode_id=index))
         if progress is not None:
             progress(i + 1, len(job.init_states))
-    identity = {"cell": job.cell.name, "chunk": job.chunk, "prompt": prompt, "scene_task": scene.language,
-                "toward_task": toward.language}
-    return records.write_chunk(job.output_dir, job.chunk, identity, done)
+    cell = records.RolloutCell(
+        pair=job.cell_pair, layer=job.layer, side=job.side, condition=job.condition, alpha=job.cell.alpha,
+        instructed=records.TaskRef(job.scene_task.suite, scene_index, scene.language),
+        toward=records.TaskRef(job.toward_task.suite, toward_index, toward.language))
+    run = {"policy": settings.policy, "steering": steering_entries(job.cell, settings), "max_steps": max_steps,
+           "noise_seed": settings.noise_seed, "num_steps": settings.num_steps, "chunk": job.chunk}
+    folder = chunk_dir(job)
+    records.write_cell(folder, cell, done, [settings.seed] * len(done), run)
+    return folder
+
+
+def chunk_dir(job: RolloutJob) -> Path:
+    """Return the folder of a job's chunk record inside its cell's folder."""
+    return job.output_dir / CHUNK_DIR.format(chunk=job.chunk)
