@@ -1,0 +1,6 @@
+"""Closed-loop rollouts of a (steered) policy in the LIBERO simulator, following openpi's LIBERO client.
+
+`assets` verifies the scene assets, `libero_env` builds environments, `protocol` holds openpi's constants and
+preprocessing, `predicates` evaluates task goals on any scene holding their objects, `episode` runs one episode.
+Modules import the simulator lazily: importing this package is cheap.
+"""
