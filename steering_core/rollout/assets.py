@@ -102,7 +102,7 @@ def verify_assets(folder: Path | str, asset_list: Path = ASSET_LIST) -> Path:
     if problems:
         raise AssetError(
             f"LIBERO assets in {folder} differ from {Path(asset_list).name}: {problems[0]} "
-            f"({len(problems)} of {len(entries)} files differ)\n" + "\n".join(problems[1:])
+            f"({len(problems)} of {len(entries)} files differ)" + "".join(f"\n{problem}" for problem in problems[1:])
         )
     _verified.add(key)
     return folder
