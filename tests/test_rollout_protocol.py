@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from PIL import Image
+from helpers_rollout import reference_resize_with_pad
 
 from steering_core.rollout.protocol import (
     MAX_STEPS,
@@ -55,20 +55,10 @@ def test_resize_with_pad_of_a_uniform_tall_image():
     assert (out[:, 56:168] == 77).all() and (out[:, :56] == 0).all() and (out[:, 168:] == 0).all()
 
 
-def _reference_resize_with_pad(image, size):
-    """PIL bilinear to (int(H / r), int(W / r)), then numpy zero padding with the odd row or column last."""
-    height, width = image.shape[:2]
-    ratio = max(width / size, height / size)
-    new_width, new_height = int(width / ratio), int(height / ratio)
-    small = np.array(Image.fromarray(image, "RGB").resize((new_width, new_height), Image.Resampling.BILINEAR))
-    rows, cols = size - new_height, size - new_width
-    return np.pad(small, ((rows // 2, rows - rows // 2), (cols // 2, cols - cols // 2), (0, 0)))
-
-
 @pytest.mark.parametrize("shape", [(256, 256, 3), (128, 256, 3), (200, 99, 3)])
 def test_resize_with_pad_matches_pil_reference(shape):
     image = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8)
-    assert np.array_equal(resize_with_pad(image, 224), _reference_resize_with_pad(image, 224))
+    assert np.array_equal(resize_with_pad(image, 224), reference_resize_with_pad(image, 224))
 
 
 def test_square_image_of_the_target_size_is_unchanged():
@@ -86,7 +76,7 @@ def test_policy_observation_rotates_resizes_and_lays_out_the_state():
     }
     element = policy_observation((agentview, wrist), obs, "turn on the stove")
     assert sorted(element) == ["observation/image", "observation/state", "observation/wrist_image", "prompt"]
-    assert np.array_equal(element["observation/image"], _reference_resize_with_pad(np.rot90(agentview, 2), 224))
+    assert np.array_equal(element["observation/image"], reference_resize_with_pad(np.rot90(agentview, 2), 224))
     assert np.array_equal(element["observation/wrist_image"], preprocess_image(wrist))
     state = element["observation/state"]
     assert state.dtype == np.float64 and state.shape == (8,)
