@@ -55,7 +55,7 @@ def jerk(robot_qpos: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.diff(robot_qpos, n=3, axis=0) ** 2)))
 
 
-def _arm(env) -> tuple[list[int], np.ndarray]:
+def _arm_joints(env) -> tuple[list[int], np.ndarray]:
     """Return the arm joints' qpos addresses and their model ranges (joints, 2), ±inf where unlimited."""
     robot, model = env.env.robots[0], env.env.sim.model
     ranges = np.array(model.jnt_range[robot._ref_joint_indexes], dtype=np.float64)
@@ -103,7 +103,7 @@ def run_episode(
     env.reset()
     cameras = DeferredCameras(env)
     joints = goal_joints(Goal.of_env(env), env) | (goal_joints(toward_goal, env) if toward_goal is not None else {})
-    arm_addresses, arm_ranges = _arm(env)
+    arm_addresses, arm_ranges = _arm_joints(env)
 
     if wait_steps == 0:
         cameras.arm()

@@ -20,6 +20,8 @@ import yaml
 CAMERAS = ("agentview", "robot0_eye_in_hand")  # openpi's two cameras, in its observation order
 CONFIG_NAME = "config.yaml"
 
+_prepared = False  # set by prepare_libero: importing libero.libero before it may stop at a stdin question
+
 
 def default_config_dir() -> Path:
     """Return the folder the LIBERO config is written to by default."""
@@ -68,12 +70,20 @@ def prepare_libero(assets: Path | None, config_dir: Path | None = None) -> None:
         os.environ["LIBERO_CONFIG_PATH"] = str(config_dir)
     import libero.libero
 
+    global _prepared
     libero.libero._assets_path_cache = None if assets is None else str(assets)
+    _prepared = True
+
+
+def _require_prepared() -> None:
+    if not _prepared:
+        raise RuntimeError("LIBERO is not set up: call prepare_libero(resolve_assets(...)) first")
 
 
 @functools.cache
 def _suite(suite: str):
     """Return the LIBERO benchmark object of a suite (libero_goal, libero_90, ...)."""
+    _require_prepared()
     from libero.libero import benchmark
 
     suites = benchmark.get_benchmark_dict()
@@ -109,6 +119,7 @@ def task_index(suite: str, language: str) -> int:
 
 def bddl_path(task) -> Path:
     """Return the task's BDDL file."""
+    _require_prepared()
     from libero.libero import get_libero_path
 
     return Path(get_libero_path("bddl_files")) / task.problem_folder / task.bddl_file

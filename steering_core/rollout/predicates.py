@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from steering_core.rollout.libero_env import bddl_path
+
 JOINT_PREDICATES = ("open", "close", "turnon", "turnoff")  # unary predicates that read articulated joints
 
 
@@ -43,8 +45,6 @@ class Goal:
     @classmethod
     def from_task(cls, task) -> Goal:
         """Return a libero Task's goal, with the task's instruction (`task.language`, which openpi prompts)."""
-        from steering_core.rollout.libero_env import bddl_path
-
         return cls.from_bddl(bddl_path(task), task.language)
 
     def objects(self) -> list[str]:
