@@ -14,7 +14,6 @@ from steering_core.rollout.protocol import DUMMY_ACTION, REPLAN_STEPS, SEED, WAI
 
 ACTION_DIM = 7
 LIMIT_MARGIN = 0.01  # rad: an arm joint this close to its model range limit counts as a hit
-OUTCOMES = ("instructed", "toward", "neither")
 
 
 class RolloutPolicy(Protocol):
