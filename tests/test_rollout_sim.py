@@ -1,0 +1,241 @@
+"""Closed-loop episodes in the real LIBERO simulator (CPU, one libero_goal env for the module).
+
+`run_episode` (cameras rendered only for the policy) against openpi's loop rendering every step; goal
+predicates on joint states set directly; task lookup.
+"""
+
+import re
+
+import numpy as np
+import pytest
+from helpers_rollout import RecordingEnv, ScriptedPolicy, openpi_loop
+
+from steering_core.rollout.assets import resolve_assets
+from steering_core.rollout.episode import run_episode
+from steering_core.rollout.libero_env import (
+    DeferredCameras,
+    find_task,
+    initial_states,
+    make_env,
+    prepare_libero,
+    task_index,
+)
+from steering_core.rollout.predicates import Goal, GoalError, goal_joints, read_joints
+
+SUITE = "libero_goal"
+INSTRUCTION = "open the middle drawer of the cabinet"
+DRAWER = "wooden_cabinet_1_middle_level"  # the middle drawer's slide joint (the env's own goal)
+KNOB = "flat_stove_1_button"  # the stove knob's hinge
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    prepare_libero(resolve_assets("installed"), tmp_path_factory.mktemp("libero-config"))
+    built = make_env(find_task(SUITE, task_index(SUITE, INSTRUCTION)))
+    yield RecordingEnv(built)
+    built.close()
+
+
+@pytest.fixture(scope="module")
+def init_state():
+    return initial_states(SUITE, task_index(SUITE, INSTRUCTION))[3]
+
+
+def goal(suite, index):
+    return Goal.from_task(find_task(suite, index))
+
+
+def set_joint(env, name, value):
+    env.env.sim.data.qpos[env.env.sim.model.get_joint_qpos_addr(name)] = value
+    env.env.sim.forward()
+
+
+def test_run_episode_matches_openpis_loop_rendering_every_step(env, init_state):
+    naive = ScriptedPolicy(env, calls=3, seed=1)
+    env.actions.clear()
+    done, steps = openpi_loop(env, naive, prompt=INSTRUCTION, init_state=init_state, max_steps=12)
+    naive_actions = list(env.actions)
+    assert (done, steps) == (False, 12)
+
+    scripted = ScriptedPolicy(env, calls=3, seed=1)
+    env.actions.clear()
+    # the watched goal is evaluated every step: turnoff in the knob's dead band flips the burner's visual flag,
+    # which must not reach the images
+    record = run_episode(
+        env,
+        scripted,
+        prompt=INSTRUCTION,
+        init_state=init_state,
+        init_index=3,
+        max_steps=12,
+        toward_goal=goal("libero_90", 39),
+        record_frames=True,
+        episode_id=4,
+    )
+
+    assert naive.call_steps == scripted.call_steps == [10, 15, 20]  # after 10 wait steps, every 5 steps
+    assert env.actions[:10] == [[0.0] * 6 + [-1.0]] * 10
+    assert env.actions == naive_actions and len(env.actions) == 22  # the 12-step cut
+    for mine, theirs in zip(scripted.elements, naive.elements, strict=True):
+        assert np.array_equal(mine["observation/image"], theirs["observation/image"])
+        assert np.array_equal(mine["observation/wrist_image"], theirs["observation/wrist_image"])
+        assert mine["observation/image"].shape == (224, 224, 3) and mine["observation/image"].dtype == np.uint8
+        state = mine["observation/state"]
+        assert state.dtype == np.float64 and state.shape == (8,)
+        assert np.array_equal(state[:3], theirs["observation/state"][:3])  # eef position
+        assert np.array_equal(state[6:], theirs["observation/state"][6:])  # gripper qpos
+        np.testing.assert_allclose(state[3:6], theirs["observation/state"][3:6], atol=1e-9)
+        assert mine["prompt"] == INSTRUCTION
+    assert len({element["observation/image"].tobytes() for element in scripted.elements}) == 3  # the robot moved
+
+    assert (record.outcome, record.steps, record.success_step, record.toward_step) == ("neither", 12, None, None)
+    assert record.policy_calls == 3 and record.prompt == INSTRUCTION and record.init_index == 3
+    expected = np.concatenate([chunk[:5] for chunk in scripted.chunks])[:12]
+    assert record.actions.dtype == np.float32 and np.array_equal(record.actions, expected)
+    assert len(record.frames) == 3
+    assert all(np.array_equal(a, e["observation/image"]) for a, e in zip(record.frames, scripted.elements))
+    assert list(record.joints) == [DRAWER, KNOB] and all(v.shape == (13,) for v in record.joints.values())
+    assert record.robot_qpos.shape == (13, 7) and np.isfinite(record.jerk) and record.jerk > 0
+    assert scripted.events == [("start", INSTRUCTION, 4), ("end", False)]
+
+
+def test_instructed_success_ends_the_episode_at_the_env_done(env, init_state):
+    def open_drawer(call):
+        if call == 1:
+            set_joint(env, DRAWER, -0.15)
+
+    naive = ScriptedPolicy(env, calls=4, seed=2, on_call=open_drawer)
+    done, steps = openpi_loop(env, naive, prompt=INSTRUCTION, init_state=init_state, max_steps=20)
+    assert (done, steps) == (True, 6)  # the step after the second call
+
+    scripted = ScriptedPolicy(env, calls=4, seed=2, on_call=open_drawer)
+    record = run_episode(
+        env, scripted, prompt=INSTRUCTION, init_state=init_state, init_index=3, max_steps=20, toward_goal=None
+    )
+    assert (record.outcome, record.steps, record.success_step, record.toward_step) == ("instructed", 6, 6, None)
+    assert record.policy_calls == 2 and record.actions.shape == (6, 7) and record.frames == []
+    assert list(record.joints) == [DRAWER] and record.joints[DRAWER][-1] < -0.14
+    assert scripted.events[-1] == ("end", True)
+
+
+def test_watched_goal_ends_the_episode(env, init_state):
+    def turn_knob(call):
+        if call == 1:
+            set_joint(env, KNOB, 1.0)
+
+    scripted = ScriptedPolicy(env, calls=4, seed=3, on_call=turn_knob)
+    env.actions.clear()
+    record = run_episode(
+        env,
+        scripted,
+        prompt="turn on the stove",
+        init_state=init_state,
+        init_index=3,
+        max_steps=20,
+        toward_goal=goal(SUITE, task_index(SUITE, "turn on the stove")),
+        wait_steps=2,
+        replan_steps=4,
+    )
+    assert (record.outcome, record.steps, record.success_step, record.toward_step) == ("toward", 5, None, 5)
+    assert scripted.call_steps == [2, 6]
+    assert record.joints[KNOB][0] == pytest.approx(0.0, abs=1e-3) and record.joints[KNOB][-1] >= 0.5
+    assert scripted.events[-1] == ("end", False)
+
+
+def test_goal_naming_absent_objects_is_refused_before_any_step(env, init_state):
+    scripted = ScriptedPolicy(env, calls=1)
+    env.actions.clear()
+    other_scene = goal("libero_90", 28)  # KITCHEN_SCENE5: a white cabinet
+    with pytest.raises(GoalError, match=r"^goal 'close the top drawer of the cabinet' \(KITCHEN_SCENE5_close_the_top"):
+        run_episode(
+            env, scripted, prompt="x", init_state=init_state, init_index=0, max_steps=5, toward_goal=other_scene
+        )
+    assert env.actions == [] and scripted.events == []
+    with pytest.raises(GoalError, match=r"names \['white_cabinet_1_top_region'\], absent from the env's scene"):
+        other_scene.check(env)
+
+
+def test_short_chunk_is_an_error(env, init_state):
+    class Short(ScriptedPolicy):
+        def infer(self, observation):
+            return np.zeros((3, 7), dtype=np.float32)
+
+    with pytest.raises(ValueError, match=r"policy returned actions of shape \(3, 7\), expected \(H, 7\) with H >= 5"):
+        run_episode(
+            env,
+            Short(env, 1),
+            prompt="x",
+            init_state=init_state,
+            init_index=0,
+            max_steps=5,
+            toward_goal=None,
+            wait_steps=0,
+        )
+
+
+def test_images_are_only_taken_after_arming(env):
+    cameras = DeferredCameras(env)
+    with pytest.raises(RuntimeError, match="were not rendered: call arm"):
+        cameras.take({})
+
+
+def test_contrasting_predicates_on_joint_states_set_directly(env):
+    open_top, close_top = goal("libero_90", 7), goal("libero_90", 0)
+    turn_on, turn_off = goal(SUITE, task_index(SUITE, "turn on the stove")), goal("libero_90", 39)
+    inner = env.env
+    drawer = inner.get_object("wooden_cabinet_1").object_properties["articulation"]
+    stove = inner.get_object("flat_stove_1").object_properties["articulation"]
+    # the thresholds the spec states, read from the objects (strict: open < -0.14, close > 0, on >= 0.5, off < 0)
+    assert (max(drawer["default_open_ranges"]), min(drawer["default_close_ranges"])) == (-0.14, 0.0)
+    assert (min(stove["default_turnon_ranges"]), max(stove["default_turnoff_ranges"])) == (0.5, 0.0)
+
+    top = goal_joints(open_top, env)
+    assert list(top) == ["wooden_cabinet_1_top_level"] and goal_joints(close_top, env) == top
+    assert list(goal_joints(turn_on, env)) == [KNOB] == list(goal_joints(turn_off, env))
+    model = inner.sim.model
+    (low, high), (knob_low, knob_high) = (model.jnt_range[model.joint_name2id(name)] for name in (*top, KNOB))
+    assert (low, high) == pytest.approx((-0.16, 0.01)) and (knob_low, knob_high) == pytest.approx((-0.005, 2.1))
+
+    for value, expected in [
+        (low, (True, False)),
+        (high, (False, True)),
+        (-0.07, (False, False)),
+        (-0.14, (False, False)),
+        (0.0, (False, False)),
+    ]:
+        set_joint(env, "wooden_cabinet_1_top_level", value)
+        assert (open_top.holds(env), close_top.holds(env)) == expected, value
+        assert read_joints(env, top) == {"wooden_cabinet_1_top_level": pytest.approx(value)}
+    for value, expected in [
+        (knob_high, (True, False)),
+        (knob_low, (False, True)),
+        (0.25, (False, False)),
+        (0.5, (True, False)),
+        (0.0, (False, False)),
+    ]:
+        set_joint(env, KNOB, value)
+        assert (turn_on.holds(env), turn_off.holds(env)) == expected, value
+
+
+def test_libero_90_tasks_of_the_issue():
+    assert [find_task("libero_90", index).language for index in (7, 0, 20, 39)] == [
+        "open the top drawer of the cabinet",
+        "close the top drawer of the cabinet",
+        "turn on the stove",
+        "turn off the stove",
+    ]
+    # instructions repeat across libero_90's scenes: the task name picks one
+    assert task_index("libero_90", "turn off the stove") == 39
+    assert task_index("libero_90", "KITCHEN_SCENE1_open_the_top_drawer_of_the_cabinet") == 7
+    assert task_index("libero_90", "KITCHEN_SCENE10_close_the_top_drawer_of_the_cabinet") == 0
+    assert task_index("libero_90", "KITCHEN_SCENE3_turn_on_the_stove") == 20
+    for instruction, first, second in [
+        ("open the top drawer of the cabinet", "7 (KITCHEN_SCENE1_", "11 (KITCHEN_SCENE2_"),
+        ("close the top drawer of the cabinet", "0 (KITCHEN_SCENE10_", "28 (KITCHEN_SCENE5_"),
+        ("turn on the stove", "20 (KITCHEN_SCENE3_", "44 (KITCHEN_SCENE9_"),
+    ]:
+        with pytest.raises(ValueError, match=rf"is the instruction of tasks {re.escape(first)}.*, {re.escape(second)}"):
+            task_index("libero_90", instruction)
+    with pytest.raises(ValueError, match=r"has no task 'open the middle drawer'; close: \['open the middle drawer of"):
+        task_index(SUITE, "open the middle drawer")
+    assert initial_states(SUITE, 0).shape == (50, 79)
