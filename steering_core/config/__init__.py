@@ -43,6 +43,7 @@ from steering_core.config.sections import (
     ModelSection,
     OrchestrationSection,
     PairSection,
+    RolloutSection,
     SaeSection,
     SliceSection,
     SourcesSection,
@@ -52,6 +53,6 @@ from steering_core.config.yaml_files import CONFIG_FILE, format_errors, load_run
 
 __all__ = [
     "CONFIG_FILE", "PAIRS_CONFIG_FILE", "CaptureSection", "ConfigPath", "DatasetSection", "EvaluateSection",
-    "ModelSection", "OrchestrationSection", "PairSection", "RunConfig", "SaeSection", "SliceSection",
+    "ModelSection", "OrchestrationSection", "PairSection", "RolloutSection", "RunConfig", "SaeSection", "SliceSection",
     "SourcesSection", "SteeringSection", "format_errors", "load_run_config", "write_run_config",
 ]

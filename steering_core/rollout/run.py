@@ -91,23 +91,32 @@ def _scene_env(task: Any) -> Any:
     return _open_env[key]
 
 
+def libero_task(task: LiberoTask) -> tuple[int, Any]:
+    """Return (index, LIBERO task) of a configured task (by index, instruction or task name)."""
+    from steering_core.rollout import libero_env
+
+    index = task.task if isinstance(task.task, int) else libero_env.task_index(task.suite, task.task)
+    return index, libero_env.find_task(task.suite, index)
+
+
 def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, *, api_key: str | None = None,
               progress: ProgressCallback | None = None) -> Path:
     """Run the job's episodes; write them as a cell record of their own in `<cell>/chunk_NNN/` and return it."""
     from steering_core.rollout import episode, libero_env, records
     from steering_core.rollout.assets import resolve_assets
     from steering_core.rollout.predicates import Goal
-    from steering_core.rollout.protocol import MAX_STEPS
+    from steering_core.rollout.protocol import max_steps as suite_max_steps
 
     libero_env.prepare_libero(resolve_assets(settings.libero_assets))
-    scene_index, scene = libero_env.find_task(job.scene_task.suite, job.scene_task.task)
-    toward_index, toward = libero_env.find_task(job.toward_task.suite, job.toward_task.task)
+    scene_index, scene = libero_task(job.scene_task)
+    toward_index, toward = libero_task(job.toward_task)
     prompt = (toward if job.cell.prompt_side != job.side else scene).language
     env = _scene_env(scene)
-    goal = Goal.of_task(toward, env)
-    states = libero_env.initial_states(scene)
+    goal = Goal.from_task(toward)
+    goal.check(env)
+    states = libero_env.initial_states(job.scene_task.suite, scene_index)
     policy = make_policy(job, model, settings, api_key)
-    max_steps = settings.max_steps or MAX_STEPS[job.scene_task.suite]
+    max_steps = settings.max_steps or suite_max_steps(job.scene_task.suite)
     done = []
     for i, index in enumerate(job.init_states):
         done.append(episode.run_episode(

@@ -1,0 +1,105 @@
+"""Phase 5 end to end on the tiny π0.5 in the real LIBERO simulator: the `rollout` command's path in-process, then
+the same cells through `latent-steering serve`'s server (same model, same noise seed): the same episodes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers_serve import fixed_threads, write_vectors
+
+from steering_core.config import RolloutSection, load_run_config, write_run_config
+from steering_core.config.run import RunConfig
+from steering_core.config.sections import DatasetSection, ModelSection, PairSection, SourcesSection
+from steering_core.pi05.policy import Pi05Policy
+from steering_core.rollout.local_run import rollout_config
+from steering_core.rollout.records import read_cell
+from steering_core.rollout.settings import LiberoTask, RolloutPair
+from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog
+from steering_core.serve.server import serving_in_thread
+from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+from steering_core.synthetic.tokenizer import write_tokenizer
+
+ARCH = tiny_arch()
+PAIR = "open_vs_close"
+# libero_goal: both tasks in one scene, so the module builds one env; 2 episodes in chunks of 1 (merged per cell)
+TASKS = RolloutPair(positive=LiberoTask(suite="libero_goal", task="open the middle drawer of the cabinet"),
+                    negative=LiberoTask(suite="libero_goal", task=7))
+CELLS = ("negative_unsteered_a+0", "negative_instruction_swap_a+0", "negative_steered_a+2", "negative_random_0_a+2")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("rollout")
+    checkpoint = write_pi05_checkpoint(folder / "ckpt", ARCH, seed=3)
+    tokenizer = write_tokenizer(folder / "tokenizer.model")
+    write_vectors(folder / "data" / "latent_steering", ARCH.width)
+    config = RunConfig(
+        output_root=folder / "data", sources=SourcesSection(folders=(folder / "demos",)),
+        dataset=DatasetSection(repo_id="unused"),
+        pairs=(PairSection(name=PAIR, positive="open the top drawer of the cabinet",
+                           negative="close the top drawer of the cabinet"),),
+        layers=(1,), model=ModelSection(checkpoint=checkpoint, tokenizer=tokenizer, arch=ARCH), evaluate=None,
+        rollout=RolloutSection(pairs={PAIR: TASKS}, alphas=(0, 2), episodes=2, chunk_episodes=1, max_steps=12,
+                               sides=("negative",), random_directions=1, device="cpu", note="tiny random policy"),
+    )
+    path = write_run_config(config, folder / "run.yaml")
+    with fixed_threads():
+        summaries = rollout_config(load_run_config(path))
+    return load_run_config(path), summaries
+
+
+def cell(config, name):
+    return read_cell(config.rollout_layer_path(1) / PAIR / name)
+
+
+def test_every_cell_is_written_with_paired_episodes_videos_and_a_summary(run):
+    config, summaries = run
+    layer_path = config.rollout_layer_path(1)
+    assert summaries == {1: layer_path / "summary.md"}
+    summary = json.loads((layer_path / "summary.json").read_text())
+    assert summary["note"] == "tiny random policy"
+    table = json.loads((layer_path / PAIR / "cells.json").read_text())
+    assert sorted(row["cell"] for row in table["cells"]) == sorted(CELLS)
+    assert (layer_path / PAIR / "success_vs_alpha.png").stat().st_size > 0
+    for name in CELLS:
+        record, arrays = cell(config, name)
+        assert [e["init_index"] for e in record["episodes"]] == [0, 1]  # two chunks merged in order
+        assert [e["seed"] for e in record["episodes"]] == [7, 7]
+        assert record["success"]["toward"]["n"] == 2
+        video = record["episodes"][0]["video"]
+        assert video and (layer_path / PAIR / name / video).stat().st_size > 0
+        assert record["episodes"][1]["video"] is None
+        assert arrays["actions"].shape[0] == 2 and np.isfinite(arrays["actions"][0, : arrays["lengths"][0]]).all()
+    assert cell(config, "negative_instruction_swap_a+0")[0]["prompt"] == "open the middle drawer of the cabinet"
+    assert cell(config, "negative_steered_a+2")[0]["prompt"] == "turn on the stove"
+
+
+def test_steering_reaches_the_policy_and_controls_differ(run):
+    config, _ = run
+    first = {name: cell(config, name)[1]["actions"][0, 0] for name in CELLS}
+    # the first action of episode 0 comes from the same observation in every cell: only prompt/steering differ
+    assert not np.array_equal(first["negative_steered_a+2"], first["negative_unsteered_a+0"])
+    assert not np.array_equal(first["negative_random_0_a+2"], first["negative_steered_a+2"])
+    assert not np.array_equal(first["negative_instruction_swap_a+0"], first["negative_unsteered_a+0"])
+
+
+def test_the_served_policy_gives_the_same_episodes(run):
+    config, _ = run
+    policy = Pi05Policy.from_checkpoint(config.model.checkpoint, ARCH, device="cpu",
+                                        tokenizer_path=config.model.tokenizer)
+    served = PolicyServer(SteeredPi05Policy(policy, noise_seed=0), VectorCatalog.scan(config.steering_root),
+                          host="127.0.0.1", port=0)
+    local = {name: cell(config, name)[1] for name in CELLS[2:]}
+    with fixed_threads(), serving_in_thread(served) as server:
+        section = config.rollout.model_copy(update={"policy": f"ws://127.0.0.1:{server.port}"})
+        rollout_config(config.model_copy(update={"rollout": section}), [(PAIR, 1)])
+        episodes = list(server.episodes)
+    for name, arrays in local.items():
+        _, remote = cell(config, name)
+        assert torch.equal(torch.from_numpy(remote["actions"]), torch.from_numpy(arrays["actions"])), name
+    assert len(episodes) == 2 * len(CELLS)
+    assert {e["task"] for e in episodes} == {"turn on the stove", "open the middle drawer of the cabinet"}
+    assert all(e["success"] is False and e["inferences"] > 0 for e in episodes)
