@@ -27,7 +27,7 @@ from prefect.tasks import Task
 
 from steering_core.config import RunConfig
 from steering_core.reporting.tables import text_table
-from tasks import capture, data, preflight, report, sae
+from tasks import capture, data, preflight, report, rollout, sae
 from tasks.cache import OUTPUTS, cache_store
 
 SETTLE_SECONDS = 30.0
@@ -53,7 +53,7 @@ class TaskRow:
 
 def step_names() -> dict[str, str]:
     """Return Prefect task key -> task name (e.g. `slice-concepts`) for every task of the pipeline."""
-    return {obj.task_key: obj.name for module in (preflight, data, capture, sae, report)
+    return {obj.task_key: obj.name for module in (preflight, data, capture, sae, report, rollout)
             for obj in vars(module).values() if isinstance(obj, Task)}
 
 

@@ -93,6 +93,8 @@ def demo_command(
     typer.echo("The planted-concept check (a concept that truly exists in its model; the right answer is the mean "
                "difference at α = 1, efficacy 1 on both sides):")
     typer.echo(demo.format_evaluation(demo.evaluation_answer(planted)))
+    typer.echo("")
+    typer.echo(demo.format_rollouts(run_config))
 
 
 def _echo_outcome(run_config: RunConfig, random_sae: bool) -> None:

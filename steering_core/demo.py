@@ -279,13 +279,26 @@ def format_summary(summary: dict[str, list[dict[str, Any]]], *, random_sae: bool
 
 
 def report_paths(config: RunConfig) -> list[Path]:
-    """Return the summary.md of every layer: the steering vectors', then the evaluation's (when it runs), then
-    the pathways table (with expert layers)."""
+    """Return the summary.md of every layer: the steering vectors', then the evaluation's (when it runs), the
+    pathways table (with expert layers), then the rollouts' (with a rollout section)."""
     reports = [config.layer_path(layer) / SUMMARY_MD for layer in config.layers]
     reports += [config.eval_layer_path(layer, stream) / SUMMARY_MD for layer, stream in config.eval_layers()]
     if config.expert_layers:
         reports.append(config.eval_root / f"{PATHWAYS_FILE}.md")
+    reports += [config.rollout_layer_path(layer) / SUMMARY_MD for layer in config.rollout_layers]
     return reports
+
+
+def format_rollouts(config: RunConfig) -> str:
+    """Return the closed-loop answer of every rolled-out (pair, layer, side), after the rollouts' note."""
+    lines = []
+    for layer in config.rollout_layers:
+        summary = read_json(config.rollout_layer_path(layer) / SUMMARY_JSON)
+        lines += [f"Closed-loop rollouts in LIBERO, {layer_dir(layer)} (success toward the other task, Wilson 95%):"]
+        lines += [summary["note"]] if summary.get("note") else []
+        lines += [f"  {pair['pair']}, {row['side']} side: {row['text']}" for pair in summary["pairs"]
+                  for row in pair["answers"]]
+    return "\n".join(lines)
 
 
 def _number(value: float | None) -> str:

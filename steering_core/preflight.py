@@ -64,7 +64,24 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     if capture_device:
         checks.append(lambda: resolve_device(config.capture.device))
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
-    return list(dict.fromkeys(problems + model + _failures(checks)))
+    return list(dict.fromkeys(problems + model + _failures(checks) + _rollout_problems(config)))
+
+
+def _rollout_problems(config: RunConfig) -> list[str]:
+    """Return the problems of the rollout section: its scene assets, each pair's LIBERO tasks, the server key."""
+    if config.rollout is None:
+        return []
+    from steering_core.rollout import libero_env
+    from steering_core.rollout.assets import resolve_assets
+    from steering_core.rollout.run import libero_task
+    from steering_core.serve.auth import read_api_key
+
+    assets = _failures([lambda: libero_env.prepare_libero(resolve_assets(config.rollout.libero_assets))])
+    if assets:
+        return assets
+    tasks = [(lambda task=task: libero_task(task)) for pair in config.rollout.pairs.values()
+             for task in (pair.positive, pair.negative)]
+    return _failures([*tasks, lambda: read_api_key(config.rollout.api_key_file)])
 
 
 def _failures(checks: list[Callable[[], object]]) -> list[str]:

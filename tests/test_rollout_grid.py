@@ -22,7 +22,7 @@ model: {checkpoint: ckpt, tokenizer: tok.model, arch: {width: 64, depth: 4}}
 rollout:
   pairs:
     open_vs_close: {positive: {suite: libero_90, task: 7}, negative: {suite: libero_90, task: 0}}
-    on_vs_off: {positive: {suite: libero_90, task: turn on the stove}, negative: {suite: libero_90, task: 39}}
+    on_vs_off: {positive: {suite: libero_90, task: KITCHEN_SCENE3_turn_on_the_stove}, negative: {suite: libero_90, task: 39}}
   alphas: [2, 0, 1]
   episodes: 7
   chunk_episodes: 3
@@ -109,3 +109,16 @@ def test_a_chunk_identity_changes_with_every_input_that_changes_its_episodes(tmp
         assert job_inputs(job.model_copy(update=change)) != job_inputs(job), change
     unsteered = next(j for j in config_jobs(run, "open_vs_close", 1) if j.condition == "unsteered")
     assert job_inputs(unsteered)["vectors"] is None
+
+
+def test_preflight_names_each_libero_task_it_cannot_find(tmp_path):
+    from steering_core.preflight import run_problems
+
+    bad = CONFIG.replace("task: 39", "task: 99").replace("task: KITCHEN_SCENE3_turn_on_the_stove", "task: turn on the oven")
+    problems = run_problems(config(tmp_path, text=bad))
+    assert any("libero_90: task index 99 out of range" in line for line in problems), problems
+    assert any("turn on the oven" in line for line in problems), problems
+    assert not [line for line in run_problems(config(tmp_path)) if "libero" in line.lower()]
+    ambiguous = CONFIG.replace("task: KITCHEN_SCENE3_turn_on_the_stove", "task: turn on the stove")
+    assert any("tasks 20 (KITCHEN_SCENE3_turn_on_the_stove), 44" in line for line in run_problems(
+        config(tmp_path, text=ambiguous)))
