@@ -15,6 +15,7 @@ from PIL import Image
 
 from steering_core.rollout.records import RolloutCell, TaskRef, write_cell
 
+
 def reference_resize_with_pad(image: np.ndarray, size: int) -> np.ndarray:
     """PIL bilinear to (int(H / r), int(W / r)), then numpy zero padding with the odd row or column last."""
     height, width = image.shape[:2]
@@ -133,6 +134,7 @@ class Episode:
     jerk: float
     joint_limit_hits: int
     frames: list[np.ndarray] = field(default_factory=list)
+    toward_at_start: bool = False
 
 
 def make_episode(prompt: str, outcome: str, steps: int, init_index: int = 0, *, seed: int = 0, drift: float = 0.0,

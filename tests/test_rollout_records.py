@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers_rollout import CLOSE, JOINT, OPEN, RUN, make_episode, write_pair_cells
 
-from steering_core.rollout.records import RolloutCell, condition_kind, read_cell, write_cell
+from steering_core.rollout.records import RolloutCell, condition_kind, merge_chunks, read_cell, write_cell
 from steering_core.storage.layout import rollout_cell_dir
 
 
@@ -42,7 +42,7 @@ def test_cell_round_trips(tmp_path):
     assert read["episodes"][0] == {
         "episode": 0, "seed": 7, "init_index": 3, "outcome": "toward", "steps": 12, "success_step": None,
         "toward_step": 12, "jerk": pytest.approx(episodes[0].jerk), "joint_limit_hits": 0, "policy_calls": 3,
-        "video": "negative_steered_a+2_ep0_toward.mp4"}
+        "toward_at_start": False, "video": "negative_steered_a+2_ep0_toward.mp4"}
     assert read["episodes"][2]["jerk"] is None and read["mean_jerk"] == pytest.approx(
         (episodes[0].jerk + episodes[1].jerk) / 2)  # a 2-step episode has no third difference
     assert read["success"]["toward"] == {"k": 1, "n": 3, "rate": 1 / 3, "low": pytest.approx(0.0615, abs=1e-4),
@@ -80,3 +80,24 @@ def test_pair_cells_share_initial_states(tmp_path):
     records = write_pair_cells(tmp_path, n=4, frames=0)
     assert len(records) == 2 * (3 * 6 + 2) and len({r["cell"] for r in records}) == len(records)
     assert {tuple(e["init_index"] for e in r["episodes"]) for r in records} == {(0, 1, 2, 3)}
+
+
+def test_chunks_merge_into_the_record_of_all_their_episodes(tmp_path):
+    cell = RolloutCell("open_vs_close", 12, "positive", "random_1", -2.0, OPEN, CLOSE)
+    episodes = [make_episode(OPEN.instruction, outcome, 10 + i, init_index=i, seed=i, frames=2 if i == 0 else 0)
+                for i, outcome in enumerate(("neither", "toward", "instructed"))]
+    episodes[1].toward_at_start = True
+    whole = write_cell(tmp_path / "whole" / cell.name, cell, episodes, seeds=[7] * 3, run=RUN)
+    chunks = [tmp_path / cell.name / "chunk_000", tmp_path / cell.name / "chunk_001"]
+    write_cell(chunks[0], cell, episodes[:2], seeds=[7] * 2, run=RUN | {"chunk": 0})
+    write_cell(chunks[1], cell, episodes[2:], seeds=[7], run=RUN | {"chunk": 1})
+    merged = merge_chunks(tmp_path / cell.name, chunks)
+    assert merged == whole  # the chunk index is the chunk's own; the merged record is the cell's
+    arrays, reference = read_cell(tmp_path / cell.name)[1], read_cell(tmp_path / "whole" / cell.name)[1]
+    assert all(np.array_equal(arrays[k], reference[k], equal_nan=True) for k in reference)
+    video = tmp_path / cell.name / merged["episodes"][0]["video"]
+    assert video.read_bytes() == (chunks[0] / merged["episodes"][0]["video"]).read_bytes()
+    other = RolloutCell("open_vs_close", 12, "positive", "random_2", -2.0, OPEN, CLOSE)
+    write_cell(tmp_path / "stray", other, episodes[:1], seeds=[7], run=RUN)
+    with pytest.raises(ValueError, match="holds cell positive_random_2_a-2"):
+        merge_chunks(tmp_path / "mixed", [chunks[0], tmp_path / "stray"])

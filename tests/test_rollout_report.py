@@ -65,3 +65,15 @@ def test_missing_controls_and_joints_are_said(tmp_path):
                               "controls at this α to compare; no α = 0 cell to compare")
     assert answer["ceiling"] is None and side_answer([record], "positive")["text"] == (
         "no steered cells with α toward the other task > 0")
+
+
+def test_a_toward_goal_holding_at_the_start_is_said_with_its_count(tmp_path):
+    records = write_pair_cells(tmp_path, n=4, frames=0)
+    plain = side_answer(records, "negative")
+    assert "toward_at_start" not in plain and "already held" not in plain["text"]
+    negative = [r for r in records if r["side"] == "negative"]
+    for record in negative[:3]:
+        record["toward_at_start"] = 2
+    answer = side_answer(records, "negative")
+    assert answer["toward_at_start"] == {"k": 6, "n": 4 * len(negative)}
+    assert answer["text"].startswith(plain["text"]) and f"start of 6 of {4 * len(negative)} episodes" in answer["text"]

@@ -239,3 +239,29 @@ def test_libero_90_tasks_of_the_issue():
     with pytest.raises(ValueError, match=r"has no task 'open the middle drawer'; close: \['open the middle drawer of"):
         task_index(SUITE, "open the middle drawer")
     assert initial_states(SUITE, 0).shape == (50, 79)
+
+
+class ScriptedGoal:
+    """A watched goal whose `holds` answers from a list (then its last answer): the start check comes first."""
+
+    predicates = ()
+
+    def __init__(self, answers):
+        self.answers = list(answers)
+
+    def check(self, env):
+        pass
+
+    def holds(self, env):
+        return self.answers.pop(0) if len(self.answers) > 1 else self.answers[0]
+
+
+@pytest.mark.parametrize(("answers", "expected"), [
+    ([True, True, True, False, False, True], ("toward", 5, 5, True)),   # undone at step 3, reached again at 5
+    ([True], ("neither", 8, None, True)),                               # held all along: nothing was done
+    ([False, False, True], ("toward", 2, 2, False)),                    # the usual case
+])
+def test_a_toward_goal_holding_at_the_start_counts_only_once_undone_and_redone(env, init_state, answers, expected):
+    record = run_episode(env, ScriptedPolicy(env, calls=4, seed=5), prompt="turn on the stove", init_state=init_state,
+                         init_index=0, max_steps=8, toward_goal=ScriptedGoal(answers), wait_steps=1)
+    assert (record.outcome, record.steps, record.toward_step, record.toward_at_start) == expected

@@ -37,7 +37,7 @@ class EpisodeRecord:
     outcome: str  # "instructed" | "toward" | "neither" (the first goal reached ends the episode)
     steps: int  # policy steps executed (wait steps excluded)
     success_step: int | None  # step at which the instructed goal (the env's `done`) held
-    toward_step: int | None  # step at which the watched (steered-toward) goal held
+    toward_step: int | None  # step at which the watched (steered-toward) goal came to hold
     joints: dict[str, np.ndarray]  # goal-tested joint name -> qpos per step, (steps + 1,) float64
     robot_qpos: np.ndarray  # (steps + 1, 7) arm joint positions
     actions: np.ndarray  # (steps, 7) float32 actions executed
@@ -45,6 +45,7 @@ class EpisodeRecord:
     jerk: float  # RMS third difference of robot_qpos (rad / step^3); 0.0 with fewer than 4 rows
     joint_limit_hits: int  # steps with an arm joint within LIMIT_MARGIN of its range limit
     frames: list[np.ndarray] = field(default_factory=list)  # policy agentview images (224, 224, 3) at replans
+    toward_at_start: bool = False  # the watched goal already held after the wait steps (it must break, then hold)
 
 
 def jerk(robot_qpos: np.ndarray) -> float:
@@ -92,8 +93,10 @@ def run_episode(
 
     Seed, reset, set the initial state, take `wait_steps` dummy actions, then execute the first `replan_steps`
     actions of each chunk, asking the policy when the plan is empty. After every step the instructed goal (the
-    env's `done`) and `toward_goal` are checked; the first that holds ends the episode, else `max_steps` does.
-    Cameras render only for the observations the policy sees.
+    env's `done`) and `toward_goal` are checked; the first that holds ends the episode, else `max_steps` does. A
+    toward goal that already holds after the wait steps (the other task's start is this one's goal: a drawer the
+    instruction closes starts open) counts only once it has stopped holding and holds again: doing nothing is not
+    reaching it. Cameras render only for the observations the policy sees.
     """
     if toward_goal is not None:
         toward_goal.check(env)  # before any step: a scene without the goal's objects is a configuration error
@@ -112,6 +115,8 @@ def run_episode(
             cameras.arm()
         obs, _, _, _ = env.step(list(DUMMY_ACTION))
 
+    toward_at_start = toward_goal is not None and toward_goal.holds(env)
+    toward_armed = not toward_at_start
     joint_rows = [read_joints(env, joints)]
     qpos_rows = [env.env.sim.data.qpos[arm_addresses].copy()]
     actions, frames = [], []
@@ -133,8 +138,10 @@ def run_episode(
         joint_rows.append(read_joints(env, joints))
         qpos_rows.append(env.env.sim.data.qpos[arm_addresses].copy())
         success_step = steps if done else None
-        if toward_goal is not None and toward_goal.holds(env):
-            toward_step = steps
+        if toward_goal is not None:
+            holds = toward_goal.holds(env)
+            toward_step = steps if holds and toward_armed else None
+            toward_armed = toward_armed or not holds
         if done or toward_step is not None:
             break
 
@@ -155,6 +162,7 @@ def run_episode(
         jerk=jerk(robot_qpos),
         joint_limit_hits=int(near_limit.any(axis=1).sum()),
         frames=frames,
+        toward_at_start=toward_at_start,
     )
     policy.episode_end(outcome == "instructed")
     return record

@@ -107,7 +107,7 @@ def episode_facts(episode: EpisodeRecord) -> dict[str, Any]:
     return {"init_index": int(episode.init_index), "outcome": episode.outcome, "steps": int(episode.steps),
             "success_step": _step(episode.success_step), "toward_step": _step(episode.toward_step),
             "jerk": _finite(episode.jerk), "joint_limit_hits": int(episode.joint_limit_hits),
-            "policy_calls": int(episode.policy_calls)}
+            "policy_calls": int(episode.policy_calls), "toward_at_start": bool(episode.toward_at_start)}
 
 
 def _check_episodes(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int]) -> None:
@@ -177,6 +177,7 @@ def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Seq
         "mean_steps": sum(e.steps for e in episodes) / n,
         "mean_jerk": sum(jerks) / len(jerks) if jerks else None,
         "joint_limit_hits": sum(row["joint_limit_hits"] for row in rows),
+        "toward_at_start": sum(row["toward_at_start"] for row in rows),
     }
 
 
@@ -240,6 +241,7 @@ class StoredEpisode:
     robot_qpos: np.ndarray
     actions: np.ndarray
     frames: tuple = field(default=())
+    toward_at_start: bool = False
 
 
 def stored_episodes(record: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> list[StoredEpisode]:
@@ -253,7 +255,7 @@ def stored_episodes(record: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
             success_step=row["success_step"], toward_step=row["toward_step"],
             jerk=math.nan if row["jerk"] is None else row["jerk"], joint_limit_hits=row["joint_limit_hits"],
             policy_calls=row["policy_calls"], joints=joints, robot_qpos=arrays["robot_qpos"][i, : steps + 1],
-            actions=arrays["actions"][i, :steps]))
+            actions=arrays["actions"][i, :steps], toward_at_start=row["toward_at_start"]))
     return episodes
 
 

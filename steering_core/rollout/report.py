@@ -69,9 +69,22 @@ def _at(records: Sequence[dict[str, Any]], kind: str, alpha_toward: float | None
 
 
 def side_answer(records: Sequence[dict[str, Any]], side: str) -> dict[str, Any]:
+    """Return one side's comparison (see `_side_answer`), saying when the other task's goal already held at the
+    start of some episodes (then only breaking it and reaching it again counts)."""
+    cells = [r for r in records if r["side"] == side]
+    row = _side_answer(cells, side)
+    at_start, episodes = sum(r["toward_at_start"] for r in cells), sum(len(r["episodes"]) for r in cells)
+    if at_start:
+        row["toward_at_start"] = {"k": at_start, "n": episodes}
+        row["text"] += (f"; the other task's goal already held at the start of {at_start} of {episodes} episodes (its "
+                        "start state is this side's goal, e.g. an open drawer to close): only undoing and redoing it "
+                        "counts, so read the instructed success and the joint trajectories")
+    return row
+
+
+def _side_answer(cells: Sequence[dict[str, Any]], side: str) -> dict[str, Any]:
     """Return one side's comparison: the steered best α, the random edge, α = 0, wrong concepts, the ceiling and
     `answer` ("yes" / "no evidence") with `text` saying why (see ANSWER_TEXT)."""
-    cells = [r for r in records if r["side"] == side]
     steered = [r for r in _at(cells, "steered") if r["alpha_toward"] > 0]
     swap, zero = _at(cells, "instruction_swap"), _at(cells, "unsteered")
     row: dict[str, Any] = {"side": side, "ceiling": success(swap[0]).to_json() if swap else None}
