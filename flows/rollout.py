@@ -58,7 +58,9 @@ def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
                                   flow_run_name=f"rollout {name} {layer_dir(layer)} {side}", timeout=0)
                    for name, layer, side in targets]
         logger.info("started %d rollout run(s); waiting", len(started))
-        failed = [run.name for run in wait_for_runs(started, config.orchestration.poll_seconds)
+        orchestration = config.orchestration
+        failed = [run.name for run in wait_for_runs(started, orchestration.poll_seconds,
+                                                     orchestration.worker_wait_seconds)
                   if run.state is None or not run.state.is_completed()]
         if failed:
             raise RuntimeError(f"rollout run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI")

@@ -334,7 +334,25 @@ def test_closing_table_names_every_task_run_with_its_state(first_run, demo_confi
                for line in lines)
 
 
-def test_demo_ends_with_the_planted_concept_found(first_run):
+def test_demo_rolls_the_steered_policy_out_in_the_simulator(first_run, demo_config):
+    config = load_run_config(demo_config)
+    tasks = task_runs_under(first_run[0])
+    chunks = {name: run for name, run in tasks.items() if name.startswith("rollout open_vs_close layer 1 ")}
+    assert sorted(name.split()[4] for name in chunks) == [  # both sides at α toward the other task 0 and 2
+        "negative_steered_a+2", "negative_unsteered_a+0", "positive_steered_a-2", "positive_unsteered_a+0"]
+    assert {run.state.name for run in chunks.values()} == {"Completed"}
+    layer_path = config.rollout_layer_path(1)
+    summary = read_json(layer_path / "summary.json")
+    assert [row["side"] for row in summary["pairs"][0]["answers"]] == ["positive", "negative"]
+    for cell in chunks:
+        record = read_json(layer_path / "open_vs_close" / cell.split()[4] / "rollouts.json")
+        assert len(record["episodes"]) == 2 and all(e["steps"] <= 30 for e in record["episodes"])
+    output = first_run[1]
+    assert "Closed-loop rollouts in LIBERO, layer01" in output and "says nothing about a real policy" in output
+    assert f"report: {layer_path / 'summary.md'}" in output
+
+
+def test_demo_finds_the_planted_concept(first_run):
     check = first_run[1].split("The planted-concept check", 1)[1]
     row = next(line for line in check.splitlines() if line.startswith("planted "))
     assert "mean_difference_direction, layer 0" in row and " 1 / 1 " in row

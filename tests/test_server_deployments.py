@@ -168,16 +168,17 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
 
     run_cli(env, LATENT_STEERING, "deploy", "--config", str(config_path), "--gpu-slots", "1")
     with get_client(sync_client=True) as client:
-        assert {p.name for p in client.read_work_pools()} >= {"gpu", "cpu"}
+        assert {p.name for p in client.read_work_pools()} >= {"gpu", "cpu", "sim"}
         assert client.read_concurrency_limit_by_tag("gpu").concurrency_limit == 1
         deployments = {d.name: d for d in client.read_deployments()}
-        assert {"pipeline", "gpu", "scheduled"} <= set(deployments)
+        assert {"pipeline", "gpu", "scheduled", "sim-rollout"} <= set(deployments)
+        assert deployments["sim-rollout"].work_pool_name == "sim"
         assert deployments["scheduled"].schedules and deployments["gpu"].work_pool_name == "gpu"
         # no scheduled refresh may start during the test (an hour boundary can fall inside it);
         # pausing deletes its auto-scheduled runs, manual runs still work
         client.pause_deployment(deployments["scheduled"].id)
 
-    for pool in ("gpu", "cpu"):
+    for pool in ("gpu", "cpu", "sim"):
         processes.start(f"worker-{pool}", *PREFECT, "worker", "start", "--pool", pool)
     parent = run_deployment_and_wait(env, "latent-steering/pipeline", tmp_path / "logs" / "worker-cpu.log")
     with get_client(sync_client=True) as client:
@@ -192,6 +193,13 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
             flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-evaluate"])))
         assert len(evaluations) == 2 * (len(config.layers) + len(config.expert_layers))
         assert {(r.work_pool_name, r.state.name) for r in evaluations} == {("gpu", "Completed")}
+        # phase 5: one rollout run per (pair, layer, side) on the sim pool, a chunk task per cell in each
+        rollouts = client.read_flow_runs(
+            flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-rollout"])))
+        assert len(rollouts) == len(config.rollout_targets()) * len(config.rollout.sides)
+        assert {(r.work_pool_name, r.state.name) for r in rollouts} == {("sim", "Completed")}
+        chunks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[r.id for r in rollouts])))
+        assert sum(t.name.startswith("rollout open_vs_close layer 1 ") for t in chunks) == 2 * 2  # sides x α cells
 
         runs = {r.id: r for r in [parent, *captures]}
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=list(runs))))
@@ -217,6 +225,7 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
     for layer in config.expert_layers:
         assert (config.eval_layer_path(layer, "expert") / "on_vs_off" / "dose_response.json").is_file()
     assert (config.eval_root / "pathways.md").is_file()
+    assert (config.rollout_layer_path(1) / "summary.md").is_file()
 
     # the refresh deployment sees the sources of that successful run: it ends without a pipeline run
     refreshed = run_deployment_and_wait(env, "latent-steering-refresh/scheduled", tmp_path / "logs" / "worker-cpu.log")
