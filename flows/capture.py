@@ -107,6 +107,20 @@ def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
     return finished
 
 
+def run_deployments(config: RunConfig, deployment: str, config_path: str | Path, targets: Sequence[Sequence[Any]],
+                    run_names: Sequence[str], what: str) -> None:
+    """Start one run of `deployment` per target (its `targets` parameter) and wait for all; raise naming the runs
+    that did not complete, or the pool when no worker polls it (`orchestration.worker_wait_seconds`)."""
+    started = [run_deployment(deployment, parameters={"config_path": str(config_path), "targets": [list(target)]},
+                              flow_run_name=name, timeout=0) for target, name in zip(targets, run_names, strict=True)]
+    get_run_logger().info("started %d %s run(s); waiting", len(started), what)
+    orchestration = config.orchestration
+    failed = [run.name for run in wait_for_runs(started, orchestration.poll_seconds, orchestration.worker_wait_seconds)
+              if run.state is None or not run.state.is_completed()]
+    if failed:
+        raise RuntimeError(f"{what} run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI")
+
+
 def wait_for_runs(runs: Sequence[FlowRun], poll_seconds: float, worker_wait_seconds: float | None = None) -> list[FlowRun]:
     """Return `runs` re-read once each has reached a final state (polling the API every `poll_seconds`).
 

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow, get_run_logger
+from prefect import flow
 from prefect.artifacts import create_markdown_artifact
-from prefect.deployments import run_deployment
 
-from flows.capture import capture_mode, wait_for_runs
+from flows.capture import capture_mode, run_deployments
 from steering_core.config import RunConfig, load_run_config
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
@@ -51,18 +50,11 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]
 
     Returns layer folder name (`layer02`, `expert_layer01`, `pathways`) -> its summary.md.
     """
-    logger = get_run_logger()
     targets = evaluation_targets(config)
     if capture_mode(config) == "deployment":
-        started = [run_deployment(config.orchestration.evaluate_deployment,
-                                  parameters={"config_path": str(config_path), "targets": [[name, layer, stream]]},
-                                  flow_run_name=f"evaluate {name} {stream_layer_dir(layer, stream)}", timeout=0)
-                   for name, layer, stream in targets]
-        logger.info("started %d evaluation run(s); waiting", len(started))
-        failed = [run.name for run in wait_for_runs(started, config.orchestration.poll_seconds)
-                  if run.state is None or not run.state.is_completed()]
-        if failed:
-            raise RuntimeError(f"evaluation run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI")
+        run_deployments(config, config.orchestration.evaluate_deployment, config_path, targets,
+                        [f"evaluate {name} {stream_layer_dir(layer, stream)}" for name, layer, stream in targets],
+                        "evaluation")
     else:
         evaluate_flow(str(config_path), targets)
     summaries = {}

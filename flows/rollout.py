@@ -10,11 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow, get_run_logger
+from prefect import flow
 from prefect.artifacts import create_markdown_artifact
-from prefect.deployments import run_deployment
 
-from flows.capture import capture_mode, wait_for_runs
+from flows.capture import capture_mode, run_deployments
 from steering_core.config import RunConfig, load_run_config
 from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
 from steering_core.serve.auth import read_api_key
@@ -50,20 +49,10 @@ def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = 
 def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     """Roll out every (pair, layer, side) on the `sim` pool or in-process, then write and publish each layer's
     summary; return layer folder name -> its summary.md."""
-    logger = get_run_logger()
     targets = rollout_targets(config)
     if capture_mode(config) == "deployment":
-        started = [run_deployment(config.orchestration.rollout_deployment,
-                                  parameters={"config_path": str(config_path), "targets": [[name, layer, side]]},
-                                  flow_run_name=f"rollout {name} {layer_dir(layer)} {side}", timeout=0)
-                   for name, layer, side in targets]
-        logger.info("started %d rollout run(s); waiting", len(started))
-        orchestration = config.orchestration
-        failed = [run.name for run in wait_for_runs(started, orchestration.poll_seconds,
-                                                     orchestration.worker_wait_seconds)
-                  if run.state is None or not run.state.is_completed()]
-        if failed:
-            raise RuntimeError(f"rollout run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI")
+        run_deployments(config, config.orchestration.rollout_deployment, config_path, targets,
+                        [f"rollout {name} {layer_dir(layer)} {side}" for name, layer, side in targets], "rollout")
     else:
         rollout_flow(str(config_path), targets)
     summaries = {}
