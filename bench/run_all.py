@@ -26,6 +26,7 @@ BENCHMARKS = (
     "cli_startup",
     "serve_latency",
     "evaluate_cost",
+    "rollout_throughput",
 )
 OPT_IN = ("real_size", "policy_real_size")  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"
