@@ -17,9 +17,10 @@ from flows.capture import capture_mode, run_deployments
 from steering_core.config import RunConfig, load_run_config
 from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
 from steering_core.serve.auth import read_api_key
-from steering_core.storage.layout import layer_dir
+from steering_core.storage.fileio import read_json
+from steering_core.storage.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
 from tasks import rollout as rollout_tasks
-from tasks.artifacts import artifact_key
+from tasks.artifacts import artifact_key, ui_markdown
 from tasks.cache import rooted
 
 ROLLOUT_FLOW = "latent-steering-rollout"
@@ -46,6 +47,14 @@ def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = 
     return {"cells": cells}
 
 
+def ui_rollouts(layer_path: Path) -> str:
+    """Return a layer's rollout summary for the Prefect UI: its plots inline, then where the files and videos are."""
+    summary = read_json(layer_path / SUMMARY_JSON)
+    plots = [f"{pair['pair']}/{file}" for pair in summary["pairs"] for file in pair["plots"].values()]
+    videos = [f"{pair['pair']}/{file}" for pair in summary["pairs"] for file in pair["videos"].values()]
+    return ui_markdown(layer_path, plots, [SUMMARY_MD, SUMMARY_JSON, *videos])
+
+
 def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     """Roll out every (pair, layer, side) on the `sim` pool or in-process, then write and publish each layer's
     summary; return layer folder name -> its summary.md."""
@@ -62,7 +71,6 @@ def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
         result = rooted(rollout_tasks.rollout_summary, config.output_root)(
             layer, str(layer_path), cells, config.rollout.note)
         summaries[layer_dir(layer)] = result["summary"]
-        create_markdown_artifact(Path(result["summary"]).read_text(encoding="utf-8"),
-                                 key=artifact_key(config.name, "rollouts", layer_dir(layer)),
+        create_markdown_artifact(ui_rollouts(layer_path), key=artifact_key(config.name, "rollouts", layer_dir(layer)),
                                  description=f"Closed-loop rollouts, {layer_dir(layer)} ({layer_path})")
     return summaries

@@ -80,10 +80,15 @@ def publish_layer_report(layer_path: Path, flow_key: str) -> None:
 
 def ui_report(layer_path: Path, summary: dict[str, Any]) -> str:
     """Return summary.md with every plot inlined as a PNG data URI, followed by the files' paths and host."""
-    text = (layer_path / SUMMARY_MD).read_text(encoding="utf-8")
-    for file in summary["plots"].values():
-        encoded = base64.b64encode((layer_path / file).read_bytes()).decode("ascii")
+    return ui_markdown(layer_path, list(summary["plots"].values()), [SUMMARY_MD, SUMMARY_JSON])
+
+
+def ui_markdown(folder: Path, images: list[str], files: list[str]) -> str:
+    """Return `folder`'s summary.md with each of `images` (paths relative to it, as the file links them) inlined as
+    a PNG data URI, followed by where `files` and the images are (on the machine that wrote them)."""
+    text = (folder / SUMMARY_MD).read_text(encoding="utf-8")
+    for file in images:
+        encoded = base64.b64encode((folder / file).read_bytes()).decode("ascii")
         text = text.replace(f"]({file})", f"](data:image/png;base64,{encoded})")
-    files = [SUMMARY_MD, SUMMARY_JSON, *summary["plots"].values()]
-    return text.rstrip() + "\n\n## Files\n\n" + f"On `{socket.gethostname()}`, in `{layer_path}`:\n\n" + "\n".join(
-        f"- `{name}`" for name in files) + "\n"
+    return text.rstrip() + "\n\n## Files\n\n" + f"On `{socket.gethostname()}`, in `{folder}`:\n\n" + "\n".join(
+        f"- `{name}`" for name in [*files, *images]) + "\n"

@@ -6,6 +6,7 @@ import re
 
 from helpers_rollout import CLOSE, DRAWER_GOALS, OPEN, PAIR, RUN, make_episode, write_pair_cells
 
+from flows.rollout import ui_rollouts
 from steering_core.rollout.records import RolloutCell, write_cell
 from steering_core.rollout.report import side_answer, write_layer_summary, write_pair_report
 from steering_core.storage.fileio import read_json
@@ -41,6 +42,10 @@ def test_layer_summary_answers_links_and_notes(tmp_path):
     assert len(links) == 2 + 2 + 40 and all((tmp_path / link).is_file() for link in links)
     summary = read_json(tmp_path / "summary.json")
     assert summary["note"] == NOTE and [p["pair"] for p in summary["pairs"]] == [PAIR]
+
+    ui = ui_rollouts(tmp_path)  # the Prefect artifact: plots inline, the videos' paths listed
+    assert ui.count("](data:image/png;base64,") == 2 and "success_vs_alpha.png)" not in ui
+    assert ui.count(".mp4`") == 40 and f"in `{tmp_path}`" in ui
 
 
 def test_overlapping_intervals_are_no_evidence(tmp_path):

@@ -265,3 +265,22 @@ def test_a_toward_goal_holding_at_the_start_counts_only_once_undone_and_redone(e
     record = run_episode(env, ScriptedPolicy(env, calls=4, seed=5), prompt="turn on the stove", init_state=init_state,
                          init_index=0, max_steps=8, toward_goal=ScriptedGoal(answers), wait_steps=1)
     assert (record.outcome, record.steps, record.toward_step, record.toward_at_start) == expected
+
+
+def test_an_episode_does_not_depend_on_the_episodes_before_it(env, init_state):
+    """A process keeps its env for the next chunk: each episode's seed and hard reset make that invisible."""
+    def episode(on_env, seed):
+        return run_episode(on_env, ScriptedPolicy(on_env, calls=3, seed=seed), prompt=INSTRUCTION,
+                           init_state=init_state, init_index=0, max_steps=12, toward_goal=None)
+
+    first = episode(env, 9)
+    episode(env, 10)  # another episode in between, other actions
+    again = episode(env, 9)
+    fresh_env = make_env(find_task(SUITE, task_index(SUITE, INSTRUCTION)))
+    try:
+        fresh = episode(RecordingEnv(fresh_env), 9)
+    finally:
+        fresh_env.close()
+    for other in (again, fresh):
+        assert np.array_equal(other.robot_qpos, first.robot_qpos) and np.array_equal(other.actions, first.actions)
+        assert all(np.array_equal(other.joints[name], first.joints[name]) for name in first.joints)
