@@ -43,7 +43,8 @@ def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = 
     for name, layer, side in targets or rollout_targets(config):  # one after another: one simulator per worker
         for cell_dir, jobs in by_cell(config_jobs(config, name, layer, (side,))).items():
             chunks = [chunk_task(job, model, settings, api_key)["chunk"] for job in jobs]
-            cells.append(cell_task(str(cell_dir), chunks)["rollouts"])
+            label = f"{name} layer {layer} {cell_dir.name}"
+            cells.append(cell_task(str(cell_dir), chunks, label)["rollouts"])
     return {"cells": cells}
 
 

@@ -68,18 +68,20 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
 
 
 def _rollout_problems(config: RunConfig) -> list[str]:
-    """Return the problems of the rollout section: its scene assets, each pair's LIBERO tasks, the server key."""
+    """Return the problems of the rollout section: its scene assets, each pair's LIBERO tasks and their initial
+    states, the server key."""
     if config.rollout is None:
         return []
     from steering_core.rollout import libero_env
     from steering_core.rollout.assets import resolve_assets
-    from steering_core.rollout.run import libero_task
+    from steering_core.rollout.run import initial_states
     from steering_core.serve.auth import read_api_key
 
     assets = _failures([lambda: libero_env.prepare_libero(resolve_assets(config.rollout.libero_assets))])
     if assets:
         return assets
-    tasks = [(lambda task=task: libero_task(task)) for pair in config.rollout.pairs.values()
+    wanted = config.rollout.settings().init_states
+    tasks = [(lambda task=task: initial_states(task, wanted)) for pair in config.rollout.pairs.values()
              for task in (pair.positive, pair.negative)]
     return _failures([*tasks, lambda: read_api_key(config.rollout.api_key_file)])
 

@@ -71,12 +71,12 @@ def chunk_contents(inputs: dict[str, Any]) -> list[list[str]]:
 
 @task(
     name="rollout-cell",
-    task_run_name="rollout cell {cell_dir}",
+    task_run_name="merge rollout {label}",
     cache_policy=content_key("steering_core.rollout", derived={"chunks": chunk_contents}),
     **RESULTS,
 )
-def rollout_cell(cell_dir: str, chunks: list[str]) -> dict:
-    """Merge a cell's chunks into rollouts.json/.safetensors (and its first episode's MP4)."""
+def rollout_cell(cell_dir: str, chunks: list[str], label: str) -> dict:
+    """Merge a cell's chunks into rollouts.json/.safetensors (and its first episode's MP4); `label` names the run."""
     records.merge_chunks(Path(cell_dir), [Path(p) for p in chunks])
     files = record_files(Path(cell_dir))
     return {OUTPUTS: files, "rollouts": files[0]}

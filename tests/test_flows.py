@@ -579,6 +579,10 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
         "capture decision episodes 8-8", f"run metadata {config.decision_run_dir}",
         "slice open_vs_close expert layer 2", "evaluate open_vs_close expert layer 2",
         "evaluation summary expert layer 2", "evaluation pathways",
+        # closed loop: the drawer pair's steered cells (its vector changed), not its α = 0 cells
+        *(name.format(cell) for cell in ("negative_steered_a+2", "positive_steered_a-2")
+          for name in ("rollout open_vs_close layer 1 {} chunk 0", "merge rollout open_vs_close layer 1 {}")),
+        "rollout summary layer 1",
     }
     assert all(tasks[name].state.name == "Completed" for name in recomputed)
     assert tasks["capture episodes 0-7"].state.name == "Cached"

@@ -118,6 +118,8 @@ def test_preflight_names_each_libero_task_it_cannot_find(tmp_path):
     problems = run_problems(config(tmp_path, text=bad))
     assert any("libero_90: task index 99 out of range" in line for line in problems), problems
     assert any("turn on the oven" in line for line in problems), problems
+    many = run_problems(config(tmp_path, "  first_init_state: 45\n"))
+    assert any("libero_90[7]: initial states 45..51 asked, the task has 50 (0..49)" in line for line in many), many
     assert not [line for line in run_problems(config(tmp_path)) if "libero" in line.lower()]
     ambiguous = CONFIG.replace("task: KITCHEN_SCENE3_turn_on_the_stove", "task: turn on the stove")
     assert any("tasks 20 (KITCHEN_SCENE3_turn_on_the_stove), 44" in line for line in run_problems(

@@ -99,6 +99,17 @@ def libero_task(task: LiberoTask) -> tuple[int, Any]:
     return index, libero_env.find_task(task.suite, index)
 
 
+def initial_states(task: LiberoTask, wanted: tuple[int, ...]) -> Any:
+    """Return the benchmark's initial states of `task`; raise unless it has every index in `wanted`."""
+    from steering_core.rollout import libero_env
+
+    states = libero_env.initial_states(task.suite, libero_task(task)[0])
+    if max(wanted) >= len(states):
+        raise ValueError(f"{task.describe()}: initial states {wanted[0]}..{wanted[-1]} asked, the task has "
+                         f"{len(states)} (0..{len(states) - 1}); lower rollout.episodes or first_init_state")
+    return states
+
+
 def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, *, api_key: str | None = None,
               progress: ProgressCallback | None = None) -> Path:
     """Run the job's episodes; write them as a cell record of their own in `<cell>/chunk_NNN/` and return it."""
@@ -114,23 +125,27 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     env = _scene_env(scene)
     goal = Goal.from_task(toward)
     goal.check(env)
-    states = libero_env.initial_states(job.scene_task.suite, scene_index)
-    policy = make_policy(job, model, settings, api_key)
+    states = initial_states(job.scene_task, job.init_states)
     max_steps = settings.max_steps or suite_max_steps(job.scene_task.suite)
+    policy = make_policy(job, model, settings, api_key)
     done = []
-    for i, index in enumerate(job.init_states):
-        done.append(episode.run_episode(
-            env, policy, prompt=prompt, init_state=states[index], init_index=index, max_steps=max_steps,
-            toward_goal=goal, record_frames=settings.videos and index == settings.first_init_state,
-            seed=settings.seed, episode_id=index))
-        if progress is not None:
-            progress(i + 1, len(job.init_states))
+    try:
+        for i, index in enumerate(job.init_states):
+            done.append(episode.run_episode(
+                env, policy, prompt=prompt, init_state=states[index], init_index=index, max_steps=max_steps,
+                toward_goal=goal, record_frames=settings.videos and index == settings.first_init_state,
+                seed=settings.seed, episode_id=index))
+            if progress is not None:
+                progress(i + 1, len(job.init_states))
+    finally:
+        if hasattr(policy, "close"):  # a server connection
+            policy.close()
     cell = records.RolloutCell(
         pair=job.cell_pair, layer=job.layer, side=job.side, condition=job.condition, alpha=job.cell.alpha,
         instructed=records.TaskRef(job.scene_task.suite, scene_index, scene.language),
         toward=records.TaskRef(job.toward_task.suite, toward_index, toward.language))
     run = {"policy": settings.policy, "steering": steering_entries(job.cell, settings), "max_steps": max_steps,
-           "noise_seed": settings.noise_seed, "num_steps": settings.num_steps, "chunk": job.chunk}
+           "noise_seed": settings.noise_seed, "chunk": job.chunk}
     folder = chunk_dir(job)
     records.write_cell(folder, cell, done, [settings.seed] * len(done), run)
     return folder

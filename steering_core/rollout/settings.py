@@ -58,8 +58,8 @@ class RolloutSettings(StrictModel):
     chunk_episodes: int = Field(5, gt=0)        # episodes per task run (the fan-out's unit)
     max_steps: int | None = Field(None, gt=0)   # None: openpi's per suite
     seed: int = 7                               # the environment seed (openpi's)
-    noise_seed: int | None = 0                  # the policy's initial noise (None: fresh per call, as openpi)
-    num_steps: int = Field(10, gt=0)            # denoising steps per policy call
+    noise_seed: int | None = 0                  # the in-process policy's initial noise (None: fresh per call, as
+                                                # openpi; a server draws its own: `serve --noise-seed`)
     videos: bool = True                         # an MP4 of each cell's first episode
     policy: str = "local"                       # "local" (in-process) or ws://host:port of `latent-steering serve`
     api_key_file: Path | None = None            # the server's key (`serve --api-key-file`)
