@@ -73,6 +73,11 @@ def test_every_cell_is_written_with_paired_episodes_videos_and_a_summary(run):
         assert video and (layer_path / PAIR / name / video).stat().st_size > 0
         assert record["episodes"][1]["video"] is None
         assert arrays["actions"].shape[0] == 2 and np.isfinite(arrays["actions"][0, : arrays["lengths"][0]]).all()
+    thresholds = cell(config, "negative_steered_a+2")[0]["run"]["thresholds"]  # libero's own predicates, swept
+    assert {joint: [label for label, _ in entries] for joint, entries in thresholds.items()} == {
+        "flat_stove_1_button": ["turnon"], "wooden_cabinet_1_middle_level": ["open"]}
+    assert thresholds["flat_stove_1_button"][0][1] == pytest.approx(0.5, abs=0.006)
+    assert (layer_path / PAIR / "joint_trajectories.png").stat().st_size > 0
     assert cell(config, "negative_instruction_swap_a+0")[0]["prompt"] == "open the middle drawer of the cabinet"
     assert cell(config, "negative_steered_a+2")[0]["prompt"] == "turn on the stove"
 

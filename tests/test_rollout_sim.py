@@ -20,7 +20,7 @@ from steering_core.rollout.libero_env import (
     prepare_libero,
     task_index,
 )
-from steering_core.rollout.predicates import Goal, GoalError, goal_joints, read_joints
+from steering_core.rollout.predicates import Goal, GoalError, goal_joints, goal_thresholds, read_joints
 
 SUITE = "libero_goal"
 INSTRUCTION = "open the middle drawer of the cabinet"
@@ -215,6 +215,16 @@ def test_contrasting_predicates_on_joint_states_set_directly(env):
     ]:
         set_joint(env, KNOB, value)
         assert (turn_on.holds(env), turn_off.holds(env)) == expected, value
+
+    # the sweep finds the same boundaries (to half a grid step), and leaves the state as it found it
+    before = inner.sim.get_state().flatten()
+    found = goal_thresholds([open_top, close_top, turn_on, turn_off], env)
+    assert np.array_equal(inner.sim.get_state().flatten(), before)
+    step, knob_step = (high - low) / 400, (knob_high - knob_low) / 400
+    assert [label for label, _ in found["wooden_cabinet_1_top_level"]] == ["open", "close"]
+    for (label, value), want, tolerance in zip([*found["wooden_cabinet_1_top_level"], *found[KNOB]],
+                                               (-0.14, 0.0, 0.5, 0.0), (step, step, knob_step, knob_step), strict=True):
+        assert abs(value - want) <= tolerance, (label, value)
 
 
 def test_libero_90_tasks_of_the_issue():

@@ -65,9 +65,10 @@ def plot_success(path: Path, records: Sequence[dict[str, Any]]) -> None:
                 name = "α = 0" if kind == "unsteered" else "instruction swap (ceiling)"
                 ax.axhline(cell["success"][outcome]["rate"], color=color, linestyle=style, linewidth=1,
                            label=f"{name}: {outcome} {cell['success'][outcome]['k']}/{cell['success'][outcome]['n']}")
-        if steered:
-            _errorbar(ax, steered, "toward", marker="o", color="C0", label="steered: toward-task success")
-            _errorbar(ax, steered, "instructed", dodge, marker="s", color="C1", linestyle="--",
+        if steered:  # from α = 0: the direction at zero strength
+            curve = _side_cells(records, side, "unsteered", "steered")
+            _errorbar(ax, curve, "toward", marker="o", color="C0", label="steered: toward-task success")
+            _errorbar(ax, curve, "instructed", dodge, marker="s", color="C1", linestyle="--",
                       label="steered: instructed-task success")
         first = next(r for r in records if r["side"] == side)
         task = f"{first['instructed']['instruction']!r} → {first['toward']['instruction']!r}"

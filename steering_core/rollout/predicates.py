@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from steering_core.rollout.libero_env import bddl_path
 
 JOINT_PREDICATES = ("open", "close", "turnon", "turnoff")  # unary predicates that read articulated joints
@@ -88,3 +90,31 @@ def read_joints(env, joints: dict[str, int]) -> dict[str, float]:
     """Return joint name -> qpos now for the joints of `goal_joints`."""
     qpos = env.env.sim.data.qpos
     return {name: float(qpos[address]) for name, address in joints.items()}
+
+
+def goal_thresholds(goals: list[Goal], env, points: int = 401) -> dict[str, list[tuple[str, float]]]:
+    """Return joint name -> (predicate, qpos) where each joint predicate of `goals` changes truth along the joint's
+    range: found by sweeping the range in `points` steps with libero's own predicate (to ±range/(points - 1)), the
+    other joints where they are. The sim's state is restored after."""
+    inner = env.env
+    sim, saved = inner.sim, inner.sim.get_state()
+    found: dict[str, list[tuple[str, float]]] = {}
+    try:
+        for goal in goals:
+            for predicate in goal.predicates:
+                if predicate[0] not in JOINT_PREDICATES:
+                    continue
+                for name, address in goal_joints(Goal(goal.instruction, (predicate,), goal.source), env).items():
+                    grid = np.linspace(*sim.model.jnt_range[sim.model.joint_name2id(name)], points)
+                    truth = []
+                    for value in grid:
+                        sim.data.qpos[address] = value
+                        sim.forward()
+                        truth.append(bool(inner._eval_predicate(list(predicate))))
+                    found.setdefault(name, []).extend(
+                        (predicate[0], float((grid[i] + grid[i + 1]) / 2))
+                        for i in range(points - 1) if truth[i] != truth[i + 1])
+    finally:
+        sim.set_state(saved)
+        sim.forward()
+    return found

@@ -120,10 +120,14 @@ def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None,
     """Write the pair's PNGs and cells.md/cells.json from its cell folders (`cell_dirs`, default all of them);
     return the pair summary (cells.json).
 
-    `thresholds`: per goal-tested joint, (goal label, qpos threshold) drawn on the joint plot.
+    `thresholds`: per goal-tested joint, (goal label, qpos threshold) drawn on the joint plot (default: those the
+    cells recorded).
     """
     cells = read_pair_cells(pair_path, cell_dirs)
     records = [record for record, _ in cells]
+    if thresholds is None:  # the goals' boundaries each chunk recorded (run.thresholds)
+        thresholds = {joint: [tuple(entry) for entry in entries] for r in records
+                      for joint, entries in r["run"].get("thresholds", {}).items()}
     tasks = {side: next(r["instructed"] for r in records if r["side"] == side)
              for side in SIDES if any(r["side"] == side for r in records)}
     plots = {"success": SUCCESS_PLOT}

@@ -115,7 +115,7 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     """Run the job's episodes; write them as a cell record of their own in `<cell>/chunk_NNN/` and return it."""
     from steering_core.rollout import episode, libero_env, records
     from steering_core.rollout.assets import resolve_assets
-    from steering_core.rollout.predicates import Goal
+    from steering_core.rollout.predicates import Goal, goal_thresholds
     from steering_core.rollout.protocol import max_steps as suite_max_steps
 
     libero_env.prepare_libero(resolve_assets(settings.libero_assets))
@@ -125,6 +125,7 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     env = _scene_env(scene)
     goal = Goal.from_task(toward)
     goal.check(env)
+    thresholds = goal_thresholds([Goal.of_env(env), goal], env)  # drawn on the pair's joint plot
     states = initial_states(job.scene_task, job.init_states)
     max_steps = settings.max_steps or suite_max_steps(job.scene_task.suite)
     policy = make_policy(job, model, settings, api_key)
@@ -145,7 +146,7 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
         instructed=records.TaskRef(job.scene_task.suite, scene_index, scene.language),
         toward=records.TaskRef(job.toward_task.suite, toward_index, toward.language))
     run = {"policy": settings.policy, "steering": steering_entries(job.cell, settings), "max_steps": max_steps,
-           "noise_seed": settings.noise_seed, "chunk": job.chunk}
+           "noise_seed": settings.noise_seed, "chunk": job.chunk, "thresholds": thresholds}
     folder = chunk_dir(job)
     records.write_cell(folder, cell, done, [settings.seed] * len(done), run)
     return folder
