@@ -20,6 +20,9 @@ from tasks.cache import OUTPUTS, RESULTS, content_key, retry_if
 from tasks.capture import model_inputs
 from tasks.evaluate import folder_digests
 
+# The modules a chunk runs (and, transitively, what they import: episodes, LIBERO, predicates, records, the
+# policy clients, the π0.5 policy the evaluation loads)
+CHUNK_CODE = "steering_core.rollout.run"
 # Connection errors reach a policy server that is restarting; a second attempt can succeed. Nothing else retries.
 SIM_RETRIES, SIM_RETRY_DELAYS = 2, [10, 60]
 
@@ -46,8 +49,8 @@ def transient_connection(exc: BaseException) -> bool:
 @task(
     name="rollout-chunk",
     task_run_name="rollout {job.cell_pair} layer {job.layer} {job.output_dir.name} chunk {job.chunk}",
-    cache_policy=content_key("steering_core.rollout", "steering_core.pi05", "steering_core.serve", job=job_inputs,
-                             model=model_inputs, settings=settings_inputs, ignore=("api_key",)),
+    cache_policy=content_key(CHUNK_CODE, job=job_inputs, model=model_inputs, settings=settings_inputs,
+                             ignore=("api_key",)),
     retries=SIM_RETRIES, retry_delay_seconds=SIM_RETRY_DELAYS, retry_condition_fn=retry_if(transient_connection),
     **RESULTS,
 )
@@ -72,7 +75,7 @@ def chunk_contents(inputs: dict[str, Any]) -> list[list[str]]:
 @task(
     name="rollout-cell",
     task_run_name="merge rollout {label}",
-    cache_policy=content_key("steering_core.rollout", derived={"chunks": chunk_contents}),
+    cache_policy=content_key("steering_core.rollout.records", derived={"chunks": chunk_contents}),
     **RESULTS,
 )
 def rollout_cell(cell_dir: str, chunks: list[str], label: str) -> dict:
@@ -92,7 +95,7 @@ def cell_records(inputs: dict[str, Any]) -> dict[str, Any]:
 @task(
     name="rollout-summary",
     task_run_name="rollout summary layer {layer}",
-    cache_policy=content_key("steering_core.rollout", derived={"cells": cell_records}),
+    cache_policy=content_key("steering_core.rollout.report", derived={"cells": cell_records}),
     **RESULTS,
 )
 def rollout_summary(layer: int, layer_path: str, cells: dict[str, list[str]], note: str | None) -> dict:

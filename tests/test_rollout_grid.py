@@ -124,3 +124,13 @@ def test_preflight_names_each_libero_task_it_cannot_find(tmp_path):
     ambiguous = CONFIG.replace("task: KITCHEN_SCENE3_turn_on_the_stove", "task: turn on the stove")
     assert any("tasks 20 (KITCHEN_SCENE3_turn_on_the_stove), 44" in line for line in run_problems(
         config(tmp_path, text=ambiguous)))
+
+
+def test_a_chunk_identity_covers_the_code_it_runs():
+    from steering_core.storage.fingerprints import code_modules
+    from tasks.rollout import CHUNK_CODE
+
+    modules = set(code_modules(CHUNK_CODE))
+    assert {f"steering_core.rollout.{name}" for name in (
+        "run", "episode", "libero_env", "protocol", "predicates", "assets", "records", "client", "grid")} <= modules
+    assert {"steering_core.evaluate.run", "steering_core.pi05.policy", "steering_core.serve.catalog"} <= modules
