@@ -134,3 +134,14 @@ def test_a_chunk_identity_covers_the_code_it_runs():
     assert {f"steering_core.rollout.{name}" for name in (
         "run", "episode", "libero_env", "protocol", "predicates", "assets", "records", "client", "grid")} <= modules
     assert {"steering_core.evaluate.run", "steering_core.pi05.policy", "steering_core.serve.catalog"} <= modules
+
+
+def test_settings_enter_a_chunk_identity_only_when_they_change_its_episodes():
+    from tasks.rollout import settings_inputs
+
+    base = RolloutSettings()
+    for change in ({"max_steps": 40}, {"seed": 8}, {"noise_seed": 1}, {"videos": False}, {"direction": "mean_difference"}):
+        assert settings_inputs(base.model_copy(update=change)) != settings_inputs(base), change
+    for change in ({"policy": "ws://gpu:8000"}, {"libero_assets": "/assets"}, {"device": "cpu"}, {"note": "x"},
+                   {"chunk_episodes": 2}):
+        assert settings_inputs(base.model_copy(update=change)) == settings_inputs(base), change
