@@ -1,18 +1,17 @@
 """Rollout test helpers: a scripted policy, an env that records its actions, and openpi's LIBERO loop written out
-independently (rendering every step) to compare `run_episode` against; a stand-in for
-`steering_core.rollout.episode.EpisodeRecord` (same fields) and a synthetic pair of cells whose toward-task success
-grows with α, written with the real cell writer."""
+independently (rendering every step) to compare `run_episode` against; episodes built directly as `EpisodeRecord`s
+and a synthetic pair of cells whose toward-task success grows with α, written with the real cell writer."""
 
 from __future__ import annotations
 
 import collections
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
+from steering_core.rollout.episode import EpisodeRecord
 from steering_core.rollout.records import RolloutCell, TaskRef, write_cell
 
 
@@ -117,34 +116,14 @@ ALPHAS = (1.0, 2.0, 4.0)
 RUN = {"policy": "tiny random pi0.5", "checkpoint_sha256": "ab" * 32, "replan_steps": 5, "max_steps": 40}
 
 
-@dataclass
-class Episode:
-    """The fields of `EpisodeRecord` (steering_core.rollout.episode), built by `make_episode`."""
-
-    prompt: str
-    init_index: int
-    outcome: str
-    steps: int
-    success_step: int | None
-    toward_step: int | None
-    joints: dict[str, np.ndarray]
-    robot_qpos: np.ndarray
-    actions: np.ndarray
-    policy_calls: int
-    jerk: float
-    joint_limit_hits: int
-    frames: list[np.ndarray] = field(default_factory=list)
-    toward_at_start: bool = False
-
-
 def make_episode(prompt: str, outcome: str, steps: int, init_index: int = 0, *, seed: int = 0, drift: float = 0.0,
-                 frames: int = 0) -> Episode:
+                 frames: int = 0) -> EpisodeRecord:
     """Return an episode of `steps` steps ending in `outcome`; its drawer joint drifts by `drift` per step."""
     rng = np.random.default_rng(seed)
     joint = np.clip(np.cumsum(np.r_[0.0, np.full(steps, drift)]) + rng.normal(0, 0.003, steps + 1), -0.16, 0.01)
     qpos = np.cumsum(rng.normal(0, 0.01, (steps + 1, 7)), axis=0)
     side = np.full((224, 224, 3), 40 * seed % 256, np.uint8)
-    return Episode(
+    return EpisodeRecord(
         prompt=prompt, init_index=init_index, outcome=outcome, steps=steps,
         success_step=steps if outcome == "instructed" else None, toward_step=steps if outcome == "toward" else None,
         joints={JOINT: joint}, robot_qpos=qpos, actions=rng.normal(0, 0.3, (steps, 7)).astype(np.float32),

@@ -20,7 +20,7 @@ import math
 import re
 import shutil
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -224,33 +224,16 @@ def read_cell(folder: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]
     return record, arrays
 
 
-@dataclass(frozen=True)
-class StoredEpisode:
-    """An episode read back from a cell record: an `EpisodeRecord`'s facts and arrays, without its frames."""
+def stored_episodes(record: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> list[EpisodeRecord]:
+    """Return the episodes of a cell record (read_cell), their arrays cut back to each episode's length (no frames:
+    the videos are files)."""
+    from steering_core.rollout.episode import EpisodeRecord
 
-    prompt: str
-    init_index: int
-    outcome: str
-    steps: int
-    success_step: int | None
-    toward_step: int | None
-    jerk: float
-    joint_limit_hits: int
-    policy_calls: int
-    joints: dict[str, np.ndarray]
-    robot_qpos: np.ndarray
-    actions: np.ndarray
-    frames: tuple = field(default=())
-    toward_at_start: bool = False
-
-
-def stored_episodes(record: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> list[StoredEpisode]:
-    """Return the episodes of a cell record (read_cell), their arrays cut back to each episode's length."""
     episodes = []
     for i, row in enumerate(record["episodes"]):
         steps = int(arrays["lengths"][i])
         joints = {name: arrays[JOINT_KEY + name][i, : steps + 1] for name in record["joints"]}
-        episodes.append(StoredEpisode(
+        episodes.append(EpisodeRecord(
             prompt=record["prompt"], init_index=row["init_index"], outcome=row["outcome"], steps=steps,
             success_step=row["success_step"], toward_step=row["toward_step"],
             jerk=math.nan if row["jerk"] is None else row["jerk"], joint_limit_hits=row["joint_limit_hits"],
