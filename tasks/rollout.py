@@ -31,8 +31,7 @@ def job_inputs(job: RolloutJob) -> dict[str, Any]:
     """Return the job and the content of the steering vectors it reads (none when unsteered)."""
     pair = job.cell.steering_pair
     vectors = folder_digests(job.vectors_root / layout.layer_dir(job.layer) / pair) if pair else None
-    return {"job": plain(job.model_dump(mode="json", exclude={"vectors_root", "output_dir"})), "vectors": vectors,
-            "output": job.output_dir.name}
+    return {"job": plain(job.model_dump(mode="json", exclude={"vectors_root", "output_dir"})), "vectors": vectors}
 
 
 def settings_inputs(settings: RolloutSettings) -> dict[str, Any]:

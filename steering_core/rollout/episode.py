@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -42,16 +43,17 @@ class EpisodeRecord:
     robot_qpos: np.ndarray  # (steps + 1, 7) arm joint positions
     actions: np.ndarray  # (steps, 7) float32 actions executed
     policy_calls: int
-    jerk: float  # RMS third difference of robot_qpos (rad / step^3); 0.0 with fewer than 4 rows
+    jerk: float  # RMS third difference of robot_qpos (rad / step^3); NaN with fewer than 4 rows
     joint_limit_hits: int  # steps with an arm joint within LIMIT_MARGIN of its range limit
     frames: list[np.ndarray] = field(default_factory=list)  # policy agentview images (224, 224, 3) at replans
     toward_at_start: bool = False  # the watched goal already held after the wait steps (it must break, then hold)
 
 
 def jerk(robot_qpos: np.ndarray) -> float:
-    """Return the RMS third difference over steps and joints of (steps + 1, joints) positions."""
+    """Return the RMS third difference over steps and joints of (steps + 1, joints) positions; NaN (no third
+    difference, recorded as null) with fewer than 4 rows."""
     if len(robot_qpos) < 4:
-        return 0.0
+        return math.nan
     return float(np.sqrt(np.mean(np.diff(robot_qpos, n=3, axis=0) ** 2)))
 
 

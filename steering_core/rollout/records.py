@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from steering_core.rollout.grid import toward_sign
 from steering_core.rollout.stats import proportion
 from steering_core.rollout.video import DEFAULT_FPS, write_video
 from steering_core.storage.fileio import atomic_path, read_json, write_json
@@ -85,7 +86,7 @@ class RolloutCell:
     @property
     def alpha_toward(self) -> float:
         """Return α as a push toward the other task: α on the negative side, −α on the positive side."""
-        return (self.alpha if self.side == "negative" else -self.alpha) + 0.0  # + 0.0: no -0
+        return self.alpha * toward_sign(self.side) + 0.0  # + 0.0: no -0
 
     @property
     def name(self) -> str:
