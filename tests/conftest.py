@@ -25,3 +25,11 @@ def prefect_server():
 
     with prefect_test_harness(server_startup_timeout=300):
         yield PREFECT_API_URL.value()
+
+
+@pytest.fixture(scope="session")
+def attack_world(tmp_path_factory):
+    """The finished tiny run the bad-input table attacks (`helpers_attack`); built once, never changed."""
+    from helpers_attack import make_world
+
+    return make_world(tmp_path_factory.mktemp("attack"))

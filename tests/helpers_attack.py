@@ -1,0 +1,98 @@
+"""The bad-input table's harness: one finished tiny run to attack, and the checks every refusal must pass.
+
+A case builds its bad input (files under its own `tmp_path`, or options pointing into the finished run)
+and returns the command line with the names its error must hold. `assert_refused` runs it in-process and
+checks the exit status, that the output is one `error: ...` line holding every name, that no traceback or
+torch's `weights_only=False` advice shows, and that no file changed anywhere: not in the finished run and
+not beside the bad input (nothing half-written, no existing output touched).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from latent_steering_cli import app
+
+
+@dataclass(frozen=True)
+class World:
+    """A finished tiny run: the demo's inputs, its run config, and the seed layout the CLI steps wrote."""
+
+    inputs: Path  # build_demo's folder: run.yaml, inputs/ (demos, checkpoint, tokenizer, SAEs)
+    config: Path  # run.yaml
+    data: Path  # filtered/, libero_lerobot/<repo>/, manifests/, residuals/, latent_steering/, arch.json
+
+    @property
+    def dataset(self) -> Path:
+        return self.data / "libero_lerobot" / "libero_demo_lerobot"
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.inputs / "inputs" / "pi05_tiny"
+
+    @property
+    def tokenizer(self) -> Path:
+        return self.inputs / "inputs" / "tokenizer.model"
+
+    def sae(self, layer: int) -> Path:
+        return self.inputs / "inputs" / f"sae_layer{layer:02d}"
+
+
+@dataclass(frozen=True)
+class Case:
+    """A command line, the strings its one error line must hold, and its expected exit status."""
+
+    argv: list[str]
+    names: tuple[str, ...]
+    exit_code: int = 1
+    watch: tuple[Path, ...] = field(default=())  # further folders that must stay unchanged
+
+
+Attack = Callable[[World, Path], Case]
+
+
+def snapshot(*roots: Path) -> dict[str, tuple[int, int]]:
+    """Every file and folder under `roots`, with its size and modification time."""
+    seen = {}
+    for root in roots:
+        if root.exists():
+            for path in (root, *root.rglob("*")):
+                stat = path.lstat()
+                seen[str(path)] = (stat.st_size if not path.is_dir() else -1, stat.st_mtime_ns)
+    return seen
+
+
+def assert_refused(world: World, tmp_path: Path, attack: Attack) -> str:
+    """Build the case, run it, check it was refused in one line naming its input and changed nothing; return the line."""
+    case = attack(world, tmp_path)
+    roots = (world.inputs, world.data, tmp_path, *case.watch)
+    before = snapshot(*roots)
+    result = CliRunner().invoke(app, [str(arg) for arg in case.argv])
+    output = result.output
+    assert result.exit_code == case.exit_code, (case.argv, output, result.exception)
+    assert "Traceback" not in output and "weights_only" not in output, output
+    lines = output.strip().splitlines()
+    if case.exit_code == 1:
+        assert len(lines) == 1 and lines[0].startswith("error: "), output
+    for name in case.names:
+        assert str(name) in output, (name, output)
+    after = snapshot(*roots)
+    assert after == before, sorted(set(after.items()) ^ set(before.items()))
+    return lines[0] if lines else ""
+
+
+def make_world(base: Path) -> World:
+    """Build the demo's inputs (2 demos per task) and run every CLI step but the evaluation into `base/data`."""
+    from helpers_pipeline import run_cli_steps
+
+    from steering_core.config import load_run_config
+    from steering_core.demo import build_demo
+
+    config_path = build_demo(base / "demo", demos_per_task=2)
+    config = load_run_config(config_path)
+    run_cli_steps(config.model_copy(update={"evaluate": None}), base / "data")
+    return World(inputs=base / "demo", config=config_path, data=base / "data")
