@@ -94,7 +94,7 @@ def convert_command(
 def make_demos_command(
     output_dir: Path = typer.Option(..., "--output-dir", help="Folder to write the synthetic LIBERO files into."),
     image_size: int = typer.Option(128, "--image-size", help="Square render size (LIBERO: 128)."),
-    demos_per_task: int = typer.Option(4, "--demos-per-task", help="Demos per task file."),
+    demos_per_task: int = typer.Option(4, "--demos-per-task", min=1, help="Demos per task file."),
     num_steps: int = typer.Option(60, "--num-steps", help="Steps per demo (real LIBERO demos: 100-300)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the small deterministic noise."),
 ) -> None:

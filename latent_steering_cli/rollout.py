@@ -46,9 +46,9 @@ def rollout_command(
         targets = [(name, at) for name, at in run_config.rollout_targets()
                    if (not pair or name in pair) and (not layer or at in layer)]
         if not targets:
-            raise ValueError(f"no (pair, layer) left to roll out: the config maps {sorted(section.pairs)} at layers "
-                             f"{list(run_config.layers)}")
-        api_key = read_api_key(section.api_key_file)
-    summaries = rollout_config(run_config, targets, api_key=api_key)
+            chosen = " ".join([*(f"--pair {name}" for name in pair), *(f"--layer {at}" for at in layer)])
+            raise ValueError(f"{chosen}: no (pair, layer) left to roll out: the config maps {sorted(section.pairs)} "
+                             f"at layers {list(run_config.layers)}")
+        summaries = rollout_config(run_config, targets, api_key=read_api_key(section.api_key_file))
     for layer_number, path in summaries.items():
         typer.echo(f"layer {layer_number}: {path}")

@@ -17,14 +17,19 @@ SAFETENSORS_DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F64": torch
 DTYPE_NAMES: dict[torch.dtype, str] = {dtype: name for name, dtype in DTYPES.items()}
 
 
+def parse_device(device: str | torch.device) -> torch.device:
+    """Return the torch device named `device`; a name torch does not know is a ValueError."""
+    try:
+        return torch.device(device)
+    except RuntimeError as error:
+        raise ValueError(f"device {device!r} is not a torch device; expected cpu, cuda, cuda:N or auto") from error
+
+
 def resolve_device(device: str | torch.device | None) -> torch.device:
     """Return `device`; None or "auto" picks CUDA when available, else CPU. CUDA without a GPU is an error."""
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(device)
-    except RuntimeError as error:
-        raise ValueError(f"device {device!r} is not a torch device; expected cpu, cuda, cuda:N or auto") from error
+    resolved = parse_device(device)
     if resolved.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {device!r} requested but CUDA is not available here; use --device cpu or auto")
     return resolved

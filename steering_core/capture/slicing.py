@@ -28,6 +28,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
+from pydantic import field_validator
 
 from steering_core.capture.shard_checks import ShardChecks
 from steering_core.capture.shards import STEP, RunMetadata, ShardRecord, TokenType, open_shard, read_run_metadata
@@ -35,6 +36,7 @@ from steering_core.capture.slice_copy import Part, copy_shard
 from steering_core.capture.slice_files import SliceFile
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
+from steering_core.devices import parse_device
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import SLICE_INDEX_FILE, layer_dir
@@ -65,6 +67,12 @@ class SliceSettings(StrictModel):
     verify_checksums: bool = True  # check every shard read against its record's CRC-32 (or sha256): a damaged one stops
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
     holdout_episodes: tuple[int, ...] = ()  # episodes held out for evaluation: their frames are never sliced
+
+    @field_validator("device")
+    @classmethod
+    def _torch_device(cls, device: str) -> str:
+        parse_device(device)  # a name torch does not know fails here, not after the first pass
+        return device
 
 
 @dataclass

@@ -191,7 +191,7 @@ def _choose(
         if unreadable := [p.name for p in candidates if p not in instructions]:
             problems.append(f"{len(unreadable)} file(s) could not be read, so their instructions are unknown "
                             f"(see the warnings above): {', '.join(unreadable[:5])}")
-        raise ValueError("cannot select demo files:\n" + "\n".join(f"  - {p}" for p in problems))
+        raise ValueError("cannot select demo files: " + "; ".join(problems))
     return sorted(chosen, key=lambda p: p.name)
 
 
