@@ -377,3 +377,28 @@ def test_a_frame_beyond_twice_the_message_limit_closes_only_that_connection(serv
     with connect(url(server), max_size=None) as ws:
         ws.recv()
         assert_serves(ws, good)
+
+
+def test_the_tiny_pi05_policy_behind_the_server_gets_the_same_one_line_answers(tmp_path, catalog, good):
+    """The issue's attacks on the real model: 0x0 and 1x2000 images, a NaN state, a 900-deep message."""
+    from steering_core.pi05.policy import Pi05Policy
+    from steering_core.serve import SteeredPi05Policy
+    from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
+    from steering_core.synthetic.tokenizer import write_tokenizer
+
+    arch = tiny_arch()
+    policy = Pi05Policy.from_checkpoint(write_pi05_checkpoint(tmp_path / "ckpt", arch, seed=3), arch, device="cpu",
+                                        tokenizer_path=write_tokenizer(tmp_path / "tokenizer.model"))
+    names = ("image_0x0", "image_1x2000", "wrist_image_2000x1", "state_nan", "state_inf", "map_900_deep",
+             "list_900_deep_in_steering", "prompt_too_long")
+    with running(PolicyServer(SteeredPi05Policy(policy, noise_seed=1))) as server, \
+            connect(url(server), max_size=None) as ws:
+        ws.recv()
+        ws.send(pack(good))
+        want = unpack(ws.recv(timeout=60))["actions"]
+        for name in names:
+            build, key = CASES[name]
+            ws.send(build(good))
+            assert_one_line_naming(ws.recv(timeout=60), key)
+            ws.send(pack(good))
+            assert unpack(ws.recv(timeout=60))["actions"].tobytes() == want.tobytes()
