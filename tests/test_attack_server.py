@@ -379,16 +379,29 @@ def test_a_frame_beyond_twice_the_message_limit_closes_only_that_connection(serv
         assert_serves(ws, good)
 
 
-def test_the_tiny_pi05_policy_behind_the_server_gets_the_same_one_line_answers(tmp_path, catalog, good):
-    """The issue's attacks on the real model: 0x0 and 1x2000 images, a NaN state, a 900-deep message."""
-    from steering_core.pi05.policy import Pi05Policy
-    from steering_core.serve import SteeredPi05Policy
+
+# ---------------------------------------------------------------- the real model and the command line
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> dict:
+    """A tiny pi0.5 checkpoint, its tokenizer and arch file."""
+    from steering_core.storage.fileio import write_json
     from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
     from steering_core.synthetic.tokenizer import write_tokenizer
 
-    arch = tiny_arch()
-    policy = Pi05Policy.from_checkpoint(write_pi05_checkpoint(tmp_path / "ckpt", arch, seed=3), arch, device="cpu",
-                                        tokenizer_path=write_tokenizer(tmp_path / "tokenizer.model"))
+    folder, arch = tmp_path_factory.mktemp("pi05"), tiny_arch()
+    return {"arch": arch, "checkpoint": write_pi05_checkpoint(folder / "ckpt", arch, seed=3),
+            "tokenizer": write_tokenizer(folder / "tokenizer.model"),
+            "arch_file": write_json(folder / "arch.json", arch.model_dump())}
+
+
+def test_the_tiny_pi05_policy_behind_the_server_gets_the_same_one_line_answers(tiny, good):
+    """The issue's attacks on the real model: 0x0 and 1x2000 images, a NaN state, a 900-deep message."""
+    from steering_core.pi05.policy import Pi05Policy
+    from steering_core.serve import SteeredPi05Policy
+
+    policy = Pi05Policy.from_checkpoint(tiny["checkpoint"], tiny["arch"], device="cpu",
+                                        tokenizer_path=tiny["tokenizer"])
     names = ("image_0x0", "image_1x2000", "wrist_image_2000x1", "state_nan", "state_inf", "map_900_deep",
              "list_900_deep_in_steering", "prompt_too_long")
     with running(PolicyServer(SteeredPi05Policy(policy, noise_seed=1))) as server, \
@@ -402,3 +415,24 @@ def test_the_tiny_pi05_policy_behind_the_server_gets_the_same_one_line_answers(t
             assert_one_line_naming(ws.recv(timeout=60), key)
             ws.send(pack(good))
             assert unpack(ws.recv(timeout=60))["actions"].tobytes() == want.tobytes()
+
+
+def test_serve_command_passes_its_bounds_to_the_server(tiny, tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import latent_steering_cli.serve  # noqa: F401  (registers `serve`)
+    from latent_steering_cli import app
+
+    built = []
+    monkeypatch.setattr(PolicyServer, "run", lambda self: built.append(self))
+    command = ["serve", "--checkpoint-path", str(tiny["checkpoint"]), "--tokenizer-path", str(tiny["tokenizer"]),
+               "--arch-file", str(tiny["arch_file"]), "--device", "cpu", "--vectors", str(tmp_path)]
+    bounds = ["--inference-timeout-s", "2.5", "--max-connections", "3", "--max-queue", "1", "--max-message-mb", "0.5"]
+    for options, want in (([], (120.0, 16, 2, 16 * 2**20)), (bounds, (2.5, 3, 1, 2**19))):
+        result = CliRunner().invoke(app, command + options)
+        assert result.exit_code == 0, result.output
+        server = built.pop()
+        assert (server.inference_timeout_s, server.max_connections, server.max_queue, server.max_message_bytes) == want
+        assert server.metadata["server"]["max_connections"] == want[1]
+    result = CliRunner().invoke(app, command + ["--max-queue", "0"])
+    assert result.exit_code == 2 and "--max-queue" in result.output
