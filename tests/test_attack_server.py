@@ -225,6 +225,7 @@ CASES = {
     "steering_bad_units": (with_steering(steer(alpha_units="R")), "steering.alpha_units: expected one of"),
     "steering_second_entry_not_a_dict": (with_steering([steer(), 3]), "steering[1]: expected a dict"),
     "steering_second_entry_bad_alpha": (with_steering([steer(), steer(alpha=None)]), "steering[1].alpha"),
+    "steering_of_20k_entries": (with_steering([steer(alpha=0.0)] * 20_000), "steering: 20000 entries"),
     # control messages
     "ctrl_unknown": (lambda g: pack({"__ctrl__": "reset"}), "__ctrl__: unknown control message 'reset'"),
     "ctrl_not_a_str": (lambda g: pack({"__ctrl__": 1}), "__ctrl__: expected a str"),
@@ -335,8 +336,8 @@ def test_connection_cap_closes_extra_connections_with_try_again_later(catalog, g
 
 
 def frames_sent_ahead(catalog, good, max_queue: int) -> int:
-    """Frames of 2 MB a client gets onto the wire while the server answers a 2 s request, with `max_queue`."""
-    policy = TrappedPolicy(slow_s=2.0)
+    """Frames of 2 MB a client gets onto the wire while the server answers a 4 s request, with `max_queue`."""
+    policy = TrappedPolicy(slow_s=4.0)
     frame = pack({"padding": np.zeros(2_000_000, np.uint8)})
     sent = []
     with running(PolicyServer(policy, catalog, max_message_bytes=3_000_000, max_queue=max_queue)) as server, \
@@ -351,7 +352,7 @@ def frames_sent_ahead(catalog, good, max_queue: int) -> int:
                 sent.append(time.monotonic())
 
         threading.Thread(target=flood, daemon=True).start()
-        time.sleep(1.2)  # the slow request is still running
+        time.sleep(3.0)  # the slow request is still running
         ahead = len(sent)
         assert unpack(ws.recv(timeout=10))["actions"].shape == (10, 7)
         for _ in range(40):  # then every frame is read and answered, in order

@@ -33,6 +33,9 @@ MAX_IMAGE_ASPECT = 16
 # the tokenizer keeps at most max_token_len (200 for pi0.5) tokens of a prompt; LIBERO's instructions are < 100
 # characters, and a longer text only costs tokenizer time
 MAX_PROMPT_CHARS = 2000
+# each entry adds one vector to the residual stream; a combination of more than a few concepts is not an
+# experiment anyone runs, and every entry costs the policy a vector on the device
+MAX_STEERING_ENTRIES = 16
 
 
 class RequestError(ValueError):
@@ -112,13 +115,15 @@ def parse_steering(
 
     An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str, "alpha_units"?: str}`
     (direction default "residual", or "mean_difference", or a random control "random_<k>"; alpha_units default
-    "residual_norm"); `value` is one entry or a list of them.
+    "residual_norm"); `value` is one entry or a list of at most MAX_STEERING_ENTRIES.
     """
     if value is None:
         return ()
     if isinstance(value, Mapping):
         return (_parse_entry(value, catalog, key, limits),)
     if isinstance(value, list | tuple):
+        if len(value) > MAX_STEERING_ENTRIES:
+            raise RequestError(key, f"{len(value)} entries; expected at most {MAX_STEERING_ENTRIES}")
         return tuple(_parse_entry(entry, catalog, f"{key}[{i}]", limits) for i, entry in enumerate(value))
     raise RequestError(key, f"expected a dict like {{'pair': 'open_vs_close', 'layer': 12, 'alpha': 4.0}} "
                             f"or a list of them, got {_describe(value)}")

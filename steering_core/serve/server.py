@@ -71,8 +71,8 @@ class InferenceFailed(RuntimeError):
 
 
 class _OneLineHandshakeErrors(logging.Filter):
-    """websockets logs a connection that never sent a valid HTTP request at ERROR with a traceback: keep one
-    WARNING line naming the problem (a port scan or a stray client is not a server error)."""
+    """websockets logs a failed opening handshake (no valid HTTP request, a failed upgrade check) at ERROR with
+    a traceback: keep one WARNING line naming the problem (a port scan or a stray client is not a server error)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         if record.msg == "opening handshake failed" and record.exc_info:
