@@ -281,6 +281,10 @@ def test_plain_http_is_answered_426_or_404_without_an_error_in_the_log(server, g
         assert err.value.code == status, path
         body = err.value.read().decode()
         assert "/healthz" in body and "Traceback" not in body
+    two_upgrades = b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: h2c\r\nUpgrade: h2\r\n\r\n"
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+        sock.sendall(two_upgrades)
+        assert sock.recv(4096).startswith(b"HTTP/1.1 426 ")
     for raw in (b"GARBAGE\r\n\r\n", b"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n\r\n", b""):
         with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
             sock.sendall(raw)

@@ -179,7 +179,7 @@ class PolicyServer:
         """Answer the health check and plain HTTP requests; refuse an upgrade without the api key (when one is set)."""
         if request.path == HEALTH_PATH:
             return connection.respond(http.HTTPStatus.OK, "OK\n")
-        if "websocket" not in request.headers.get("Upgrade", "").lower():
+        if "websocket" not in ",".join(request.headers.get_all("Upgrade")).lower():
             if request.path != "/":
                 return connection.respond(http.HTTPStatus.NOT_FOUND, f"not found; health check: {HEALTH_PATH}\n")
             response = connection.respond(http.HTTPStatus.UPGRADE_REQUIRED, "an openpi policy server: connect with a "
