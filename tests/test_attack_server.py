@@ -256,10 +256,6 @@ def test_bad_request_gets_one_line_naming_the_key_then_the_connection_serves(ser
     assert len(logged) == (name == "policy_raises")  # only the policy's own error is logged with its traceback
 
 
-def test_the_table_holds_at_least_fifty_cases():
-    assert len(CASES) >= 50
-
-
 def test_edge_requests_that_are_valid_are_served(server, good):
     edge = [good | {"observation/image": image(1, 1)}, good | {"observation/wrist_image": image(1, 16)},
             good | {"observation/state": np.array([7], np.int64)}, good | {"prompt": ""},
