@@ -322,6 +322,16 @@ def test_inference_timeout_answers_and_keeps_inference_serialised(catalog, good,
     assert any("an inference that timed out ended after" in m for m in caplog.messages)
 
 
+def test_a_stuck_inference_does_not_keep_the_server_from_stopping(catalog, good):
+    with running(PolicyServer(TrappedPolicy(slow_s=30.0), catalog, inference_timeout_s=0.3)) as server, \
+            connect(url(server), max_size=None) as ws:
+        ws.recv()
+        ws.send(pack(good | {"prompt": "slow"}))
+        assert_one_line_naming(ws.recv(timeout=10), "timed out: no actions within 0.3 s")
+        stopping = time.monotonic()
+    assert time.monotonic() - stopping < 10  # not the 30 s the inference is stuck for
+
+
 def test_connection_cap_closes_extra_connections_with_try_again_later(catalog, good):
     with running(PolicyServer(TrappedPolicy(), catalog, max_connections=2)) as server:
         with connect(url(server), max_size=None) as one, connect(url(server), max_size=None) as two:

@@ -259,7 +259,8 @@ class PolicyServer:
         """Return the policy's result and the server timing; raise InferenceFailed past the inference timeout.
 
         The model lock is released when the worker thread returns, not at the timeout, so a stuck inference
-        holds the model (later requests time out too) and two inferences never run at once.
+        holds the model (later requests time out too) and two inferences never run at once. The thread is a daemon
+        of its own, so a stuck inference does not keep the server from stopping.
         """
         timeout, queued = self.inference_timeout_s, time.monotonic()
         try:
@@ -268,7 +269,7 @@ class PolicyServer:
             raise InferenceFailed(f"timed out after {timeout:g} s waiting for the model, which another request "
                                   "holds (serve --inference-timeout-s)") from None
         started = time.monotonic()
-        task = asyncio.ensure_future(asyncio.to_thread(self.policy.infer, observation, steering))
+        task = _in_daemon_thread(self._loop, self.policy.infer, observation, steering)
         task.add_done_callback(lambda _: self._inference.release())
         done, _ = await asyncio.wait({task}, timeout=timeout - (started - queued))
         if not done:
@@ -329,6 +330,31 @@ def _check_actions(result: dict[str, Any], steering: tuple[AppliedSteering, ...]
     if not np.isfinite(actions).all():
         logger.warning("non-finite actions withheld (steering %s)", [s.describe() for s in steering])
         raise InferenceFailed("the policy's actions are not finite; lower |alpha| of the steering entry")
+
+
+def _in_daemon_thread(loop: asyncio.AbstractEventLoop, fn: Callable, *args: Any) -> asyncio.Future:
+    """Return a future of `fn(*args)` run in a new daemon thread (the loop's default executor joins its threads
+    at shutdown, without a timeout before Python 3.12)."""
+    future = loop.create_future()
+
+    def settle(result: Any, error: Exception | None) -> None:
+        if future.cancelled():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+
+    def main() -> None:
+        try:
+            result, error = fn(*args), None
+        except Exception as err:  # handed to the awaiting request
+            result, error = None, err
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the server stopped, nobody waits
+            loop.call_soon_threadsafe(settle, result, error)
+
+    threading.Thread(target=main, name="policy-inference", daemon=True).start()
+    return future
 
 
 def _late_inference(started: float, task: asyncio.Future) -> None:
