@@ -20,7 +20,12 @@ from steering_core.serve import (
 from steering_core.serve.auth import API_KEY_ENV, read_api_key
 from steering_core.serve.episodes import EpisodeLog
 from steering_core.serve.request import DEFAULT_MAX_ALPHA
-from steering_core.serve.server import DEFAULT_MAX_MESSAGE_BYTES
+from steering_core.serve.server import (
+    DEFAULT_INFERENCE_TIMEOUT_S,
+    DEFAULT_MAX_CONNECTIONS,
+    DEFAULT_MAX_MESSAGE_BYTES,
+    DEFAULT_MAX_QUEUE,
+)
 from steering_core.storage.fileio import read_json
 from steering_core.storage.layout import STEERING_ROOT
 
@@ -71,7 +76,20 @@ def serve_command(
         "default: fresh noise per request, as openpi."
     ),
     max_message_mb: float = typer.Option(
-        DEFAULT_MAX_MESSAGE_BYTES / 2**20, "--max-message-mb", min=0.001, help="Largest observation message accepted."
+        DEFAULT_MAX_MESSAGE_BYTES / 2**20, "--max-message-mb", min=0.001, help="Largest observation message accepted "
+        "(twice this closes the connection)."
+    ),
+    inference_timeout_s: float = typer.Option(
+        DEFAULT_INFERENCE_TIMEOUT_S, "--inference-timeout-s", min=0.001, help="Answer a request with an error when "
+        "its actions are not ready this many seconds after it arrived (waiting for the model included)."
+    ),
+    max_connections: int = typer.Option(
+        DEFAULT_MAX_CONNECTIONS, "--max-connections", min=1, help="Connections served at once; more are closed "
+        "with 1013 (try again later)."
+    ),
+    max_queue: int = typer.Option(
+        DEFAULT_MAX_QUEUE, "--max-queue", min=1, help="Frames a connection may send ahead of the request being "
+        "answered before the server stops reading from it."
     ),
     api_key_file: Path | None = typer.Option(
         None, "--api-key-file", help=f"File holding an api key clients must send (Authorization: Api-Key <key>, as "
@@ -107,7 +125,8 @@ def serve_command(
         served.check_catalog(catalog)
         server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,
                               max_message_bytes=int(max_message_mb * 2**20), max_alpha=max_alpha, api_key=api_key,
-                              episode_log=episode_log)
+                              episode_log=episode_log, inference_timeout_s=inference_timeout_s,
+                              max_connections=max_connections, max_queue=max_queue)
     server.run()
 
 

@@ -4,7 +4,7 @@ An ndarray travels as `{b"__ndarray__": True, b"data": C-order bytes, b"dtype": 
 and a numpy scalar as `{b"__npgeneric__": True, b"data": item(), b"dtype": dtype.str}`, with msgpack >= 1.0
 defaults (bin type for bytes, str keys decoded to str, map keys limited to str/bytes). Object, void and complex
 dtypes are refused both ways. Decoding walks the message itself, rather than through an object hook, so a
-malformed array names its key (`observation/image: ...`).
+malformed array names its key (`observation/image: ...`), and refuses nesting deeper than MAX_DEPTH.
 """
 
 from __future__ import annotations
@@ -18,6 +18,9 @@ import numpy as np
 NDARRAY_TAG = b"__ndarray__"
 NPGENERIC_TAG = b"__npgeneric__"
 REFUSED_KINDS = "VOc"  # structured/void, object, complex: openpi's pack_array refuses them too
+# maps and lists inside one another: an observation with a steering list of entries is 3 deep, a tagged array
+# one more; anything far deeper is an attack on the decoder's recursion (msgpack itself allows 1024)
+MAX_DEPTH = 32
 
 
 class WireError(ValueError):
@@ -44,7 +47,7 @@ def unpack(data: bytes) -> Any:
         obj = msgpack.unpackb(data)
     except (ValueError, msgpack.UnpackException) as err:
         raise WireError(None, f"message is not msgpack ({type(err).__name__}: {err})") from None
-    return _decode(obj, None)
+    return _decode(obj, None, 0)
 
 
 def _encode_numpy(obj: Any) -> dict[bytes, Any]:
@@ -57,15 +60,17 @@ def _encode_numpy(obj: Any) -> dict[bytes, Any]:
     raise TypeError(f"cannot serialize {type(obj).__name__} object")
 
 
-def _decode(obj: Any, key: str | None) -> Any:
+def _decode(obj: Any, key: str | None, depth: int) -> Any:
+    if isinstance(obj, dict | list) and depth >= MAX_DEPTH:
+        raise WireError(key, f"nested deeper than {MAX_DEPTH} maps and lists; an observation is at most a few deep")
     if isinstance(obj, dict):
         if NDARRAY_TAG in obj:
             return _decode_array(obj, key)
         if NPGENERIC_TAG in obj:
             return _decode_scalar(obj, key)
-        return {k: _decode(v, _child(key, k)) for k, v in obj.items()}
+        return {k: _decode(v, _child(key, k), depth + 1) for k, v in obj.items()}
     if isinstance(obj, list):
-        return [_decode(v, f"{key or ''}[{i}]") for i, v in enumerate(obj)]
+        return [_decode(v, f"{key or ''}[{i}]", depth + 1) for i, v in enumerate(obj)]
     return obj
 
 
@@ -77,9 +82,11 @@ def _child(key: str | None, name: Any) -> str:
 def _dtype(obj: dict, key: str | None) -> np.dtype:
     spec = obj.get(b"dtype")
     try:
-        dtype = np.dtype(spec)
-    except (TypeError, ValueError):
-        raise WireError(key, f"array dtype {spec!r} is not a numpy dtype string like '<f4' or '|u1'") from None
+        dtype = np.dtype(spec) if isinstance(spec, str) else None
+    except (TypeError, ValueError, SyntaxError):
+        dtype = None
+    if dtype is None:
+        raise WireError(key, f"array dtype {spec!r:.60} is not a numpy dtype string like '<f4' or '|u1'")
     if dtype.kind in REFUSED_KINDS:
         raise WireError(key, f"array dtype {dtype} is not supported (object, void and complex dtypes are refused)")
     return dtype
@@ -94,12 +101,19 @@ def _decode_array(obj: dict, key: str | None) -> np.ndarray:
     if len(data) != math.prod(shape) * dtype.itemsize:
         raise WireError(key, f"array of shape {tuple(shape)} and dtype {dtype} needs "
                              f"{math.prod(shape) * dtype.itemsize} bytes, got {len(data)}")
-    return np.ndarray(buffer=data, dtype=dtype, shape=tuple(shape))
+    try:
+        return np.ndarray(buffer=data, dtype=dtype, shape=tuple(shape))
+    except ValueError as err:  # numpy's own limits: more than 64 dimensions, a zero-size dtype
+        raise WireError(key, f"array of shape {tuple(shape)} and dtype {dtype}: {err}") from None
 
 
 def _decode_scalar(obj: dict, key: str | None) -> np.generic:
     dtype = _dtype(obj, key)
+    data = obj.get(b"data")
     try:
-        return dtype.type(obj.get(b"data"))
+        value = dtype.type(data)
     except (TypeError, ValueError, OverflowError) as err:
         raise WireError(key, f"numpy scalar of dtype {dtype}: {err}") from None
+    if not isinstance(value, np.generic):
+        raise WireError(key, f"numpy scalar of dtype {dtype}: data must be one value, got {type(data).__name__}")
+    return value

@@ -27,6 +27,15 @@ DEFAULT_ALPHA_UNITS = "residual_norm"
 # |α| in residual_norm units: a shift 100 times the typical residual norm swamps the residual stream (the
 # evaluation's grid stays within a few units); larger values only reach float overflow (NaN actions)
 DEFAULT_MAX_ALPHA = 100.0
+# the policy resizes each image to a square (224 for pi0.5) keeping its aspect: a side shorter than 1/224 of the
+# other vanishes; LIBERO's cameras are square, and no camera is 16 times wider than high
+MAX_IMAGE_ASPECT = 16
+# the tokenizer keeps at most max_token_len (200 for pi0.5) tokens of a prompt; LIBERO's instructions are < 100
+# characters, and a longer text only costs tokenizer time
+MAX_PROMPT_CHARS = 2000
+# each entry adds one vector to the residual stream; a combination of more than a few concepts is not an
+# experiment anyone runs, and every entry costs the policy a vector on the device
+MAX_STEERING_ENTRIES = 16
 
 
 class RequestError(ValueError):
@@ -63,7 +72,8 @@ class AppliedSteering:
 def check_observation(observation: Any) -> None:
     """Raise RequestError unless `observation` is what openpi's LIBERO client sends (one frame, unbatched).
 
-    Expected: the two images uint8 (H, W, 3), the state a real-valued (D,) array, the prompt a str.
+    Expected: the two images uint8 (H, W, 3) with neither side more than MAX_IMAGE_ASPECT times the other, the
+    state a finite real-valued (D,) array with D >= 1, the prompt a str of at most MAX_PROMPT_CHARS characters.
     """
     if not isinstance(observation, dict):
         raise RequestError(None, f"the message must be an observation dict, got {type(observation).__name__}")
@@ -71,12 +81,22 @@ def check_observation(observation: Any) -> None:
         image = _required(observation, key)
         if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[-1] != 3:
             raise RequestError(key, f"expected a uint8 (H, W, 3) array, got {_describe(image)}")
+        height, width = image.shape[:2]
+        if min(height, width) == 0 or max(height, width) > MAX_IMAGE_ASPECT * min(height, width):
+            raise RequestError(key, f"image of {height}x{width} pixels; expected both sides at least 1 and neither "
+                                    f"more than {MAX_IMAGE_ASPECT} times the other")
     state = _required(observation, STATE_KEY)
-    if not isinstance(state, np.ndarray) or state.dtype.kind not in "fiu" or state.ndim != 1:
-        raise RequestError(STATE_KEY, f"expected a real-valued (D,) array, got {_describe(state)}")
+    if not isinstance(state, np.ndarray) or state.dtype.kind not in "fiu" or state.ndim != 1 or state.size == 0:
+        raise RequestError(STATE_KEY, f"expected a real-valued (D,) array with D >= 1, got {_describe(state)}")
+    if not np.isfinite(state).all():
+        bad = np.flatnonzero(~np.isfinite(state))
+        raise RequestError(STATE_KEY, f"the state is not finite: {state[bad[0]]} at index {bad[0]} "
+                                      f"({bad.size} of {state.size} values are NaN or infinite)")
     prompt = _required(observation, PROMPT_KEY)
     if not isinstance(prompt, str):
         raise RequestError(PROMPT_KEY, f"expected a str, got {_describe(prompt)}")
+    if len(prompt) > MAX_PROMPT_CHARS:
+        raise RequestError(PROMPT_KEY, f"{len(prompt)} characters; expected at most {MAX_PROMPT_CHARS}")
 
 
 @dataclass(frozen=True)
@@ -95,13 +115,15 @@ def parse_steering(
 
     An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str, "alpha_units"?: str}`
     (direction default "residual", or "mean_difference", or a random control "random_<k>"; alpha_units default
-    "residual_norm"); `value` is one entry or a list of them.
+    "residual_norm"); `value` is one entry or a list of at most MAX_STEERING_ENTRIES.
     """
     if value is None:
         return ()
     if isinstance(value, Mapping):
         return (_parse_entry(value, catalog, key, limits),)
     if isinstance(value, list | tuple):
+        if len(value) > MAX_STEERING_ENTRIES:
+            raise RequestError(key, f"{len(value)} entries; expected at most {MAX_STEERING_ENTRIES}")
         return tuple(_parse_entry(entry, catalog, f"{key}[{i}]", limits) for i, entry in enumerate(value))
     raise RequestError(key, f"expected a dict like {{'pair': 'open_vs_close', 'layer': 12, 'alpha': 4.0}} "
                             f"or a list of them, got {_describe(value)}")

@@ -2,11 +2,16 @@
 
 On connect the client gets the metadata; each binary msgpack observation gets one binary msgpack result
 (`actions`, `policy_timing`, `server_timing`, and the `steering` applied). Unlike openpi's server, a bad request
-gets a text frame naming the key and the connection stays open for the next request. Control messages
-(`__ctrl__` episode_start / episode_end, openpi's current client) record episodes (steering_core.serve.episodes).
-With an api key, an upgrade without `Authorization: Api-Key <key>` gets HTTP 401. `GET /healthz` answers
-200 "OK\\n" on the same port, key or not. One model serves every connection: requests run in order per
-connection and one at a time overall (an asyncio lock), in a worker thread so the event loop keeps answering pings.
+gets one line of text naming the key (never a traceback) and the connection stays open for the next request.
+Control messages (`__ctrl__` episode_start / episode_end, openpi's current client) record episodes
+(steering_core.serve.episodes). With an api key, an upgrade without `Authorization: Api-Key <key>` gets HTTP 401.
+`GET /healthz` answers 200 "OK\\n" on the same port, key or not; any other plain HTTP request gets 426 (at `/`)
+or 404, and a malformed one a one-line warning in the log. One model serves every connection: requests run in
+order per connection and one at a time overall (an asyncio lock), in a worker thread so the event loop keeps
+answering pings; a request without actions within the inference timeout is answered with an error.
+Bounds per server: `max_connections` connections (more are closed with 1013, try again later), each reading
+at most `max_queue` frames ahead of the request being answered, each frame at most TRANSPORT_LIMIT_FACTOR x
+`max_message_bytes` (websockets closes a connection sending more with 1009).
 SIGINT/SIGTERM (or `request_stop`) stop accepting connections, let the request in flight finish and be
 answered, then close every connection with 1001 (going away).
 """
@@ -15,12 +20,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import http
 import logging
 import signal
 import threading
 import time
-import traceback
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
@@ -51,7 +56,38 @@ logger = logging.getLogger(__name__)
 
 HEALTH_PATH = "/healthz"
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 2**20  # a LIBERO observation (two 224x224 RGB images) is ~0.3 MB
-TRANSPORT_LIMIT_FACTOR = 4  # messages above limit x factor are cut off by websockets itself (close 1009)
+TRANSPORT_LIMIT_FACTOR = 2  # messages above limit x factor are cut off by websockets itself (close 1009)
+# pi0.5 answers in well under a second on a GPU and in seconds on a CPU; far longer means a stuck device
+DEFAULT_INFERENCE_TIMEOUT_S = 120.0
+# openpi's LIBERO evaluation runs one client per environment worker; worst-case buffered input is
+# max_connections x (max_queue + 1) x TRANSPORT_LIMIT_FACTOR x max_message_bytes (1.5 GiB with the defaults)
+DEFAULT_MAX_CONNECTIONS = 16
+DEFAULT_MAX_QUEUE = 2  # an openpi client sends one observation and waits for its actions
+MAX_REPLY_CHARS = 1000  # an error reply is one line, cut to this length
+
+
+class InferenceFailed(RuntimeError):
+    """The policy gave no usable actions for a well-formed request (timeout, non-finite actions)."""
+
+
+class _OneLineHandshakeErrors(logging.Filter):
+    """websockets logs a failed opening handshake (no valid HTTP request, a failed upgrade check) at ERROR with
+    a traceback: keep one WARNING line naming the problem (a port scan or a stray client is not a server error)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.msg == "opening handshake failed" and record.exc_info:
+            err = record.exc_info[1]
+            causes = [err]
+            while causes[-1].__cause__ is not None:
+                causes.append(causes[-1].__cause__)
+            record.levelno, record.levelname = logging.WARNING, logging.getLevelName(logging.WARNING)
+            record.msg, record.args = "refused a malformed connection: %s", ("; ".join(map(str, causes)),)
+            record.exc_info = record.exc_text = None
+        return True
+
+
+transport_logger = logging.getLogger(f"{__name__}.transport")
+transport_logger.addFilter(_OneLineHandshakeErrors())
 
 
 class PolicyServer:
@@ -60,7 +96,8 @@ class PolicyServer:
     Requests with |α| above `max_alpha` (residual_norm units) are refused, and so are steerings of the last
     language-model layer when the policy's metadata gives its depth (`steerable.lm.layers`, as Pi05Policy's does).
     With `api_key`, only upgrades carrying it are accepted. Finished episodes go to `episode_log` (default: one
-    kept in memory only); `episodes` lists the last EPISODES_KEPT.
+    kept in memory only); `episodes` lists the last EPISODES_KEPT. `inference_timeout_s`, `max_connections` and
+    `max_queue` bound a request's wait and the server's memory (module docstring).
     """
 
     def __init__(
@@ -75,6 +112,9 @@ class PolicyServer:
         max_alpha: float = DEFAULT_MAX_ALPHA,
         api_key: str | None = None,
         episode_log: EpisodeLog | None = None,
+        inference_timeout_s: float = DEFAULT_INFERENCE_TIMEOUT_S,
+        max_connections: int = DEFAULT_MAX_CONNECTIONS,
+        max_queue: int = DEFAULT_MAX_QUEUE,
     ) -> None:
         self.policy = policy
         self.catalog = catalog or VectorCatalog()
@@ -82,6 +122,7 @@ class PolicyServer:
         self.default_steering = tuple(default_steering)
         self.host, self.port = host, port
         self.max_message_bytes = max_message_bytes
+        self.inference_timeout_s, self.max_connections, self.max_queue = inference_timeout_s, max_connections, max_queue
         self.api_key = api_key
         self.episode_log = episode_log or EpisodeLog()
         self.metadata = self._metadata()
@@ -104,7 +145,8 @@ class PolicyServer:
                 self._loop.add_signal_handler(signum, self._stop.set)
         async with serve(
             self._handle, self.host, self.port, compression=None, process_request=self._check_request,
-            max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR,
+            max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR, max_queue=self.max_queue,
+            logger=transport_logger,
         ) as server:
             self.port = server.sockets[0].getsockname()[1]
             logger.info("serving on ws://%s:%d (health: http://%s:%d%s)%s", self.host, self.port, self.host,
@@ -134,9 +176,16 @@ class PolicyServer:
         await server.wait_closed()
 
     def _check_request(self, connection: ServerConnection, request: Request) -> Response | None:
-        """Answer the health check; refuse an upgrade without the api key (when one is set)."""
+        """Answer the health check and plain HTTP requests; refuse an upgrade without the api key (when one is set)."""
         if request.path == HEALTH_PATH:
             return connection.respond(http.HTTPStatus.OK, "OK\n")
+        if "websocket" not in ",".join(request.headers.get_all("Upgrade")).lower():
+            if request.path != "/":
+                return connection.respond(http.HTTPStatus.NOT_FOUND, f"not found; health check: {HEALTH_PATH}\n")
+            response = connection.respond(http.HTTPStatus.UPGRADE_REQUIRED, "an openpi policy server: connect with a "
+                                          f"websocket client (openpi-client); health check: {HEALTH_PATH}\n")
+            response.headers["Upgrade"] = "websocket"
+            return response
         values = request.headers.get_all(HEADER)
         if self.api_key is None or authorized(values, self.api_key):
             return None
@@ -148,6 +197,12 @@ class PolicyServer:
         return response
 
     async def _handle(self, ws: ServerConnection) -> None:
+        if len(self._connections) >= self.max_connections:
+            logger.warning("refused a connection from %s: %d connections open (serve --max-connections)",
+                           _address(ws), len(self._connections))
+            await ws.close(CloseCode.TRY_AGAIN_LATER, f"the server has its limit of {self.max_connections} "
+                                                      "connections (--max-connections); try again later")
+            return
         self._connections.add(ws)
         episodes = ConnectionEpisodes(_address(ws), self.episode_log)
         try:
@@ -180,28 +235,48 @@ class PolicyServer:
             if isinstance(request, dict) and CTRL_KEY in request:
                 return codec.pack(episodes.control(request)), True
             observation, steering = self._read(request)
-            queued = time.monotonic()
-            async with self._inference:
-                started = time.monotonic()
-                result = await asyncio.to_thread(self.policy.infer, observation, steering)
-                finished = time.monotonic()
-            result = dict(result)
-            if not np.isfinite(result["actions"]).all():
-                logger.warning("non-finite actions withheld (steering %s)", [s.describe() for s in steering])
-                return ("inference failed (the server keeps serving): the policy's actions are not finite; "
-                        "lower |alpha| of the steering entry"), False
+            result, timing = await self._infer(observation, steering)
+            _check_actions(result, steering)
             episodes.inferred()
             result[STEERING_KEY] = [s.describe() for s in steering]
-            result["server_timing"] = {"infer_ms": (finished - started) * 1000, "queue_ms": (started - queued) * 1000}
+            result["server_timing"] = timing
             if previous_total_ms is not None:
-                result["server_timing"]["prev_total_ms"] = previous_total_ms
+                timing["prev_total_ms"] = previous_total_ms
             return codec.pack(result), False
         except (codec.WireError, RequestError) as err:
-            logger.warning("bad request: %s", err)
-            return f"bad request: {err}", False
-        except Exception:
+            reply = _one_line(f"bad request: {err}")
+            logger.warning("%s", reply)
+            return reply, False
+        except InferenceFailed as err:
+            reply = _one_line(f"inference failed (the server keeps serving): {err}")
+            logger.warning("%s", reply)
+            return reply, False
+        except Exception as err:  # the policy's own error: its traceback goes to the log, one line to the client
             logger.exception("inference failed")
-            return f"inference failed (the server keeps serving):\n{traceback.format_exc()}", False
+            return _one_line(f"inference failed (the server keeps serving): {type(err).__name__}: {err}"), False
+
+    async def _infer(self, observation: dict[str, Any], steering: tuple[AppliedSteering, ...]) -> tuple[dict, dict]:
+        """Return the policy's result and the server timing; raise InferenceFailed past the inference timeout.
+
+        The model lock is released when the worker thread returns, not at the timeout, so a stuck inference
+        holds the model (later requests time out too) and two inferences never run at once. The thread is a daemon
+        of its own, so a stuck inference does not keep the server from stopping.
+        """
+        timeout, queued = self.inference_timeout_s, time.monotonic()
+        try:
+            await asyncio.wait_for(self._inference.acquire(), timeout)
+        except TimeoutError:
+            raise InferenceFailed(f"timed out after {timeout:g} s waiting for the model, which another request "
+                                  "holds (serve --inference-timeout-s)") from None
+        started = time.monotonic()
+        task = _in_daemon_thread(self._loop, self.policy.infer, observation, steering)
+        task.add_done_callback(lambda _: self._inference.release())
+        done, _ = await asyncio.wait({task}, timeout=timeout - (started - queued))
+        if not done:
+            task.add_done_callback(functools.partial(_late_inference, started))
+            raise InferenceFailed(f"timed out: no actions within {timeout:g} s (serve --inference-timeout-s)")
+        finished = time.monotonic()
+        return dict(task.result()), {"infer_ms": (finished - started) * 1000, "queue_ms": (started - queued) * 1000}
 
     def _unpack(self, message: str | bytes) -> Any:
         if isinstance(message, str):
@@ -235,13 +310,64 @@ class PolicyServer:
             },
             "server": {
                 "inference": "serialised: one model, one request at a time across all connections",
-                "errors": "a text frame naming the key; the connection stays open",
+                "errors": "a text frame of one line naming the key; the connection stays open",
                 "max_message_bytes": self.max_message_bytes,
+                "inference_timeout_s": self.inference_timeout_s,
+                "max_connections": self.max_connections,
+                "max_queue": self.max_queue,
                 "api_key_required": self.api_key is not None,
                 "control_messages": {"episode_start": list(START_FIELDS), "episode_end": list(END_FIELDS),
                                      "reply": "{'__ack__': <__ctrl__ value>}, as openpi's server"},
             },
         }
+
+
+def _check_actions(result: dict[str, Any], steering: tuple[AppliedSteering, ...]) -> None:
+    """Raise InferenceFailed unless the result holds a real-valued, finite `actions` array."""
+    actions = result.get("actions")
+    if not isinstance(actions, np.ndarray) or actions.dtype.kind not in "fiu":
+        raise InferenceFailed(f"the policy returned no actions array ({type(actions).__name__})")
+    if not np.isfinite(actions).all():
+        logger.warning("non-finite actions withheld (steering %s)", [s.describe() for s in steering])
+        raise InferenceFailed("the policy's actions are not finite; lower |alpha| of the steering entry")
+
+
+def _in_daemon_thread(loop: asyncio.AbstractEventLoop, fn: Callable, *args: Any) -> asyncio.Future:
+    """Return a future of `fn(*args)` run in a new daemon thread (the loop's default executor joins its threads
+    at shutdown, without a timeout before Python 3.12)."""
+    future = loop.create_future()
+
+    def settle(result: Any, error: Exception | None) -> None:
+        if future.cancelled():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+
+    def main() -> None:
+        try:
+            result, error = fn(*args), None
+        except Exception as err:  # handed to the awaiting request
+            result, error = None, err
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the server stopped, nobody waits
+            loop.call_soon_threadsafe(settle, result, error)
+
+    threading.Thread(target=main, name="policy-inference", daemon=True).start()
+    return future
+
+
+def _late_inference(started: float, task: asyncio.Future) -> None:
+    """Log how a timed-out inference ended (its result was dropped)."""
+    error = None if task.cancelled() else task.exception()
+    logger.warning("an inference that timed out ended after %.1f s%s; its result was dropped",
+                   time.monotonic() - started, f" with {type(error).__name__}: {error}" if error else "")
+
+
+def _one_line(text: str) -> str:
+    """Return `text` on one line (every whitespace run, line breaks included, one space), cut to MAX_REPLY_CHARS."""
+    text = " ".join(text.split())
+    return text if len(text) <= MAX_REPLY_CHARS else text[: MAX_REPLY_CHARS - 3] + "..."
 
 
 def _address(connection: ServerConnection) -> str:
