@@ -113,6 +113,9 @@ def serve_command(
         api_key, episode_log = read_api_key(api_key_file), EpisodeLog(episodes_file)
         # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
         catalog = VectorCatalog.scan(vectors) if vectors != DEFAULT_VECTORS or vectors.exists() else VectorCatalog()
+        if vectors != DEFAULT_VECTORS and not len(catalog):
+            raise ValueError(f"--vectors {vectors}: no steering vectors in it; pass the steer step's output root "
+                             f"(holding layerNN/<pair>/ folders)")
         arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
         default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer",
                                  limits=SteeringLimits(max_alpha, arch.depth))
@@ -121,6 +124,8 @@ def serve_command(
             tokenizer_path=tokenizer_path or _tokenizer_beside(checkpoint_path), prompt_format=prompt_format,
             norm_stats_path=norm_stats, asset_id=asset_id,
         )
+        if "actions" not in policy.norm_stats:  # read now: a missing or broken file stops here, not at a request
+            raise ValueError(f"{policy.norm_stats_file}: no `actions` entry; the served actions are unnormalised by it")
         served = SteeredPi05Policy(policy, noise_seed=noise_seed)
         served.check_catalog(catalog)
         server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,
