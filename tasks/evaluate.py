@@ -18,8 +18,8 @@ from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.sae import vectors
 from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage import layout
-from steering_core.storage.fileio import read_json
-from steering_core.storage.fingerprints import file_digest, plain
+from steering_core.storage.fileio import read_json, sha256_json
+from steering_core.storage.fingerprints import code_version, file_digest, plain
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
 from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs
@@ -66,6 +66,22 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
     }
 
 
+def evaluation_identity(
+    job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings | None,
+    settings: EvaluateSettings,
+) -> str:
+    """Return the digest of what one evaluation reads and how (the task's cache key without its output folder).
+
+    Recorded with the outputs: a second run that missed the cache (it started before the first one finished)
+    waits for the folder's lock, then reuses the folder when it records this identity.
+    """
+    inputs = job_inputs(job)
+    inputs["job"].pop("output_dir")
+    return sha256_json({"code": code_version("steering_core.evaluate.run"), "job": inputs, "model": model_inputs(model),
+                        "steering": sae_inputs(steering_settings) if steering_settings is not None else None,
+                        "settings": plain(settings)})
+
+
 @task(
     name="evaluate-steering",
     task_run_name="evaluate {job.pair} {job.label}",
@@ -85,7 +101,8 @@ def evaluate_pair(
     progress = ProgressArtifact(artifact_key("evaluate", job.pair, job.output_dir.parent.name), "policy calls",
                                 f"evaluate {job.pair} at {job.label}")
     sae = vectors.load_steering_sae(steering_settings) if steering_settings is not None else None
-    folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress)
+    folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress,
+                                       identity=evaluation_identity(job, model, steering_settings, settings))
     progress.finish()
     get_run_logger().info("%s %s: %s", job.pair, job.label, folder)
     return {OUTPUTS: [str(folder / name) for name in _PAIR_OUTPUTS], "folder": str(folder)}

@@ -9,12 +9,16 @@ from collections.abc import Callable
 from typing import Any
 
 
+def python(code: str, *args: str) -> subprocess.Popen:
+    """Return a Python process running `code` with `args`, its stdin and stdout pipes of text."""
+    return subprocess.Popen([sys.executable, "-c", code, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
 def hold_output_lock(output) -> subprocess.Popen:
     """Return a process that holds `locks.output_lock(output)` until it reads a line (it holds it on return)."""
-    holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.storage.locks import output_lock\n"
-         f"with output_lock({str(output)!r}):\n    print('locked', flush=True); sys.stdin.readline()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    holder = python("import sys; from steering_core.storage.locks import output_lock\n"
+                    "with output_lock(sys.argv[1]):\n    print('locked', flush=True); sys.stdin.readline()", str(output))
     assert holder.stdout.readline().strip() == "locked"
     return holder
 

@@ -35,6 +35,7 @@ from steering_core.sae.pair_order import check_pair_order, manifest_concepts, si
 from steering_core.sae.vectors import read_pairs_config
 from steering_core.storage import layout
 from steering_core.storage.fileio import read_json
+from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel
 
 if TYPE_CHECKING:
@@ -244,9 +245,36 @@ def evaluate_job(
     *,
     policy: Any = None,
     progress: ProgressCallback | None = None,
+    identity: str | None = None,
 ) -> Path:
-    """Evaluate one (pair, layer) and return its output folder; `policy` defaults to `load_policy(model, ...)`."""
+    """Evaluate one (pair, layer) and return its output folder; `policy` defaults to `load_policy(model, ...)`.
+
+    The output folder is locked while it is written. `identity` (a digest of everything the job reads) is
+    recorded in dose_response.json, and a folder recording the same one is kept: a second run waits, then reuses it.
+    """
     check_model(model, job.layer, job.stream)
+    with output_lock(job.output_dir):
+        if identity is not None and evaluated_identity(job.output_dir) == identity:
+            logger.info("%s %s: %s already holds this evaluation; reused", job.pair, job.label, job.output_dir)
+            return job.output_dir
+        return _evaluate(job, model, settings, sae, policy, progress, identity)
+
+
+def evaluated_identity(folder: Path) -> str | None:
+    """Return the identity recorded by the evaluation in `folder`, or None (no finished evaluation there)."""
+    try:
+        record = read_json(folder / f"{layout.DOSE_RESPONSE_FILE}.json")
+    except (OSError, ValueError):  # none yet, or damaged: evaluate again
+        return None
+    model = record.get("model") if isinstance(record, dict) else None
+    return model.get("inputs") if isinstance(model, dict) else None
+
+
+def _evaluate(
+    job: EvaluateJob, model: CaptureSettings, settings: EvaluateSettings, sae: Sae | None, policy: Any,
+    progress: ProgressCallback | None, identity: str | None,
+) -> Path:
+    """Run the evaluation of `job` and write its output folder (`evaluate_job`, under its lock)."""
     manifest = read_manifest(job.manifest)
     pair = PairInputs(
         name=job.pair, tasks=(job.positive, job.negative), manifest=manifest,
@@ -270,7 +298,8 @@ def evaluate_job(
     return evaluate_pair(
         pair, directions, policy, Steering, load, task_prompts(tokenizer, job.positive, job.negative),
         layer=job.layer, width=width, settings=settings, output_dir=job.output_dir,
-        metadata=policy.metadata, progress=progress, stream=job.stream,
+        metadata=policy.metadata if identity is None else {**policy.metadata, "inputs": identity},
+        progress=progress, stream=job.stream,
         include_decoder_bias=job.stream == "lm" and bool(
             read_json(job.directions / layout.PAIR_SUMMARY_FILE).get("include_decoder_bias")),
     )

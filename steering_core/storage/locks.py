@@ -1,15 +1,24 @@
 """Locks on outputs: two runs sharing an output root never compute the same thing at once.
 
-Capture locks each shard group of a run folder (`group_locks`): one lock file per run folder
-(`.capture.lock`), each group one byte of it. Every other step locks the output it writes
-(`output_lock`: a dataset folder, a slices layer folder, a steering layer folder, a manifest file),
-through byte 0 of a lock file beside it (`.<name>.lock`, beside and not inside, because a finished
-output folder is swapped in by rename and a lock inside would lock the old copy). The caller then
-re-checks, under the lock, whether the work is already done, so a second run waits and then skips.
+Every step locks the output it writes (`output_lock`: a dataset folder, a slices layer folder, a steering
+layer folder, a statistics file, an evaluation folder) through a lock file beside it (`.<name>.lock`, beside
+and not inside, because a finished output folder is swapped in by rename and a lock inside would lock the
+old copy). Capture locks each shard group of a run folder (`group_locks`): one lock file per group
+(`.capture-<group>.lock` in the run folder). The caller then re-checks, under the lock, whether the work is
+already done, so a second run waits and then skips.
 
-The locks are POSIX record locks (`fcntl.lockf`): one open file serves any number of bytes, they hold
-across processes and hosts sharing the folder (NFS with lockd), and they end with the process, so a
-killed step never leaves a stale lock behind. They do not exclude threads of one process.
+Each lock is a `flock` on its own open lock file. It belongs to that open file, not to the process: it
+excludes threads as well as processes, and the kernel never refuses a wait with EDEADLK. (POSIX record
+locks, `fcntl.lockf`, belong to the process, so two processes whose threads waited on each other's locks
+looked like a cycle and one wait failed with "Resource deadlock avoided".) Nothing detects a real cycle
+either, so none can form: locks are taken in one global order, by output path (a folder before what it
+holds, a run folder's groups by number), a call taking several takes them in that order, and a thread
+asking for a lock that does not come after every lock it holds gets a RuntimeError instead of a wait.
+
+A lock ends when its file is closed, at the latest with the process (forked children close their copies),
+so a killed step never leaves a stale lock. Group lock files, and an output's lock file when the block
+wrote no output, are removed by their holder before it lets go; a process that was waiting on the removed
+file sees that the path no longer names it and locks the path afresh.
 """
 
 from __future__ import annotations
@@ -18,32 +27,47 @@ import contextlib
 import fcntl
 import logging
 import os
-from collections.abc import Iterable, Iterator
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 logger = logging.getLogger(__name__)
 
-LOCK_FILE = ".capture.lock"
+GROUP_LOCK = ".capture-{group}.lock"
 OUTPUT_LOCK = ".{name}.lock"
+
+Order = tuple[tuple[str, ...], int]  # (output path parts, group or -1): the global order of locks
+
+_local = threading.local()  # `held`: this thread's locks, [(order, description)], in ascending order
+_descriptors: set[int] = set()  # every descriptor holding a lock, closed in a forked child
+
+
+def _close_in_child() -> None:
+    """In a forked child: close the copies of the parent's lock descriptors (the parent keeps its locks)."""
+    global _local
+    for fd in _descriptors:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _descriptors.clear()
+    _local = threading.local()
+
+
+os.register_at_fork(after_in_child=_close_in_child)
+
+
+def order(output: str | os.PathLike, group: int = -1) -> Order:
+    """Return the place of the lock on `output` (or on one of its shard groups) in the global lock order."""
+    return Path(os.path.abspath(output)).parts, group
 
 
 @contextlib.contextmanager
-def group_locks(run_dir: str | os.PathLike, groups: Iterable[int], lock_file: str = LOCK_FILE,
-                what: str = "shard group") -> Iterator[None]:
-    """Hold an exclusive lock on each group (byte) of `run_dir/lock_file`, in ascending order, so two callers never deadlock."""
-    path = Path(run_dir) / lock_file
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+b") as handle:  # one descriptor: closing another one on this file would drop the locks
-        for group in sorted(set(groups)):
-            try:
-                fcntl.lockf(handle, fcntl.LOCK_EX | fcntl.LOCK_NB, 1, group)
-            except OSError:
-                logger.info("%s: %s %d is being written by another process; waiting", run_dir, what, group)
-                fcntl.lockf(handle, fcntl.LOCK_EX, 1, group)
-        try:
-            yield
-        finally:
-            fcntl.lockf(handle, fcntl.LOCK_UN, 0, 0)
+def group_locks(run_dir: str | os.PathLike, groups: Iterable[int]) -> Iterator[None]:
+    """Hold an exclusive lock on each shard group of `run_dir`, in ascending order; the lock files go on exit."""
+    run_dir = Path(run_dir)
+    locks = [(order(run_dir, group), run_dir / GROUP_LOCK.format(group=group), f"{run_dir}: shard group {group}")
+             for group in set(groups)]
+    with _holding(locks, keep=lambda: False):
+        yield
 
 
 @contextlib.contextmanager
@@ -51,19 +75,77 @@ def output_lock(output: str | os.PathLike) -> Iterator[None]:
     """Hold an exclusive lock on the output file or folder `output` (its lock file sits beside it).
 
     If the block leaves no `output` (a step that failed, e.g. on bad input), the lock file and the folders
-    made for it are removed again, so nothing is left behind. (A process already waiting on that lock then
-    holds a removed file: a third one could run beside it; the outputs stay whole, written by renames.)
+    made for it are removed again, so nothing is left behind.
     """
     output = Path(output)
     folder = output.parent
     made = [p for p in (folder, *folder.parents) if not p.exists()]  # deepest first
-    lock = folder / OUTPUT_LOCK.format(name=output.name)
+    lock = (order(output), folder / OUTPUT_LOCK.format(name=output.name), f"{folder}: output {output.name}")
     try:
-        with group_locks(folder, [0], lock.name, what=f"output {output.name}, lock"):
+        with _holding([lock], keep=lambda: output.exists() or output.is_symlink()):
             yield
     finally:
         if not output.exists() and not output.is_symlink():
-            lock.unlink(missing_ok=True)
             for path in made:
                 with contextlib.suppress(OSError):  # not empty: another step wrote there meanwhile
                     path.rmdir()
+
+
+@contextlib.contextmanager
+def _holding(locks: list[tuple[Order, Path, str]], keep: Callable[[], bool]) -> Iterator[None]:
+    """Hold every lock (order, lock file, description) in ascending order; on exit remove the lock files
+    unless `keep()`, then let go."""
+    held = _local.__dict__.setdefault("held", [])
+    locks = sorted(locks)
+    if held and locks and locks[0][0] <= held[-1][0]:
+        raise RuntimeError(f"lock order: {locks[0][2]} requested while holding {held[-1][1]}, which does not come "
+                           "before it; take locks in path order (a folder before what it holds), several in one call")
+    taken: list[tuple[int, Path]] = []
+    try:
+        for key, path, what in locks:
+            taken.append((_acquire(path, what), path))
+            held.append((key, what))
+        yield
+    finally:
+        remove = not keep()
+        for fd, path in reversed(taken):
+            held.pop()
+            try:
+                if remove:  # while still held: a process waiting on this file then sees it is gone
+                    path.unlink(missing_ok=True)
+            finally:
+                _descriptors.discard(fd)
+                os.close(fd)  # the lock ends with its last descriptor
+
+
+def _acquire(path: Path, what: str) -> int:
+    """Return a descriptor holding an exclusive flock on the lock file `path` (made, with its folders, if missing)."""
+    while True:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except FileNotFoundError:  # its folder was removed meanwhile by a holder that wrote nothing
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                logger.info("%s is being written by another process; waiting", what)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            if _names(path, fd):
+                _descriptors.add(fd)
+                return fd
+        except BaseException:
+            os.close(fd)
+            raise
+        os.close(fd)  # its holder removed the file: lock the path afresh
+
+
+def _names(path: Path, fd: int) -> bool:
+    """Return True if `path` still names the file open as `fd`."""
+    try:
+        current = os.stat(path)
+    except FileNotFoundError:
+        return False
+    opened = os.fstat(fd)
+    return (current.st_dev, current.st_ino) == (opened.st_dev, opened.st_ino)
