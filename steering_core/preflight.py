@@ -29,11 +29,13 @@ INPUT_ERRORS = (ValueError, OSError)  # what a bad input raises in the library (
 
 
 class PreflightError(ValueError):
-    """Every problem found before a run, one line each (`problems`); str() joins them."""
+    """Every problem found before a run, one line each (`problems`); str() joins them on one line."""
 
     def __init__(self, problems: list[str]):
         self.problems = problems
-        super().__init__(f"{len(problems)} problem(s) found before the run started:\n" + "\n".join(problems))
+        head = "found before the run started" if len(problems) == 1 else \
+            f"{len(problems)} problem(s) found before the run started"
+        super().__init__(f"{head}: " + " | ".join(problems))
 
 
 def check_run(config: RunConfig, *, capture_device: bool = True) -> None:
