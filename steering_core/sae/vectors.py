@@ -57,7 +57,13 @@ from steering_core.storage.layout import (
 )
 from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel, read_model
-from steering_core.storage.tensor_files import load_safetensors, require_finite, save_safetensors, save_torch
+from steering_core.storage.tensor_files import (
+    load_safetensors,
+    non_finite,
+    require_finite,
+    save_safetensors,
+    save_torch,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -193,6 +199,8 @@ def check_concepts(
                 f"{where}: residuals are {reader.shape} but SAE {sae.name} expects (*, {sae.cfg.d_in}); "
                 f"use residuals of the layer and model the SAE was trained on, or another --sae"
             )
+        elif (bad := _non_finite_rows(reader)) is not None:
+            problems.append(f"{where}: {bad}; re-run slice (and capture) to rewrite it")
         readers[path] = reader
     widths = {reader.width for reader in readers.values() if reader.valid_shape}
     if sae is None and len(widths) > 1:
@@ -200,8 +208,20 @@ def check_concepts(
     if missing or problems:
         kind = FileNotFoundError if missing else ValueError
         hint = "; relative paths are resolved against the base directory (see --paths-relative-to)" if missing else ""
-        raise kind("unusable concept files" + hint + ":\n  " + "\n  ".join(missing + problems))
+        raise kind("unusable concept files" + hint + ": " + " | ".join(missing + problems))
     return readers
+
+
+def _non_finite_rows(reader: ConceptReader, batch_size: int = 8192) -> str | None:
+    """Return `non_finite`'s message for the first rows of a concept file holding NaN or Inf, else None.
+
+    Read once before any output is written, so a bad file leaves nothing half-done (the SAE pass, far
+    slower than this read, then finds the file's pages cached).
+    """
+    for number, batch in enumerate(reader.batches(batch_size)):
+        if (problem := non_finite(batch, "residuals", number * batch_size)) is not None:
+            return problem
+    return None
 
 
 def compute_pair(
