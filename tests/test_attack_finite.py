@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -18,8 +19,11 @@ import pytest
 import torch
 import yaml
 from helpers_attack import Case, World, assert_refused
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
+from typer.testing import CliRunner
 
+from latent_steering_cli import app
 from steering_core.pi05.checkpoint import EMBEDDING_KEY, LM_PREFIX, VISION_PREFIX
 from steering_core.synthetic.sae import write_sae_folder
 
@@ -37,10 +41,12 @@ def case(name: str):
 
 
 def poison_safetensors(path: Path, name: str, value: float, at: int = 0) -> Path:
-    """Set element `at` (flattened) of tensor `name` in a safetensors file to `value`; return the path."""
+    """Set element `at` (flattened) of tensor `name` in a safetensors file to `value` (metadata kept); return the path."""
     tensors = load_file(path)
+    with safe_open(path, "pt") as handle:
+        metadata = handle.metadata()
     tensors[name].view(-1)[at] = value
-    save_file(tensors, path)
+    save_file(tensors, path, metadata=metadata)
     return path
 
 
@@ -326,3 +332,73 @@ def no_pipeline(monkeypatch):
 def test_refused(attack_world, tmp_path, attack, no_pipeline):
     assert_refused(attack_world, tmp_path, attack)
 
+
+
+# ----------------------------------------------------------------------------- where a table case does not fit
+
+def test_capture_refuses_a_nan_checkpoint_before_any_shard(attack_world, tmp_path):
+    """capture writes its run spec before loading the model; the tensor is refused as it is read: no shard."""
+    folder = tmp_path / "checkpoint"
+    shutil.copytree(attack_world.checkpoint, folder)
+    tensor = f"{LM_PREFIX}layers.1.mlp.down_proj.weight"
+    model = poison_safetensors(folder / "model.safetensors", tensor, math.nan, at=11)
+    run_dir = tmp_path / "run"
+    result = CliRunner().invoke(app, [
+        "capture", "--checkpoint-path", str(folder), "--tokenizer-path", str(attack_world.tokenizer),
+        "--lerobot-root", str(attack_world.dataset), "--repo-id", attack_world.dataset.name, "--output-dir",
+        str(run_dir), "--layers", "1,2", "--device", "cpu", "--num-workers", "0",
+        "--arch-file", str(attack_world.data / "arch.json")])
+    assert result.exit_code == 1, result.output
+    assert result.output.strip().splitlines() == [result.output.strip()]
+    assert f"error: {model}: tensor `{tensor}` holds NaN or Inf (nan at (0, 11))" in result.output
+    assert not list(run_dir.rglob("shard-*"))
+
+
+def test_slice_refuses_a_nan_shard_naming_it(attack_world, tmp_path):
+    """A shard holding NaN (read without checksums) stops slicing, naming the shard; no slice folder is written."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(attack_world.data / "residuals" / "demo", run_dir)
+    shard = sorted((run_dir / "instructions" / "layer01").glob("shard-*.safetensors"))[1]
+    tensors = load_file(shard)
+    with safe_open(shard, "pt") as handle:
+        metadata = handle.metadata()
+    save_file({**tensors, "residuals": torch.full_like(tensors["residuals"], math.inf)}, shard, metadata=metadata)
+    output = tmp_path / "slices"
+    manifests = attack_world.data / "manifests"
+    result = CliRunner().invoke(app, [
+        "slice", "--run-dir", str(run_dir), "--concept-map-path", str(manifests / "open_vs_close_concept_map.json"),
+        "--output-dir", str(output), "--layers", "1", "--split", str(manifests / "open_vs_close_split.json"),
+        "--no-verify-checksums"])
+    assert result.exit_code == 1, result.output
+    line = result.output.strip()
+    assert line.startswith(f"error: {shard}: tensor `residuals` holds NaN or Inf (inf at ("), line
+    assert line.endswith("); expected finite values; the shard is damaged; re-run capture to rewrite it"), line
+    assert not (output / "layer01").exists()
+
+
+def test_json_writer_refuses_nan_naming_the_key(tmp_path):
+    from steering_core.storage.fileio import write_json
+
+    path = tmp_path / "manifest.json"
+    with pytest.raises(ValueError, match=r"manifest.json: `episodes.1.axis_range` is NaN or Inf"):
+        write_json(path, {"episodes": [{"axis_range": 0.5}, {"axis_range": math.nan}]})
+    assert list(tmp_path.iterdir()) == []
+    write_json(path, {"episodes": [{"axis_range": None}]})
+    assert json.loads(path.read_text()) == {"episodes": [{"axis_range": None}]}
+
+
+def test_served_and_evaluated_vectors_are_checked_finite(attack_world, tmp_path):
+    """A NaN direction file is refused by the server's catalog and by evaluation's reader, naming file and tensor."""
+    from steering_core.evaluate.directions import pair_directions
+    from steering_core.serve.catalog import VectorCatalog
+
+    root = tmp_path / "latent_steering"
+    shutil.copytree(attack_world.data / "latent_steering", root)
+    direction = poison_safetensors(root / "layer02" / "on_vs_off" / "residual_direction.safetensors",
+                                   "residual_direction", math.nan, at=4)
+    expected = f"{direction}: tensor `residual_direction` holds NaN or Inf (nan at 4)"
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        VectorCatalog.scan(root)
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        pair_directions(direction.parent, None, top_k=3)
+    assert len(VectorCatalog.scan(attack_world.data / "latent_steering")) > 0
