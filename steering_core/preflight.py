@@ -66,10 +66,12 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     ])
     if config.expert_layers and not model:  # the decision capture reads the whole policy: checked when the rest is fine
         model = _failures([lambda: check_model_inputs(config.decision_capture_settings())])
-    if not model:  # the layout is right: then every value the run will read must be finite
+    layout_ok = not model  # the model inputs check out: model.arch is the checkpoint's, its width the SAEs' d_in
+    if layout_ok:  # and every value the run will read must be finite
         model = _failures([lambda: _check_checkpoint_finite(config)])
     checks: list[Callable[[], object]] = [
-        *[(lambda layer=layer: _check_sae(config, layer)) for layer in config.layers if config.sae_for(layer) is not None],
+        *[(lambda layer=layer: _check_sae(config, layer, check_width=layout_ok)) for layer in config.layers
+          if config.sae_for(layer) is not None],
         lambda: resolve_device(config.steering.device),
     ]
     if capture_device:
@@ -90,11 +92,12 @@ def _check_checkpoint_finite(config: RunConfig) -> None:
     check_finite(model_file, prefix_tensor_shapes(capture.arch, capture.arch.depth - 1) | expert_tensor_shapes(expert))
 
 
-def _check_sae(config: RunConfig, layer: int) -> None:
-    """Load the layer's SAE on the CPU (its files, config and finite weights) and check it reads the model's width."""
+def _check_sae(config: RunConfig, layer: int, *, check_width: bool) -> None:
+    """Load the layer's SAE on the CPU (its files, config and finite weights); with `check_width` (the checkpoint
+    matches model.arch, so the arch's width is the model's), check that the SAE reads that width."""
     sae = load_steering_sae(config.steering_settings(layer).model_copy(update={"device": "cpu"}))
     width = config.model.arch.width
-    if sae is not None and sae.cfg.d_in != width:
+    if check_width and sae is not None and sae.cfg.d_in != width:
         raise ValueError(f"{sae.cfg.source}: SAE of layer {layer} has d_in {sae.cfg.d_in}, but the model's residual "
                          f"width (model.arch.width) is {width}; pass the SAE trained on this model's layer {layer}")
 
