@@ -2,8 +2,10 @@
 
 safetensors trusts the first 8 bytes as the header length: a text file or a pickle renamed
 `.safetensors` then fails deep inside the reader (or asks for gigabytes of memory). `check_safetensors`
-checks the framing first; `load_torch_file` refuses pickled objects other than tensors with a message
-that does not advise `weights_only=False`. `tensor_locations` / `read_rows_into` read tensors with plain
+checks the framing first (each tensor's shape must fill its data_offsets exactly); `load_torch_file`
+refuses pickled objects other than tensors with a message that does not advise `weights_only=False`.
+`require_finite` is the one NaN/Inf check every step calls at its boundaries (one reduction per tensor),
+`require_finite_file` applies it to a safetensors file chunk by chunk. `tensor_locations` / `read_rows_into` read tensors with plain
 file reads straight into caller-owned memory, `safetensors_layout` lets a file be written tensor by
 tensor, and `save_torch` writes torch.save files with a fast CRC-32 in place of torch's slower one.
 """
