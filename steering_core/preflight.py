@@ -1,9 +1,10 @@
 """Checks before a run's first step: every input it will need, read cheaply, all problems at once.
 
-A whole run takes GPU hours; a bad checkpoint path or a pickled SAE must not wait for phase 1 and
-capture to finish before it is reported. `run_problems` reads headers, attributes and configs only
-(the SAEs are loaded on the CPU once), creates nothing, and returns one line per problem, each naming
-the file or setting and what was expected.
+A whole run takes GPU hours; a bad checkpoint path, a pickled SAE, an SAE of another width or a NaN
+weight must not wait for phase 1 and capture to finish before it is reported. `run_problems` reads
+headers, attributes and configs, the demos' float datasets, the checkpoint tensors the run needs (in
+chunks, checking each is finite) and the SAEs (loaded on the CPU once); it creates nothing and returns
+one line per problem, each naming the file or setting and what was expected.
 """
 
 from __future__ import annotations
@@ -19,7 +20,14 @@ from steering_core.data.dataset import check_dataset, resolve_task
 from steering_core.data.filtering import DEMO_FILE_GLOB, select_files
 from steering_core.data.libero import validate_file
 from steering_core.devices import resolve_device
-from steering_core.pi05.checkpoint import check_prefix_layout, resolve_model_file
+from steering_core.pi05.checkpoint import (
+    check_finite,
+    check_prefix_layout,
+    expert_arch_from_checkpoint,
+    expert_tensor_shapes,
+    prefix_tensor_shapes,
+    resolve_model_file,
+)
 from steering_core.sae.vectors import load_steering_sae
 from steering_core.storage.fileio import check_output_dir
 
@@ -29,11 +37,13 @@ INPUT_ERRORS = (ValueError, OSError)  # what a bad input raises in the library (
 
 
 class PreflightError(ValueError):
-    """Every problem found before a run, one line each (`problems`); str() joins them."""
+    """Every problem found before a run, one line each (`problems`); str() joins them on one line."""
 
     def __init__(self, problems: list[str]):
         self.problems = problems
-        super().__init__(f"{len(problems)} problem(s) found before the run started:\n" + "\n".join(problems))
+        head = "found before the run started" if len(problems) == 1 else \
+            f"{len(problems)} problem(s) found before the run started"
+        super().__init__(f"{head}: " + " | ".join(problems))
 
 
 def check_run(config: RunConfig, *, capture_device: bool = True) -> None:
@@ -56,15 +66,40 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     ])
     if config.expert_layers and not model:  # the decision capture reads the whole policy: checked when the rest is fine
         model = _failures([lambda: check_model_inputs(config.decision_capture_settings())])
+    layout_ok = not model  # the model inputs check out: model.arch is the checkpoint's, its width the SAEs' d_in
+    if layout_ok:  # and every value the run will read must be finite
+        model = _failures([lambda: _check_checkpoint_finite(config)])
     checks: list[Callable[[], object]] = [
-        *[(lambda layer=layer: load_steering_sae(config.steering_settings(layer).model_copy(update={"device": "cpu"})))
-          for layer in config.layers if config.sae_for(layer) is not None],
+        *[(lambda layer=layer: _check_sae(config, layer, check_width=layout_ok)) for layer in config.layers
+          if config.sae_for(layer) is not None],
         lambda: resolve_device(config.steering.device),
     ]
     if capture_device:
         checks.append(lambda: resolve_device(config.capture.device))
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
     return list(dict.fromkeys(problems + model + _failures(checks) + _rollout_problems(config)))
+
+
+def _check_checkpoint_finite(config: RunConfig) -> None:
+    """Raise naming the tensor if a checkpoint tensor the run reads holds NaN or Inf (the prefix up to the deepest
+    layer; the whole prefix and the action expert when the decision rows are captured)."""
+    capture = config.capture_settings()
+    model_file = resolve_model_file(capture.checkpoint_path)
+    if not config.expert_layers:
+        check_finite(model_file, prefix_tensor_shapes(capture.arch, max(capture.layers)))
+        return
+    expert = expert_arch_from_checkpoint(model_file, capture.arch)
+    check_finite(model_file, prefix_tensor_shapes(capture.arch, capture.arch.depth - 1) | expert_tensor_shapes(expert))
+
+
+def _check_sae(config: RunConfig, layer: int, *, check_width: bool) -> None:
+    """Load the layer's SAE on the CPU (its files, config and finite weights); with `check_width` (the checkpoint
+    matches model.arch, so the arch's width is the model's), check that the SAE reads that width."""
+    sae = load_steering_sae(config.steering_settings(layer).model_copy(update={"device": "cpu"}))
+    width = config.model.arch.width
+    if check_width and sae is not None and sae.cfg.d_in != width:
+        raise ValueError(f"{sae.cfg.source}: SAE of layer {layer} has d_in {sae.cfg.d_in}, but the model's residual "
+                         f"width (model.arch.width) is {width}; pass the SAE trained on this model's layer {layer}")
 
 
 def _rollout_problems(config: RunConfig) -> list[str]:

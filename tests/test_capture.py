@@ -426,7 +426,8 @@ def test_non_finite_residuals_stop_capture_naming_episode_and_layer(inputs, tmp_
     shutil.copytree(inputs[0], checkpoint)
     tensors = load_file(checkpoint / "model.safetensors")
     name = "paligemma_with_expert.paligemma.model.language_model.layers.2.mlp.down_proj.weight"
-    tensors[name][0, 0] = float("nan")  # poisons layer 2's output, so layer 3 (captured) but not layer 1
+    tensors[name][0] = 3e38  # finite (the checkpoint passes) but overflows layer 2's output: layer 3 (captured) is
+    # poisoned, layer 1 is not
     save_file(tensors, checkpoint / "model.safetensors")
     run_dir = tmp_path / "run"
     with pytest.raises(ValueError, match=r"non-finite residuals \(NaN or Inf\) at layer 3 in episode 0 "

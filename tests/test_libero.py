@@ -90,6 +90,16 @@ CORRUPTIONS = [
         "data/demo_1/actions has 7 steps, expected 8 like the demo's other datasets",
     ),
     (
+        "NaN state",
+        lambda h: h["data/demo_1/states"].__setitem__((3, 0), np.nan),
+        "tensor `data/demo_1/states` holds NaN or Inf (nan at (3, 0)); expected finite values",
+    ),
+    (
+        "all-NaN actions",
+        lambda h: h["data/demo_0/actions"].__setitem__(Ellipsis, np.nan),
+        "tensor `data/demo_0/actions` holds NaN or Inf (nan at (0, 0))",
+    ),
+    (
         "num_samples disagrees",
         lambda h: h["data/demo_0"].attrs.__setitem__("num_samples", 9),
         "data/demo_0 attribute num_samples is 9, expected 8",

@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import math
 import pickle
 import shutil
 
 import pytest
 import torch
+from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
 from steering_core.config import DatasetSection, load_run_config, write_run_config
 from steering_core.data.convert import ConvertSettings, convert_libero
 from steering_core.demo import build_demo
 from steering_core.preflight import PreflightError, check_run, run_problems
+from steering_core.synthetic.sae import write_sae_folder
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +52,26 @@ def pickle_file(path):
 def pickled_objects(path):
     torch.save({"W_enc": torch.ones(2, 2), "cfg": argparse.Namespace(d_in=2)}, path)
     return path
+
+
+def poisoned_sae(config, layer, tmp_path, tensor, value):
+    """A copy of the layer's SAE folder whose `tensor` starts with `value`."""
+    folder = tmp_path / "sae"
+    shutil.copytree(config.sae_for(layer).path, folder)
+    weights = load_file(folder / "sae_weights.safetensors")
+    weights[tensor].view(-1)[0] = value
+    save_file(weights, folder / "sae_weights.safetensors")
+    return folder
+
+
+def poisoned_checkpoint(config, tmp_path):
+    """A copy of the checkpoint folder whose token embedding starts with NaN."""
+    folder = tmp_path / "checkpoint"
+    shutil.copytree(config.model.checkpoint, folder)
+    tensors = load_file(folder / "model.safetensors")
+    tensors["paligemma_with_expert.paligemma.lm_head.weight"][0, 0] = math.nan
+    save_file(tensors, folder / "model.safetensors")
+    return folder
 
 
 def truncated_copy(config, tmp_path):
@@ -89,6 +112,14 @@ CASES = {
         lambda c, t: c.model_copy(update={"capture": c.capture.model_copy(update={"token_type": "decision"})}),
         "capture.token_type: 'decision' captures action-expert rows, but the run's SAE and steering phase reads "
         "language-model rows (instructions, prompt or last); keep a prompt token type and set evaluate.expert_layers"),
+    "SAE of another width": (
+        lambda c, t: with_sae(c, 1, write_sae_folder(t / "narrow", d_in=c.model.arch.width // 2, d_sae=32, hook_layer=1)),
+        "SAE of layer 1 has d_in 32, but the model's residual width (model.arch.width) is 64"),
+    "SAE with an Inf b_enc": (lambda c, t: with_sae(c, 2, poisoned_sae(c, 2, t, "b_enc", math.inf)),
+                              "sae_weights.safetensors: tensor `b_enc` holds NaN or Inf (inf at 0)"),
+    "checkpoint with a NaN tensor": (lambda c, t: with_model(c, checkpoint=poisoned_checkpoint(c, t)),
+                                     "model.safetensors: tensor `paligemma_with_expert.paligemma.lm_head.weight` "
+                                     "holds NaN or Inf (nan at (0, 0))"),
     "a run folder's parent is a file": (
         lambda c, t: c.model_copy(update={"output_root": text_file(t / "residuals").parent}),
         "residuals: is a file (a parent of"),

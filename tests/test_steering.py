@@ -396,8 +396,10 @@ def test_non_finite_rows_are_refused(project, sae_folder):
     x = concept_tensor(20, seed=1)
     x[13, 2] = float("nan")
     torch.save(x, project / "data/residuals/on_vs_off_slices/layer12/turn on the stove.pt")
-    with pytest.raises(ValueError, match=r"turn on the stove.pt: rows 8..15 hold NaN or inf"):
+    with pytest.raises(ValueError, match=r"turn on the stove.pt \(on_stove.positive_path\): tensor `residuals` holds "
+                                         r"NaN or Inf \(nan at \(13, 2\)\)"):
         compute_steering(settings(project, sae_folder))
+    assert not (settings(project, sae_folder).output_root / "layer12").exists()  # refused before any statistics
 
 
 def test_sae_of_another_layer_is_refused(project, tmp_path):

@@ -37,7 +37,7 @@ from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import layer_dir
 from steering_core.storage.schema import M, StrictModel, read_model
-from steering_core.storage.tensor_files import TensorLocation, read_layout, read_rows_into
+from steering_core.storage.tensor_files import TensorLocation, read_layout, read_rows_into, require_finite
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +56,7 @@ _DTYPE_NAMES = {code: DTYPE_NAMES[dtype] for code, dtype in SAFETENSORS_DTYPES.i
 RESIDUALS = "residuals"
 HEADER_KEY = "latent_steering"  # safetensors metadata entry: JSON of format_version, layer, key, token_type
 ROW_COLUMNS: tuple[str, ...] = ("index", "episode_index", "frame_index", "token_position", "token_id")
+SHARD_FIX = "the shard is damaged; re-run capture to rewrite it"
 STEP = "step"  # the extra column of the action token types: denoising step 0..num_steps-1
 
 
@@ -205,6 +206,7 @@ def write_shard(
     """
     _validate_rows(rows, spec, layer, key)
     path = shard_path(run_dir, spec.token_type, layer, key)
+    require_finite(rows.residuals, path, RESIDUALS, "the model produced them; check the checkpoint and the frames")
     keys = [rows.token_position.numpy(), *([rows.step.numpy()] if rows.step is not None else []), rows.index.numpy()]
     order = np.lexsort(keys)  # sort by index, then step (action types), then position
     order_t = torch.from_numpy(order)
@@ -292,7 +294,8 @@ class ShardReader:
         """Return residual rows [start, stop) as (stop - start, width) in the storage dtype."""
         location = self._locations[RESIDUALS]
         out = torch.empty((self.rows if stop is None else stop) - start, self.width, dtype=location.dtype)
-        return read_rows_into(self._handle, location, start, out)
+        require_finite(read_rows_into(self._handle, location, start, out), self.path, RESIDUALS, SHARD_FIX, start)
+        return out
 
     def residual_location(self) -> TensorLocation:
         """Return where the residual matrix lies in the file, for `steering_core.storage.tensor_files.read_rows_into`."""

@@ -17,8 +17,9 @@ import numpy as np
 import torch
 
 from steering_core.capture.shard_checks import Digest
+from steering_core.capture.shards import SHARD_FIX
 from steering_core.capture.slice_files import SliceFile
-from steering_core.storage.tensor_files import TensorLocation
+from steering_core.storage.tensor_files import TensorLocation, require_finite
 
 
 @dataclass
@@ -42,6 +43,7 @@ def copy_shard(
 
     `location` is the shard's residual matrix, `buffer` a uint8 CPU tensor of at least one row; `device`
     is where frame means are computed. With a `digest`, every byte of the file is fed to it.
+    Rows holding NaN or Inf are refused, naming the shard.
     """
     count, row_bytes = location.shape[0], location.row_bytes
     if digest is not None:
@@ -59,6 +61,7 @@ def copy_shard(
         if digest is not None:
             digest.update(raw.numpy())
         rows = raw.view(location.dtype).view(-1, *location.shape[1:]).to(torch.float32)  # no copy when float32
+        require_finite(rows, location.path, location.name, SHARD_FIX, start)
         for part, file in parts:
             low, high = np.searchsorted(part.rows, [start, start + len(rows)])
             if low == high:

@@ -17,9 +17,9 @@ files (docs/PI05_SPEC.md section 7)::
         robot_states           (T, 9) float         gripper qpos, eef position, eef quaternion
         rewards, dones         (T,)   uint8         0 except 1 at the last step
 
-Every reader validates the whole file's layout (metadata only, no array data) on open,
-collects every problem and raises one `ValueError` naming file, demo, dataset, found and
-expected.
+Every reader validates the whole file's layout on open (metadata, and the float datasets' values:
+NaN or Inf is refused; images are not read), collects every problem and raises one `ValueError`
+naming file, demo, dataset, found and expected.
 """
 
 from __future__ import annotations
@@ -36,6 +36,8 @@ from typing import Literal
 
 import h5py
 import numpy as np
+
+from steering_core.storage.tensor_files import non_finite
 
 logger = logging.getLogger(__name__)
 
@@ -260,6 +262,8 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
         )
         if not shape_ok or not _dtype_ok(kind, dtype):
             problems.append(f"{where} is {shape} {dtype}, expected {_shape_text(trailing)} {_KIND_TEXT[kind]}")
+        elif kind == "float":  # states, actions and the like: small next to the images, read whole
+            problems += _finite_problems(item, key, name)
         if len(shape) >= 1:
             first_dims[name] = shape[0]
     if not first_dims:
@@ -275,6 +279,12 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
         found = int(np.asarray(num_samples))
         problems.append(f"data/{key} attribute num_samples is {found}, expected {steps} (the datasets' T)")
     return steps, problems
+
+
+def _finite_problems(item: h5py.Dataset, key: str, name: str) -> list[str]:
+    """Return the problem of a float dataset holding NaN or Inf (`non_finite`'s message), else none."""
+    problem = non_finite(item[()], f"data/{key}/{name}")
+    return [] if problem is None else [problem]
 
 
 def _shape_text(trailing: tuple[int | None, ...]) -> str:
@@ -336,8 +346,8 @@ def _load_demo(group: h5py.Group, key: str) -> LiberoDemo:
 
 
 def _report(path: Path, problems: list[str]) -> str:
-    lines = "\n".join(f"  - {p}" for p in problems)
-    return f"{path}: {len(problems)} problem(s) with the LIBERO demo schema:\n{lines}\nfix: {_FIX}"
+    """Return every problem of a file on one line, naming the file first and the fix last."""
+    return f"{path}: {len(problems)} problem(s) with the LIBERO demo schema: {'; '.join(problems)}; fix: {_FIX}"
 
 
 def _preview(items: list[str], limit: int = 8) -> str:

@@ -141,7 +141,7 @@ class V21Writer:
         """Rewrite info.json as lerobot does: indent 4, non-ASCII kept, no trailing newline."""
         path = self.root / INFO_FILE
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.info, indent=4, ensure_ascii=False), encoding="utf-8")
+        path.write_text(json.dumps(self.info, indent=4, ensure_ascii=False, allow_nan=False), encoding="utf-8")
 
 
 def hf_features_json(features: Mapping[str, dict[str, Any]]) -> str:
@@ -246,4 +246,4 @@ def _append_jsonl(path: Path, row: dict[str, Any]) -> None:
     """Append one JSON line, spelled as the `jsonlines` package writes it (non-ASCII kept)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a", encoding="utf-8") as handle:
-        handle.write(json.dumps(row, ensure_ascii=False) + "\n")
+        handle.write(json.dumps(row, ensure_ascii=False, allow_nan=False) + "\n")

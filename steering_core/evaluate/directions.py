@@ -20,6 +20,7 @@ from safetensors import safe_open
 
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pair_vectors
+from steering_core.storage.tensor_files import check_safetensors, require_finite
 
 RESIDUAL = "residual_direction"
 DECISION = "decision_mean_difference"
@@ -84,9 +85,13 @@ def read_slice_rows(path: Path) -> torch.Tensor:
     """Return a concept slice's (rows, width) residuals: its .safetensors `residuals`, or the .pt beside it."""
     tensors = path.with_suffix(".safetensors")
     if tensors.is_file():
+        check_safetensors(tensors)
         with safe_open(str(tensors), "pt") as handle:
-            return handle.get_tensor("residuals")
-    return torch.load(path, weights_only=True)
+            rows = handle.get_tensor("residuals")
+    else:
+        rows, tensors = torch.load(path, weights_only=True), path
+    require_finite(rows, tensors, "residuals", "re-run slice to rewrite it")
+    return rows
 
 
 def read_slice_episodes(path: Path) -> torch.Tensor | None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,14 @@ from tqdm.auto import tqdm
 
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
 from steering_core.storage.fileio import read_json
-from steering_core.storage.tensor_files import check_safetensors, read_tensor, staging_buffer, tensor_locations
+from steering_core.storage.tensor_files import (
+    check_safetensors,
+    read_tensor,
+    require_finite,
+    require_finite_file,
+    staging_buffer,
+    tensor_locations,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +47,7 @@ ACTION_IN_KEY = "action_in_proj.weight"  # (expert width, action_dim): its prese
 HEADS = ("action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")
 ADARMS_NORMS = ("input_layernorm", "post_attention_layernorm")
 
+CHECKPOINT_FIX = "the checkpoint is damaged; re-download or re-convert it"
 _FLOAT_DTYPES = {"BF16", "F16", "F32", "F64"}  # a converted file is uniform, a training file mixed (spec 1.4)
 
 Shape = tuple[int, ...]
@@ -253,8 +261,16 @@ def read_tensors(
         for name in tqdm(expected, desc="loading pi0.5 tensors", unit="tensor", leave=False, disable=None):
             device, dtype = placement(name)
             tensors[name] = read_tensor(handle, locations[name], device, dtype, staging)
+            require_finite(tensors[name], model_file, name, CHECKPOINT_FIX)
     logger.info("%s: read %d %s", model_file, len(tensors), what)
     return tensors
+
+
+def check_finite(model_file: Path, names: Iterable[str]) -> None:
+    """Raise naming the file and tensor unless every tensor of `names` is finite (read in chunks, none kept)."""
+    names = list(names)
+    logger.info("%s: checking %d tensors for NaN and Inf", model_file, len(names))
+    require_finite_file(model_file, names, CHECKPOINT_FIX)
 
 
 def _prefix_what_hint(arch: Pi05Arch, max_layer: int) -> tuple[str, str]:

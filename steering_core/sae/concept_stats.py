@@ -27,6 +27,7 @@ from steering_core.sae.model import Sae
 from steering_core.storage.fileio import atomic_path, read_json, sha256_json, write_json
 from steering_core.storage.fingerprints import file_digest
 from steering_core.storage.locks import output_lock
+from steering_core.storage.tensor_files import check_safetensors
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ class ConceptReader:
     def __init__(self, path: Path) -> None:
         self.path = path
         if path.suffix == ".safetensors":
+            check_safetensors(path)
             with safe_open(path, framework="pt", device="cpu") as handle:
                 keys = list(handle.keys())
                 self._key = RESIDUALS_KEY if RESIDUALS_KEY in keys else keys[0] if len(keys) == 1 else None

@@ -39,6 +39,7 @@ from steering_core.sae.registry import (
     resolve_release,
 )
 from steering_core.storage.fileio import sha256_file, sha256_json
+from steering_core.storage.tensor_files import require_finite
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +80,8 @@ class Sae(ABC):
             name: weights[name].to(device=self.device, dtype=self.dtype)
             for name in weight_shapes(cfg, self.extra_weights)
         }
+        for name, tensor in cast.items():  # after the cast: a value beyond a narrow dtype's range is refused too
+            require_finite(tensor, cfg.source, name, "the SAE is damaged; re-download or re-train it")
         self.W_enc, self.b_enc, self.W_dec, self.b_dec = (cast[n] for n in ("W_enc", "b_enc", "W_dec", "b_dec"))
         for name in self.extra_weights:
             setattr(self, name, cast[name])

@@ -32,7 +32,6 @@ from typing import Any, Literal
 
 import torch
 from pydantic import Field, field_validator, model_validator
-from safetensors.torch import load_file
 
 from steering_core.devices import resolve_device
 from steering_core.reporting.progress import ProgressCallback
@@ -58,7 +57,13 @@ from steering_core.storage.layout import (
 )
 from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel, read_model
-from steering_core.storage.tensor_files import save_safetensors, save_torch
+from steering_core.storage.tensor_files import (
+    load_safetensors,
+    non_finite,
+    require_finite,
+    save_safetensors,
+    save_torch,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -194,6 +199,8 @@ def check_concepts(
                 f"{where}: residuals are {reader.shape} but SAE {sae.name} expects (*, {sae.cfg.d_in}); "
                 f"use residuals of the layer and model the SAE was trained on, or another --sae"
             )
+        elif (bad := _non_finite_rows(reader)) is not None:
+            problems.append(f"{where}: {bad}; re-run slice (and capture) to rewrite it")
         readers[path] = reader
     widths = {reader.width for reader in readers.values() if reader.valid_shape}
     if sae is None and len(widths) > 1:
@@ -201,8 +208,20 @@ def check_concepts(
     if missing or problems:
         kind = FileNotFoundError if missing else ValueError
         hint = "; relative paths are resolved against the base directory (see --paths-relative-to)" if missing else ""
-        raise kind("unusable concept files" + hint + ":\n  " + "\n  ".join(missing + problems))
+        raise kind("unusable concept files" + hint + ": " + " | ".join(missing + problems))
     return readers
+
+
+def _non_finite_rows(reader: ConceptReader, batch_size: int = 8192) -> str | None:
+    """Return `non_finite`'s message for the first rows of a concept file holding NaN or Inf, else None.
+
+    Read once before any output is written, so a bad file leaves nothing half-done (the SAE pass, far
+    slower than this read, then finds the file's pages cached).
+    """
+    for number, batch in enumerate(reader.batches(batch_size)):
+        if (problem := non_finite(batch, "residuals", number * batch_size)) is not None:
+            return problem
+    return None
 
 
 def compute_pair(
@@ -241,7 +260,7 @@ def compute_pair(
     with contextlib.ExitStack() as stack:
         staging = stack.enter_context(atomic_dir(layer_path / pair.name, overwrite=True))
         staging.mkdir(parents=True)
-        write = functools.partial(_write_tensor_dict, staging, summary["files"])
+        write = functools.partial(_write_tensor_dict, staging, layer_path / pair.name, summary["files"])
         if sae is None:
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",
                   {**head, "residual_direction": mean_difference, "residual_norm": float(mean_difference.norm()),
@@ -409,8 +428,16 @@ def _direction_space(sae: Sae | None) -> str:
     return "normalised inputs: (x - mean) / (std + 1e-5) per row; multiply by that row's std"
 
 
-def _write_tensor_dict(folder: Path, files: dict[str, str], stem: str, tensor_key: str, payload: dict) -> None:
-    """Write `payload` as `<stem>.pt` (the seed's dict) and its tensor as `<stem>.safetensors` with JSON metadata."""
+def _write_tensor_dict(
+    folder: Path, target: Path, files: dict[str, str], stem: str, tensor_key: str, payload: dict
+) -> None:
+    """Write `payload` as `<stem>.pt` (the seed's dict) and its tensor as `<stem>.safetensors` with JSON metadata.
+
+    `folder` is the staging folder of `target`. A tensor holding NaN or Inf is refused, naming its file in
+    `target`, before it is written (the staging folder is then dropped).
+    """
+    require_finite(payload[tensor_key], target / f"{stem}.safetensors", tensor_key,
+                   "the concept statistics or the SAE overflowed; check their values")
     save_torch(payload, folder / f"{stem}.pt")
     metadata = {key: json.dumps(value) for key, value in payload.items() if key != tensor_key}
     save_safetensors({tensor_key: payload[tensor_key].contiguous()}, folder / f"{stem}.safetensors", metadata=metadata)
@@ -422,7 +449,10 @@ def read_pair_vectors(pair_path: Path) -> dict[str, torch.Tensor]:
     files = read_json(pair_path / PAIR_SUMMARY_FILE)["files"]
 
     def vector(stem: str) -> torch.Tensor:
-        return load_file(pair_path / files[stem]["safetensors"])[files[stem]["tensor"]]
+        path, key = pair_path / files[stem]["safetensors"], files[stem]["tensor"]
+        tensor = load_safetensors(path)[key]
+        require_finite(tensor, path, key, "re-run steer to rewrite the pair's directions")
+        return tensor
 
     vectors = {"residual": vector(RESIDUAL_DIRECTION_FILE)}
     if LATENT_DIRECTION_FILE in files:

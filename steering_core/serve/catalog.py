@@ -22,11 +22,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file
 
 from steering_core.sae.vectors import MEAN_DIFFERENCE_FILE, RESIDUAL_DIRECTION_FILE
 from steering_core.storage.fileio import read_json
 from steering_core.storage.layout import PAIR_SUMMARY_FILE
+from steering_core.storage.tensor_files import load_safetensors, require_finite
 
 logger = logging.getLogger(__name__)
 
@@ -158,12 +158,13 @@ def _read_pair(pair_path: Path, layer: int) -> list[SteeringVector]:
             continue
         path = pair_path / entry["safetensors"]
         try:
-            vector = load_file(path)[entry["tensor"]]
+            vector = load_safetensors(path)[entry["tensor"]]
         except (OSError, KeyError) as err:
             raise ValueError(f"{path}: cannot read tensor {entry.get('tensor')!r} ({err})") from None
         if vector.ndim != 1 or not vector.is_floating_point():
             raise ValueError(f"{path}: direction is {vector.dtype} {tuple(vector.shape)}, "
                              "expected a float (width,) vector")
+        require_finite(vector, path, entry["tensor"], "re-run steer to rewrite the pair's directions")
         vector = vector.float()
         vectors.append(SteeringVector(
             pair=summary.get("pair", pair_path.name), layer=layer, direction=direction, vector=vector,

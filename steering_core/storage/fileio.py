@@ -12,6 +12,7 @@ import errno
 import glob
 import hashlib
 import json
+import math
 import os
 import shutil
 import socket
@@ -185,11 +186,33 @@ def check_output_dir(path: str | os.PathLike, what: str = "output folder") -> Pa
 
 
 def write_json(path: str | os.PathLike, payload: Any) -> Path:
-    """Write `payload` as indented JSON atomically; return the path."""
+    """Write `payload` as indented JSON atomically; return the path.
+
+    NaN and Inf are refused (JSON has neither; Python would write bare `NaN`), naming the key; nothing is written.
+    """
     path = Path(path)
+    try:
+        text = json.dumps(payload, indent=2, ensure_ascii=False, allow_nan=False)
+    except ValueError:
+        key = non_finite_key(payload)
+        if key is None:
+            raise
+        raise ValueError(f"{path}: `{key}` is NaN or Inf, which JSON cannot hold; nothing was written") from None
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(payload, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        tmp.write_text(text + "\n", encoding="utf-8")
     return path
+
+
+def non_finite_key(payload: Any, where: str = "") -> str | None:
+    """Return the dotted key (list items by index) of the first NaN or Inf number in `payload`, else None."""
+    if isinstance(payload, float) and not math.isfinite(payload):
+        return where or "(the whole value)"
+    items = payload.items() if isinstance(payload, dict) else enumerate(payload) if isinstance(payload, list | tuple) else ()
+    for key, value in items:
+        found = non_finite_key(value, f"{where}.{key}" if where else str(key))
+        if found is not None:
+            return found
+    return None
 
 
 def read_json(path: str | os.PathLike) -> Any:

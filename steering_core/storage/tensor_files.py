@@ -2,8 +2,10 @@
 
 safetensors trusts the first 8 bytes as the header length: a text file or a pickle renamed
 `.safetensors` then fails deep inside the reader (or asks for gigabytes of memory). `check_safetensors`
-checks the framing first; `load_torch_file` refuses pickled objects other than tensors with a message
-that does not advise `weights_only=False`. `tensor_locations` / `read_rows_into` read tensors with plain
+checks the framing first (each tensor's shape must fill its data_offsets exactly); `load_torch_file`
+refuses pickled objects other than tensors with a message that does not advise `weights_only=False`.
+`require_finite` is the one NaN/Inf check every step calls at its boundaries (one reduction per tensor),
+`require_finite_file` applies it to a safetensors file chunk by chunk. `tensor_locations` / `read_rows_into` read tensors with plain
 file reads straight into caller-owned memory, `safetensors_layout` lets a file be written tensor by
 tensor, and `save_torch` writes torch.save files with a fast CRC-32 in place of torch's slower one.
 """
@@ -19,10 +21,12 @@ import re
 import struct
 import threading
 import zipfile
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
 import torch
 from safetensors.torch import load_file, save
 
@@ -31,6 +35,9 @@ from steering_core.storage.fileio import crc32
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
+# bytes per element of every safetensors dtype code
+_ITEM_BYTES = {"BOOL": 1, "U8": 1, "I8": 1, "F8_E5M2": 1, "F8_E4M3": 1, "I16": 2, "U16": 2, "F16": 2, "BF16": 2,
+               "I32": 4, "U32": 4, "F32": 4, "I64": 8, "U64": 8, "F64": 8}
 SAFETENSORS_EXPECTED = "expected a safetensors file (8-byte header length, JSON header, tensor data)"
 
 
@@ -49,7 +56,7 @@ def check_safetensors(path: str | os.PathLike) -> dict[str, Any]:
     """Return the JSON header of a safetensors file after checking its framing; ValueError naming the file otherwise.
 
     Checked: the header length fits the file, the header is a JSON object, and every tensor's
-    `data_offsets` lie inside the data section.
+    `data_offsets` lie inside the data section and hold exactly its shape and dtype.
     """
     return _checked_header(Path(path))[0]
 
@@ -79,7 +86,47 @@ def _checked_header(path: Path) -> tuple[dict[str, Any], int]:
                 and 0 <= offsets[0] <= offsets[1] <= data):
             raise ValueError(f"{path}: tensor {name!r} has data_offsets {offsets!r} outside the {data}-byte data "
                              "section; the file is truncated or damaged, re-download or re-write it")
+        _check_extent(path, name, entry)
     return header, _LENGTH_BYTES + length
+
+
+def _check_extent(path: Path, name: str, entry: dict[str, Any]) -> None:
+    """Raise naming the file and tensor unless its dtype is known and its shape fills its data_offsets exactly."""
+    if entry.get("dtype") not in _ITEM_BYTES:
+        raise ValueError(f"{path}: tensor `{name}` has dtype {entry.get('dtype')!r}, expected one of "
+                         f"{sorted(_ITEM_BYTES)}")
+    shape, (first, last) = entry.get("shape"), entry["data_offsets"]
+    if not (isinstance(shape, list) and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+            and math.prod(shape) * _ITEM_BYTES[entry["dtype"]] == last - first):
+        raise ValueError(f"{path}: tensor `{name}` has shape {shape!r} {entry['dtype']}, which disagrees with its "
+                         f"data_offsets ({last - first} bytes); the file is damaged, re-download or re-write it")
+
+
+def require_finite(
+    values: torch.Tensor | np.ndarray, where: str | os.PathLike, name: str, fix: str = "", first_row: int = 0
+) -> None:
+    """Raise a ValueError naming `where` (the file) and tensor `name` if `values` holds NaN or Inf.
+
+    `first_row`: the row number of `values[0]` in the whole tensor, when `values` is a chunk of it;
+    `fix` says what to do about it.
+    """
+    problem = non_finite(values, name, first_row)
+    if problem is not None:
+        raise ValueError(f"{where}: {problem}" + (f"; {fix}" if fix else ""))
+
+
+def non_finite(values: torch.Tensor | np.ndarray, name: str, first_row: int = 0) -> str | None:
+    """Return what is wrong with `values` if it holds NaN or Inf (naming tensor `name` and the first bad element),
+    else None; one reduction when all is well."""
+    tensor = torch.from_numpy(np.asarray(values)) if isinstance(values, np.ndarray) else values
+    if not tensor.is_floating_point() or bool(torch.isfinite(tensor).all()):
+        return None
+    at = (~torch.isfinite(tensor)).nonzero()[0].tolist()
+    value = tensor[tuple(at)].item()
+    if at:
+        at[0] += first_row
+    where_in = f" at {tuple(at) if len(at) > 1 else at[0]}" if at else ""
+    return f"tensor `{name}` holds NaN or Inf ({value}{where_in}); expected finite values"
 
 
 def load_safetensors(path: str | os.PathLike, device: str = "cpu") -> dict[str, torch.Tensor]:
@@ -166,13 +213,8 @@ def read_layout(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, Tens
     for name, entry in header.items():
         if name == "__metadata__":
             continue
-        if entry.get("dtype") not in _DTYPES:
-            raise ValueError(f"{path}: tensor `{name}` has dtype {entry.get('dtype')!r}, expected one of {sorted(_DTYPES)}")
-        shape, (first, last) = entry.get("shape"), entry["data_offsets"]
-        if not (isinstance(shape, list) and all(isinstance(n, int) and n >= 0 for n in shape)
-                and math.prod(shape) * _DTYPES[entry["dtype"]].itemsize == last - first):
-            raise ValueError(f"{path}: tensor `{name}` has shape {shape!r}, which does not fill its {last - first} "
-                             "bytes; the file is damaged, re-write it")
+        if entry["dtype"] not in _DTYPES:
+            raise ValueError(f"{path}: tensor `{name}` has dtype {entry['dtype']!r}, expected one of {sorted(_DTYPES)}")
         locations[name] = TensorLocation(path, name, _DTYPES[entry["dtype"]], tuple(entry["shape"]),
                                          start + entry["data_offsets"][0])
     return header, locations
@@ -217,6 +259,25 @@ def read_tensor(
     """Return the whole stored tensor as a new tensor on `device` in `dtype` (`read_rows_into`)."""
     out = torch.empty(location.shape, dtype=dtype, device=device)
     return read_rows_into(handle, location, 0, out, staging)
+
+
+def require_finite_file(path: str | os.PathLike, names: Iterable[str] | None = None, fix: str = "") -> None:
+    """Raise `require_finite`'s error for the first floating-point tensor of a safetensors file (of `names`,
+    default all) that holds NaN or Inf; read chunk by chunk through one staging buffer."""
+    locations = tensor_locations(path)
+    staging = staging_buffer()
+    with open(path, "rb", buffering=0) as handle:
+        for name in locations if names is None else names:
+            location = locations[name]
+            if not location.dtype.is_floating_point or not location.row_bytes:
+                continue
+            if staging.numel() < location.row_bytes:
+                staging = torch.empty(location.row_bytes, dtype=torch.uint8)
+            rows, per_chunk = (location.shape or (1,))[0], staging.numel() // location.row_bytes
+            for first in range(0, rows, per_chunk):
+                count = min(per_chunk, rows - first)
+                chunk = staging[: count * location.row_bytes].view(location.dtype).view(count, *location.shape[1:])
+                require_finite(_read_exact(handle, location, first, chunk), location.path, name, fix, first)
 
 
 def _read_exact(handle: BinaryIO, location: TensorLocation, start: int, out: torch.Tensor) -> torch.Tensor:
