@@ -42,12 +42,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
 from steering_core.reporting.progress import Progress, ProgressCallback
+from steering_core.storage import layout
 from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, write_json
 from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel, read_model
@@ -86,6 +87,11 @@ class ConvertSettings(StrictModel):
     codebase_version: CodebaseVersion = "v3.0"       # v2.1: openpi's pinned lerobot (module docstring)
     resize_filter: ResizeFilter = "antialiased_bilinear"  # bicubic: the seed's converter
     demo_order: DemoOrder = "numeric"                # lexicographic: the seed's sorted(keys)
+
+    @field_validator("repo_id")
+    @classmethod
+    def _repo_id_is_a_path(cls, repo_id: str) -> str:
+        return layout.check_name(repo_id, "repo_id", nested=True)  # the run config's libero_lerobot/<repo_id>
 
 
 class EpisodeSource(StrictModel):

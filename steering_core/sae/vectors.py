@@ -54,6 +54,7 @@ from steering_core.storage.layout import (
     PAIRWISE_STATS_FILE,
     SLICE_INDEX_FILE,
     STEERING_ROOT,
+    check_name,
     layer_dir,
 )
 from steering_core.storage.locks import output_lock
@@ -81,9 +82,7 @@ class PairSpec(StrictModel):
     @field_validator("name")
     @classmethod
     def _name_is_a_folder_name(cls, name: str) -> str:
-        if not name or name in (".", "..") or any(ch in name for ch in "/\\\0"):
-            raise ValueError(f"pair name {name!r} must be usable as a folder name (no '/', '\\\\', '.' or '..')")
-        return name
+        return check_name(name, "pair name")
 
 
 class PairsConfig(StrictModel):
