@@ -20,6 +20,7 @@ from safetensors import safe_open
 
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pair_vectors
+from steering_core.storage.tensor_files import load_torch_file
 
 RESIDUAL = "residual_direction"
 DECISION = "decision_mean_difference"
@@ -86,7 +87,7 @@ def read_slice_rows(path: Path) -> torch.Tensor:
     if tensors.is_file():
         with safe_open(str(tensors), "pt") as handle:
             return handle.get_tensor("residuals")
-    return torch.load(path, weights_only=True)
+    return load_torch_file(path)
 
 
 def read_slice_episodes(path: Path) -> torch.Tensor | None:

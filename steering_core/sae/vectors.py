@@ -179,7 +179,7 @@ def check_concepts(
         try:
             reader = ConceptReader(path)
         except ValueError as err:
-            problems.append(f"{where}: {err}")
+            problems.append(f"{where}: {str(err).removeprefix(f'{path}: ')}")
             continue
         expected = f"(rows, {sae.cfg.d_in})" if sae is not None else "(rows, d_in)"
         if not reader.valid_shape:
@@ -200,7 +200,7 @@ def check_concepts(
     if missing or problems:
         kind = FileNotFoundError if missing else ValueError
         hint = "; relative paths are resolved against the base directory (see --paths-relative-to)" if missing else ""
-        raise kind("unusable concept files" + hint + ":\n  " + "\n  ".join(missing + problems))
+        raise kind("unusable concept files" + hint + ": " + "; ".join(missing + problems))
     return readers
 
 
