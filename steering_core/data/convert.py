@@ -32,6 +32,7 @@ stamps into each v3.0 data file (a hash of the staging path) is replaced by one 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -59,6 +60,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 SOURCES_FILE = "meta/libero_sources.json"
+STATS_FILE = "meta/stats.json"  # lerobot v3.0's dataset statistics, rewritten in sorted key order
 SOURCES_FORMAT_VERSION = 1
 DEMO_FILE_GLOB = "*.hdf5"
 # Files a complete dataset of each version must have; without them lerobot would try the hub.
@@ -439,6 +441,14 @@ def _write_episodes(
             content_fingerprint(path)
     # lerobot stages PNGs under images/ before embedding them in the parquet files; only empty folders remain
     shutil.rmtree(Path(dataset.root) / "images", ignore_errors=True)
+    _sort_stats(Path(dataset.root))
+
+
+def _sort_stats(root: Path) -> None:
+    """Rewrite `meta/stats.json` with sorted keys (lerobot's layout otherwise): lerobot writes the features in
+    the order of a set, which changes from process to process, so the same demos gave other bytes each time."""
+    path = root / STATS_FILE
+    path.write_text(json.dumps(read_json(path), indent=4, ensure_ascii=False, sort_keys=True), encoding="utf-8")
 
 
 def _stamp(path: Path) -> tuple[int, int]:
