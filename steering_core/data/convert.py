@@ -69,6 +69,9 @@ REQUIRED_DATASET_FILES = {
     "v2.1": ("meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl", "meta/episodes_stats.jsonl", "data"),
 }
 DATA_PARQUET_GLOB = "**/*.parquet"  # v3.0 data files, under data/
+# A demo's frames are resized in memory, (T, size, size, 3) uint8 per camera: at 512 px a 500-step demo takes
+# 375 MiB, at 20000 px one frame takes 1.1 GiB. LIBERO renders 128 px and pi0.5 reads 224 px.
+MAX_IMAGE_SIZE = 512
 _RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for long demos
 
 Orientation = Literal["rotate180", "as_stored"]
@@ -82,7 +85,7 @@ class ConvertSettings(StrictModel):
     """How LIBERO demos become a LeRobot dataset (defaults: openpi's physical-intelligence/libero)."""
 
     repo_id: str = Field(min_length=1)
-    image_size: int = Field(default=256, ge=8)      # physical-intelligence/libero frames are 256x256
+    image_size: int = Field(default=256, ge=8, le=MAX_IMAGE_SIZE)  # physical-intelligence/libero frames are 256x256
     orientation: Orientation = "rotate180"           # what pi05_libero saw in training (module docstring)
     fps: int = Field(default=10, gt=0)               # openpi declares 10 although LIBERO controls at 20 Hz
     robot_type: str = "panda"
