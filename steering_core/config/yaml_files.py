@@ -68,8 +68,13 @@ def format_errors(err: ValidationError, data: Any = None) -> list[str]:
     With the validated `data`, list positions print as `[i]` and mapping keys as `.key` (`sae.12`).
     """
     lines = []
-    for error in err.errors(include_url=False):
-        key = _key_path(error["loc"], data)
+    errors = err.errors(include_url=False)
+    failed = [error["loc"] for error in errors]
+    for error in errors:
+        loc = error["loc"]
+        if error["type"] == "too_short" and any(other[:len(loc)] == loc != other for other in failed):
+            continue  # a list too short only because its bad items (reported) were left out
+        key = _key_path(loc, data)
         message = error["msg"].removeprefix("Value error, ")
         message = message[:1].lower() + message[1:]
         if error["type"] == "extra_forbidden":

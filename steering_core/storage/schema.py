@@ -25,7 +25,7 @@ M = TypeVar("M", bound=BaseModel)
 
 
 def validation_problems(err: ValidationError) -> str:
-    """Return one line per problem of a pydantic error, each as `key.path: message`.
+    """Return every problem of a pydantic error on one line, each as `key.path: message`, `; `-separated.
 
     Problems that differ only in list positions (the same field of every shard of a run, say) share one
     line, the positions given as ranges: `shards.<0-39>.crc32 (40 entries): ...`.
@@ -42,7 +42,7 @@ def validation_problems(err: ValidationError) -> str:
                  for part in shape]
         count = f" ({len(positions)} entries)" if len(positions) > 1 else ""
         lines.append(f"{'.'.join(parts) or '(top level)'}{count}: {message}")
-    return "\n  ".join(lines)
+    return "; ".join(lines)
 
 
 def _positions(values: list[int], entries: int) -> str:
@@ -70,7 +70,7 @@ def read_model(
 ) -> M:
     """Return `model` validated from the JSON file at `path`.
 
-    A wrong `format_version` (when one is expected) or invalid content raises one ValueError that
+    A wrong `format_version` (when one is expected) or invalid content raises one ValueError, one line, that
     names the file, says what it should be (`what`), lists every problem by key, and ends with `fix`.
     """
     payload = read_json(path)
@@ -82,4 +82,4 @@ def read_model(
     try:
         return model.model_validate(payload)
     except ValidationError as err:
-        raise ValueError(f"{path}: not a valid {what}{fix}:\n  {validation_problems(err)}") from None
+        raise ValueError(f"{path}: not a valid {what}: {validation_problems(err)}{fix}") from None
