@@ -307,3 +307,12 @@ def test_existing_dataset_and_sources_are_exclusive(tmp_path):
     assert load_error(tmp_path, no_repo) == [
         "dataset: give `repo_id` (the name of the dataset converted from `sources`), "
         "or `existing` with the path of a LeRobot dataset to read in place"]
+
+
+def test_merged_keys_may_be_overridden_but_a_key_written_twice_is_refused(tmp_path):
+    merged = VALID.replace("steering: {top_k: 7, include_decoder_bias: true}",
+                           "steering: {<<: {top_k: 3, batch_size: 64}, top_k: 7, include_decoder_bias: true}")
+    config = load_run_config(write_yaml(tmp_path, merged))
+    assert (config.steering.top_k, config.steering.batch_size) == (7, 64)
+    twice = VALID.replace("steering: {top_k: 7,", "steering: {top_k: 3, top_k: 7,")
+    assert load_error(tmp_path, twice) == ["not valid YAML (line 21, column 22: key 'top_k' appears twice; keep one)"]

@@ -221,13 +221,17 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 
 def read_json(path: str | os.PathLike) -> Any:
     """Return the parsed JSON of `path`, with errors that name the file (binary, malformed, a key given twice)."""
-    text = read_text(path, "a JSON file")
+    return parse_json(read_text(path, "a JSON file"), str(path))
+
+
+def parse_json(text: str, where: str) -> Any:
+    """Return the parsed JSON `text`; ValueError starting with `where` when malformed or a key is given twice."""
     try:
         return json.loads(text, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
+        raise ValueError(f"{where}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
     except DuplicateKeyError as err:
-        raise ValueError(f"{path}: {err}; keep one") from None
+        raise ValueError(f"{where}: {err}; keep one") from None
 
 
 # `s3://bucket`, `gs://b`, `http://host` (and `s3:/bucket`, what a Path makes of it); not a drive letter `C:/`.
