@@ -402,6 +402,15 @@ BOUND_ATTACKS = [
     sized("convert_image_size_over", _convert_to, "--image-size", "513", "512"),
     sized("make_demos_image_size_huge", _make_demos, "--image-size", "4000", "512"),
     sized("make_demos_steps_huge", _make_demos, "--num-steps", "1000000", "5000"),
+    sized("capture_batch_huge", lambda w, t: [*_capture(w, t), "--output-dir", t / "run"], "--batch-size", "100000",
+          "1024"),
+    *(sized(f"evaluate_{flag[2:].replace('-', '_')}_huge",
+            lambda w, t: [*_evaluate(w, t), "--data-root", w.data, "--lerobot-root", w.dataset,
+                          "--output-root", t / "eval"], flag, value, limit)
+      for flag, value, limit in (("--batch-size", "5000", "1024"), ("--noise-seeds", "1000", "256"),
+                                 ("--random-directions", "100000", "4096"), ("--max-frames", "1000000", "10000"))),
+    config_value("config_capture_batch_huge", "capture.batch_size", 100000),
+    config_value("config_evaluate_bootstrap_huge", "evaluate.bootstrap", 10**9),
 ]
 
 
