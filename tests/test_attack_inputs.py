@@ -16,6 +16,8 @@ import torch
 import yaml
 from helpers_attack import Attack, Case, World, assert_refused
 
+from steering_core.storage.layout import check_name
+
 BINARY = bytes(range(128, 256)) * 4  # no UTF-8 text starts with these
 PAIR = "open_vs_close"
 POSITIVE = "open the top drawer of the cabinet"
@@ -456,8 +458,16 @@ ATTACKS = [binary_config, utf16_config, binary_config_with_run, *CONFIG_ATTACKS,
 
 
 @pytest.mark.parametrize("attack", ATTACKS, ids=lambda f: f.__name__)
-def test_refused(attack_world, tmp_path, attack):
+def test_refused(attack_world, tmp_path, monkeypatch, attack):
+    monkeypatch.chdir(tmp_path)  # what a URL taken for a relative path would create (`s3:/...`) is seen too
     assert_refused(attack_world, tmp_path, attack)
+
+
+def test_names_that_stay_under_their_root_are_accepted():
+    for name in ("libero_demo_lerobot", "physical-intelligence/libero", "v2.1", "open the top drawer"):
+        assert check_name(name, "repo_id", nested=True) == name
+    for name in ("open_vs_close", "turn on the stove", "a..b"):
+        assert check_name(name, "pair") == name
 
 
 def test_the_table_holds_eighty_cases_or_more():
