@@ -5,13 +5,15 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Iterator, Sequence
-from typing import Any
+from pathlib import Path
+from typing import Any, get_args
 
 import typer
 from pydantic import ValidationError
 from typer.core import TyperGroup
 
 from latent_steering_cli.lazy import LazyCommands, current_options
+from steering_core.storage.fileio import check_local
 
 # Options holding one string that lists several values (e.g. `--layers "12 14"`); the seed passes them
 # space-separated as separate words, which are joined back into that one value.
@@ -57,12 +59,40 @@ def seed_spellings(command: Any, args: Sequence[str]) -> list[str]:
     return out
 
 
+def check_local_paths(command: Any, args: Sequence[str]) -> None:
+    """Refuse a URL (`s3://...`) given to any path option of `command`, naming the option (ValueError)."""
+    paths = {name for param in command.params if _holds_path(getattr(param, "type_descriptor", None))
+             for name in param.opts}
+    for position, word in enumerate(args):
+        if word == "--":
+            return
+        name, equals, value = word.partition("=")
+        if name in paths and (equals or position + 1 < len(args)):
+            try:
+                check_local(value if equals else args[position + 1])
+            except ValueError as err:
+                raise ValueError(f"{name}: {err}") from None
+
+
+def _holds_path(descriptor: Any) -> bool:
+    """Return whether an option's type annotation is a Path (or a list or optional of one)."""
+    def paths_in(annotation: Any) -> bool:
+        return annotation is Path or any(paths_in(arg) for arg in get_args(annotation))
+    return descriptor is not None and paths_in(descriptor.annotation)
+
+
 class SeedSpellingGroup(TyperGroup):
-    """Command group that accepts the seed scripts' flag spellings (see `seed_spellings`) for every subcommand."""
+    """Command group that accepts the seed scripts' flag spellings (see `seed_spellings`) for every subcommand,
+    and refuses URLs given as paths (`check_local_paths`) with one line."""
 
     def resolve_command(self, ctx: Any, args: list[str]) -> tuple[str | None, Any, list[str]]:
         name, command, rest = super().resolve_command(ctx, args)
-        return name, command, seed_spellings(command, rest) if command is not None else rest
+        if command is None:
+            return name, command, rest
+        rest = seed_spellings(command, rest)
+        with input_errors():
+            check_local_paths(command, rest)
+        return name, command, rest
 
 
 class Commands(SeedSpellingGroup, LazyCommands):

@@ -27,7 +27,7 @@ from steering_core.evaluate.run import (
 from steering_core.pi05 import Pi05Arch
 from steering_core.sae.vectors import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD
+from steering_core.storage.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 
 _DEFAULTS = EvaluateSettings()
 NO_SAE = "none"
@@ -153,7 +153,8 @@ def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
         layers=(layer,) if layer is not None else expert, norm_stats_path=flags["norm_stats"],
         arch=Pi05Arch.model_validate(read_json(flags["arch_file"])) if flags["arch_file"] else Pi05Arch(),
     )
-    names = flags["pair"] or [p.name for p in read_pairs_config(flags["pairs_config"]).pairs]
+    names = [check_name(name, "--pair") for name in flags["pair"]] or [
+        p.name for p in read_pairs_config(flags["pairs_config"]).pairs]
     places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=flags["repo_id"] or lerobot_root.name,
                   output_root=flags["output_root"] or data_root / STEERING_EVAL_ROOT)
     jobs = _layer_jobs(flags, names, places, settings) if layer is not None else []

@@ -228,7 +228,7 @@ def test_evaluate_section_holds_out_episodes_and_takes_top_k_from_steering(tmp_p
         off.evaluate_settings()
     assert load_error(tmp_path, VALID + "evaluate: {top_k: 3}\n") == ["evaluate.top_k: set by the run config: use `steering.top_k`"]
     assert load_error(tmp_path, VALID + "evaluate: {alphas: [1, 2]}\n")[0].startswith("evaluate.alphas: alphas [1.0, 2.0] must include 0")
-    assert load_error(tmp_path, VALID + "slicing: {holdout_episodes: [1]}\n") == [
+    assert load_error(tmp_path, VALID.replace("slicing: {reduce: frame}", "slicing: {holdout_episodes: [1]}")) == [
         "slicing.holdout_episodes: set by the run config: use `evaluate.holdout_fraction`"]
 
 
@@ -256,7 +256,8 @@ def test_expert_layers_add_a_decision_capture_and_are_checked_against_the_expert
         "model.arch.depth"]
     assert load_error(tmp_path, VALID + "evaluate: {expert_layers: [-1]}\n") == [
         "evaluate.expert_layers: expert_layers [-1] include a negative index; expert layers count from 0"]
-    assert load_error(tmp_path, VALID + "capture: {num_steps: 5}\nevaluate: {expert_layers: [1]}\n") == [
+    assert load_error(tmp_path, VALID.replace("storage_dtype: bfloat16}", "num_steps: 5}")
+                      + "evaluate: {expert_layers: [1]}\n") == [
         "evaluate.num_steps 10 differs from capture.num_steps 5: the expert direction comes from the decision rows "
         "of the sampler the evaluation steers; set both to the same value"]
 
@@ -306,3 +307,12 @@ def test_existing_dataset_and_sources_are_exclusive(tmp_path):
     assert load_error(tmp_path, no_repo) == [
         "dataset: give `repo_id` (the name of the dataset converted from `sources`), "
         "or `existing` with the path of a LeRobot dataset to read in place"]
+
+
+def test_merged_keys_may_be_overridden_but_a_key_written_twice_is_refused(tmp_path):
+    merged = VALID.replace("steering: {top_k: 7, include_decoder_bias: true}",
+                           "steering: {<<: {top_k: 3, batch_size: 64}, top_k: 7, include_decoder_bias: true}")
+    config = load_run_config(write_yaml(tmp_path, merged))
+    assert (config.steering.top_k, config.steering.batch_size) == (7, 64)
+    twice = VALID.replace("steering: {top_k: 7,", "steering: {top_k: 3, top_k: 7,")
+    assert load_error(tmp_path, twice) == ["not valid YAML (line 21, column 22: key 'top_k' appears twice; keep one)"]

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -237,6 +239,18 @@ def test_converting_twice_gives_equal_data(raw, tmp_path):
     assert read_sources(tmp_path / "one") == read_sources(tmp_path / "elsewhere" / "two")
     # the same bytes, every file, although lerobot staged each in another (randomly named) folder
     assert_same_bytes(tmp_path / "one", tmp_path / "elsewhere" / "two", "data/chunk-000/file-000.parquet")
+
+
+def test_converts_in_two_processes_write_equal_bytes(raw, tmp_path):
+    """Two `convert` processes with different string hashing (set orders differ) write the same bytes, every file:
+    lerobot writes meta/stats.json's features in a set's order, which convert sorts."""
+    folder, _ = raw
+    for seed, name in (("1", "one"), ("2", "two")):
+        subprocess.run([sys.executable, "-c", "from latent_steering_cli import app; app()", "convert", "--input-dir",
+                        str(folder), "--repo-id", "local/libero_test", "--output-dir", str(tmp_path / name),
+                        "--image-size", "16"],
+                       env={**os.environ, "PYTHONHASHSEED": seed}, check=True, capture_output=True)
+    assert_same_bytes(tmp_path / "one", tmp_path / "two", "meta/stats.json")
 
 
 def test_append_is_byte_deterministic(raw, tmp_path):

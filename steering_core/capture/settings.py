@@ -53,7 +53,9 @@ class CaptureSettings(StrictModel):
     norm_stats_asset_id: str = LIBERO_ASSET_ID
     skip_norm_stats: bool = False  # the seed's flag: never read norm stats (the libero format needs none)
     arch: Pi05Arch = Pi05Arch()
-    batch_size: int = Field(32, ge=1)  # frames per forward pass; the seed used 128 on a large GPU
+    # frames per forward pass; the seed used 128 on a large GPU. 1024 frames of pi0.5's ~800-token prefix at width
+    # 2048 are 3.4 GB of bf16 activations per layer, more than any GPU holds with the model's intermediates
+    batch_size: int = Field(32, ge=1, le=1024)
     device: str | None = None  # default CUDA when available, else CPU
     dtype: str | None = None  # compute dtype; default openpi's bfloat16 policy on CUDA, float32 on CPU
     storage_dtype: StorageDtype = "float32"

@@ -8,7 +8,15 @@ import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, Field, ValidationInfo, create_model, model_validator
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    Field,
+    ValidationInfo,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from steering_core.capture import CaptureSettings
 from steering_core.capture.slicing import SliceSettings
@@ -19,6 +27,8 @@ from steering_core.evaluate import EvaluateSettings
 from steering_core.pi05 import Pi05Arch
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
 from steering_core.sae.vectors import SteeringSettings
+from steering_core.storage.fileio import check_local
+from steering_core.storage.layout import check_name
 from steering_core.storage.schema import StrictModel
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -41,7 +51,7 @@ def _resolve_path(value: Path, info: ValidationInfo) -> Path:
     return value if value.is_absolute() or base is None else Path(base) / value
 
 
-ConfigPath = Annotated[Path, AfterValidator(_resolve_path)]
+ConfigPath = Annotated[Path, BeforeValidator(check_local), AfterValidator(_resolve_path)]
 
 
 def options_model(settings: type[StrictModel], supplied: tuple[str, ...], name: str, **extra: Any) -> type[StrictModel]:
@@ -88,6 +98,11 @@ class DatasetSection(_ConvertOptions):
 
     existing: ConfigPath | None = None   # a LeRobot v2.0/v2.1/v3.0 dataset root (a read-only HF cache is fine)
     repo_id: str | None = Field(None, min_length=1)  # existing: defaults to the folder's name
+
+    @field_validator("repo_id")
+    @classmethod
+    def _repo_id_is_a_path(cls, repo_id: str | None) -> str | None:
+        return repo_id if repo_id is None else check_name(repo_id, "repo_id", nested=True)  # libero_lerobot/<repo_id>
 
     @model_validator(mode="after")
     def _existing_or_converted(self) -> DatasetSection:

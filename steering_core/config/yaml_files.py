@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Hashable
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +12,7 @@ from pydantic import ValidationError
 
 from steering_core.config.run import RunConfig
 from steering_core.config.sections import SUPPLIED
-from steering_core.storage.fileio import atomic_path
+from steering_core.storage.fileio import atomic_path, read_text
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 
@@ -25,8 +26,9 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: run config not found; pass --config with a YAML file (see README)")
+    text = read_text(path, "a run config (YAML)")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.load(text, Loader=UniqueKeyLoader)  # a SafeLoader: no Python objects
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
@@ -39,14 +41,40 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
         raise ValueError("\n".join(f"{path}: {line}" for line in format_errors(err, data))) from None
 
 
+class UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a mapping that names one key twice (YAML would silently keep the last).
+
+    Keys merged in with `<<: *alias` may be overridden: only keys written in the mapping itself are compared.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            if not isinstance(key, Hashable):
+                continue  # the safe loader refuses it itself
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "in a mapping", node.start_mark, f"key {key!r} appears twice; keep one", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def format_errors(err: ValidationError, data: Any = None) -> list[str]:
     """Return one `key path: message` line per validation error, e.g. `pairs[1].positive: field required`.
 
     With the validated `data`, list positions print as `[i]` and mapping keys as `.key` (`sae.12`).
     """
     lines = []
-    for error in err.errors(include_url=False):
-        key = _key_path(error["loc"], data)
+    errors = err.errors(include_url=False)
+    failed = [error["loc"] for error in errors]
+    for error in errors:
+        loc = error["loc"]
+        if error["type"] == "too_short" and any(other[:len(loc)] == loc != other for other in failed):
+            continue  # a list too short only because its bad items (reported) were left out
+        key = _key_path(loc, data)
         message = error["msg"].removeprefix("Value error, ")
         message = message[:1].lower() + message[1:]
         if error["type"] == "extra_forbidden":

@@ -21,7 +21,6 @@ from steering_core.data.contrast import ContrastManifest, read_manifest
 from steering_core.data.dataset import (
     DatasetMeta,
     IndexColumns,
-    dataset_fingerprint,
     read_index_columns,
     read_meta,
 )
@@ -167,13 +166,8 @@ def _dataset_problems(manifest: ContrastManifest, meta: DatasetMeta, from_source
     Segments in `from_sources` were matched by file and demo, so their (possibly relabelled) task is not compared.
     """
     problems = []
-    if manifest.dataset is not None:
-        found = dataset_fingerprint(meta.root)
-        if manifest.dataset.fingerprint != found:
-            problems.append(
-                f"the manifest was built from a dataset with fingerprint {manifest.dataset.fingerprint[:12]}..., "
-                f"this one has {found[:12]}... (another dataset, or this one changed since)"
-            )
+    if manifest.dataset is not None and (mismatch := manifest.dataset.mismatch(meta.root)):
+        problems.append(mismatch)
     episodes = {e.episode_index: e for e in meta.episodes}
     texts = (manifest.dataset.task_texts if manifest.dataset is not None else None) or {}
     for i, seg in enumerate(manifest.segments):

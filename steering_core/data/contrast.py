@@ -99,6 +99,14 @@ class ManifestDataset(BaseModel):
     settings: ContrastSettings
     task_texts: dict[str, str] | None = None  # label -> the dataset's task text, when labels were given
 
+    def mismatch(self, root: str | os.PathLike) -> str | None:
+        """Return why the dataset at `root` is not the one this manifest was built from (its fingerprint), or None."""
+        found = dataset_fingerprint(root)
+        if found == self.fingerprint:
+            return None
+        return (f"the manifest was built from a dataset with fingerprint {self.fingerprint[:12]}..., "
+                f"this one has {found[:12]}... (another dataset, or this one changed since)")
+
 
 class ContrastManifest(StrictModel):
     """A contrast manifest: the axis, one segment per kept demo and, optionally, its provenance."""

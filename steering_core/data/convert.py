@@ -32,6 +32,7 @@ stamps into each v3.0 data file (a hash of the staging path) is replaced by one 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -42,12 +43,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
 from steering_core.reporting.progress import Progress, ProgressCallback
+from steering_core.storage import layout
 from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, write_json
 from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel, read_model
@@ -58,6 +60,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 SOURCES_FILE = "meta/libero_sources.json"
+STATS_FILE = "meta/stats.json"  # lerobot v3.0's dataset statistics, rewritten in sorted key order
 SOURCES_FORMAT_VERSION = 1
 DEMO_FILE_GLOB = "*.hdf5"
 # Files a complete dataset of each version must have; without them lerobot would try the hub.
@@ -66,6 +69,9 @@ REQUIRED_DATASET_FILES = {
     "v2.1": ("meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl", "meta/episodes_stats.jsonl", "data"),
 }
 DATA_PARQUET_GLOB = "**/*.parquet"  # v3.0 data files, under data/
+# A demo's frames are resized in memory, (T, size, size, 3) uint8 per camera: at 512 px a 500-step demo takes
+# 375 MiB, at 20000 px one frame takes 1.1 GiB. LIBERO renders 128 px and pi0.5 reads 224 px.
+MAX_IMAGE_SIZE = 512
 _RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for long demos
 
 Orientation = Literal["rotate180", "as_stored"]
@@ -79,13 +85,18 @@ class ConvertSettings(StrictModel):
     """How LIBERO demos become a LeRobot dataset (defaults: openpi's physical-intelligence/libero)."""
 
     repo_id: str = Field(min_length=1)
-    image_size: int = Field(default=256, ge=8)      # physical-intelligence/libero frames are 256x256
+    image_size: int = Field(default=256, ge=8, le=MAX_IMAGE_SIZE)  # physical-intelligence/libero frames are 256x256
     orientation: Orientation = "rotate180"           # what pi05_libero saw in training (module docstring)
     fps: int = Field(default=10, gt=0)               # openpi declares 10 although LIBERO controls at 20 Hz
     robot_type: str = "panda"
     codebase_version: CodebaseVersion = "v3.0"       # v2.1: openpi's pinned lerobot (module docstring)
     resize_filter: ResizeFilter = "antialiased_bilinear"  # bicubic: the seed's converter
     demo_order: DemoOrder = "numeric"                # lexicographic: the seed's sorted(keys)
+
+    @field_validator("repo_id")
+    @classmethod
+    def _repo_id_is_a_path(cls, repo_id: str) -> str:
+        return layout.check_name(repo_id, "repo_id", nested=True)  # the run config's libero_lerobot/<repo_id>
 
 
 class EpisodeSource(StrictModel):
@@ -433,6 +444,14 @@ def _write_episodes(
             content_fingerprint(path)
     # lerobot stages PNGs under images/ before embedding them in the parquet files; only empty folders remain
     shutil.rmtree(Path(dataset.root) / "images", ignore_errors=True)
+    _sort_stats(Path(dataset.root))
+
+
+def _sort_stats(root: Path) -> None:
+    """Rewrite `meta/stats.json` with sorted keys (lerobot's layout otherwise): lerobot writes the features in
+    the order of a set, which changes from process to process, so the same demos gave other bytes each time."""
+    path = root / STATS_FILE
+    path.write_text(json.dumps(read_json(path), indent=4, ensure_ascii=False, sort_keys=True), encoding="utf-8")
 
 
 def _stamp(path: Path) -> tuple[int, int]:

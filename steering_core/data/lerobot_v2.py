@@ -9,9 +9,10 @@ values assigned in episode order. v2.1 adds `meta/episodes_stats.jsonl`; v2.0 ma
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
+
+from steering_core.storage.fileio import parse_json, read_text
 
 V2_VERSIONS = ("v2.0", "v2.1")
 TASKS_JSONL = "meta/tasks.jsonl"
@@ -27,18 +28,14 @@ def read_jsonl(path: Path, required: tuple[str, ...]) -> list[dict[str, Any]]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found; a LeRobot v2.x dataset needs it")
     rows = []
-    with open(path, encoding="utf-8") as handle:
-        for number, line in enumerate(handle, start=1):
-            if not line.strip():
-                continue
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{path}:{number}: not valid JSON ({err.msg})") from None
-            if not isinstance(row, dict) or any(k not in row for k in required):
-                found = sorted(row) if isinstance(row, dict) else type(row).__name__
-                raise ValueError(f"{path}:{number}: expected an object with keys {list(required)}, found {found}")
-            rows.append(row)
+    for number, line in enumerate(read_text(path, "a JSON lines file").splitlines(), start=1):
+        if not line.strip():
+            continue
+        row = parse_json(line, f"{path}:{number}")
+        if not isinstance(row, dict) or any(k not in row for k in required):
+            found = sorted(row) if isinstance(row, dict) else type(row).__name__
+            raise ValueError(f"{path}:{number}: expected an object with keys {list(required)}, found {found}")
+        rows.append(row)
     return rows
 
 

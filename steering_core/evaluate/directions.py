@@ -20,7 +20,7 @@ from safetensors import safe_open
 
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pair_vectors
-from steering_core.storage.tensor_files import check_safetensors, require_finite
+from steering_core.storage.tensor_files import check_safetensors, load_torch_file, require_finite
 
 RESIDUAL = "residual_direction"
 DECISION = "decision_mean_difference"
@@ -89,7 +89,7 @@ def read_slice_rows(path: Path) -> torch.Tensor:
         with safe_open(str(tensors), "pt") as handle:
             rows = handle.get_tensor("residuals")
     else:
-        rows, tensors = torch.load(path, weights_only=True), path
+        rows, tensors = load_torch_file(path), path
     require_finite(rows, tensors, "residuals", "re-run slice to rewrite it")
     return rows
 

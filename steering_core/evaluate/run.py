@@ -109,6 +109,9 @@ def _job(
     manifest_path = data_root / layout.MANIFEST_FILE.format(pair=pair)
     concept_map = data_root / layout.CONCEPT_MAP_FILE.format(pair=pair)
     manifest = read_manifest(manifest_path)
+    if manifest.dataset is not None and (mismatch := manifest.dataset.mismatch(dataset_root)):
+        raise ValueError(f"{manifest_path} does not match the dataset {dataset_root}: {mismatch}; evaluate on the "
+                         "dataset the pair's manifest, concept map and slices were built from")
     tasks = tuple(manifest.axis.mean_delta_per_task)  # (task A, task B) = (positive, negative)
     if callable(slices):
         slices = tuple(slices(task_concepts(read_concept_map(concept_map), manifest, tasks, concept_map)))

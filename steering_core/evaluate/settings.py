@@ -39,16 +39,17 @@ class EvaluateSettings(StrictModel):
     """How each (pair, layer) is evaluated; defaults are the issue's method."""
 
     holdout_fraction: float = Field(0.2, ge=0, lt=1)  # episodes per task held out of slicing (at least one)
-    max_frames: int = Field(32, ge=2)          # evaluation frames per pair, shared by both tasks
+    max_frames: int = Field(32, ge=2, le=10_000)  # evaluation frames per pair, shared by both tasks
     alphas: AlphaGrid = DEFAULT_ALPHAS       # must hold 0 (the unsteered reference)
-    noise_seeds: int = Field(4, gt=0)          # flow-matching noise draws per frame, the same across α
-    random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS)  # null: directions drawn from the rows' covariance
+    noise_seeds: int = Field(4, gt=0, le=256)  # flow-matching noise draws per frame, the same across α
+    # null: directions drawn from the rows' covariance; each is a policy sweep per frame, so thousands would take days
+    random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS, le=4096)
     permutations: int = Field(8, ge=0)         # null: mean differences with episode labels shuffled between tasks
     top_k: int = Field(20, gt=0)               # SAE latents kept for the top-k direction
     num_steps: int = Field(10, gt=0)           # denoising steps of sample_actions
-    bootstrap: int = Field(1000, gt=0)         # resamples of the episodes (frames nested) for 95% intervals
+    bootstrap: int = Field(1000, gt=0, le=1_000_000)  # resamples of the episodes (frames nested) for 95% intervals
     seed: int = 0                              # random directions, noise and bootstrap
-    batch_size: int = Field(8, gt=0)           # frames per policy sweep call
+    batch_size: int = Field(8, gt=0, le=1024)  # frames per policy sweep call (capture's bound)
     entries_per_call: int = Field(40, gt=0)    # steered (direction, α) entries per sweep call (bounds GPU memory)
     device: str = "auto"
     dtype: str | None = None                   # None: bfloat16 on CUDA, float32 on CPU (as openpi)

@@ -27,7 +27,7 @@ from steering_core.sae.model import Sae
 from steering_core.storage.fileio import atomic_path, read_json, sha256_json, write_json
 from steering_core.storage.fingerprints import file_digest
 from steering_core.storage.locks import output_lock
-from steering_core.storage.tensor_files import check_safetensors
+from steering_core.storage.tensor_files import check_safetensors, load_torch_file
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ class ConceptReader:
                 self.shape, self.dtype = tuple(rows.get_shape()), SAFETENSORS_DTYPES.get(rows.get_dtype())
             self._tensor = None
         else:
-            tensor = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+            tensor = load_torch_file(path, mmap=True)
             if not isinstance(tensor, torch.Tensor):
                 raise ValueError(f"{path}: expected a (rows, d_in) tensor, found {type(tensor).__name__}")
             self._tensor, self.shape, self.dtype = tensor, tuple(tensor.shape), tensor.dtype

@@ -53,6 +53,7 @@ from steering_core.storage.layout import (
     PAIRWISE_STATS_FILE,
     SLICE_INDEX_FILE,
     STEERING_ROOT,
+    check_name,
     layer_dir,
 )
 from steering_core.storage.locks import output_lock
@@ -86,9 +87,7 @@ class PairSpec(StrictModel):
     @field_validator("name")
     @classmethod
     def _name_is_a_folder_name(cls, name: str) -> str:
-        if not name or name in (".", "..") or any(ch in name for ch in "/\\\0"):
-            raise ValueError(f"pair name {name!r} must be usable as a folder name (no '/', '\\\\', '.' or '..')")
-        return name
+        return check_name(name, "pair name")
 
 
 class PairsConfig(StrictModel):
@@ -185,7 +184,7 @@ def check_concepts(
         try:
             reader = ConceptReader(path)
         except ValueError as err:
-            problems.append(f"{where}: {err}")
+            problems.append(f"{where}: {str(err).removeprefix(f'{path}: ')}")
             continue
         expected = f"(rows, {sae.cfg.d_in})" if sae is not None else "(rows, d_in)"
         if not reader.valid_shape:
@@ -208,7 +207,7 @@ def check_concepts(
     if missing or problems:
         kind = FileNotFoundError if missing else ValueError
         hint = "; relative paths are resolved against the base directory (see --paths-relative-to)" if missing else ""
-        raise kind("unusable concept files" + hint + ": " + " | ".join(missing + problems))
+        raise kind("unusable concept files" + hint + ": " + "; ".join(missing + problems))
     return readers
 
 

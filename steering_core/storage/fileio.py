@@ -14,6 +14,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import socket
 import stat
@@ -215,15 +216,57 @@ def non_finite_key(payload: Any, where: str = "") -> str | None:
     return None
 
 
-def read_json(path: str | os.PathLike) -> Any:
-    """Return the parsed JSON of `path`, with errors that name the file."""
+def read_text(path: str | os.PathLike, what: str) -> str:
+    """Return the UTF-8 text of `path`; ValueError naming the file when it is binary (`what`: what it should hold)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file not found")
+    data = path.read_bytes()
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not a text file (byte {err.start} is not UTF-8); expected {what}") from None
+
+
+class DuplicateKeyError(ValueError):
+    """A mapping that names one key twice (JSON or YAML would silently keep the last)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """Return the JSON object of `pairs`; DuplicateKeyError when a key appears twice."""
+    found: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in found:
+            raise DuplicateKeyError(f"key {key!r} appears twice in one object")
+        found[key] = value
+    return found
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Return the parsed JSON of `path`, with errors that name the file (binary, malformed, a key given twice)."""
+    return parse_json(read_text(path, "a JSON file"), str(path))
+
+
+def parse_json(text: str, where: str) -> Any:
+    """Return the parsed JSON `text`; ValueError starting with `where` when malformed or a key is given twice."""
+    try:
+        return json.loads(text, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
+        raise ValueError(f"{where}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
+    except DuplicateKeyError as err:
+        raise ValueError(f"{where}: {err}; keep one") from None
+
+
+# `s3://bucket`, `gs://b`, `http://host` (and `s3:/bucket`, what a Path makes of it); not a drive letter `C:/`.
+_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]+:/")
+
+
+def check_local(value: Any) -> Any:
+    """Return `value` unless it is a URL (`s3://...`): ValueError, as object storage is not supported yet."""
+    if isinstance(value, (str, os.PathLike)) and _URL.match(os.fspath(value)):
+        raise ValueError(f"{os.fspath(value)!r} is a URL; only local paths are supported (object storage is not "
+                         "yet): mount it and give the local path")
+    return value
 
 
 def sha256_file(path: str | os.PathLike) -> str:

@@ -40,6 +40,21 @@ JOINTS_PLOT = "joint_trajectories.png"
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.+-]")
 
 
+def check_name(name: str, what: str, *, nested: bool = False) -> str:
+    """Return `name` when it can name a file or folder under an output root; ValueError naming `what` otherwise.
+
+    Refused: empty, `.` or `..`, a `/` (unless `nested`: then `/`-separated parts, each checked, as in the
+    repo id `org/name`), a backslash, a NUL or a leading `~`: anything that could land outside the root.
+    """
+    parts = name.split("/") if nested else [name]
+    bad = [part for part in parts if part in ("", ".", "..") or any(c in part for c in "/\\\0") or part[:1] == "~"]
+    if bad or not name.strip():
+        shape = "`/`-separated names" if nested else "one file or folder name"
+        raise ValueError(f"{what} {name!r} is not a name a path can be built from: expected {shape} without "
+                         "`..`, `.`, empty parts, backslashes or a leading `~` (it must stay under its root)")
+    return name
+
+
 def layer_dir(layer: int) -> str:
     """Return the folder name of one layer, e.g. `layer12`."""
     return LAYER_DIR.format(layer=layer)

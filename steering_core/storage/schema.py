@@ -25,7 +25,7 @@ M = TypeVar("M", bound=BaseModel)
 
 
 def validation_problems(err: ValidationError) -> str:
-    """Return every problem of a pydantic error on one line, each as `key.path: message`, joined by `; `.
+    """Return every problem of a pydantic error on one line, each as `key.path: message`, `; `-separated.
 
     Problems that differ only in list positions (the same field of every shard of a run, say) share one
     line, the positions given as ranges: `shards.<0-39>.crc32 (40 entries): ...`.
@@ -70,8 +70,8 @@ def read_model(
 ) -> M:
     """Return `model` validated from the JSON file at `path`.
 
-    A wrong `format_version` (when one is expected) or invalid content raises one ValueError that
-    names the file, says what it should be (`what`), lists every problem by key (one line), and ends with `fix`.
+    A wrong `format_version` (when one is expected) or invalid content raises one ValueError, one line, that
+    names the file, says what it should be (`what`), lists every problem by key, and ends with `fix`.
     """
     payload = read_json(path)
     fix = f"; {fix}" if fix else ""

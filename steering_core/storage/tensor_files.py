@@ -135,13 +135,14 @@ def load_safetensors(path: str | os.PathLike, device: str = "cpu") -> dict[str, 
     return load_file(path, device=device)
 
 
-def load_torch_file(path: str | os.PathLike) -> Any:
+def load_torch_file(path: str | os.PathLike, *, mmap: bool = False) -> Any:
     """Return the content of a `torch.save` file holding only tensors and plain containers (weights_only).
 
     Pickled objects of other classes are refused with a ValueError naming the file: they would run code.
+    `mmap`: tensors stay in the file, read on use (a large slice is not loaded whole).
     """
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as err:
         # torch's message goes on to advise weights_only=False, i.e. running the file's code: keep only its reason
         found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", str(err))

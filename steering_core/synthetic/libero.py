@@ -75,8 +75,8 @@ class SyntheticTask(StrictModel):
 class SyntheticSettings(StrictModel):
     """Sizes and randomness of generated demos (real values as defaults)."""
 
-    image_size: int = Field(default=128, ge=8)     # LIBERO renders 128x128; tests pass 16 or 32
-    num_steps: int = Field(default=120, ge=8)      # real demos are 100-300 steps; tests pass ~12
+    image_size: int = Field(default=128, ge=8, le=512)    # LIBERO renders 128x128; tests pass 16 or 32
+    num_steps: int = Field(default=120, ge=8, le=5000)    # real demos are 100-300 steps; tests pass ~12
     length_jitter: int = Field(default=0, ge=0)    # demos get num_steps + [0, length_jitter] steps
     noise_std: float = Field(default=5e-4, ge=0)   # per-step noise on ee axes, well below any motion
     state_dim: int = Field(default=48, ge=11)      # flattened MuJoCo state width (scene-dependent)
