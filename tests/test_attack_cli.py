@@ -9,42 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from helpers_attack import Case, World, assert_refused
-
-OPEN, CLOSE = "open the top drawer of the cabinet", "close the top drawer of the cabinet"
-REPO = "libero_demo_lerobot"
-
-
-def good(world: World, tmp: Path) -> dict[str, list[str]]:
-    """Each command's working command line on the finished run, writing (if it ran) under `tmp`."""
-    data = world.data
-    model = ["--checkpoint-path", world.checkpoint, "--tokenizer-path", world.tokenizer,
-             "--arch-file", data / "arch.json", "--device", "cpu"]
-    return {
-        "filter": ["--input-dir", world.inputs / "inputs" / "demos", "--output-dir", tmp / "filtered", "--task", OPEN],
-        "convert": ["--input-dir", data / "filtered", "--repo-id", REPO, "--output-dir", tmp / "dataset",
-                    "--image-size", "16"],
-        "manifest": ["--lerobot-root", world.dataset, "--task-a-text", OPEN, "--task-b-text", CLOSE,
-                     "--output", tmp / "manifest.json"],
-        "concept-map": ["--manifest-path", data / "manifests" / "open_vs_close.json", "--output-path",
-                        tmp / "concept_map.json", "--lerobot-root", world.dataset],
-        "capture": [*model, "--lerobot-root", world.dataset, "--output-dir", tmp / "run", "--layers", "1",
-                    "--num-workers", "0"],
-        "split": ["--manifest", data / "manifests" / "open_vs_close.json", "--output", tmp / "split.json"],
-        "slice": ["--run-dir", data / "residuals" / "demo", "--concept-map-path",
-                  data / "manifests" / "open_vs_close_concept_map.json", "--output-dir", tmp / "slices",
-                  "--layers", "1"],
-        "steer": ["--pairs-config", data / "layer1_pairs.json", "--output-root", tmp / "steering", "--layer", "1",
-                  "--device", "cpu", "--sae", world.sae(1)],
-        "evaluate": ["--pairs-config", data / "layer1_pairs.json", "--layer", "1", "--data-root", data,
-                     "--output-root", tmp / "eval", "--lerobot-root", world.dataset, *model, "--sae", world.sae(1),
-                     "--max-frames", "2", "--noise-seeds", "1"],
-        "rollout": ["--config", world.config],
-        "run": ["--config", world.config],
-        "serve": ["--checkpoint-path", world.checkpoint, "--tokenizer-path", world.tokenizer, "--arch-file",
-                  data / "arch.json", "--vectors", data / "latent_steering", "--device", "cpu", "--port", "0"],
-        "make-demos": ["--output-dir", tmp / "demos", "--image-size", "16", "--demos-per-task", "1"],
-    }
+from helpers_attack import OPEN, Case, World, assert_refused, good
 
 
 def with_option(argv: list, option: str, value, drop: str | None = None) -> list:
