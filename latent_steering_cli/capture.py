@@ -12,8 +12,8 @@ from steering_core.capture.shards import StorageDtype, TokenType
 from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
 from steering_core.config import load_run_config
 from steering_core.data.split import read_split
-from steering_core.pi05 import Pi05Arch, PromptFormat
-from steering_core.storage.fileio import read_json
+from steering_core.pi05 import PromptFormat
+from steering_core.pi05.arch import read_arch
 
 _CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
 
@@ -133,7 +133,7 @@ def _capture_from_flags(
         settings = CaptureSettings(
             **fields, checkpoint_path=checkpoint_path, tokenizer_path=tokenizer_path, layers=layer_list(layers),
             token_type=token_type or "instructions", norm_stats_path=norm_stats, norm_stats_asset_id=asset_id,
-            arch=Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch(),
+            arch=read_arch(arch_file),
         )
         result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings,
                          max_frames=max_samples_per_layer)

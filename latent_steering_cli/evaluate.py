@@ -24,9 +24,8 @@ from steering_core.evaluate.run import (
     run_config_job,
     slice_decision_run,
 )
-from steering_core.pi05 import Pi05Arch
+from steering_core.pi05.arch import read_arch
 from steering_core.sae.vectors import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
-from steering_core.storage.fileio import read_json
 from steering_core.storage.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 
 _DEFAULTS = EvaluateSettings()
@@ -151,7 +150,7 @@ def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
     model = CaptureSettings(
         checkpoint_path=flags["checkpoint_path"], tokenizer_path=flags["tokenizer_path"],
         layers=(layer,) if layer is not None else expert, norm_stats_path=flags["norm_stats"],
-        arch=Pi05Arch.model_validate(read_json(flags["arch_file"])) if flags["arch_file"] else Pi05Arch(),
+        arch=read_arch(flags["arch_file"]),
     )
     names = [check_name(name, "--pair") for name in flags["pair"]] or [
         p.name for p in read_pairs_config(flags["pairs_config"]).pairs]

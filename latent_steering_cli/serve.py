@@ -7,7 +7,8 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from steering_core.pi05 import Pi05Arch, PromptFormat
+from steering_core.pi05 import PromptFormat
+from steering_core.pi05.arch import read_arch
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
 from steering_core.serve import (
     PolicyServer,
@@ -26,7 +27,6 @@ from steering_core.serve.server import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_QUEUE,
 )
-from steering_core.storage.fileio import read_json
 from steering_core.storage.layout import STEERING_ROOT
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT
@@ -116,7 +116,7 @@ def serve_command(
         if vectors != DEFAULT_VECTORS and not len(catalog):
             raise ValueError(f"--vectors {vectors}: no steering vectors in it; pass the steer step's output root "
                              f"(holding layerNN/<pair>/ folders)")
-        arch = Pi05Arch.model_validate(read_json(arch_file)) if arch_file else Pi05Arch()
+        arch = read_arch(arch_file)
         default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer",
                                  limits=SteeringLimits(max_alpha, arch.depth))
         policy = Pi05Policy.from_checkpoint(

@@ -56,13 +56,16 @@ Attack = Callable[[World, Path], Case]
 
 
 def snapshot(*roots: Path) -> dict[str, tuple[int, int]]:
-    """Every file and folder under `roots`, with its size and modification time."""
+    """Every file (with its size and modification time) and folder under `roots`.
+
+    A folder counts by its existence only: a lock file made and removed again beside an output is no change.
+    """
     seen = {}
     for root in roots:
         if root.exists():
             for path in (root, *root.rglob("*")):
                 stat = path.lstat()
-                seen[str(path)] = (stat.st_size if not path.is_dir() else -1, stat.st_mtime_ns)
+                seen[str(path)] = (-1, 0) if path.is_dir() else (stat.st_size, stat.st_mtime_ns)
     return seen
 
 

@@ -149,7 +149,7 @@ CASES = [
     case("steer", "--layer", "7", "7"),
     case("steer", "--batch-size", "0", "--batch-size", exit_code=2),
     case("steer", "--top-k", "0", "--top-k", exit_code=2),
-    case("steer", "--top-k", "100000", "--top-k"),
+    case("steer", "--top-k", "100000", "top_k 100000", "256"),
     case("steer", "--device", "tpu", "tpu"),
     case("steer", "--sae", "no-such-release", "no-such-release"),
     case("steer", "--sae", lambda world, tmp: world.sae(2), "sae_layer02"),

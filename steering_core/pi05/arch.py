@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
+
 from pydantic import PositiveInt, model_validator
 
-from steering_core.storage.schema import StrictModel
+from steering_core.storage.schema import StrictModel, read_model
 
 
 class Pi05Arch(StrictModel):
@@ -90,3 +92,8 @@ class ExpertArch(StrictModel):
             raise ValueError(
                 "action expert does not pair with the language model layer by layer: " + ", ".join(mismatched)
             )
+
+
+def read_arch(path: str | os.PathLike | None) -> Pi05Arch:
+    """Return the dimensions in the JSON file `path` (an `--arch-file`), or the released checkpoints' when None."""
+    return Pi05Arch() if path is None else read_model(path, Pi05Arch, what="Pi05Arch file (pi0.5 dimensions)")

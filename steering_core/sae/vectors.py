@@ -363,6 +363,9 @@ def load_steering_sae(settings: SteeringSettings) -> Sae | None:
         cfg_from=settings.sae_cfg_from,
     )
     check_sae_layer(sae, settings.layer)
+    if settings.top_k > sae.cfg.d_sae:
+        raise ValueError(f"top_k {settings.top_k}: more latents than SAE {sae.name} has ({sae.cfg.d_sae}); "
+                         f"list at most {sae.cfg.d_sae}")
     return sae
 
 
