@@ -24,6 +24,7 @@ import logging
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import torch
@@ -31,6 +32,7 @@ from prefect.cache_policies import CachePolicy
 from prefect.context import TaskRunContext
 from prefect.states import State
 from prefect.tasks import Task
+from prefect.utilities.callables import get_call_parameters
 
 from steering_core.storage.fileio import sha256_json
 from steering_core.storage.fingerprints import code_version, plain
@@ -218,6 +220,16 @@ def _code_keys(value: Any) -> str | None:
 def cache_store(output_root: str | os.PathLike) -> Path:
     """Return the folder holding task results and cache records for runs writing under `output_root`."""
     return Path(output_root).resolve() / CACHE_DIR
+
+
+def is_cached(task: Task, output_root: str | os.PathLike, *args: Any, **kwargs: Any) -> bool:
+    """Return True when `rooted(task, output_root)(*args, **kwargs)` would be `Cached`: its record is there and
+    every output it lists exists (checked without starting a run, e.g. before launching a child run for it)."""
+    policy = rooted(task, output_root).cache_policy
+    if not isinstance(policy, ContentKey):
+        return False
+    key = policy.compute_key(SimpleNamespace(task=task), get_call_parameters(task.fn, args, kwargs), {})
+    return (cache_store(output_root) / key).is_file()
 
 
 def rooted(task: Task, output_root: str | os.PathLike) -> Task:
