@@ -22,6 +22,7 @@ import inspect
 import json
 import logging
 import os
+import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import SimpleNamespace
@@ -33,6 +34,7 @@ from prefect.context import TaskRunContext
 from prefect.states import State
 from prefect.tasks import Task
 from prefect.utilities.callables import get_call_parameters
+from safetensors import SafetensorError
 
 from steering_core.storage.fileio import sha256_json
 from steering_core.storage.fingerprints import code_version, plain
@@ -53,12 +55,20 @@ GPU_RETRIES, GPU_RETRY_DELAYS = 2, [30, 120]        # seconds: give a crashed ne
 TRANSIENT_ERRNOS = frozenset({errno.EIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.ETIMEDOUT, errno.ESTALE,
                               errno.ENOSPC, errno.ECONNRESET, errno.ECONNABORTED, errno.ENETUNREACH,
                               errno.EHOSTUNREACH})
+_RUST_OS_ERROR = re.compile(r"\(os error (\d+)\)")  # how Rust's std::io::Error names its errno
 
 
 # ----------------------------------------------------------------------------- retries
 
 def transient_io(err: BaseException) -> bool:
-    """Return True for an I/O error a later attempt may not meet: a network or disk hiccup, not a bad path."""
+    """Return True for an I/O error a later attempt may not meet: a network or disk hiccup, not a bad path.
+
+    safetensors reports I/O errors as SafetensorError (not an OSError) holding Rust's `(os error N)`: classified
+    by that number, so a full disk while writing a shard is retried like any other.
+    """
+    if isinstance(err, SafetensorError):
+        found = _RUST_OS_ERROR.search(str(err))
+        return found is not None and int(found.group(1)) in TRANSIENT_ERRNOS
     return isinstance(err, (ConnectionError, TimeoutError)) or (
         isinstance(err, OSError) and err.errno in TRANSIENT_ERRNOS)
 
