@@ -2,8 +2,8 @@
 
 Episodes are captured in fixed runs of `shards_per_capture_run` shard groups (run r holds shard
 groups r*S .. r*S+S-1), so the runs of a growing dataset keep their episodes and cached runs stay
-cached. With a server, the parent flow starts one deployment run per capture run so several GPU
-workers share the work; without one, the parent calls this flow in-process (a subflow) and the
+cached. With a server, the parent flow starts one deployment run per capture run not cached yet (through
+`flows.children`: crashed runs started again, deadlines) so several GPU workers share the work; without one, the parent calls this flow in-process (a subflow) and the
 runs go one after another on the local device. With `evaluate.expert_layers`, each capture run also
 writes the action expert's `decision` rows of its episodes into `residuals/<name>_decision` (a second
 residual run, same episodes and groups), so the GPU flow runs stay as many as without it.
@@ -11,22 +11,18 @@ residual run, same episodes and groups), so the GPU flow runs stay as many as wi
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from prefect import flow, get_run_logger, runtime
-from prefect.client.orchestration import get_client
-from prefect.client.schemas.objects import FlowRun, WorkerStatus
-from prefect.deployments import run_deployment
-from prefect.states import Cancelled
 
+from flows.children import Child, run_children
 from steering_core.capture import CaptureSettings, shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from tasks import capture as capture_tasks
-from tasks.cache import rooted
+from tasks.cache import is_cached, rooted
 
 CAPTURE_FLOW = "latent-steering-capture"
 
@@ -86,81 +82,32 @@ def capture_flow(config_path: str, episodes: list[int] | None = None, write_meta
     return {"runs": len(plan), "frames": frames}
 
 
-def capture_on_workers(config: RunConfig, config_path: str) -> list[FlowRun]:
-    """Start one capture deployment run per capture run, wait for all, then write the run metadata."""
-    logger = get_run_logger()
-    deployment = config.orchestration.capture_deployment
-    started = [
-        run_deployment(deployment, parameters={"config_path": config_path, "episodes": members, "write_metadata": False},
-                       flow_run_name=f"capture {run_label(members)}", timeout=0)
-        for members in capture_plan(config)
-    ]
-    logger.info("started %d capture run(s) of %s; waiting", len(started), deployment)
-    finished = wait_for_runs(started, config.orchestration.poll_seconds, config.orchestration.worker_wait_seconds)
-    failed = [f"{run.name} ({run.state.name if run.state else 'no state'})" for run in finished
-              if run.state is None or not run.state.is_completed()]
-    if failed:
-        raise RuntimeError(f"capture run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI, "
-                           "fix the cause and re-run: complete shards are kept")
+def capture_on_workers(config: RunConfig, config_path: str) -> None:
+    """Start one capture deployment run per capture run not cached yet, wait for all, then write the run metadata."""
+    plan = capture_plan(config)
+    wanted = [members for members in plan if not capture_cached(config, members)]
+    if len(wanted) < len(plan):
+        get_run_logger().info("%d of %d capture run(s) cached: not started", len(plan) - len(wanted), len(plan))
+    run_children(config.orchestration.capture_deployment,
+                 [Child(f"capture {run_label(members)}",
+                        {"config_path": config_path, "episodes": members, "write_metadata": False})
+                  for members in wanted], "capture", config.orchestration)
     for run_dir, _, _ in capture_targets(config):
         rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
-    return finished
+
+
+def capture_cached(config: RunConfig, members: list[int]) -> bool:
+    """Return True when every capture task of this capture run (and its decision rows) would be `Cached`."""
+    return all(is_cached(capture_tasks.capture_episodes, config.output_root, run_label(members, expert),
+                         str(config.dataset_root), config.repo_id, str(run_dir), settings, members)
+               for run_dir, settings, expert in capture_targets(config))
 
 
 def run_deployments(config: RunConfig, deployment: str, config_path: str | Path, targets: Sequence[Sequence[Any]],
                     run_names: Sequence[str], what: str) -> None:
-    """Start one run of `deployment` per target (its `targets` parameter) and wait for all; raise naming the runs
-    that did not complete, or the pool when no worker polls it (`orchestration.worker_wait_seconds`)."""
-    started = [run_deployment(deployment, parameters={"config_path": str(config_path), "targets": [list(target)]},
-                              flow_run_name=name, timeout=0) for target, name in zip(targets, run_names, strict=True)]
-    get_run_logger().info("started %d %s run(s); waiting", len(started), what)
-    orchestration = config.orchestration
-    failed = [run.name for run in wait_for_runs(started, orchestration.poll_seconds, orchestration.worker_wait_seconds)
-              if run.state is None or not run.state.is_completed()]
-    if failed:
-        raise RuntimeError(f"{what} run(s) did not complete: {', '.join(failed)}; see them in the Prefect UI")
-
-
-def wait_for_runs(runs: Sequence[FlowRun], poll_seconds: float, worker_wait_seconds: float | None = None) -> list[FlowRun]:
-    """Return `runs` re-read once each has reached a final state (polling the API every `poll_seconds`).
-
-    If after `worker_wait_seconds` none of the runs has started and no worker of their pool is online,
-    they are cancelled and a RuntimeError names the pool: nothing would ever run them.
-    """
-    pending = {run.id: run for run in runs}
-    finished: dict[Any, FlowRun] = {}
-    deadline = None if worker_wait_seconds is None else time.monotonic() + worker_wait_seconds
-    with get_client(sync_client=True) as client:
-        while pending:
-            for run_id in list(pending):
-                run = pending[run_id] = client.read_flow_run(run_id)
-                if run.state is not None and run.state.is_final():
-                    del pending[run_id]
-                    finished[run_id] = run
-            if pending and deadline is not None and time.monotonic() > deadline:
-                _fail_if_nobody_polls(client, list(pending.values()), worker_wait_seconds)
-                deadline = None  # a worker is there: wait as long as the runs take
-            if pending:
-                time.sleep(poll_seconds)
-    return [finished[run.id] for run in runs]
-
-
-def _fail_if_nobody_polls(client: Any, pending: list[FlowRun], waited: float) -> None:
-    """Cancel `pending` and raise if none has started and their work pool has no online worker."""
-    if any(run.state is None or not run.state.is_scheduled() for run in pending):
-        return  # a worker picked one up
-    pools = sorted({run.work_pool_name for run in pending if run.work_pool_name})
-    online = [pool for pool in pools
-              if any(worker.status == WorkerStatus.ONLINE for worker in client.read_workers_for_work_pool(pool))]
-    if online:
-        return
-    for run in pending:
-        client.set_flow_run_state(run.id, Cancelled(message=f"no worker polled pool {', '.join(pools)}"), force=True)
-    raise RuntimeError(
-        f"no worker is polling pool {', '.join(repr(p) for p in pools) or '(none)'}: {len(pending)} capture run(s) "
-        f"still scheduled after {waited:.0f} s were cancelled; start one with "
-        f"`prefect worker start --pool {pools[0] if pools else 'gpu'}` and re-run (complete shards are kept)"
-    )
+    """Start one run of `deployment` per target (its `targets` parameter) and wait for all (`flows.children`)."""
+    run_children(deployment, [Child(name, {"config_path": str(config_path), "targets": [list(target)]})
+                              for target, name in zip(targets, run_names, strict=True)], what, config.orchestration)
 
 
 def run_capture(config: RunConfig, config_path: str | Path) -> str:

@@ -1,4 +1,5 @@
-"""`latent-steering deploy`: work pools, the `gpu` concurrency limit, then every deployment of prefect.yaml.
+"""`latent-steering deploy`: work pools, the `gpu` concurrency limit, the crash automation, then every deployment
+of prefect.yaml.
 
 Runs against the server named by PREFECT_API_URL; without it, Prefect would silently deploy to a
 throwaway embedded server, so that is refused.
@@ -10,10 +11,14 @@ import logging
 import os
 import subprocess
 import sys
+from datetime import timedelta
 from pathlib import Path
 
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.actions import WorkPoolCreate
+from prefect.client.schemas.objects import StateType
+from prefect.events.actions import ChangeFlowRunState
+from prefect.events.schemas.automations import AutomationCore, EventTrigger, Posture
 from prefect.exceptions import ObjectNotFound
 from prefect.settings import PREFECT_API_URL
 from prefect.workers.process import ProcessWorker
@@ -25,6 +30,12 @@ PREFECT_FILE = "deployments/prefect.yaml"   # relative to the repository root
 CONFIG_ENV = "LATENT_STEERING_CONFIG"        # read by prefect.yaml's `{{ $LATENT_STEERING_CONFIG }}`
 GPU_POOL, CPU_POOL, SIM_POOL = "gpu", "cpu", "sim"
 GPU_TAG = "gpu"                              # tag of every GPU task; its limit = GPUs across all workers
+PROJECT_TAG = "latent-steering"              # tag of every deployment in prefect.yaml, so of their flow runs
+# Flow runs of the deployments send a heartbeat event every 30 s (PREFECT_FLOWS_HEARTBEAT_FREQUENCY in prefect.yaml,
+# Prefect's minimum); a run silent for HEARTBEAT_TIMEOUT seconds lost its process (a killed worker, a dead machine).
+HEARTBEAT_TIMEOUT = 90
+CRASH_AUTOMATION = "latent-steering: crash flow runs whose heartbeats stopped"
+_FINAL_EVENTS = {f"prefect.flow-run.{state}" for state in ("Completed", "Failed", "Cancelled", "Crashed")}
 
 
 def require_api_url() -> str:
@@ -65,6 +76,37 @@ def set_gpu_limit(slots: int) -> None:
     logger.info("concurrency limit: at most %d task(s) tagged %r at once", slots, GPU_TAG)
 
 
+def crash_automation(timeout_seconds: float = HEARTBEAT_TIMEOUT) -> AutomationCore:
+    """Return the automation that marks a project flow run Crashed when, after a heartbeat, neither another
+    heartbeat nor a final state follows within `timeout_seconds` (so its parent can start it again)."""
+    return AutomationCore(
+        name=CRASH_AUTOMATION,
+        description="A flow run of the latent-steering deployments whose heartbeats stopped lost its process: "
+                    "mark it Crashed, so its parent starts it again and the pipeline's concurrency slot is freed.",
+        trigger=EventTrigger(
+            after={"prefect.flow-run.heartbeat"},
+            expect={"prefect.flow-run.heartbeat", *_FINAL_EVENTS},
+            match={"prefect.resource.id": "prefect.flow-run.*"},
+            match_related={"prefect.resource.id": f"prefect.tag.{PROJECT_TAG}"},
+            for_each={"prefect.resource.id"},
+            posture=Posture.Proactive,
+            threshold=1,
+            within=timedelta(seconds=timeout_seconds),
+        ),
+        actions=[ChangeFlowRunState(state=StateType.CRASHED,
+                                    message=f"no heartbeat for {timeout_seconds:.0f} s: its process or machine died")],
+    )
+
+
+def ensure_crash_automation(timeout_seconds: float = HEARTBEAT_TIMEOUT) -> None:
+    """Create (or replace) the crash automation on the server."""
+    with get_client(sync_client=True) as client:
+        for existing in client.read_automations_by_name(CRASH_AUTOMATION):
+            client.delete_automation(existing.id)
+        client.create_automation(crash_automation(timeout_seconds))
+    logger.info("automation %r: flow runs silent for %.0f s are marked Crashed", CRASH_AUTOMATION, timeout_seconds)
+
+
 def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR) -> None:
     """Run `prefect deploy --all` on prefect.yaml with the run config's absolute path as parameter."""
     prefect_file = project_dir / PREFECT_FILE
@@ -85,8 +127,9 @@ def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR) 
 
 
 def setup(config_path: str | os.PathLike, gpu_slots: int = 1, project_dir: Path = PROJECT_DIR) -> None:
-    """Create pools and the GPU limit, then deploy the parent, capture and refresh flows."""
+    """Create pools, the GPU limit and the crash automation, then deploy the parent, capture and refresh flows."""
     logger.info("setting up deployments on %s", require_api_url())
     ensure_pools()
     set_gpu_limit(gpu_slots)
+    ensure_crash_automation()
     deploy_all(config_path, project_dir)

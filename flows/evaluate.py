@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow
+from prefect import flow, get_run_logger
 from prefect.artifacts import create_markdown_artifact
 
 from flows.capture import capture_mode, run_deployments
@@ -20,7 +20,7 @@ from steering_core.evaluate.run import run_config_job
 from steering_core.storage.layout import PATHWAYS_FILE, stream_layer_dir
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
-from tasks.cache import rooted
+from tasks.cache import is_cached, rooted
 
 EVALUATE_FLOW = "latent-steering-evaluate"
 
@@ -34,14 +34,18 @@ def evaluation_targets(config: RunConfig) -> list[tuple[str, int, str]]:
 def evaluate_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
     """Evaluate the steering vectors of `targets` (default every pair, layer and stream), one task each."""
     config = load_run_config(config_path)
-    settings = config.evaluate_settings()
     task = rooted(evaluate_tasks.evaluate_pair, config.output_root)
     done = []
-    for name, layer, stream in targets or evaluation_targets(config):  # one after another: they share this device
-        job = run_config_job(config, name, layer, stream)
-        steering = config.steering_settings(layer) if stream == "lm" else None  # the expert has no SAE
-        done.append(task(job, config.capture_settings(), steering, settings)["folder"])
+    for target in targets or evaluation_targets(config):  # one after another: they share this device
+        done.append(task(*evaluation_arguments(config, *target))["folder"])
     return {"folders": done}
+
+
+def evaluation_arguments(config: RunConfig, name: str, layer: int, stream: str) -> tuple:
+    """Return the arguments of `evaluate_pair` for one (pair, layer, stream)."""
+    steering = config.steering_settings(layer) if stream == "lm" else None  # the expert has no SAE
+    return (run_config_job(config, name, layer, stream), config.capture_settings(), steering,
+            config.evaluate_settings())
 
 
 def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]:
@@ -51,9 +55,14 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]
     Returns layer folder name (`layer02`, `expert_layer01`, `pathways`) -> its summary.md.
     """
     targets = evaluation_targets(config)
-    if capture_mode(config) == "deployment":
-        run_deployments(config, config.orchestration.evaluate_deployment, config_path, targets,
-                        [f"evaluate {name} {stream_layer_dir(layer, stream)}" for name, layer, stream in targets],
+    if capture_mode(config) == "deployment":  # cached ones are not started: a process start costs seconds
+        wanted = [target for target in targets if not is_cached(
+            evaluate_tasks.evaluate_pair, config.output_root, *evaluation_arguments(config, *target))]
+        if len(wanted) < len(targets):
+            get_run_logger().info("%d of %d evaluation run(s) cached: not started", len(targets) - len(wanted),
+                                  len(targets))
+        run_deployments(config, config.orchestration.evaluate_deployment, config_path, wanted,
+                        [f"evaluate {name} {stream_layer_dir(layer, stream)}" for name, layer, stream in wanted],
                         "evaluation")
     else:
         evaluate_flow(str(config_path), targets)

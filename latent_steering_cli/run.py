@@ -28,6 +28,8 @@ def prefect_environment(home: Path | None = None) -> None:
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "steering_core")  # library logs reach the Prefect UI
+    # its INFO lines outside a flow run (demo inputs, preflight) go to the console only, without Prefect's warning
+    os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
     if home is not None:
         os.environ.setdefault("PREFECT_HOME", str(home))
 

@@ -22,8 +22,10 @@ import inspect
 import json
 import logging
 import os
+import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import torch
@@ -31,6 +33,8 @@ from prefect.cache_policies import CachePolicy
 from prefect.context import TaskRunContext
 from prefect.states import State
 from prefect.tasks import Task
+from prefect.utilities.callables import get_call_parameters
+from safetensors import SafetensorError
 
 from steering_core.storage.fileio import sha256_json
 from steering_core.storage.fingerprints import code_version, plain
@@ -51,12 +55,20 @@ GPU_RETRIES, GPU_RETRY_DELAYS = 2, [30, 120]        # seconds: give a crashed ne
 TRANSIENT_ERRNOS = frozenset({errno.EIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.ETIMEDOUT, errno.ESTALE,
                               errno.ENOSPC, errno.ECONNRESET, errno.ECONNABORTED, errno.ENETUNREACH,
                               errno.EHOSTUNREACH})
+_RUST_OS_ERROR = re.compile(r"\(os error (\d+)\)")  # how Rust's std::io::Error names its errno
 
 
 # ----------------------------------------------------------------------------- retries
 
 def transient_io(err: BaseException) -> bool:
-    """Return True for an I/O error a later attempt may not meet: a network or disk hiccup, not a bad path."""
+    """Return True for an I/O error a later attempt may not meet: a network or disk hiccup, not a bad path.
+
+    safetensors reports I/O errors as SafetensorError (not an OSError) holding Rust's `(os error N)`: classified
+    by that number, so a full disk while writing a shard is retried like any other.
+    """
+    if isinstance(err, SafetensorError):
+        found = _RUST_OS_ERROR.search(str(err))
+        return found is not None and int(found.group(1)) in TRANSIENT_ERRNOS
     return isinstance(err, (ConnectionError, TimeoutError)) or (
         isinstance(err, OSError) and err.errno in TRANSIENT_ERRNOS)
 
@@ -218,6 +230,16 @@ def _code_keys(value: Any) -> str | None:
 def cache_store(output_root: str | os.PathLike) -> Path:
     """Return the folder holding task results and cache records for runs writing under `output_root`."""
     return Path(output_root).resolve() / CACHE_DIR
+
+
+def is_cached(task: Task, output_root: str | os.PathLike, *args: Any, **kwargs: Any) -> bool:
+    """Return True when `rooted(task, output_root)(*args, **kwargs)` would be `Cached`: its record is there and
+    every output it lists exists (checked without starting a run, e.g. before launching a child run for it)."""
+    policy = rooted(task, output_root).cache_policy
+    if not isinstance(policy, ContentKey):
+        return False
+    key = policy.compute_key(SimpleNamespace(task=task), get_call_parameters(task.fn, args, kwargs), {})
+    return (cache_store(output_root) / key).is_file()
 
 
 def rooted(task: Task, output_root: str | os.PathLike) -> Task:

@@ -251,3 +251,5 @@ def test_refresh_captures_only_the_added_file(refresh_run):
     assert result.checks["refresh_ran"] and result.checks["old_shards_untouched"]
     assert result.checks["shards_added"] == 2 * 2  # the added file's 2 episodes, 2 layers
     assert result.checks["changes"].startswith("1 added (KITCHEN_SCENE30_open_the_top_drawer")
+    # evaluation counts: the added file's pair is evaluated again at every layer, the other pair read from the cache
+    assert result.checks["evaluations"] == 2 * result.checks["evaluations_redone"] > 0

@@ -180,3 +180,18 @@ def test_cli_filter(sources, tmp_path):
     result = runner.invoke(app, [*args, "--task", OPEN.upper(), "--exact"])
     assert result.exit_code == 1
     assert "closest available: 'open the top drawer of the cabinet'" in result.output
+
+
+def test_byte_identical_copy_is_selected_with_a_warning_naming_both_files(sources, tmp_path, caplog):
+    original = sources[0] / "KITCHEN_SCENE1_open_the_top_drawer_of_the_cabinet_demo.hdf5"
+    copy = sources[1] / "copy_of_scene1_open.hdf5"
+    copy.write_bytes(original.read_bytes())
+    with caplog.at_level("WARNING", logger="steering_core.data.filtering"):
+        selection = filter_demos(list(sources), tmp_path / "out", FilterSettings(tasks=(OPEN,)))
+    assert copy.name in _names(selection)  # still selected: the user may mean it
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and str(copy.resolve()) in warnings[0] and str(original.resolve()) in warnings[0]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="steering_core.data.filtering"):
+        filter_demos([sources[0]], tmp_path / "out2", FilterSettings(tasks=(OPEN,)))  # two different files
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]

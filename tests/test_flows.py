@@ -36,6 +36,7 @@ from prefect.client.schemas.filters import (
 )
 from prefect.client.schemas.sorting import FlowRunSort
 from prefect.states import Failed
+from safetensors import SafetensorError
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
@@ -59,7 +60,17 @@ from steering_core.synthetic.libero import (
     SyntheticTask,
     write_libero_file,
 )
-from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, retry_if, rooted, transient_gpu, transient_io
+from tasks.cache import (
+    CACHE_DIR,
+    OUTPUTS,
+    RESULTS,
+    content_key,
+    is_cached,
+    retry_if,
+    rooted,
+    transient_gpu,
+    transient_io,
+)
 
 pytestmark = pytest.mark.slow
 PREFLIGHT = "check the run's inputs"  # the parent flow's first task, never cached
@@ -131,6 +142,18 @@ def test_content_key_caches_on_content_and_reruns_for_missing_outputs(tmp_path):
     assert len(records) == 2 * 3  # one record per distinct key, beside the outputs
 
 
+def test_is_cached_predicts_a_cached_run_without_starting_one(tmp_path):
+    source = tmp_path / "in.txt"
+    source.write_text("x")
+    args = ("a", str(source), f"{tmp_path}/out-0.txt")
+    assert not is_cached(double, tmp_path, *args)
+    assert double_twice(str(tmp_path), str(source)) == ["Completed", "Completed"]
+    assert is_cached(double, tmp_path, *args) and is_cached(double, tmp_path, "another label", *args[1:])
+    assert not is_cached(double, tmp_path, *args, times=3)
+    Path(args[2]).unlink()
+    assert not is_cached(double, tmp_path, *args)  # its output is gone: it would run again
+
+
 def test_code_version_follows_project_imports_only():
     modules = code_modules("steering_core.capture.slicing")
     assert {"steering_core.capture.slicing", "steering_core.capture.shards", "steering_core.data.concept_map", "steering_core.storage.fileio",
@@ -151,6 +174,12 @@ def test_retry_only_on_transient_errors():
     assert gpu(double, None, Failed(data=torch.cuda.OutOfMemoryError("held by a neighbour")))
     assert not gpu(double, None, Failed(data=RuntimeError("shape mismatch")))  # a bug: never retried
     assert not io(double, None, Failed(data=torch.cuda.OutOfMemoryError("x")))
+    # safetensors' I/O errors are no OSError: the errno in Rust's message decides (28: disk full)
+    full = 'Error while serializing: I/O error: No space left on device (os error 28) at path "/out/.tmpX"'
+    assert io(double, None, Failed(data=SafetensorError(full)))
+    assert gpu(double, None, Failed(data=SafetensorError(full)))
+    assert not io(double, None, Failed(data=SafetensorError(full.replace("os error 28", "os error 2"))))
+    assert not io(double, None, Failed(data=SafetensorError("invalid header: shapes disagree with offsets")))
 
 
 # ----------------------------------------------------------------------------- reading runs back

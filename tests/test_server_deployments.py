@@ -261,3 +261,86 @@ def test_capture_runs_fail_with_a_clear_message_when_no_gpu_worker_polls(server,
         assert "no worker is polling pool 'gpu'" in run.state.message, run.state.message
         captures = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
         assert captures and {r.state.name for r in captures} == {"Cancelled"}  # never left to start later
+
+
+def wait_until(check, what: str, timeout: float, log: Path):
+    """Poll `check()` every half second until it returns a true value; return that value."""
+    deadline = time.monotonic() + timeout
+    while not (found := check()):
+        assert time.monotonic() < deadline, f"{what} not seen within {timeout:.0f} s:\n{log.read_text()[-3000:]}"
+        time.sleep(0.5)
+    return found
+
+
+def capture_runs(client) -> list:
+    return client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
+
+
+@pytest.mark.timeout(1800)
+def test_a_machine_dying_mid_capture_is_recovered_without_a_hand(server, tmp_path):
+    """The gpu worker dies with its flow-run processes while capture runs are running: the deploy automation marks
+    them Crashed when their heartbeats stop, the parent starts them again on a new worker, complete shards are
+    kept, the pipeline completes, and the next pipeline run is neither blocked nor starts any cached capture run."""
+    env, processes = server
+    config_path = build_demo(tmp_path / "demo", demos_per_task=2)
+    raw = yaml.safe_load(config_path.read_text())
+    raw["orchestration"] = {"shards_per_capture_run": 2, "poll_seconds": 2}  # four capture runs
+    raw["evaluate"] = raw["rollout"] = None  # what follows capture is not under test here
+    config_path.write_text(yaml.safe_dump(raw))
+    config = load_run_config(config_path)
+    logs = tmp_path / "logs"
+
+    run_cli(env, LATENT_STEERING, "deploy", "--config", str(config_path))
+    with get_client(sync_client=True) as client:
+        assert [a.name for a in client.read_automations_by_name("latent-steering: crash flow runs whose heartbeats "
+                                                                 "stopped")]
+        client.pause_deployment(next(d for d in client.read_deployments() if d.name == "scheduled").id)
+    processes.start("worker-cpu", *PREFECT, "worker", "start", "--pool", "cpu")
+    dying = processes.start("worker-gpu-1", *PREFECT, "worker", "start", "--pool", "gpu")
+    output = run_cli(env, *PREFECT, "deployment", "run", "latent-steering/pipeline")
+    parent_id = re.search(r"UUID: ([0-9a-f-]{36})", output).group(1)
+
+    def mid_capture():  # all four started, at least one complete and one still running
+        with get_client(sync_client=True) as client:
+            states = [r.state.name for r in capture_runs(client)]
+        return (len(states) == 4 and set(states) <= {"Running", "Completed"} and "Completed" in states
+                and "Running" in states)
+
+    wait_until(mid_capture, "capture runs both complete and running", RUN_TIMEOUT, logs / "worker-gpu-1.log")
+    family = descendants(dying.pid)  # flow-run processes start their own sessions: found before the kill
+    os.killpg(dying.pid, signal.SIGKILL)  # the machine dies: the worker and every flow-run process it started
+    for pid in family:
+        os.kill(pid, signal.SIGKILL)
+    processes.start("worker-gpu-2", *PREFECT, "worker", "start", "--pool", "gpu")
+    with get_client(sync_client=True) as client:  # nothing can change them now but the automation
+        before = {r.name: r.state.name for r in capture_runs(client)}
+    kept = {path: path.stat().st_mtime_ns for path in config.run_dir.glob("**/shard-*.safetensors")}
+
+    with get_client(sync_client=True) as client:
+        parent = wait_until(lambda: (r := client.read_flow_run(parent_id)).state.is_final() and r,
+                            "the pipeline's end", RUN_TIMEOUT, logs / "worker-cpu.log")
+        assert parent.state.is_completed(), (parent.state.message, (logs / "worker-cpu.log").read_text()[-5000:])
+        runs = capture_runs(client)
+        crashed = [r for r in runs if r.state.name == "Crashed"]
+        assert sorted(r.name for r in crashed) == sorted(name for name, state in before.items() if state == "Running")
+        assert {"no heartbeat" in r.state.message for r in crashed} == {True}  # marked by the automation
+        completed = sorted(r.name for r in runs if r.state.is_completed())
+        assert completed == sorted(before)  # each capture run completed once: the first time or on its new attempt
+        parent_logs = client.read_logs(log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[parent.id])))
+        messages = [log.message for log in parent_logs]
+        assert any("crashed" in m and "starting it again, attempt 2 of 3" in m for m in messages), messages
+        # the library's INFO lines (slicing, conversion) reach the run's log under Prefect's logging setup
+        assert any(log.name.startswith("steering_core.") and log.level == 20 for log in parent_logs)
+
+    assert {path: path.stat().st_mtime_ns for path in kept} == kept  # shards complete before the crash kept
+    assert len(list(config.run_dir.glob("**/shard-*.safetensors"))) == 8 * len(config.layers)
+    for layer in config.layers:
+        assert (config.layer_path(layer) / "summary.md").is_file()
+
+    # the next pipeline run is not blocked behind the first, and starts no capture run: all are cached
+    second = run_deployment_and_wait(env, "latent-steering/pipeline", logs / "worker-cpu.log")
+    with get_client(sync_client=True) as client:
+        assert len(capture_runs(client)) == len(runs)
+        messages = [log.message for log in client.read_logs(
+            log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[second.id])))]
+    assert any("4 of 4 capture run(s) cached: not started" in m for m in messages), messages

@@ -192,7 +192,9 @@ class OrchestrationSection(StrictModel):
     pipeline_deployment: str = "latent-steering/pipeline"     # what a scheduled refresh starts
     shards_per_capture_run: int = Field(8, ge=1)  # episode groups per GPU flow run (one model load each)
     poll_seconds: float = Field(5.0, gt=0)        # how often the parent checks its capture runs
-    worker_wait_seconds: float = Field(600.0, gt=0)  # capture runs still unstarted, no gpu worker online: fail
+    worker_wait_seconds: float = Field(600.0, gt=0)  # child runs still unstarted, no worker of their pool: fail
+    resubmits: int = Field(2, ge=0)  # times a crashed child run (its process or machine died) is started again
+    deadline_seconds: float = Field(86400.0, gt=0)  # a phase's child runs not all finished by then: cancel, fail
 
 
 class RolloutSection(RolloutSettings):

@@ -88,6 +88,7 @@ def filter_demos(
                 num_demos=info.num_demos,
             )
         )
+    _warn_duplicates(files)
     selection = Selection(settings=settings, files=tuple(files))
 
     if _unchanged(output_dir, selection):
@@ -201,6 +202,17 @@ def _unknown_task_message(task: str, available: list[str]) -> str:
     close = difflib.get_close_matches(task.casefold(), list(folded), n=_CLOSE_MATCHES, cutoff=0.0)
     listed = "; ".join(repr(folded[c]) for c in close) or "(no readable instructions in the input folders)"
     return f"task {task!r} matches no file's instruction; closest available: {listed}"
+
+
+def _warn_duplicates(files: list[SelectedFile]) -> None:
+    """Warn about every selected file that is a byte-identical copy of another: its demos would become new episodes."""
+    first: dict[str, SelectedFile] = {}
+    for entry in files:
+        original = first.setdefault(entry.sha256, entry)
+        if original is not entry:
+            logger.warning("%s is a byte-identical copy of %s (sha256 %s): its %d demo(s) are added again as new "
+                           "episodes; remove one of the two files unless that is intended",
+                           entry.source, original.source, entry.sha256[:12], entry.num_demos)
 
 
 def _unchanged(output_dir: Path, selection: Selection) -> bool:

@@ -1,0 +1,125 @@
+"""The parent's child deployment runs: start one per target, wait, start crashed ones again, fail in one line.
+
+A child run ends Crashed when its process died: its worker reports that, or, when the worker died with it
+(a machine lost), the automation `latent-steering deploy` creates marks it Crashed once its heartbeats stop
+(`flows.deploy.ensure_crash_automation`). The parent starts such a run again, at most
+`orchestration.resubmits` times; every child's tasks are cached and capture keeps complete shards, so a new
+attempt redoes only what the dead one had not finished. A phase whose runs are not all final after
+`orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted with no worker on
+their pool fail after `orchestration.worker_wait_seconds`, naming the pool.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from typing import Any
+
+from prefect import get_run_logger
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.objects import FlowRun, WorkerStatus
+from prefect.deployments import run_deployment
+from prefect.states import Cancelled
+
+from steering_core.config.sections import OrchestrationSection
+
+REPORT_SECONDS = 60.0  # how often a waiting parent logs what it waits for
+
+
+@dataclasses.dataclass(frozen=True)
+class Child:
+    """One child run: its flow run name and the parameters of its deployment."""
+
+    name: str
+    parameters: dict[str, Any]
+
+
+def run_children(deployment: str, children: Sequence[Child], what: str,
+                 orchestration: OrchestrationSection) -> list[FlowRun]:
+    """Start one run of `deployment` per child and wait until all completed; return them, in order.
+
+    Crashed runs are started again (at most `orchestration.resubmits` times each); RuntimeError in one line
+    naming the runs that did not complete, the pool nobody polls, or the runs past the phase's deadline.
+    """
+    logger = get_run_logger()
+    if not children:
+        return []
+    runs = {child.name: _start(deployment, child) for child in children}
+    attempts = dict.fromkeys(runs, 1)
+    logger.info("started %d %s run(s) of %s; waiting", len(runs), what, deployment)
+    began = time.monotonic()
+    worker_check: float | None = began + orchestration.worker_wait_seconds
+    next_report = began + REPORT_SECONDS
+    finished: dict[str, FlowRun] = {}
+    with get_client(sync_client=True) as client:
+        while True:
+            for child in children:
+                if child.name in finished:
+                    continue
+                run = runs[child.name] = client.read_flow_run(runs[child.name].id)
+                if run.state is None or not run.state.is_final():
+                    continue
+                if run.state.is_crashed() and attempts[child.name] <= orchestration.resubmits:
+                    attempts[child.name] += 1
+                    logger.warning("%s crashed (%s); starting it again, attempt %d of %d", child.name,
+                                   run.state.message or "no message", attempts[child.name], orchestration.resubmits + 1)
+                    runs[child.name] = _start(deployment, child)
+                    worker_check = time.monotonic() + orchestration.worker_wait_seconds  # is anyone left to run it?
+                else:
+                    finished[child.name] = run
+            pending = [runs[child.name] for child in children if child.name not in finished]
+            if not pending:
+                break
+            now = time.monotonic()
+            if worker_check is not None and now > worker_check:
+                _fail_if_nobody_polls(client, pending, orchestration.worker_wait_seconds, what)
+                worker_check = None  # a worker is there: wait as long as the runs take
+            if now - began > orchestration.deadline_seconds:
+                _cancel(client, pending, f"not finished after orchestration.deadline_seconds = "
+                                         f"{orchestration.deadline_seconds:.0f} s")
+                raise RuntimeError(f"{what} run(s) {describe(pending)} not finished after "
+                                   f"{orchestration.deadline_seconds:.0f} s (orchestration.deadline_seconds): "
+                                   "cancelled; re-run to resume (finished work is kept)")
+            if now >= next_report:
+                logger.info("waiting for %d %s run(s) of %s: %s", len(pending), what, deployment, describe(pending))
+                next_report = now + REPORT_SECONDS
+            time.sleep(orchestration.poll_seconds)
+    failed = [run for run in finished.values() if run.state is None or not run.state.is_completed()]
+    if failed:
+        raise RuntimeError(f"{what} run(s) did not complete: {describe(failed)}; see them in the Prefect UI, fix the "
+                           "cause and re-run (finished work is kept)")
+    return [finished[child.name] for child in children]
+
+
+def describe(runs: Sequence[FlowRun]) -> str:
+    """Return `name (state), ...` of flow runs, e.g. `capture episodes 0-3 (Running)`."""
+    return ", ".join(f"{run.name} ({run.state.name if run.state else 'no state'})" for run in runs)
+
+
+def _start(deployment: str, child: Child) -> FlowRun:
+    """Create one run of `deployment` for `child`, linked to the current flow run, without waiting."""
+    return run_deployment(deployment, parameters=child.parameters, flow_run_name=child.name, timeout=0)
+
+
+def _cancel(client: Any, runs: Sequence[FlowRun], why: str) -> None:
+    """Set `runs` Cancelled (forced: a run on a dead machine cannot acknowledge a cancellation)."""
+    for run in runs:
+        client.set_flow_run_state(run.id, Cancelled(message=why), force=True)
+
+
+def _fail_if_nobody_polls(client: Any, pending: Sequence[FlowRun], waited: float, what: str) -> None:
+    """Cancel `pending` and raise if none has started and their work pool has no online worker."""
+    if any(run.state is None or not run.state.is_scheduled() for run in pending):
+        return  # a worker picked one up
+    pools = sorted({run.work_pool_name for run in pending if run.work_pool_name})
+    online = [pool for pool in pools
+              if any(worker.status == WorkerStatus.ONLINE for worker in client.read_workers_for_work_pool(pool))]
+    if online:
+        return
+    _cancel(client, pending, f"no worker polled pool {', '.join(pools)}")
+    raise RuntimeError(
+        f"no worker is polling pool {', '.join(repr(p) for p in pools) or '(none)'}: {len(pending)} {what} run(s) "
+        f"still scheduled after {waited:.0f} s were cancelled; start one with "
+        f"`prefect worker start --pool {pools[0] if pools else 'gpu'}` and re-run (finished work is kept)"
+    )
