@@ -441,8 +441,9 @@ def test_serve_command_passes_its_bounds_to_the_server(tiny, tmp_path, monkeypat
 
     built = []
     monkeypatch.setattr(PolicyServer, "run", lambda self: built.append(self))
+    monkeypatch.chdir(tmp_path)  # no data/latent_steering here: the plain policy is served
     command = ["serve", "--checkpoint-path", str(tiny["checkpoint"]), "--tokenizer-path", str(tiny["tokenizer"]),
-               "--arch-file", str(tiny["arch_file"]), "--device", "cpu", "--vectors", str(tmp_path)]
+               "--arch-file", str(tiny["arch_file"]), "--device", "cpu"]
     bounds = ["--inference-timeout-s", "2.5", "--max-connections", "3", "--max-queue", "1", "--max-message-mb", "0.5"]
     for options, want in (([], (120.0, 16, 2, 16 * 2**20)), (bounds, (2.5, 3, 1, 2**19))):
         result = CliRunner().invoke(app, command + options)

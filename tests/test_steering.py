@@ -415,7 +415,7 @@ def test_sae_of_another_layer_is_refused(project, tmp_path):
     [
         (lambda c: c["pairs"][1].pop("negative_path"), "pairs.1.negative_path: Field required"),
         (lambda c: c["pairs"][1].update(name="open_drawer_main"), "pair names must be unique; repeated: ['open_drawer_main']"),
-        (lambda c: c["pairs"][0].update(name="../escape"), "must be usable as a folder name"),
+        (lambda c: c["pairs"][0].update(name="../escape"), "one file or folder name without `..`"),
         (lambda c: c.update(pairs=[]), "pairs: List should have at least 1 item"),
         (lambda c: c["pairs"][0].update(weight=2), "pairs.0.weight: Extra inputs are not permitted"),
     ],

@@ -37,7 +37,7 @@ from typing import Literal
 import h5py
 import numpy as np
 
-from steering_core.storage.tensor_files import non_finite
+from steering_core.storage.finite import non_finite
 
 logger = logging.getLogger(__name__)
 

@@ -32,6 +32,7 @@ from safetensors.torch import load_file, save
 
 from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.storage.fileio import crc32
+from steering_core.storage.finite import non_finite
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
@@ -113,20 +114,6 @@ def require_finite(
     problem = non_finite(values, name, first_row)
     if problem is not None:
         raise ValueError(f"{where}: {problem}" + (f"; {fix}" if fix else ""))
-
-
-def non_finite(values: torch.Tensor | np.ndarray, name: str, first_row: int = 0) -> str | None:
-    """Return what is wrong with `values` if it holds NaN or Inf (naming tensor `name` and the first bad element),
-    else None; one reduction when all is well."""
-    tensor = torch.from_numpy(np.asarray(values)) if isinstance(values, np.ndarray) else values
-    if not tensor.is_floating_point() or bool(torch.isfinite(tensor).all()):
-        return None
-    at = (~torch.isfinite(tensor)).nonzero()[0].tolist()
-    value = tensor[tuple(at)].item()
-    if at:
-        at[0] += first_row
-    where_in = f" at {tuple(at) if len(at) > 1 else at[0]}" if at else ""
-    return f"tensor `{name}` holds NaN or Inf ({value}{where_in}); expected finite values"
 
 
 def load_safetensors(path: str | os.PathLike, device: str = "cpu") -> dict[str, torch.Tensor]:
