@@ -16,12 +16,8 @@ from typer.testing import CliRunner
 
 from latent_steering_cli import app
 from steering_core.data import convert as convert_module
-from steering_core.data.convert import (
-    ConvertSettings,
-    convert_libero,
-    prepare_frames,
-    read_sources,
-)
+from steering_core.data.convert import ConvertSettings, convert_libero, read_sources
+from steering_core.data.frames_prep import prepare_frames
 from steering_core.data.libero import iter_demos
 from steering_core.synthetic.libero import SyntheticSettings
 

@@ -8,17 +8,8 @@ trained on: `image` and `wrist_image` (PNG, image_size^2 x 3 uint8), `state` flo
 ee_pos (3) + ee_ori axis-angle (3) + gripper finger qpos (2), `actions` float32 (7), the
 instruction as the task, robot_type "panda", fps 10.
 
-Orientation: raw LIBERO renders are upside down (OpenGL convention). The frames of
-physical-intelligence/libero were flipped along both H and W by OpenVLA's regeneration,
-and openpi's eval client flips live frames the same way, so `rotate180` (default) is what
-the checkpoint saw in training. `as_stored` keeps the raw orientation, for datasets meant
-for models trained on raw renders.
-
-Resizing: LIBERO stores 128x128 frames; they are resized to `image_size` with bilinear
-interpolation, antialiased, half-pixel centres (torch `interpolate(antialias=True)`, which
-matches openpi's JAX resize), rounded and clipped to uint8. `bicubic` (PIL's) reproduces the
-seed's converter; so does `demo_order="lexicographic"` (the seed iterated `sorted(keys)`, which
-puts demo_10 before demo_2) with `orientation="as_stored"` (the seed did not flip).
+Frames are oriented and resized by `frames_prep` (openpi's orientation and resize; the seed's with
+`orientation="as_stored"`, `resize_filter="bicubic"` and `demo_order="lexicographic"`).
 
 Every episode's source (file name, demo key, file sha256, task, length) goes to
 `meta/libero_sources.json`; when every source in that record is still present, a
@@ -45,6 +36,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
+from steering_core.data.frames_prep import Orientation, ResizeFilter, prepare_frames
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
@@ -72,11 +64,8 @@ DATA_PARQUET_GLOB = "**/*.parquet"  # v3.0 data files, under data/
 # A demo's frames are resized in memory, (T, size, size, 3) uint8 per camera: at 512 px a 500-step demo takes
 # 375 MiB, at 20000 px one frame takes 1.1 GiB. LIBERO renders 128 px and pi0.5 reads 224 px.
 MAX_IMAGE_SIZE = 512
-_RESIZE_CHUNK = 64  # frames resized per call: bounds float32 scratch memory for long demos
 
-Orientation = Literal["rotate180", "as_stored"]
 CodebaseVersion = Literal["v3.0", "v2.1"]
-ResizeFilter = Literal["antialiased_bilinear", "bicubic"]
 DemoOrder = Literal["numeric", "lexicographic"]
 Action = Literal["created", "appended", "rebuilt", "unchanged"]
 
@@ -86,7 +75,7 @@ class ConvertSettings(StrictModel):
 
     repo_id: str = Field(min_length=1)
     image_size: int = Field(default=256, ge=8, le=MAX_IMAGE_SIZE)  # physical-intelligence/libero frames are 256x256
-    orientation: Orientation = "rotate180"           # what pi05_libero saw in training (module docstring)
+    orientation: Orientation = "rotate180"           # what pi05_libero saw in training (frames_prep docstring)
     fps: int = Field(default=10, gt=0)               # openpi declares 10 although LIBERO controls at 20 Hz
     robot_type: str = "panda"
     codebase_version: CodebaseVersion = "v3.0"       # v2.1: openpi's pinned lerobot (module docstring)
@@ -151,34 +140,6 @@ def lerobot_features(image_size: int) -> dict[str, dict]:
         "state": {"dtype": "float32", "shape": (8,), "names": ["state"]},
         "actions": {"dtype": "float32", "shape": (7,), "names": ["actions"]},
     }
-
-
-def prepare_frames(
-    frames: np.ndarray, orientation: Orientation, image_size: int, resize_filter: ResizeFilter = "antialiased_bilinear"
-) -> np.ndarray:
-    """Return (T, image_size, image_size, 3) uint8 frames, oriented then resized (see module docstring).
-
-    `frames` is (T, H, W, 3) uint8 as stored in LIBERO files.
-    """
-    if orientation == "rotate180":
-        frames = frames[:, ::-1, ::-1]
-    if frames.shape[1:3] == (image_size, image_size):
-        return np.ascontiguousarray(frames)
-    if resize_filter == "bicubic":
-        from PIL import Image
-
-        size = (image_size, image_size)
-        return np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(f)).resize(size, Image.BICUBIC)) for f in frames])
-    import torch  # deferred: torch is heavy and only conversion needs it
-    import torch.nn.functional as F
-
-    out = np.empty((frames.shape[0], image_size, image_size, 3), dtype=np.uint8)
-    for start in range(0, frames.shape[0], _RESIZE_CHUNK):
-        chunk = torch.from_numpy(np.ascontiguousarray(frames[start : start + _RESIZE_CHUNK]))
-        x = chunk.permute(0, 3, 1, 2).to(torch.float32)  # (t, 3, H, W)
-        x = F.interpolate(x, size=(image_size, image_size), mode="bilinear", align_corners=False, antialias=True)
-        out[start : start + len(chunk)] = x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
-    return out
 
 
 def plan_sources(input_dirs: Sequence[str | Path], demo_order: DemoOrder = "numeric") -> list[tuple[Path, EpisodeSource]]:
