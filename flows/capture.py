@@ -3,8 +3,8 @@
 Episodes are captured in fixed runs of `shards_per_capture_run` shard groups (run r holds shard
 groups r*S .. r*S+S-1), so the runs of a growing dataset keep their episodes and cached runs stay
 cached. With a server, the parent flow starts one deployment run per capture run not cached yet (through
-`flows.children`: crashed runs started again, deadlines) so several GPU workers share the work; without one, the parent calls this flow in-process (a subflow) and the
-runs go one after another on the local device. With `evaluate.expert_layers`, each capture run also
+`flows.children`: crashed runs started again, deadlines) so several GPU workers share the work; without
+one, the parent calls this flow in-process (a subflow) and the runs go one after another on the local device. With `evaluate.expert_layers`, each capture run also
 writes the action expert's `decision` rows of its episodes into `residuals/<name>_decision` (a second
 residual run, same episodes and groups), so the GPU flow runs stay as many as without it.
 """
