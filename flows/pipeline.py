@@ -8,6 +8,8 @@
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
    in-process (`flows.capture.run_capture`), then the run metadata; with `evaluate.expert_layers`,
    each capture run also writes the action expert's `decision` rows (`residuals/<name>_decision`).
+   Then, for layers with `sae.<layer>.train`, the `latent-steering-train-sae` flow (GPU) trains their SAE
+   on these residuals and judges it against the borrowed one (`flows.train_sae`); those layers steer through it.
 3. Fan-out (CPU) over every (pair, layer): slice residuals by concept (held-out episodes left out),
    SAE statistics per concept, directions per pair; then per layer the pairwise statistics, the
    report and its artifacts. The decision rows are sliced per (pair, expert layer) the same way.
@@ -37,6 +39,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from flows.capture import capture_mode, run_capture
 from flows.evaluate import run_evaluation
 from flows.rollout import run_rollouts
+from flows.train_sae import run_training
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
@@ -72,6 +75,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     holdouts = holdout_splits(config)
     mode = run_capture(config, config_path)  # with evaluate.expert_layers, the decision rows too
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
+    trained = run_training(config, config_path)  # the layers whose SAE is trained on these residuals
     expert_slices = decision_slices(config, holdouts)
     reports = steering_vectors(config, task_texts, holdouts)
     for future in expert_slices:
@@ -84,7 +88,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     write_sources_record(record_path, sources.with_config(config.fingerprint()))
     logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
     return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
-            "reports": {str(layer): path for layer, path in reports.items()},
+            "reports": {str(layer): path for layer, path in reports.items()}, "trained_saes": trained,
             "evaluations": evaluations, "rollouts": rollouts}
 
 

@@ -124,5 +124,5 @@ def deploy_command(
 
         setup(config, gpu_slots=gpu_slots)
     typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-evaluate/gpu-evaluate, "
-               "latent-steering-refresh/scheduled")
+               "latent-steering-train-sae/gpu-train-sae, latent-steering-rollout/sim-rollout, latent-steering-refresh/scheduled")
     typer.echo("start workers: prefect worker start --pool gpu  |  prefect worker start --pool cpu")

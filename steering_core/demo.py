@@ -26,6 +26,7 @@ from steering_core.config import (
     RolloutSection,
     RunConfig,
     SaeSection,
+    SaeTrainSection,
     SourcesSection,
     SteeringSection,
     write_run_config,
@@ -64,6 +65,9 @@ ARCH_FILE = "pi05_tiny_arch.json"  # the tiny checkpoint's Pi05Arch
 DEMO_LAYERS = (1, 2)           # two of the tiny model's four decoder layers
 DEMO_EXPERT_LAYERS = (2,)      # the action expert's layer whose decision rows are captured and evaluated
 DEMO_SAE_LATENTS = 256         # d_sae of the tiny SAEs (4x the tiny model's width of 64)
+DEMO_TRAINED_LAYER = 1         # the layer whose SAE the demo trains on its own residuals (judged against the random one)
+DEMO_TRAIN = SaeTrainSection(d_sae=DEMO_SAE_LATENTS, k=8, lr=3e-3, batch_size=128, training_rows=96_000,
+                             buffer_rows=8192, checkpoints=1, dead_feature_window=200, device="cpu", judge_frames=4)
 DEMO_IMAGE_SIZE = 64           # dataset frames (real: 256); the tiny model resizes them to 28
 DEMO_STEPS = 24                # steps per generated demo (real demos: 100-300)
 # The tiny model is random: its dose-responses exercise the whole phase but measure nothing.
@@ -116,7 +120,8 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
         layers=layers,
         model=ModelSection(checkpoint=checkpoint, tokenizer=tokenizer, arch=arch),
         capture=CaptureSection(batch_size=16, device="cpu", num_workers=0),  # tiny frames: decoding in-process is faster
-        sae={layer: SaeSection(path=path) for layer, path in saes.items()},
+        sae={layer: SaeSection(path=path, train=DEMO_TRAIN if layer == DEMO_TRAINED_LAYER else None)
+             for layer, path in saes.items()},
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
                                  note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),

@@ -76,6 +76,8 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     ]
     if capture_device:
         checks.append(lambda: resolve_device(config.capture.device))
+        checks += [(lambda layer=layer: resolve_device(config.train_settings(layer).device))
+                   for layer in config.trained_layers]
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
     return list(dict.fromkeys(problems + model + _failures(checks) + _rollout_problems(config)))
 
@@ -94,8 +96,10 @@ def _check_checkpoint_finite(config: RunConfig) -> None:
 
 def _check_sae(config: RunConfig, layer: int, *, check_width: bool) -> None:
     """Load the layer's SAE on the CPU (its files, config and finite weights); with `check_width` (the checkpoint
-    matches model.arch, so the arch's width is the model's), check that the SAE reads that width."""
-    sae = load_steering_sae(config.steering_settings(layer).model_copy(update={"device": "cpu"}))
+    matches model.arch, so the arch's width is the model's), check that the SAE reads that width. A trained layer's
+    SAE does not exist yet: the borrowed one it is judged against is checked."""
+    settings = config.steering_settings(layer, borrowed=layer in config.trained_layers)
+    sae = load_steering_sae(settings.model_copy(update={"device": "cpu"}))
     width = config.model.arch.width
     if check_width and sae is not None and sae.cfg.d_in != width:
         raise ValueError(f"{sae.cfg.source}: SAE of layer {layer} has d_in {sae.cfg.d_in}, but the model's residual "

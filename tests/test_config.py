@@ -151,7 +151,10 @@ def test_cross_section_errors(tmp_path):
 def test_sae_section_needs_exactly_one_source(tmp_path):
     text = VALID.replace("1: {path: saes/one}", "1: {path: saes/one, release: gemma-2b-res-jb}")
     assert load_error(tmp_path, text) == [
-        "sae.1: give exactly one of `release` (with optional `sae_id`) or `path`"
+        "sae.1: give one of `release` (with optional `sae_id`) or `path`, not both"
+    ]
+    assert load_error(tmp_path, VALID.replace("1: {path: saes/one}", "1: {local_dir: saes}")) == [
+        "sae.1: give `release` (with optional `sae_id`), `path`, or `train`"
     ]
 
 
@@ -316,3 +319,17 @@ def test_merged_keys_may_be_overridden_but_a_key_written_twice_is_refused(tmp_pa
     assert (config.steering.top_k, config.steering.batch_size) == (7, 64)
     twice = VALID.replace("steering: {top_k: 7,", "steering: {top_k: 3, top_k: 7,")
     assert load_error(tmp_path, twice) == ["not valid YAML (line 21, column 22: key 'top_k' appears twice; keep one)"]
+
+
+def test_a_trained_layer_steers_through_its_trained_sae_and_is_judged_against_the_named_one(tmp_path):
+    text = VALID.replace("1: {path: saes/one}", "1: {path: saes/one, train: {d_sae: 128, k: 4, seed: 3}}")
+    config = load_run_config(write_yaml(tmp_path, text))
+    assert config.trained_layers == (1,)
+    trained = tmp_path / "data" / "saes" / config.name / "layer01" / "sae"
+    assert config.trained_sae_dir(1) == trained and config.steering_settings(1).sae == str(trained)
+    assert config.steering_settings(1, borrowed=True).sae == str(tmp_path / "saes/one")
+    assert (config.train_settings(1).d_sae, config.train_settings(1).k, config.train_settings(1).seed) == (128, 4, 3)
+    alone = load_run_config(write_yaml(tmp_path, VALID.replace("1: {path: saes/one}", "1: {train: {d_sae: 128, k: 4}}")))
+    assert alone.steering_settings(1).sae == str(trained) and alone.steering_settings(1, borrowed=True).sae is None
+    with pytest.raises(ValueError, match="sae.4 has no `train` section"):
+        config.train_settings(4)

@@ -45,6 +45,7 @@ from steering_core.config.sections import (
     PairSection,
     RolloutSection,
     SaeSection,
+    SaeTrainSection,
     SliceSection,
     SourcesSection,
     SteeringSection,
@@ -53,6 +54,7 @@ from steering_core.config.yaml_files import CONFIG_FILE, format_errors, load_run
 
 __all__ = [
     "CONFIG_FILE", "PAIRS_CONFIG_FILE", "CaptureSection", "ConfigPath", "DatasetSection", "EvaluateSection",
-    "ModelSection", "OrchestrationSection", "PairSection", "RolloutSection", "RunConfig", "SaeSection", "SliceSection",
+    "ModelSection", "OrchestrationSection", "PairSection", "RolloutSection", "RunConfig", "SaeSection", "SaeTrainSection",
+    "SliceSection",
     "SourcesSection", "SteeringSection", "format_errors", "load_run_config", "write_run_config",
 ]

@@ -29,6 +29,7 @@ from steering_core.config.sections import (
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
+from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.vectors import PairsConfig, PairSpec, SteeringSettings
 from steering_core.storage import layout
 from steering_core.storage.schema import StrictModel
@@ -279,18 +280,44 @@ class RunConfig(StrictModel):
         """Return the SAE configured for `layer`, or None (residual-space directions only)."""
         return self.sae.get(layer)
 
-    def steering_settings(self, layer: int) -> SteeringSettings:
-        """Return the steering settings of one layer (pairs config and outputs under output_root)."""
+    @property
+    def trained_layers(self) -> tuple[int, ...]:
+        """Return the layers whose SAE is trained on this run's residuals (`sae.<layer>.train`)."""
+        return tuple(layer for layer in self.layers if (sae := self.sae_for(layer)) is not None and sae.train)
+
+    def sae_layer_path(self, layer: int) -> Path:
+        """Return `saes/<name>/layerNN` (the trained SAE's judgement and feature pages)."""
+        return self.output_root / layout.SAES_DIR.format(run=self.name) / layout.layer_dir(layer)
+
+    def trained_sae_dir(self, layer: int) -> Path:
+        """Return `saes/<name>/layerNN/sae`, the trained SAE in SAELens's format."""
+        return self.sae_layer_path(layer) / layout.TRAINED_SAE_DIR
+
+    def train_settings(self, layer: int) -> TrainSettings:
+        """Return the training settings of one layer; raise when its SAE is not trained."""
         sae = self.sae_for(layer)
+        if sae is None or sae.train is None:
+            raise ValueError(f"sae.{layer} has no `train` section: layer {layer}'s SAE is not trained by this run")
+        return TrainSettings(**sae.train.model_dump(include=set(TrainSettings.model_fields)))
+
+    def steering_settings(self, layer: int, *, borrowed: bool = False) -> SteeringSettings:
+        """Return the steering settings of one layer (pairs config and outputs under output_root).
+
+        A trained layer steers through its trained SAE; `borrowed=True` gives the settings of the SAE named
+        beside `train` instead (None when there is none).
+        """
+        sae = self.sae_for(layer)
+        trained = sae is not None and sae.train is not None and not borrowed
+        named = sae is not None and not trained and sae.source is not None
         return SteeringSettings(
             **self.steering.model_dump(),
             pairs_config=self.pairs_config_path(layer),
             output_root=self.steering_root,
             layer=layer,
-            sae=None if sae is None else sae.source,
-            sae_id=None if sae is None else sae.sae_id,
-            sae_dir=None if sae is None else sae.local_dir,
-            sae_cfg_from=None if sae is None else sae.cfg_from,
+            sae=str(self.trained_sae_dir(layer)) if trained else sae.source if named else None,
+            sae_id=sae.sae_id if named else None,
+            sae_dir=sae.local_dir if named else None,
+            sae_cfg_from=sae.cfg_from if named else None,
             paths_relative_to="config",
         )
 

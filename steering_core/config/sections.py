@@ -26,6 +26,7 @@ from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
 from steering_core.pi05 import Pi05Arch
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
+from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage.fileio import check_local
 from steering_core.storage.layout import check_name
@@ -159,27 +160,44 @@ class ModelSection(StrictModel):
     arch: Pi05Arch = Pi05Arch()            # real pi0.5 dimensions; tiny models pass theirs
 
 
+class SaeTrainSection(TrainSettings):
+    """Train this layer's SAE on the run's own residuals, judge it, and steer through it."""
+
+    judge_frames: int = Field(8, ge=1, le=256)  # held-out frames whose actions judge the reconstruction
+    heldout_fraction: float = Field(0.1, gt=0, lt=1)  # episodes kept out of training when no pair holds any out
+    feature_examples: int = Field(8, ge=1, le=64)  # top-activating frames per latent on the feature page
+
+
 class SaeSection(StrictModel):
-    """One layer's SAE: a release of the registry (+ sae id) or a path (folder or state dict)."""
+    """One layer's SAE: a release of the registry (+ sae id), a path (folder or state dict), or `train`.
+
+    With `train`, the SAE trained on this run's residuals steers; a `release` or `path` beside it names the
+    borrowed SAE it is judged against.
+    """
 
     release: str | None = None
     sae_id: str | None = None              # default blocks.<layer>.hook_resid_post
     path: ConfigPath | None = None
     local_dir: ConfigPath | None = None    # folder of release folders, searched before the HF cache
     cfg_from: str | None = None            # state-dict SAE: folder or release whose cfg.json applies
+    train: SaeTrainSection | None = None   # train on the run's residuals (saes/<run>/layerNN/)
 
     @model_validator(mode="after")
     def _one_source(self) -> SaeSection:
-        if (self.release is None) == (self.path is None):
-            raise ValueError("give exactly one of `release` (with optional `sae_id`) or `path`")
+        if self.release is not None and self.path is not None:
+            raise ValueError("give one of `release` (with optional `sae_id`) or `path`, not both")
+        if self.release is None and self.path is None and self.train is None:
+            raise ValueError("give `release` (with optional `sae_id`), `path`, or `train`")
         if self.sae_id is not None and self.release is None and self.cfg_from is None:
             raise ValueError("`sae_id` needs `release` (or `cfg_from` for a state dict)")
         return self
 
     @property
-    def source(self) -> str:
-        """Return what `steering_core.sae.load_sae` takes as its source."""
-        return self.release if self.release is not None else str(self.path)
+    def source(self) -> str | None:
+        """Return what `steering_core.sae.load_sae` takes as its source (None: only trained)."""
+        if self.release is not None:
+            return self.release
+        return None if self.path is None else str(self.path)
 
 
 class OrchestrationSection(StrictModel):
@@ -188,6 +206,7 @@ class OrchestrationSection(StrictModel):
     capture: Literal["auto", "deployment", "local"] = "auto"  # capture, evaluate, rollouts: auto = deployments
     capture_deployment: str = "latent-steering-capture/gpu"  # when run from one
     evaluate_deployment: str = "latent-steering-evaluate/gpu-evaluate"
+    train_deployment: str = "latent-steering-train-sae/gpu-train-sae"
     rollout_deployment: str = "latent-steering-rollout/sim-rollout"
     pipeline_deployment: str = "latent-steering/pipeline"     # what a scheduled refresh starts
     shards_per_capture_run: int = Field(8, ge=1)  # episode groups per GPU flow run (one model load each)

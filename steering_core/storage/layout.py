@@ -18,6 +18,8 @@ EXPERT_LAYER_DIR = "expert_layer{layer:02d}"        # steering_eval/expert_layer
 SLICE_INDEX_FILE = "index.json"                     # beside the slices of one layer: settings, concepts
 SPLIT_FILE = "manifests/{pair}_split.json"   # held-out episodes per task (phase 4 evaluates on them)
 STEERING_ROOT = "latent_steering"
+SAES_DIR = "saes/{run}"                    # layerNN/: an SAE trained on the run's residuals, its judgement, features
+TRAINED_SAE_DIR = "sae"                    # in saes/<run>/layerNN/: the SAE in SAELens's format (+ training.json)
 STEERING_EVAL_ROOT = "steering_eval"       # phase 4: steering_eval/layerNN/<pair>/ and per-layer summaries
 PATHWAYS_FILE = "pathways"                 # + .md / .json in STEERING_EVAL_ROOT: language model vs action expert
 # Files of one steering layer folder (STEERING_ROOT/layerNN/) and of its pair folders (layerNN/<pair>/).

@@ -1,0 +1,65 @@
+"""The SAE training flow `latent-steering-train-sae`: SAEs trained on the run's own residuals, on the `gpu` pool.
+
+For every layer with `sae.<layer>.train`, after capture and before the SAE phase: train the SAE on the layer's
+rows with the held-out episodes left out (`steering_core.sae.heldout`), then judge it on those episodes against
+the borrowed SAE named beside `train`. With a server, the parent starts one deployment run per layer not cached
+yet; without one, it calls this flow in-process.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from prefect import flow, get_run_logger
+
+from flows.capture import capture_mode, run_deployments
+from steering_core.capture import shards
+from steering_core.config import RunConfig, load_run_config
+from steering_core.sae.heldout import sae_heldout_episodes
+from steering_core.storage.layout import layer_dir
+from tasks import sae_train
+from tasks.cache import is_cached, rooted
+
+TRAIN_FLOW = "latent-steering-train-sae"
+
+
+def heldout_episodes(config: RunConfig, layer: int) -> list[int]:
+    """Return the episodes the layer's SAE is not trained on (and is judged on)."""
+    episodes = shards.read_run_metadata(config.run_dir).episodes
+    splits = [config.split_path(pair) for pair in config.pairs]
+    return list(sae_heldout_episodes(episodes, splits, config.sae_for(layer).train.heldout_fraction))
+
+
+def train_arguments(config: RunConfig, layer: int) -> tuple:
+    """Return the arguments of `train_layer_sae` for one layer."""
+    return (layer, str(config.run_dir), str(config.trained_sae_dir(layer)), config.train_settings(layer),
+            heldout_episodes(config, layer))
+
+
+@flow(name=TRAIN_FLOW)
+def train_sae_flow(config_path: str, targets: list[list[int]] | None = None) -> dict:
+    """Train (and judge) the SAE of every `targets` layer (default every trained layer), one after another."""
+    config = load_run_config(config_path)
+    folders = {}
+    for (layer,) in targets or [[layer] for layer in config.trained_layers]:
+        folders[layer_dir(layer)] = rooted(sae_train.train_layer_sae, config.output_root)(
+            *train_arguments(config, layer))["sae"]
+    return {"saes": folders}
+
+
+def run_training(config: RunConfig, config_path: str | Path) -> dict[str, str]:
+    """Train every trained layer's SAE on the `gpu` pool or in-process; return layer folder name -> SAE folder."""
+    layers = config.trained_layers
+    if not layers:
+        return {}
+    if capture_mode(config) == "deployment":  # cached ones are not started: a process start costs seconds
+        wanted = [layer for layer in layers
+                  if not is_cached(sae_train.train_layer_sae, config.output_root, *train_arguments(config, layer))]
+        if len(wanted) < len(layers):
+            get_run_logger().info("%d of %d SAE training run(s) cached: not started", len(layers) - len(wanted),
+                                  len(layers))
+        run_deployments(config, config.orchestration.train_deployment, config_path, [[layer] for layer in wanted],
+                        [f"train SAE {layer_dir(layer)}" for layer in wanted], "SAE training")
+    else:
+        train_sae_flow(str(config_path), [[layer] for layer in layers])
+    return {layer_dir(layer): str(config.trained_sae_dir(layer)) for layer in layers}

@@ -1,0 +1,49 @@
+"""SAE training tasks: an SAE trained on one layer of the run's residuals (GPU), its judgement against the borrowed
+SAE (GPU: it runs the policy) and its feature page (CPU)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from prefect import get_run_logger, task
+
+from steering_core.capture import shards
+from steering_core.sae.training.rows import RowSource
+from steering_core.sae.training.settings import TrainSettings
+from steering_core.sae.training.trainer import train_sae
+from steering_core.storage.layout import layer_dir
+from tasks.artifacts import ProgressArtifact, artifact_key
+from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
+from tasks.capture import GPU_TAG
+
+SAE_FILES = ("cfg.json", "sae_weights.safetensors", "sparsity.safetensors", "training.json")
+
+
+def layer_rows(inputs: dict[str, Any]) -> Any:
+    """Return the run identity and the (file, sha256) of the layer's shards: the rows training may read."""
+    metadata = shards.read_run_metadata(inputs["run_dir"])
+    return {"run": metadata.run.identity(),
+            "shards": [(r.file, r.sha256) for r in metadata.layer_shards(inputs["layer"])]}
+
+
+@task(
+    name="train-sae",
+    task_run_name="train SAE layer {layer}",
+    tags=[GPU_TAG],
+    cache_policy=content_key("steering_core.sae.training", derived={"rows": layer_rows}, ignore=("run_dir",)),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
+    **RESULTS,
+)
+def train_layer_sae(layer: int, run_dir: str, out_dir: str, settings: TrainSettings,
+                    heldout_episodes: list[int]) -> dict:
+    """Train one layer's SAE on the run's rows, held-out episodes left out (resuming a killed training); return
+    its folder."""
+    source = RowSource(Path(run_dir), layer, exclude=heldout_episodes)
+    progress = ProgressArtifact(artifact_key("train-sae", Path(run_dir).name, layer_dir(layer)), "rows",
+                                 f"train the {settings.architecture} SAE of {layer_dir(layer)} on {run_dir}")
+    folder = train_sae(source, Path(out_dir), settings, layer=layer, progress=progress)
+    progress.finish()
+    get_run_logger().info("SAE of %s trained on %d rows of %d episodes (%d held out): %s", layer_dir(layer),
+                          source.rows, len(source.episodes), len(heldout_episodes), folder)
+    return {OUTPUTS: [str(folder / name) for name in SAE_FILES], "sae": str(folder)}
