@@ -298,6 +298,24 @@ def test_judge_layer_without_a_borrowed_sae_or_a_policy(tmp_path):
     assert "| — | — | — |" in markdown and "Action change not measured (no policy given)." in markdown
 
 
+def test_judge_layer_keeps_a_folder_with_the_same_identity(tmp_path):
+    def rows():
+        yield random_rows(50, 16, seed=9)
+
+    def unreadable():
+        raise AssertionError("the rows were read again")
+        yield
+
+    sae = topk_sae(16, d_sae=32, k=2)
+    out = judge_layer(tmp_path / "layer05", 5, sae, rows, identity="a")
+    written = (out / "fidelity.json").read_bytes()
+    assert json.loads(written)["identity"] == "a"
+    assert judge_layer(out, 5, sae, unreadable, identity="a") == out
+    assert (out / "fidelity.json").read_bytes() == written
+    judge_layer(out, 5, topk_sae(16, d_sae=32, k=2, seed=4), rows, identity="b")
+    assert json.loads((out / "fidelity.json").read_text())["identity"] == "b"
+
+
 def test_verdict_names_the_sae_with_the_lower_fvu():
     def fit(fvu):
         return RowFidelity(rows=10, fvu=fvu, l0=4.0, dead=0, dense=1, d_sae=8, firing_histogram=[])

@@ -27,7 +27,7 @@ from steering_core.sae.action_fidelity import (
 )
 from steering_core.sae.fidelity import DENSE_FRACTION, HISTOGRAM_EDGES, RowBatches, RowFidelity, row_fidelity
 from steering_core.sae.model import Sae
-from steering_core.storage.fileio import atomic_path, write_json
+from steering_core.storage.fileio import atomic_path, read_json, write_json
 
 logger = logging.getLogger(__name__)
 
@@ -64,14 +64,19 @@ def judge_layer(
     borrowed: Sae | None = None,
     actions: ActionInputs | None = None,
     progress: ProgressCallback | None = None,
+    identity: str | None = None,
 ) -> Path:
     """Write out_dir/{fidelity.json, fidelity.md, fidelity.png} judging `trained` (and `borrowed`) at `layer`.
 
     `rows`: the layer's held-out rows, (b, d_in) float batches or (rows, columns) pairs, or a function
     returning them (`lambda: RowSource(run, layer, episodes=held_out).sequential(4096)`); read once.
     `actions`: the policy and held-out frames for the action change (language-model layers only); None skips
-    it (its columns stay empty). `progress` counts policy calls. Returns `out_dir`.
+    it (its columns stay empty). `progress` counts policy calls. `identity` (a digest of everything judged:
+    SAEs, rows, frames, checkpoint) is recorded; a folder already recording it is kept as it is. Returns `out_dir`.
     """
+    if identity is not None and judged_identity(out_dir) == identity:
+        logger.info("layer %d: %s already holds this judgement; reused", layer, out_dir)
+        return out_dir
     saes = {"trained": trained} | ({"borrowed": borrowed} if borrowed is not None else {})
     fidelity = row_fidelity(saes, rows, where=f"held-out rows of layer {layer}")
     changes: dict[str, ActionFidelity] = {}
@@ -83,6 +88,7 @@ def judge_layer(
         )
     record = {
         "format_version": FORMAT_VERSION,
+        "identity": identity,
         "layer": layer,
         "verdict": verdict(fidelity, changes),
         "dense_fraction": DENSE_FRACTION,
@@ -109,6 +115,15 @@ def judge_layer(
     write_json(out_dir / FIDELITY_JSON, record)  # last: its presence means the folder is complete
     logger.info("layer %d: %s (%s)", layer, record["verdict"], out_dir)
     return out_dir
+
+
+def judged_identity(out_dir: Path) -> str | None:
+    """Return the identity recorded in out_dir/fidelity.json, or None (none there, or unreadable)."""
+    try:
+        record = read_json(out_dir / FIDELITY_JSON)
+    except (OSError, ValueError):  # none yet, or damaged: judge again
+        return None
+    return record.get("identity") if isinstance(record, dict) else None
 
 
 def verdict(fidelity: Mapping[str, RowFidelity], changes: Mapping[str, ActionFidelity]) -> str:
