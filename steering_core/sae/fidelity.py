@@ -49,6 +49,7 @@ class _Sums:
         self.fired = torch.zeros(d_sae, dtype=torch.int64)
 
     def add(self, sae: Sae, rows: torch.Tensor) -> None:
+        """Add the squared error, active latents and firing counts of the SAE on rows (b, d_in)."""
         reconstruction, latents = sae.reconstruct(rows)
         self.squared_error += float((rows.double() - reconstruction.double().cpu()).square().sum())
         nonzero = latents != 0
@@ -56,6 +57,7 @@ class _Sums:
         self.fired += nonzero.sum(dim=0).cpu()
 
     def finish(self, rows: int, total_variance: float) -> RowFidelity:
+        """Return the metrics over `rows` rows whose Σ‖x − x̄‖² is `total_variance`."""
         frequency = self.fired.double() / rows
         live = frequency[frequency > 0].log10().clamp(min=HISTOGRAM_EDGES[0], max=HISTOGRAM_EDGES[-1])
         histogram = torch.histogram(live, bins=torch.tensor(HISTOGRAM_EDGES, dtype=torch.float64)).hist
