@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -303,6 +303,7 @@ class Pi05Prefix(nn.Module):
         start: int = 0,
         cache: KeyValueRecorder | None = None,
         additions: Mapping[int, torch.Tensor] | None = None,
+        replace: Mapping[int, Callable[[torch.Tensor], torch.Tensor]] | None = None,
     ) -> dict[int, torch.Tensor]:
         """Return {layer: residual stream (B, S, width) after that decoder layer} for prefix embeddings.
 
@@ -314,6 +315,8 @@ class Pi05Prefix(nn.Module):
             start: first decoder layer to run (the layers before it were run by an earlier call).
             cache: records every run layer's post-RoPE keys and values (the action expert's KV cache).
             additions: {layer: tensor broadcastable to (B, S, width)} added to that layer's output (steering).
+            replace: {layer: function of that layer's output (B, S, width) returning its replacement}, applied
+                before the layer's addition (a splice, e.g. an SAE's reconstruction at chosen positions).
         """
         wanted = set(layers)
         deepest = max(wanted)
@@ -327,6 +330,8 @@ class Pi05Prefix(nn.Module):
                 position_embeddings=position_embeddings,
                 past_key_values=cache,
             )
+            if replace and index in replace:
+                hidden = replace[index](hidden)
             if additions and index in additions:
                 hidden = hidden + additions[index]
             if index in wanted:

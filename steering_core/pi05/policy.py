@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ from steering_core.pi05.norm_stats import (
 )
 from steering_core.pi05.observation import observation_batch
 from steering_core.pi05.steering import (
+    Splice,
     Steering,
     SteeringArg,
     as_list,
@@ -198,15 +199,17 @@ class Pi05Policy(nn.Module):
         num_steps: int = DEFAULT_STEPS,
         steering: SteeringArg = None,
         generator: torch.Generator | None = None,
+        splice: Splice | None = None,
     ) -> torch.Tensor:
         """Return model actions (B, action_horizon, action_dim) float32, as openpi's `sample_actions`.
 
         images / image_masks: per camera slot (B, 3, S, S) float in [-1, 1] and (B,) bool, in openpi's
         order (`libero_camera_slots`); tokens (B, T) int64, token_mask (B, T) bool. noise: (B, H, A) float32,
         default N(0, 1) from `generator`. steering: one Steering, a list applied together, or None.
+        splice: a language-model layer's residuals at chosen prompt positions replaced (before its steering).
         """
         entries = [as_list(steering)]
-        return self._sample(images, image_masks, tokens, token_mask, entries, noise, num_steps, generator)[0]
+        return self._sample(images, image_masks, tokens, token_mask, entries, noise, num_steps, generator, splice)[0]
 
     def sample_actions_sweep(
         self,
@@ -240,12 +243,16 @@ class Pi05Policy(nn.Module):
         noise: torch.Tensor | None,
         num_steps: int,
         generator: torch.Generator | None,
+        splice: Splice | None = None,
     ) -> torch.Tensor:
-        """Return (len(entries), B, H, A) actions; each entry's steerings apply to its own copy of the batch."""
+        """Return (len(entries), B, H, A) actions; each entry's steerings apply to its own copy of the batch,
+        the splice (if any) to every copy."""
         self.prefix.check_inputs(images, image_masks, tokens, token_mask)
         batch, n_tokens = tokens.shape
         check_steerings([s for entry in entries for s in entry], self.arch, self.expert_arch, batch, n_tokens,
                         len(images))
+        if splice is not None:
+            splice.check(self.arch, batch, n_tokens)
         dt, times = euler_times(num_steps, self.device)
         noise = self._noise(noise, batch, generator)
         tokens, token_mask = tokens.to(self.device, torch.long), token_mask.to(self.device)
@@ -256,7 +263,8 @@ class Pi05Policy(nn.Module):
         image_columns = len(images) * self.arch.tokens_per_image
         dtype = self.prefix.compute_dtype
         lm = [lm_additions(entry, token_mask, columns, image_columns, dtype) for entry in entries]
-        keys_values = self._prefix_cache(hidden, pad, lm, batch)
+        replace = {} if splice is None else {splice.layer: splice.layer_function(token_mask, columns, image_columns)}
+        keys_values = self._prefix_cache(hidden, pad, lm, batch, replace)
 
         # action tokens: positions continue after the valid prefix tokens; they see every valid prefix key
         # and each other (one bidirectional block, spec 10.4)
@@ -275,26 +283,28 @@ class Pi05Policy(nn.Module):
         return actions.view(n, batch, horizon, self.action_dim)
 
     def _prefix_cache(
-        self, hidden: torch.Tensor, pad: torch.Tensor, lm: list[dict[int, torch.Tensor]], batch: int
+        self, hidden: torch.Tensor, pad: torch.Tensor, lm: list[dict[int, torch.Tensor]], batch: int,
+        replace: Mapping[int, Callable[[torch.Tensor], torch.Tensor]] | None = None,
     ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Return each language-model layer's keys and values for the entries stacked along the batch.
 
         Layers up to the shallowest steered one run once for the batch: steering a layer's output leaves
-        its own keys and values unchanged. The deeper layers run once over all entries together.
+        its own keys and values unchanged. The deeper layers run once over all entries together. `replace`
+        (splices, shared by every entry) applies wherever its layer runs.
         """
         last = self.arch.depth - 1
         steered = [layer for entry in lm for layer in entry]
         split = min(steered) if steered else last
         n = len(lm)
         shared = KeyValueRecorder()
-        out = self.prefix.decode(hidden, pad, [split], self.attention, cache=shared)[split]
+        out = self.prefix.decode(hidden, pad, [split], self.attention, cache=shared, replace=replace)[split]
         keys_values = [tuple(t.repeat(n, 1, 1, 1) for t in shared.layers[i]) for i in range(split + 1)]
         if split < last:
             additions = stack_entries(lm, batch)
             out = out.repeat(n, 1, 1) + additions.pop(split, 0)
             rest = KeyValueRecorder()
             self.prefix.decode(out, pad.repeat(n, 1), [last], self.attention, start=split + 1, cache=rest,
-                               additions=additions)
+                               additions=additions, replace=replace)
             keys_values += [rest.layers[i] for i in range(split + 1, last + 1)]
         return keys_values
 

@@ -7,7 +7,7 @@ layer outputs are steered at every action token in every denoising step.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -63,6 +63,67 @@ class Steering:
     def delta(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         """Return alpha * vector (W,) computed in float32, then cast to the stream's dtype."""
         return (self.alpha * self.vector.to(device=device, dtype=torch.float32)).to(dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class Splice:
+    """Replace the output (resid_post) of language-model layer `layer` by `replace` of it at chosen prompt positions.
+
+    `replace` maps the selected rows (n, width) float32 to (n, width) (an SAE's reconstruction, zeros for an
+    ablation); the rows are those where `token_mask` (B, T) is True, in row-major (batch, position) order;
+    None = every valid prompt token. Unselected positions keep their residuals.
+    """
+
+    layer: int
+    replace: Callable[[torch.Tensor], torch.Tensor]
+    token_mask: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        problems = []
+        if isinstance(self.layer, bool) or not isinstance(self.layer, int) or self.layer < 0:
+            problems.append(f"layer {self.layer!r} must be a non-negative integer")
+        if not callable(self.replace):
+            problems.append(f"replace must be a function of the rows, found {type(self.replace).__name__}")
+        mask = self.token_mask
+        if mask is not None and (not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.ndim != 2):
+            found = f"{tuple(mask.shape)} {mask.dtype}" if isinstance(mask, torch.Tensor) else type(mask).__name__
+            problems.append(f"token_mask must be a 2-D bool tensor, found {found}")
+        if problems:
+            raise ValueError("Splice: " + "; ".join(problems))
+
+    def check(self, arch: Pi05Arch, batch: int, n_tokens: int) -> None:
+        """Raise one ValueError if the layer is not a language-model layer below the last, or the mask misfits."""
+        problems = []
+        if self.layer >= arch.depth:
+            problems.append(f"layer out of range, the lm stream has {arch.depth} layers (0..{arch.depth - 1})")
+        elif self.layer == arch.depth - 1:
+            problems.append(f"{LAST_LM_LAYER}; splice a layer below {self.layer}")
+        if self.token_mask is not None and tuple(self.token_mask.shape) != (batch, n_tokens):
+            problems.append(f"token_mask is {tuple(self.token_mask.shape)}, expected {(batch, n_tokens)}")
+        if problems:
+            raise ValueError(f"splice (lm layer {self.layer}): " + "; ".join(problems))
+
+    def layer_function(
+        self, token_mask: torch.Tensor, columns: torch.Tensor, n_image_columns: int
+    ) -> Callable[[torch.Tensor], torch.Tensor]:
+        """Return the map of the layer's output (n * B, S, width) over the computed prefix `columns` (S,): the
+        selected rows replaced, the rest unchanged; n copies of the batch (a sweep's entries) are each spliced."""
+        prompt = token_mask if self.token_mask is None else self.token_mask.to(token_mask.device)
+        where = torch.cat([prompt.new_zeros(prompt.shape[0], n_image_columns), prompt], dim=1)[:, columns]  # (B, S)
+
+        def splice(hidden: torch.Tensor) -> torch.Tensor:
+            selected = where.repeat(hidden.shape[0] // where.shape[0], 1)  # (n * B, S)
+            rows = hidden[selected].float()  # (rows, width)
+            new = self.replace(rows)
+            if not isinstance(new, torch.Tensor) or tuple(new.shape) != tuple(rows.shape):
+                found = tuple(new.shape) if isinstance(new, torch.Tensor) else type(new).__name__
+                raise ValueError(f"splice (lm layer {self.layer}): replace returned {found}, expected "
+                                 f"{tuple(rows.shape)} (one row per selected position)")
+            out = hidden.clone()
+            out[selected] = new.to(device=hidden.device, dtype=hidden.dtype)
+            return out
+
+        return splice
 
 
 SteeringArg = Steering | Sequence[Steering] | None
