@@ -15,7 +15,10 @@ from prefect import flow, get_run_logger
 from flows.capture import capture_mode, run_deployments
 from steering_core.capture import shards
 from steering_core.config import RunConfig, load_run_config
+from steering_core.data.dataset import read_meta
+from steering_core.data.split import read_split
 from steering_core.sae.heldout import sae_heldout_episodes
+from steering_core.sae.judge_run import JudgedPair, JudgeJob
 from steering_core.storage.layout import layer_dir
 from tasks import sae_train
 from tasks.cache import is_cached, rooted
@@ -25,15 +28,33 @@ TRAIN_FLOW = "latent-steering-train-sae"
 
 def heldout_episodes(config: RunConfig, layer: int) -> list[int]:
     """Return the episodes the layer's SAE is not trained on (and is judged on)."""
-    episodes = shards.read_run_metadata(config.run_dir).episodes
-    splits = [config.split_path(pair) for pair in config.pairs]
-    return list(sae_heldout_episodes(episodes, splits, config.sae_for(layer).train.heldout_fraction))
+    captured = set(shards.read_run_metadata(config.run_dir).episodes)
+    task_episodes: dict[str, list[int]] = {}
+    for episode in read_meta(config.dataset_root).episodes:
+        if episode.episode_index in captured:
+            task_episodes.setdefault(episode.task, []).append(episode.episode_index)
+    splits = [read_split(config.split_path(pair)) for pair in config.pairs]
+    return list(sae_heldout_episodes(task_episodes, splits, config.sae_for(layer).train.heldout_fraction))
 
 
 def train_arguments(config: RunConfig, layer: int) -> tuple:
     """Return the arguments of `train_layer_sae` for one layer."""
     return (layer, str(config.run_dir), str(config.trained_sae_dir(layer)), config.train_settings(layer),
             heldout_episodes(config, layer))
+
+
+def judge_arguments(config: RunConfig, layer: int) -> tuple:
+    """Return the arguments of `judge_trained_sae` for one layer: its held-out rows, and the first pair's held-out
+    frames for the action change (none at the last layer, whose output no action reads)."""
+    train, pair = config.sae_for(layer).train, config.pairs[0]
+    judged = None if layer == config.model.arch.depth - 1 else JudgedPair(
+        name=pair.name, manifest=config.manifest_path(pair), concept_map=config.concept_map_path(pair))
+    job = JudgeJob(layer=layer, run_dir=config.run_dir, trained=config.trained_sae_dir(layer),
+                   heldout_episodes=tuple(heldout_episodes(config, layer)), output_dir=config.sae_layer_path(layer),
+                   pair=judged, dataset_root=config.dataset_root, repo_id=config.repo_id, frames=train.judge_frames,
+                   device=train.device)
+    borrowed = config.steering_settings(layer, borrowed=True)
+    return job, config.capture_settings(), borrowed if borrowed.sae is not None else None
 
 
 @flow(name=TRAIN_FLOW)
@@ -44,6 +65,7 @@ def train_sae_flow(config_path: str, targets: list[list[int]] | None = None) -> 
     for (layer,) in targets or [[layer] for layer in config.trained_layers]:
         folders[layer_dir(layer)] = rooted(sae_train.train_layer_sae, config.output_root)(
             *train_arguments(config, layer))["sae"]
+        rooted(sae_train.judge_trained_sae, config.output_root)(*judge_arguments(config, layer))
     return {"saes": folders}
 
 
@@ -53,8 +75,9 @@ def run_training(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     if not layers:
         return {}
     if capture_mode(config) == "deployment":  # cached ones are not started: a process start costs seconds
-        wanted = [layer for layer in layers
-                  if not is_cached(sae_train.train_layer_sae, config.output_root, *train_arguments(config, layer))]
+        wanted = [layer for layer in layers if not (
+            is_cached(sae_train.train_layer_sae, config.output_root, *train_arguments(config, layer))
+            and is_cached(sae_train.judge_trained_sae, config.output_root, *judge_arguments(config, layer)))]
         if len(wanted) < len(layers):
             get_run_logger().info("%d of %d SAE training run(s) cached: not started", len(layers) - len(wanted),
                                   len(layers))

@@ -24,6 +24,8 @@ def train_sae_command(
     architecture: Architecture = typer.Option(_DEFAULTS.architecture, "--architecture", help="SAELens architecture."),
     d_sae: int = typer.Option(_DEFAULTS.d_sae, "--d-sae", help="Latent count."),
     k: int = typer.Option(_DEFAULTS.k, "--k", help="Active latents per row (topk, batchtopk)."),
+    sparsity_coefficient: float = typer.Option(_DEFAULTS.sparsity_coefficient, "--sparsity-coefficient",
+                                               help="L0 (jumprelu) or L1 (standard) loss coefficient."),
     lr: float = typer.Option(_DEFAULTS.lr, "--lr", help="Adam learning rate."),
     batch_size: int = typer.Option(_DEFAULTS.batch_size, "--batch-size", help="Rows per training step."),
     training_rows: int = typer.Option(_DEFAULTS.training_rows, "--training-rows",
@@ -39,9 +41,9 @@ def train_sae_command(
 ) -> None:
     """Train an SAE on a layer's captured residuals (resumable) and save it in SAELens's format."""
     with input_errors():
-        settings = TrainSettings(architecture=architecture, d_sae=d_sae, k=k, lr=lr, batch_size=batch_size,
-                                 training_rows=training_rows, normalize=normalize, buffer_rows=buffer_rows, seed=seed,
-                                 checkpoints=checkpoints, device=device)
+        settings = TrainSettings(architecture=architecture, d_sae=d_sae, k=k, sparsity_coefficient=sparsity_coefficient,
+                                 lr=lr, batch_size=batch_size, training_rows=training_rows, normalize=normalize,
+                                 buffer_rows=buffer_rows, seed=seed, checkpoints=checkpoints, device=device)
         source = RowSource(run_dir, layer, exclude=exclude_episodes)
         folder = train_sae(source, output_dir, settings, layer=layer)
     typer.echo(f"SAE of layer {layer} trained on {source.rows} rows: {folder}")

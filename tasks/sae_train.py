@@ -8,16 +8,22 @@ from typing import Any
 
 from prefect import get_run_logger, task
 
-from steering_core.capture import shards
+from steering_core.capture import CaptureSettings, shards
+from steering_core.sae.judge_run import JudgeJob, judge_job
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.training.trainer import train_sae
+from steering_core.sae.vectors import SteeringSettings
+from steering_core.storage.fingerprints import file_digest
 from steering_core.storage.layout import layer_dir
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
-from tasks.capture import GPU_TAG
+from tasks.capture import GPU_TAG, model_inputs
+from tasks.evaluate import folder_digests
+from tasks.sae import sae_inputs
 
 SAE_FILES = ("cfg.json", "sae_weights.safetensors", "sparsity.safetensors", "training.json")
+FIDELITY_FILES = ("fidelity.json", "fidelity.md", "fidelity.png")
 
 
 def layer_rows(inputs: dict[str, Any]) -> Any:
@@ -31,7 +37,7 @@ def layer_rows(inputs: dict[str, Any]) -> Any:
     name="train-sae",
     task_run_name="train SAE layer {layer}",
     tags=[GPU_TAG],
-    cache_policy=content_key("steering_core.sae.training", derived={"rows": layer_rows}, ignore=("run_dir",)),
+    cache_policy=content_key("steering_core.sae.training.trainer", "steering_core.sae.training.rows", derived={"rows": layer_rows}, ignore=("run_dir",)),
     retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )
@@ -47,3 +53,34 @@ def train_layer_sae(layer: int, run_dir: str, out_dir: str, settings: TrainSetti
     get_run_logger().info("SAE of %s trained on %d rows of %d episodes (%d held out): %s", layer_dir(layer),
                           source.rows, len(source.episodes), len(heldout_episodes), folder)
     return {OUTPUTS: [str(folder / name) for name in SAE_FILES], "sae": str(folder)}
+
+
+def judged_inputs(inputs: dict[str, Any]) -> Any:
+    """Return what a judgement reads by content: the trained SAE, the layer's shards, the pair's manifest and
+    concept map, the borrowed SAE."""
+    job: JudgeJob = inputs["job"]
+    pair = job.pair
+    return {
+        "trained": folder_digests(job.trained),
+        "rows": layer_rows({"run_dir": job.run_dir, "layer": job.layer}),
+        "pair": None if pair is None else [file_digest(pair.manifest), file_digest(pair.concept_map)],
+        "borrowed": None if inputs["borrowed"] is None else sae_inputs(inputs["borrowed"]),
+    }
+
+
+@task(
+    name="judge-sae",
+    task_run_name="judge SAE {job.output_dir.name}",
+    tags=[GPU_TAG],
+    cache_policy=content_key("steering_core.sae.judge_run", model=model_inputs,
+                             derived={"content": judged_inputs}, ignore=("borrowed",)),
+    retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
+    **RESULTS,
+)
+def judge_trained_sae(job: JudgeJob, model: CaptureSettings, borrowed: SteeringSettings | None) -> dict:
+    """Judge a trained SAE against the borrowed one on held-out rows and frames; return the fidelity files."""
+    progress = ProgressArtifact(artifact_key("judge-sae", job.run_dir.name, layer_dir(job.layer)), "policy calls",
+                                 f"judge the trained SAE of {layer_dir(job.layer)} on held-out frames")
+    folder = judge_job(job, model, borrowed, progress=progress)
+    progress.finish()
+    return {OUTPUTS: [str(folder / name) for name in FIDELITY_FILES], "folder": str(folder)}

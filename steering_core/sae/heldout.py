@@ -1,27 +1,43 @@
-"""The episodes an SAE trained on the run's residuals never sees: the pairs' held-out ones, judged on afterwards."""
+"""The episodes an SAE trained on the run's residuals never sees, and the split its judgement reads frames from."""
 
 from __future__ import annotations
 
-import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
-from steering_core.data.split import read_split
+from steering_core.data.split import HoldoutSplit, TaskSplit
 
 
-def sae_heldout_episodes(run_episodes: Sequence[int], split_paths: Sequence[str | os.PathLike],
+def sae_heldout_episodes(task_episodes: Mapping[str, Sequence[int]], splits: Sequence[HoldoutSplit],
                          fraction: float) -> tuple[int, ...]:
-    """Return the run's episodes kept out of SAE training.
+    """Return the episodes kept out of SAE training, from `task_episodes` (task -> the run's episodes of it).
 
-    The pairs' held-out episodes when their splits hold any (the evaluation's frames must stay unseen); otherwise
-    every k-th episode of the run (k = round(1 / fraction)), at least one, so the SAE is still judged on rows it
-    was not trained on.
+    The pairs' held-out episodes when their splits hold any (the evaluation's frames must stay unseen);
+    otherwise every k-th episode of each task with two or more (k = round(1 / fraction), the first included),
+    so the SAE is still judged on rows it was not trained on.
     """
-    present = set(run_episodes)
-    held = sorted({e for path in split_paths for e in read_split(path).holdout_episodes} & present)
+    present = {e for episodes in task_episodes.values() for e in episodes}
+    held = sorted({e for split in splits for e in split.holdout_episodes} & present)
     if held:
         return tuple(held)
-    if len(present) < 2:
-        raise ValueError(f"the residual run holds {len(present)} episode(s); training an SAE and judging it on "
-                         "held-out rows needs at least 2")
     step = max(2, round(1 / fraction))
-    return tuple(sorted(present)[::step])
+    held = sorted(e for episodes in task_episodes.values() if len(episodes) >= 2 for e in sorted(episodes)[::step])
+    if not held:
+        raise ValueError(f"no task of the residual run has two episodes ({len(present)} episode(s) in all): training "
+                         "an SAE and judging it on held-out rows needs a task with at least 2")
+    return tuple(held)
+
+
+def heldout_split(task_episodes: Mapping[str, Sequence[int]], heldout: Sequence[int]) -> HoldoutSplit:
+    """Return the split whose held-out side is `heldout`: the frames an SAE's judgement runs the policy on.
+
+    A task with none of its episodes held out (or all of them) is refused: its frames would be ones the SAE was
+    trained on (or it has no training side).
+    """
+    held = set(heldout)
+    sides = {task: (tuple(sorted(e for e in episodes if e not in held)), tuple(sorted(e for e in episodes if e in held)))
+             for task, episodes in task_episodes.items()}
+    if unusable := sorted(task for task, (train, out) in sides.items() if not train or not out):
+        raise ValueError(f"tasks {unusable} need episodes on both sides of the SAE's held-out split (training and "
+                         "judging); give them more episodes or change the held-out fraction")
+    return HoldoutSplit(holdout_fraction=0.0,
+                        tasks={task: TaskSplit(train=train, holdout=out) for task, (train, out) in sides.items()})
