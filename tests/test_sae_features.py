@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
-from steering_core.capture.shards import ROW_COLUMNS
+from steering_core.capture.shards import ROW_COLUMNS, open_shard, read_run_metadata
 from steering_core.sae.feature_scan import frame_contexts, read_feature_scan, scan_features
 from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae
@@ -44,6 +46,17 @@ def make_rows(frames: int = 40, seed: int = 1) -> tuple[torch.Tensor, dict[str, 
 def batched(rows: torch.Tensor, columns: dict[str, np.ndarray], size: int):
     for start in range(0, len(rows), size):
         yield rows[start : start + size], {name: values[start : start + size] for name, values in columns.items()}
+
+
+def shard_batches(run_dir: Path, layer: int, episodes=None, size: int = 64):
+    """(rows, columns) batches of a capture run's layer, as `RowSource.sequential` yields them."""
+    for record in read_run_metadata(run_dir).layer_shards(layer):
+        if episodes is not None and not set(record.episodes) & set(episodes):
+            continue
+        with open_shard(run_dir / record.file) as shard:
+            rows, columns = shard.residuals().float(), shard.columns(ROW_COLUMNS)
+        keep = np.isin(columns["episode_index"], list(record.episodes if episodes is None else episodes))
+        yield from batched(rows[torch.from_numpy(keep)], {k: v[keep] for k, v in columns.items()}, size)
 
 
 def naive_scan(sae, rows, columns, top_n: int, bins: int):
@@ -108,7 +121,7 @@ def test_frame_contexts_give_every_token_of_the_chosen_frames():
     sae = make_sae()
     rows, columns = make_rows()
     acts = sae.encode(rows).numpy()
-    contexts = frame_contexts(batched(rows, columns, 4), sae, {104, 130}, [5, 2])
+    contexts = frame_contexts(batched(rows, columns, 4), sae, {104: [5, 2], 130: [2, 5], 999: [1]})
     assert sorted(contexts) == [104, 130]
     for index, context in contexts.items():
         members = np.flatnonzero(columns["index"] == index)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Collection, Iterable, Sequence
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -163,44 +163,54 @@ def scan_features(
 
 @dataclass(frozen=True)
 class FrameContext:
-    """Every token of one frame with chosen latents' activations: positions and ids (tokens,), acts (tokens, latents)."""
+    """Every token of one frame: positions and ids (tokens,), and some latents' activations at each."""
 
     token_position: np.ndarray  # (tokens,) int64, ascending
     token_id: np.ndarray  # (tokens,) int64
-    activations: np.ndarray  # (tokens, len(latents)) float32
-    latents: tuple[int, ...]
+    activations: dict[int, np.ndarray]  # latent -> (tokens,) float32
 
     def values(self, latent: int) -> np.ndarray:
         """Return (tokens,) float32: one latent's activation at every token of the frame."""
-        return self.activations[:, self.latents.index(latent)]
+        return self.activations[latent]
+
+
+def example_frames(scan: FeatureScan, latents: Iterable[int], count: int) -> dict[int, list[int]]:
+    """Return dataset index -> the latents (of `latents`) having that frame among their first `count` examples."""
+    wanted: dict[int, list[int]] = {}
+    for latent in latents:
+        for example in scan.examples(latent)[:count]:
+            wanted.setdefault(example["index"], []).append(int(latent))
+    return wanted
 
 
 def frame_contexts(
-    batches: Iterable[RowBatch], sae: Sae, frames: Collection[int], latents: Sequence[int]
+    batches: Iterable[RowBatch], sae: Sae, wanted: Mapping[int, Collection[int]]
 ) -> dict[int, FrameContext]:
-    """Return dataset index -> FrameContext for each of `frames` found in `batches`, with `latents`' activations.
+    """Return dataset index -> FrameContext for each frame of `wanted` (index -> latents) found in `batches`.
 
     Only rows of the wanted frames are encoded; give batches of just their episodes to read little.
     """
-    wanted, chosen = np.asarray(sorted(frames), dtype=np.int64), list(latents)
+    frames = np.asarray(sorted(wanted), dtype=np.int64)
     parts: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
     for number, (rows, columns) in enumerate(batches):
         columns = _check_batch(rows, columns, sae, number)
-        keep = np.flatnonzero(np.isin(columns["index"], wanted))
+        keep = np.flatnonzero(np.isin(columns["index"], frames))
         if not keep.size:
             continue
-        acts = _latents(sae, rows[torch.from_numpy(keep)])[:, chosen]
-        for index in np.unique(columns["index"][keep]):
-            mine = columns["index"][keep] == index
-            parts.setdefault(int(index), []).append(
-                (columns["token_position"][keep][mine], columns["token_id"][keep][mine], acts[mine]))
+        acts, index = _latents(sae, rows[torch.from_numpy(keep)]), columns["index"][keep]
+        for frame in np.unique(index):
+            mine = index == frame
+            latents = sorted(wanted[int(frame)])
+            parts.setdefault(int(frame), []).append(
+                (columns["token_position"][keep][mine], columns["token_id"][keep][mine], acts[mine][:, latents]))
     contexts = {}
-    for index, pieces in parts.items():
+    for frame, pieces in parts.items():
         position = np.concatenate([piece[0] for piece in pieces])
         order = np.argsort(position, kind="stable")
-        contexts[index] = FrameContext(
+        acts = np.concatenate([piece[2] for piece in pieces])[order]
+        contexts[frame] = FrameContext(
             token_position=position[order], token_id=np.concatenate([piece[1] for piece in pieces])[order],
-            activations=np.concatenate([piece[2] for piece in pieces])[order], latents=tuple(chosen))
+            activations={latent: acts[:, j] for j, latent in enumerate(sorted(wanted[frame]))})
     return contexts
 
 
