@@ -2,16 +2,32 @@
 
 from __future__ import annotations
 
+import asyncio
+import base64
+import html
+import itertools
+import json
+import re
+import shutil
+import subprocess
+import time
+import urllib.request
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import load_file
+from torchvision.io import decode_png
 
 from steering_core.capture.shards import ROW_COLUMNS, open_shard, read_run_metadata
-from steering_core.sae.feature_scan import frame_contexts, read_feature_scan, scan_features
+from steering_core.sae.feature_page import write_feature_page
+from steering_core.sae.feature_scan import FeatureScan, frame_contexts, read_feature_scan, scan_features
 from steering_core.sae.formats import SaeConfig
-from steering_core.sae.model import StandardSae, TopKSae
+from steering_core.sae.model import StandardSae, TopKSae, load_sae
+from steering_core.storage.fileio import read_json
 
 D_IN, D_SAE = 8, 24
 
@@ -140,3 +156,208 @@ def test_feature_scan_refuses_batches_without_columns_or_of_another_width():
         scan_features([(rows[:, :5], columns)], sae)
     with pytest.raises(ValueError, match="bins is 12, expected a power of two"):
         scan_features([], sae, bins=12)
+
+
+# ----------------------------------------------------------------------------- on the finished demo run
+
+LAYER = 1
+REPO = "libero_demo_lerobot"
+CHROMIUM = shutil.which("chromium")
+SHOWN = 4  # examples per latent on the page
+
+
+@dataclass(frozen=True)
+class DemoPage:
+    world: Any
+    scan: FeatureScan
+    sae: Any
+    path: Path
+    html: str
+    pieces: Any  # token id -> SentencePiece piece
+
+
+@pytest.fixture(scope="module")
+def demo_page(attack_world, tmp_path_factory) -> DemoPage:
+    """The feature page of the demo run's layer 1, through its own SAE and steering pairs."""
+    import sentencepiece
+
+    run = attack_world.data / "residuals" / "demo"
+    sae = load_sae(attack_world.sae(LAYER))
+    scan = scan_features(shard_batches(run, LAYER), sae, top_n=6)
+    pieces = sentencepiece.SentencePieceProcessor(model_file=str(attack_world.tokenizer)).id_to_piece
+    path = write_feature_page(
+        tmp_path_factory.mktemp("page") / "features.html", scan, sae, lambda episodes: shard_batches(run, LAYER, episodes),
+        steering_layer=attack_world.data / "latent_steering" / "layer01", dataset_root=attack_world.dataset,
+        repo_id=REPO, token_text=pieces, pair_top_k=3, most_active=3, examples=SHOWN)
+    return DemoPage(attack_world, scan, sae, path, path.read_text(encoding="utf-8"), pieces)
+
+
+def section(page: str, latent: int) -> str:
+    start = page.index(f'<section id="latent-{latent}">')
+    return page[start : page.index("</section>", start)]
+
+
+def frame_rows(world, index: int) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
+    """Every row of one frame, read straight from the run's shards."""
+    rows, columns = zip(*shard_batches(world.data / "residuals" / "demo", LAYER, size=10**6), strict=True)
+    rows, columns = torch.cat(rows), {k: np.concatenate([c[k] for c in columns]) for k in ROW_COLUMNS}
+    keep = columns["index"] == index
+    return rows[torch.from_numpy(keep)], {k: v[keep] for k, v in columns.items()}
+
+
+def dataset_frame(world, index: int, size: int) -> np.ndarray:
+    """The agentview image of a dataset index, decoded from the dataset's parquet with PIL: (size, size, 3) uint8."""
+    import io
+
+    import pyarrow.parquet as pq
+    from PIL import Image
+
+    for file in sorted((world.dataset / "data").rglob("*.parquet")):
+        table = pq.read_table(file, columns=["index", "image"]).to_pydict()
+        if index in table["index"]:
+            image = Image.open(io.BytesIO(table["image"][table["index"].index(index)]["bytes"])).convert("RGB")
+            return np.asarray(image.resize((size, size), Image.BILINEAR))
+    raise AssertionError(f"index {index} not in the dataset")
+
+
+def data_uri_pixels(uri: str) -> np.ndarray:
+    from torchvision.io import decode_image
+
+    data = base64.b64decode(uri.split(",", 1)[1])
+    return decode_image(torch.frombuffer(bytearray(data), dtype=torch.uint8)).permute(1, 2, 0).numpy()
+
+
+def test_feature_page_shows_each_pairs_top_latents_with_their_frames_tokens_and_decoder_cosines(demo_page):
+    page, world, sae = demo_page.html, demo_page.world, demo_page.sae
+    assert all(url.startswith(("data:", "#")) for url in re.findall(r'(?:src|href)="([^"]*)"', page))
+    assert "http" not in page and "<script" not in page
+    steering = world.data / "latent_steering" / "layer01"
+    pairs = read_json(steering / "pairwise_stats.json")["pairs"]
+    for pair in pairs:
+        latent_direction = load_file(steering / pair / "latent_direction.safetensors")["latent_direction"]
+        residual = load_file(steering / pair / "residual_direction.safetensors")["residual_direction"].double()
+        top = [int(i) for i in np.argsort(-np.abs(latent_direction.numpy()), kind="stable")[:3]]
+        for rank, latent in enumerate(top):
+            text = section(page, latent)
+            decoder_row = sae.W_dec[latent].double()
+            cosine = float(decoder_row @ residual / (decoder_row.norm() * residual.norm()))
+            assert (f'<tr class="member"><td>{pair}</td><td>{rank + 1} ({float(latent_direction[latent]):+.3g})</td>'
+                    f"<td>{cosine:+.3f}</td></tr>") in text
+    latent = int(np.argsort(-np.abs(load_file(steering / pairs[0] / "latent_direction.safetensors")[
+        "latent_direction"].numpy()), kind="stable")[0])
+    text = section(page, latent)
+    examples = demo_page.scan.examples(latent)[:SHOWN]
+    thumbnails = re.findall(r'<img src="(data:image/jpeg;base64,[^"]+)"', text)
+    assert len(thumbnails) == len(examples) == SHOWN
+    for example, thumbnail in zip(examples, thumbnails, strict=True):
+        rows, columns = frame_rows(world, example["index"])
+        acts = sae.encode(rows)[:, latent].numpy()
+        peak = int(np.argmax(acts))
+        assert example["value"] == pytest.approx(float(acts[peak]), rel=1e-6)
+        assert f'{example["value"]:.4g}</b> · episode {int(columns["episode_index"][0])} · frame ' \
+               f'{int(columns["frame_index"][0])} · index {example["index"]}' in text
+        peak_text = demo_page.pieces(int(columns["token_id"][peak])).replace("\u2581", " ")
+        assert re.search(rf'<mark class="peak" [^>]*>{re.escape(html.escape(peak_text))}</mark>', text)
+        shown, expected = data_uri_pixels(thumbnail).astype(float), dataset_frame(world, example["index"], 112)
+        assert shown.shape == expected.shape and np.abs(shown - expected).mean() < 8
+    edges, counts = demo_page.scan.histogram(latent)
+    assert counts.sum() == demo_page.scan.firing[latent] and text.count("<rect") == np.count_nonzero(counts)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (apt-get install -y chromium)")
+def test_feature_page_loads_in_headless_chromium_without_console_errors_and_shows_the_thumbnails(demo_page, tmp_path):
+    broken = tmp_path / "broken.html"  # proves the listener hears what it must refuse
+    broken.write_text('<!DOCTYPE html><img src="missing.png"><script>console.error("boom")</script>')
+    (page_problems, images, shot), (broken_problems, _, _) = chromium_load([demo_page.path, broken], tmp_path)
+    assert page_problems == []
+    assert any("boom" in problem for problem in broken_problems)
+    assert any("missing.png" in problem or "ERR_FILE_NOT_FOUND" in problem for problem in broken_problems)
+    assert len(images) == demo_page.html.count("<img ") and all(images) and images[0] == [True, 112, 112]
+    first = data_uri_pixels(re.search(r'<img src="(data:image/jpeg;base64,[^"]+)"', demo_page.html)[1])
+    screen = decode_png(torch.frombuffer(bytearray(shot), dtype=torch.uint8))[:3].permute(1, 2, 0).numpy()
+    rms, where = best_match(screen.mean(axis=2), first.mean(axis=2))
+    assert first.mean(axis=2).std() > 10 and rms < 6, (rms, where)  # the thumbnail is on screen, pixel for pixel
+
+
+def best_match(screen: np.ndarray, template: np.ndarray) -> tuple[float, tuple[int, int]]:
+    """Return the smallest RMS difference of `template` against any window of `screen` (FFT correlation), and where."""
+    screen, template = screen.astype(np.float64), template.astype(np.float64)
+    (height, width), (h, w) = screen.shape, template.shape
+    shape = (height, width)
+    correlation = np.fft.irfft2(np.fft.rfft2(screen) * np.conj(np.fft.rfft2(template, shape)), shape)
+    squares = np.pad(np.square(screen), ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+    window = squares[h:, w:] - squares[:-h, w:] - squares[h:, :-w] + squares[:-h, :-w]  # (H-h+1, W-w+1)
+    ssd = window - 2 * correlation[: height - h + 1, : width - w + 1] + np.square(template).sum()
+    y, x = np.unravel_index(np.argmin(ssd), ssd.shape)
+    return float(np.sqrt(max(ssd[y, x], 0) / template.size)), (int(y), int(x))
+
+
+def chromium_load(pages: list[Path], tmp_path: Path) -> list[tuple[list[str], list, bytes]]:
+    """Open each page from disk in one headless Chromium through the DevTools protocol.
+
+    Returns per page: the console errors and warnings, exceptions and failed loads; [complete, width, height]
+    of every <img>; a PNG screenshot of the 1200x1000 viewport.
+    """
+    profile = tmp_path / "chromium-profile"
+    profile.mkdir()
+    browser = subprocess.Popen(
+        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         f"--user-data-dir={profile}", "--remote-debugging-port=0", "--window-size=1200,1000", "about:blank"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        port_file, deadline = profile / "DevToolsActivePort", time.monotonic() + 60
+        while not (port_file.is_file() and port_file.read_text().strip()):
+            assert time.monotonic() < deadline and browser.poll() is None, "chromium did not start"
+            time.sleep(0.05)
+        port = int(port_file.read_text().split()[0])
+        opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+        targets = json.loads(opener.open(f"http://127.0.0.1:{port}/json/list", timeout=30).read())
+        socket_url = next(t["webSocketDebuggerUrl"] for t in targets if t["type"] == "page")
+        return asyncio.run(asyncio.wait_for(_drive(socket_url, [page.as_uri() for page in pages]), 120))
+    finally:
+        browser.terminate()
+        browser.wait(30)
+
+
+async def _drive(socket_url: str, urls: list[str]) -> list[tuple[list[str], list, bytes]]:
+    import websockets
+
+    async with websockets.connect(socket_url, max_size=None) as socket:
+        numbers, problems, loaded = itertools.count(1), [], []
+
+        def note(message: dict) -> None:
+            method, params = message.get("method"), message.get("params", {})
+            if method == "Runtime.consoleAPICalled" and params["type"] in ("error", "warning", "assert"):
+                problems.append(" ".join(str(arg.get("value", arg.get("description"))) for arg in params["args"]))
+            elif method == "Runtime.exceptionThrown":
+                problems.append(json.dumps(params["exceptionDetails"]))
+            elif method == "Log.entryAdded" and params["entry"]["level"] in ("error", "warning"):
+                problems.append(f'{params["entry"]["text"]} {params["entry"].get("url", "")}')
+            elif method == "Page.loadEventFired":
+                loaded.append(True)
+
+        async def call(method: str, **params) -> dict:
+            number = next(numbers)
+            await socket.send(json.dumps({"id": number, "method": method, "params": params}))
+            while True:
+                message = json.loads(await socket.recv())
+                if message.get("id") == number:
+                    assert "error" not in message, message
+                    return message["result"]
+                note(message)
+
+        for domain in ("Page", "Runtime", "Log"):
+            await call(f"{domain}.enable")
+        results = []
+        for url in urls:
+            problems.clear()
+            loaded.clear()
+            await call("Page.navigate", url=url)
+            while not loaded:
+                note(json.loads(await socket.recv()))
+            images = await call("Runtime.evaluate", returnByValue=True, expression=(
+                "[...document.images].map(i => [i.complete, i.naturalWidth, i.naturalHeight])"))
+            shot = await call("Page.captureScreenshot", format="png")
+            results.append((list(problems), images["result"]["value"], base64.b64decode(shot["data"])))
+        return results

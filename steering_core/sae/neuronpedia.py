@@ -40,7 +40,14 @@ logger = logging.getLogger(__name__)
 SOURCE_ID = "{layer}-{source_set}"  # Neuronpedia's source (layer) id
 BATCH_FILE = "batch-{number}.jsonl.gz"
 FEATURES_DIR, ACTIVATIONS_DIR = "features", "activations"
-HOOK_POINT = "hook_resid_post"
+# Feature fields of Neuronpedia's dataclass that describe a language model (its vocabulary, neurons, other
+# features' correlations): written empty, as its dataclass defaults them
+UNUSED_FEATURE_LISTS = (
+    "topkCosSimIndices", "topkCosSimValues", "neuron_alignment_indices", "neuron_alignment_values",
+    "neuron_alignment_l1", "correlated_neurons_indices", "correlated_neurons_pearson", "correlated_neurons_l1",
+    "correlated_features_indices", "correlated_features_pearson", "correlated_features_l1", "neg_str", "neg_values",
+    "pos_str", "pos_values", "logits_hist_data_bar_heights", "logits_hist_data_bar_values", "decoder_weights_dist",
+)
 
 
 def write_neuronpedia(
@@ -114,13 +121,12 @@ def _feature(scan: FeatureScan, latent: int, activations: list[dict[str, Any]], 
         "hasVector": False,
         "vector": [],
         "vectorLabel": None,
+        "vectorDefaultSteerStrength": 10,  # the Feature dataclass's default; used only by vector sources
         "hookName": None,
+        **dict.fromkeys(UNUSED_FEATURE_LISTS, []),
         "frac_nonzero": float(scan.frequency()[latent]),
         "freq_hist_data_bar_values": [float(v) for v in (edges[:-1] + edges[1:]) / 2],
         "freq_hist_data_bar_heights": [int(c) for c in counts],
-        "pos_str": [], "pos_values": [], "neg_str": [], "neg_values": [],
-        "logits_hist_data_bar_heights": [], "logits_hist_data_bar_values": [],
-        "decoder_weights_dist": [],
     }
 
 
@@ -147,6 +153,9 @@ def _activations(
             "minValue": float(values.min()),
             "dataIndex": str(example["index"]),
             "dataSource": f"episode {example['episode_index']} frame {example['frame_index']}",
+            "dfaValues": [], "dfaTargetIndex": None, "dfaMaxValue": None, "lossValues": [],
+            "logitContributions": None, "binMin": None, "binMax": None, "binContains": None,
+            "qualifyingTokenIndex": None,
         })
     return records
 
