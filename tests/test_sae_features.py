@@ -27,6 +27,7 @@ from steering_core.sae.feature_page import write_feature_page
 from steering_core.sae.feature_scan import FeatureScan, frame_contexts, read_feature_scan, scan_features
 from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae, load_sae
+from steering_core.sae.neuronpedia import read_jsonl_gz, write_neuronpedia
 from steering_core.storage.fileio import read_json
 
 D_IN, D_SAE = 8, 24
@@ -192,16 +193,20 @@ def demo_page(attack_world, tmp_path_factory) -> DemoPage:
     return DemoPage(attack_world, scan, sae, path, path.read_text(encoding="utf-8"), pieces)
 
 
+def read_json_lines(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+
+
 def section(page: str, latent: int) -> str:
     start = page.index(f'<section id="latent-{latent}">')
     return page[start : page.index("</section>", start)]
 
 
-def frame_rows(world, index: int) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
-    """Every row of one frame, read straight from the run's shards."""
+def frame_rows(world, index: int | None) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
+    """Every row of one frame (None: of the run), read straight from the run's shards."""
     rows, columns = zip(*shard_batches(world.data / "residuals" / "demo", LAYER, size=10**6), strict=True)
     rows, columns = torch.cat(rows), {k: np.concatenate([c[k] for c in columns]) for k in ROW_COLUMNS}
-    keep = columns["index"] == index
+    keep = columns["index"] == index if index is not None else np.ones(len(rows), dtype=bool)
     return rows[torch.from_numpy(keep)], {k: v[keep] for k, v in columns.items()}
 
 
@@ -361,3 +366,59 @@ async def _drive(socket_url: str, urls: list[str]) -> list[tuple[list[str], list
             shot = await call("Page.captureScreenshot", format="png")
             results.append((list(problems), images["result"]["value"], base64.b64decode(shot["data"])))
         return results
+
+
+# the record fields of Neuronpedia's exporter (neuronpedia_utils/db_models/feature.py and activation.py)
+NEURONPEDIA_FEATURE_FIELDS = {
+    "modelId", "layer", "index", "creatorId", "createdAt", "maxActApprox", "hasVector", "vector", "vectorLabel",
+    "vectorDefaultSteerStrength", "hookName", "topkCosSimIndices", "topkCosSimValues", "neuron_alignment_indices",
+    "neuron_alignment_values", "neuron_alignment_l1", "correlated_neurons_indices", "correlated_neurons_pearson",
+    "correlated_neurons_l1", "correlated_features_indices", "correlated_features_pearson", "correlated_features_l1",
+    "neg_str", "neg_values", "pos_str", "pos_values", "frac_nonzero", "freq_hist_data_bar_heights",
+    "freq_hist_data_bar_values", "logits_hist_data_bar_heights", "logits_hist_data_bar_values", "decoder_weights_dist",
+}
+NEURONPEDIA_ACTIVATION_FIELDS = {
+    "id", "tokens", "index", "layer", "modelId", "maxValue", "maxValueTokenIndex", "minValue", "values", "creatorId",
+    "dataSource", "dataIndex", "dfaValues", "dfaTargetIndex", "dfaMaxValue", "createdAt", "lossValues",
+    "logitContributions", "binMin", "binMax", "binContains", "qualifyingTokenIndex",
+}
+
+
+def test_neuronpedia_export_has_its_batch_layout_and_every_tokens_activation(demo_page, tmp_path):
+    world, sae, scan = demo_page.world, demo_page.sae, demo_page.scan
+    run = world.data / "residuals" / "demo"
+
+    def export(out: Path) -> Path:
+        return write_neuronpedia(out, scan, sae, lambda episodes: shard_batches(run, LAYER, episodes), layer=LAYER,
+                                 token_text=demo_page.pieces, examples=3, features_per_batch=100,
+                                 created_at="2026-12-01T00:00:00+00:00", dataset=REPO)
+
+    source = export(tmp_path / "a")
+    assert source == tmp_path / "a" / "pi05" / "1-res-pi05"
+    files = sorted(str(path.relative_to(source)) for path in source.rglob("*") if path.is_file())
+    rows, columns = frame_rows(world, None)
+    acts = sae.encode(rows).numpy()
+    fired = int((acts > 0).any(axis=0).sum())
+    batches = -(-fired // 100)
+    assert files == sorted([*(f"{kind}/batch-{n}.jsonl.gz" for kind in ("activations", "features")
+                              for n in range(batches)), "model.jsonl", "source.jsonl", "sourceset.jsonl"])
+    features = [r for n in range(batches) for r in read_jsonl_gz(source / "features" / f"batch-{n}.jsonl.gz")]
+    activations = [r for n in range(batches) for r in read_jsonl_gz(source / "activations" / f"batch-{n}.jsonl.gz")]
+    assert len(features) == fired and all(set(f) == NEURONPEDIA_FEATURE_FIELDS for f in features)
+    assert all(set(a) == NEURONPEDIA_ACTIVATION_FIELDS for a in activations)
+    for feature in features:
+        latent = int(feature["index"])
+        assert feature["frac_nonzero"] == pytest.approx((acts[:, latent] > 0).mean())
+        assert sum(feature["freq_hist_data_bar_heights"]) == (acts[:, latent] > 0).sum()
+        mine = [a for a in activations if a["index"] == feature["index"]]
+        assert [a["id"] for a in mine] == [f"1-res-pi05-{latent}-{rank}" for rank in range(len(mine))]
+        assert 1 <= len(mine) <= 3 and feature["maxActApprox"] == pytest.approx(acts[:, latent].max(), rel=1e-6)
+    for record in activations[:20]:
+        keep = columns["index"] == int(record["dataIndex"])
+        values = acts[keep, int(record["index"])]
+        np.testing.assert_allclose(record["values"], values, rtol=1e-6, atol=1e-7)
+        assert record["maxValueTokenIndex"] == int(np.argmax(values))
+        assert record["tokens"] == [demo_page.pieces(int(t)).replace("\u2581", " ") for t in columns["token_id"][keep]]
+    assert read_json_lines(source / "source.jsonl")[0]["num_prompts"] == scan.frames
+    again = export(tmp_path / "b")
+    assert all((source / name).read_bytes() == (again / name).read_bytes() for name in files)
