@@ -23,7 +23,7 @@ from safetensors.torch import load_file
 from torchvision.io import decode_png
 
 from steering_core.capture.shards import ROW_COLUMNS, open_shard, read_run_metadata
-from steering_core.sae.feature_page import write_feature_page
+from steering_core.sae.feature_page import sentencepiece_text, write_feature_page
 from steering_core.sae.feature_scan import FeatureScan, frame_contexts, read_feature_scan, scan_features
 from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae, load_sae
@@ -189,7 +189,7 @@ def demo_page(attack_world, tmp_path_factory) -> DemoPage:
     path = write_feature_page(
         tmp_path_factory.mktemp("page") / "features.html", scan, sae, lambda episodes: shard_batches(run, LAYER, episodes),
         steering_layer=attack_world.data / "latent_steering" / "layer01", dataset_root=attack_world.dataset,
-        repo_id=REPO, token_text=pieces, pair_top_k=3, most_active=3, examples=SHOWN)
+        repo_id=REPO, token_text=sentencepiece_text(attack_world.tokenizer), pair_top_k=3, most_active=3, examples=SHOWN)
     return DemoPage(attack_world, scan, sae, path, path.read_text(encoding="utf-8"), pieces)
 
 

@@ -45,6 +45,13 @@ class PairLatents:
     residual_direction: torch.Tensor
 
 
+def sentencepiece_text(tokenizer_path: Path) -> TokenText:
+    """Return token id -> piece of a SentencePiece model (the prompt tokenizer's `tokenizer.model`)."""
+    import sentencepiece  # deferred, as in steering_core.pi05.tokenizer
+
+    return sentencepiece.SentencePieceProcessor(model_file=str(tokenizer_path)).id_to_piece
+
+
 def read_pair_latents(steering_layer: Path, top_k: int) -> list[PairLatents]:
     """Return every pair of a steering layer folder (`latent_steering/layerNN`), in pairwise_stats order."""
     pairs = []

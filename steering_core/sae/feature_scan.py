@@ -151,12 +151,12 @@ def scan_features(
             columns = {name: np.concatenate([held[1][name], columns[name]]) for name in ROW_COLUMNS}
         cut = _last_frame_start(columns["index"])
         if cut:
-            state.add(_latents(sae, rows[:cut]), {name: values[:cut] for name, values in columns.items()})
+            state.add(*_firing(sae, rows[:cut]), {name: values[:cut] for name, values in columns.items()})
         held = (rows[cut:], {name: values[cut:] for name, values in columns.items()})
         if progress is not None:
             progress(state.rows + len(held[0]), total_rows or 0)
     if held is not None and len(held[0]):
-        state.add(_latents(sae, held[0]), held[1])
+        state.add(*_firing(sae, held[0]), held[1])
     logger.info("feature scan of %s: %d rows, %d frames", sae.name, state.rows, state.frames)
     return state.result(sae.name)
 
@@ -227,17 +227,20 @@ class _ScanState:
         self.activation_sum = np.zeros(d_sae, dtype=np.float64)
         self.rows = self.frames = 0
 
-    def add(self, acts: np.ndarray, columns: dict[str, np.ndarray]) -> None:
-        """Fold in (rows, d_sae) activations of complete frames and their (rows,) columns."""
+    def add(self, row: np.ndarray, latent: np.ndarray, value: np.ndarray, columns: dict[str, np.ndarray]) -> None:
+        """Fold in the firing (row, latent, value) triplets of complete frames, and the frames' (rows,) columns."""
         index = columns["index"]
         frame = np.concatenate([[0], np.cumsum(index[1:] != index[:-1])])  # (rows,) frame number in this batch
         self.rows += len(index)
         self.frames += int(frame[-1]) + 1
-        row, latent = np.nonzero(acts > 0)
-        value = acts[row, latent]
         self.firing += np.bincount(latent, minlength=self.d_sae)
         self.activation_sum += np.bincount(latent, weights=value.astype(np.float64), minlength=self.d_sae)
         self._add_histogram(latent, value)
+        # only a row at least as strong as its latent's current N-th frame can enter the top-N
+        strong = np.flatnonzero(value >= self.top_values[latent, -1])
+        row, latent, value = row[strong], latent[strong], value[strong]
+        if not strong.size:
+            return
         # per (frame, latent): the row where the latent peaks (ties: the frame's first such row)
         key = frame[row] * self.d_sae + latent
         order = np.lexsort((row, -value, key))
@@ -282,6 +285,18 @@ class _ScanState:
             top_values=self.top_values, top_columns=self.top_columns, hist_counts=self.hist_counts,
             hist_exponent=self.hist_exponent, firing=self.firing, activation_sum=self.activation_sum,
             rows=self.rows, frames=self.frames, sae=sae_name)
+
+
+def _firing(sae: Sae, rows: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the (row, latent, value) of every activation > 0, each (firing,); found on the SAE's device.
+
+    Only the firing entries leave the device: on a GPU the dense (rows, d_sae) activations never reach the CPU.
+    """
+    acts = sae.encode(rows).flatten()
+    where = (acts > 0).nonzero().squeeze(1)
+    value = acts[where].float().cpu().numpy()
+    row, latent = np.divmod(where.cpu().numpy(), sae.cfg.d_sae)
+    return row, latent, value
 
 
 def _latents(sae: Sae, rows: torch.Tensor) -> np.ndarray:
