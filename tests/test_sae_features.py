@@ -23,7 +23,7 @@ from safetensors.torch import load_file
 from torchvision.io import decode_png
 
 from steering_core.capture.shards import ROW_COLUMNS, open_shard, read_run_metadata
-from steering_core.sae.feature_page import sentencepiece_text, write_feature_page
+from steering_core.sae.feature_page import read_pair_latents, sentencepiece_text, write_feature_page
 from steering_core.sae.feature_scan import FeatureScan, frame_contexts, read_feature_scan, scan_features
 from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae, load_sae
@@ -267,6 +267,16 @@ def test_feature_page_shows_each_pairs_top_latents_with_their_frames_tokens_and_
         assert shown.shape == expected.shape and np.abs(shown - expected).mean() < 8
     edges, counts = demo_page.scan.histogram(latent)
     assert counts.sum() == demo_page.scan.firing[latent] and text.count("<rect") == np.count_nonzero(counts)
+
+
+def test_pairs_steered_through_another_sae_keep_their_residual_direction_but_list_no_latents(demo_page):
+    steering = demo_page.world.data / "latent_steering" / "layer01"
+    own = read_pair_latents(steering, 3, demo_page.sae)
+    other = read_pair_latents(steering, 3, load_sae(demo_page.world.sae(2)))  # same widths, other weights
+    assert [len(pair.latents) for pair in own] == [3] * len(own) and len(own) == 2
+    assert [pair.latents for pair in other] == [(), ()]
+    for a, b in zip(own, other, strict=True):
+        assert a.pair == b.pair and torch.equal(a.residual_direction, b.residual_direction)
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (apt-get install -y chromium)")

@@ -24,7 +24,7 @@ from steering_core.sae.feature_scan import FeatureScan, FrameContext, RowBatch, 
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pair_vectors
 from steering_core.storage.fileio import atomic_path, read_json
-from steering_core.storage.layout import PAIRWISE_STATS_FILE
+from steering_core.storage.layout import PAIR_SUMMARY_FILE, PAIRWISE_STATS_FILE
 
 logger = logging.getLogger(__name__)
 
@@ -52,16 +52,24 @@ def sentencepiece_text(tokenizer_path: Path) -> TokenText:
     return sentencepiece.SentencePieceProcessor(model_file=str(tokenizer_path)).id_to_piece
 
 
-def read_pair_latents(steering_layer: Path, top_k: int) -> list[PairLatents]:
-    """Return every pair of a steering layer folder (`latent_steering/layerNN`), in pairwise_stats order."""
+def read_pair_latents(steering_layer: Path, top_k: int, sae: Sae) -> list[PairLatents]:
+    """Return every pair of a steering layer folder (`latent_steering/layerNN`), in pairwise_stats order.
+
+    A pair steered through another SAE than `sae` (its directions.json records other weights) keeps its
+    residual direction but lists no latents: its latent indices name another SAE's latents.
+    """
     pairs = []
     for name in read_json(steering_layer / f"{PAIRWISE_STATS_FILE}.json")["pairs"]:
         vectors = read_pair_vectors(steering_layer / name)
+        recorded = (read_json(steering_layer / name / PAIR_SUMMARY_FILE).get("sae") or {}).get("weights_sha256")
+        same_sae = recorded is None or sae.weights_sha256 is None or recorded == sae.weights_sha256
         latents, values = (), ()
-        if "latent" in vectors:
+        if "latent" in vectors and same_sae:
             direction = vectors["latent"].float()
             order = torch.argsort(direction.abs(), descending=True, stable=True)[:top_k]
             latents, values = tuple(int(i) for i in order), tuple(float(direction[i]) for i in order)
+        elif "latent" in vectors:
+            logger.info("%s: steered through another SAE (weights %s); its latents are not listed", name, recorded)
         pairs.append(PairLatents(name, latents, values, vectors["residual"].float()))
     return pairs
 
@@ -126,7 +134,7 @@ def write_feature_page(
         dataset_root, repo_id: the LeRobot dataset the rows were captured from, for thumbnails (None: none).
         token_text: token id -> text (`PromptTokenizer.piece`-like); None shows the ids.
     """
-    pairs = read_pair_latents(steering_layer, pair_top_k) if steering_layer is not None else []
+    pairs = read_pair_latents(steering_layer, pair_top_k, sae) if steering_layer is not None else []
     latents = page_latents(scan, pairs, most_active)
     wanted = example_frames(scan, latents, examples)
     episodes = {e["index"]: e["episode_index"] for latent in latents for e in scan.examples(latent)[:examples]}
@@ -135,7 +143,7 @@ def write_feature_page(
     if dataset_root is not None and repo_id is not None:
         thumbnails = read_thumbnails(dataset_root, repo_id, episodes, video_backend=video_backend)
     decoder = sae.W_dec.detach().float().cpu()
-    body = [_header(scan, sae, title, pairs, latents)]
+    body = [_header(scan, sae, title, pairs, latents, scan.most_active(most_active))]
     body += [_latent_section(scan, latent, pairs, decoder, contexts, thumbnails, token_text, examples)
              for latent in latents]
     with atomic_path(path) as tmp:
@@ -174,7 +182,9 @@ def histogram_svg(edges: np.ndarray, counts: np.ndarray, width: int = 260, heigh
             f'viewBox="0 0 {width} {height}" role="img">{bars}{labels}</svg>')
 
 
-def _header(scan: FeatureScan, sae: Sae, title: str | None, pairs: Sequence[PairLatents], latents: list[int]) -> str:
+def _header(
+    scan: FeatureScan, sae: Sae, title: str | None, pairs: Sequence[PairLatents], latents: list[int], active: list[int]
+) -> str:
     rows = "".join(
         f"<tr><td>{html.escape(pair.pair)}</td><td>"
         + " ".join(f'<a href="#latent-{latent}">{latent}</a>' for latent in pair.latents)
@@ -182,12 +192,11 @@ def _header(scan: FeatureScan, sae: Sae, title: str | None, pairs: Sequence[Pair
         for pair in pairs
     )
     pair_table = f"<table><tr><th>pair</th><th>top latents by |latent direction|</th></tr>{rows}</table>" if rows else ""
-    active = " ".join(f'<a href="#latent-{latent}">{latent}</a>' for latent in scan.most_active(len(latents))
-                      if latent in latents)
+    links = " ".join(f'<a href="#latent-{latent}">{latent}</a>' for latent in active)
     return (f"<h1>{html.escape(title or f'Features of {sae.name}')}</h1>"
             f"<p>SAE <code>{html.escape(sae.name)}</code>: {scan.d_sae} latents, scanned over {scan.rows} rows of "
             f"{scan.frames} frames; {len(latents)} latents shown.</p>{pair_table}"
-            f"<p>Most active: {active}</p>")
+            f"<p>Most active (mean activation per row): {links}</p>")
 
 
 def _latent_section(
