@@ -39,7 +39,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 from flows.capture import capture_mode, run_capture
 from flows.evaluate import run_evaluation
 from flows.rollout import run_rollouts
-from flows.train_sae import run_training
+from flows.train_sae import feature_pages, run_training
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
@@ -81,6 +81,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     for future in expert_slices:
         future.result()
 
+    features = feature_pages(config)  # of the trained SAEs: their latents in the pairs' directions
     for layer_path in reports.values():
         publish_layer_report(Path(layer_path), config.name)
     evaluations = run_evaluation(config, config_path) if config.evaluate is not None else {}
@@ -89,6 +90,7 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
     return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
             "reports": {str(layer): path for layer, path in reports.items()}, "trained_saes": trained,
+            "feature_pages": features,
             "evaluations": evaluations, "rollouts": rollouts}
 
 

@@ -18,6 +18,7 @@ from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from steering_core.data.split import read_split
 from steering_core.sae.heldout import sae_heldout_episodes
+from steering_core.sae.feature_run import FeatureJob
 from steering_core.sae.judge_run import JudgedPair, JudgeJob
 from steering_core.storage.layout import layer_dir
 from tasks import sae_train
@@ -86,3 +87,20 @@ def run_training(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     else:
         train_sae_flow(str(config_path), [[layer] for layer in layers])
     return {layer_dir(layer): str(config.trained_sae_dir(layer)) for layer in layers}
+
+
+def feature_job(config: RunConfig, layer: int) -> FeatureJob:
+    """Return the feature page job of one trained layer (after the SAE phase: it reads the pairs' directions)."""
+    train, capture = config.sae_for(layer).train, config.capture_settings()
+    return FeatureJob(layer=layer, run_dir=config.run_dir, sae=config.trained_sae_dir(layer),
+                      output_dir=config.sae_layer_path(layer), steering_layer=config.layer_path(layer),
+                      dataset_root=config.dataset_root, repo_id=config.repo_id, tokenizer=capture.tokenizer_path,
+                      pair_top_k=config.steering.top_k, examples=train.feature_examples, device=train.device,
+                      video_backend=capture.video_backend)
+
+
+def feature_pages(config: RunConfig) -> dict[str, str]:
+    """Write every trained layer's feature page and Neuronpedia export (CPU); return layer folder name -> page."""
+    task = rooted(sae_train.feature_page, config.output_root)
+    futures = {layer_dir(layer): task.submit(feature_job(config, layer)) for layer in config.trained_layers}
+    return {name: future.result()["page"] for name, future in futures.items()}

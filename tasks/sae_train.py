@@ -1,5 +1,5 @@
 """SAE training tasks: an SAE trained on one layer of the run's residuals (GPU), its judgement against the borrowed
-SAE (GPU: it runs the policy) and its feature page (CPU)."""
+SAE (GPU: it runs the policy) and its feature page and Neuronpedia export (CPU, after the pairs' directions)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from typing import Any
 from prefect import get_run_logger, task
 
 from steering_core.capture import CaptureSettings, shards
+from steering_core.sae.feature_run import NEURONPEDIA_DIR, FeatureJob, write_layer_features
 from steering_core.sae.judge_run import JudgeJob, judge_job
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
@@ -84,3 +85,29 @@ def judge_trained_sae(job: JudgeJob, model: CaptureSettings, borrowed: SteeringS
     folder = judge_job(job, model, borrowed, progress=progress)
     progress.finish()
     return {OUTPUTS: [str(folder / name) for name in FIDELITY_FILES], "folder": str(folder)}
+
+
+def featured_inputs(inputs: dict[str, Any]) -> Any:
+    """Return what a feature page reads by content: the SAE, the layer's shards, the pairs' directions, the
+    tokenizer."""
+    job: FeatureJob = inputs["job"]
+    steering = {folder.name: folder_digests(folder) for folder in sorted(job.steering_layer.iterdir())
+                if folder.is_dir()}
+    return {"sae": folder_digests(job.sae), "rows": layer_rows({"run_dir": job.run_dir, "layer": job.layer}),
+            "directions": steering, "tokenizer": file_digest(job.tokenizer)}
+
+
+@task(
+    name="sae-features",
+    task_run_name="features {job.output_dir.name}",
+    cache_policy=content_key("steering_core.sae.feature_run", derived={"content": featured_inputs}),
+    **RESULTS,
+)
+def feature_page(job: FeatureJob) -> dict:
+    """Write the feature page and the Neuronpedia export of one trained SAE; return their files."""
+    progress = ProgressArtifact(artifact_key("features", job.run_dir.name, layer_dir(job.layer)), "rows",
+                                 f"feature scan of the trained SAE of {layer_dir(job.layer)}")
+    page, _ = write_layer_features(job, progress=progress)
+    progress.finish()
+    files = sorted(str(p) for p in (job.output_dir / NEURONPEDIA_DIR).rglob("*") if p.is_file())
+    return {OUTPUTS: [str(page), *files], "page": str(page)}
