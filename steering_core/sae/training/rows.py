@@ -4,8 +4,8 @@ The shuffle is a two-level one, so that memory stays bounded by `buffer_rows` wh
 each epoch cuts every shard's selected rows into pieces of `buffer_rows // PIECES_PER_BUFFER` rows,
 puts the pieces of all shards in a random order, fills buffers of at most `buffer_rows` rows with
 consecutive pieces (so one buffer mixes rows of up to PIECES_PER_BUFFER places in the run), and
-yields each buffer's rows in a random order. Every order comes from numpy generators seeded with
-(seed, epoch) and (seed, epoch, buffer), so the stream is a pure function of (seed, buffer_rows):
+yields each buffer's rows in a random order. The piece order comes from a numpy generator seeded with
+(seed, epoch), each buffer's row order from a torch generator seeded with (seed, epoch, buffer), so the stream is a pure function of (seed, buffer_rows):
 a stream started at sample s skips the whole buffers before s without reading them and yields the
 same rows as an uninterrupted one from s on.
 """
@@ -107,11 +107,11 @@ class RowSource:
                     skip -= size
                     continue
                 buffer = self._fill(chosen, size)
-                order = torch.from_numpy(np.random.default_rng([seed, epoch, number + 1]).permutation(size))
+                order = torch.randperm(size, generator=_generator(seed, epoch, number + 1))
                 first, skip = skip, 0
                 while first < size:
                     take = min(batch_rows - carry.shape[0], size - first)
-                    rows = buffer[order[first : first + take]]
+                    rows = buffer.index_select(0, order[first : first + take])
                     first += take
                     carry = rows if carry.shape[0] == 0 else torch.cat([carry, rows])
                     if carry.shape[0] == batch_rows:
@@ -164,6 +164,11 @@ def _buffers(pieces: np.ndarray, rng: np.random.Generator, buffer_rows: int) -> 
         last = int(np.searchsorted(ends, base + buffer_rows, side="right"))  # pieces ending within the buffer
         yield shuffled[first:last]
         first = last
+
+
+def _generator(*key: int) -> torch.Generator:
+    """Return a torch generator seeded by a hash of `key` (numpy's SeedSequence), so nearby keys give unrelated orders."""
+    return torch.Generator().manual_seed(int(np.random.SeedSequence(list(key)).generate_state(1, np.uint64)[0] >> 1))
 
 
 def _check_positive(**values: int) -> None:
