@@ -24,13 +24,13 @@ def write_rows_run(run_dir: Path, rows: torch.Tensor, *, episodes: int = 4, laye
     shards.write_run_spec(run_dir, spec)
     bounds = [round(e * n / episodes / TOKENS_PER_FRAME) * TOKENS_PER_FRAME for e in range(episodes + 1)]
     bounds[-1] = n
-    episode_of = torch.cat([torch.full((bounds[e + 1] - bounds[e],), e) for e in range(episodes)])
     for key, members in shards.group_episodes(range(episodes), episodes_per_shard).items():
-        take = torch.isin(episode_of, torch.tensor(members))
-        number = torch.arange(n)[take]
-        first = torch.tensor([bounds[e] // TOKENS_PER_FRAME for e in range(episodes)])[episode_of[take]]
-        shard = shards.ShardRows(residuals=rows[take], index=number // TOKENS_PER_FRAME,
-                                 episode_index=episode_of[take], frame_index=number // TOKENS_PER_FRAME - first,
+        start, stop = bounds[members[0]], bounds[members[-1] + 1]  # the members' rows are consecutive
+        number = torch.arange(start, stop)
+        episode = torch.cat([torch.full((bounds[e + 1] - bounds[e],), e) for e in members])
+        first = torch.tensor([bounds[e] // TOKENS_PER_FRAME for e in members])[episode - members[0]]
+        shard = shards.ShardRows(residuals=rows[start:stop], index=number // TOKENS_PER_FRAME, episode_index=episode,
+                                 frame_index=number // TOKENS_PER_FRAME - first,
                                  token_position=5 + number % TOKENS_PER_FRAME, token_id=number)
         shards.write_shard(run_dir, spec, layer, key, shard, episodes=members, inputs="planted")
     shards.write_run_metadata(run_dir)
