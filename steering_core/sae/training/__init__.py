@@ -1,0 +1,1 @@
+"""Training SAEs on captured residual rows with SAELens."""
