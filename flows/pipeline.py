@@ -175,6 +175,7 @@ def steering_vectors(
         for name in names:
             directions[name, layer].result()
         rooted(report.pairwise_stats, root)(layer, layer_path, names)
-        rooted(report.write_report, root)(layer, layer_path, names, config.steering.top_k)
+        trained = str(config.sae_layer_path(layer)) if layer in config.trained_layers else None
+        rooted(report.write_report, root)(layer, layer_path, names, config.steering.top_k, trained)
         reports[layer] = layer_path
     return reports

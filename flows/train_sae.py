@@ -17,8 +17,8 @@ from steering_core.capture import shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from steering_core.data.split import read_split
-from steering_core.sae.heldout import sae_heldout_episodes
 from steering_core.sae.feature_run import FeatureJob
+from steering_core.sae.heldout import sae_heldout_episodes
 from steering_core.sae.judge_run import JudgedPair, JudgeJob
 from steering_core.storage.layout import layer_dir
 from tasks import sae_train

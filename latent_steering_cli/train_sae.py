@@ -32,18 +32,26 @@ def train_sae_command(
                                       help="Rows seen in all (the run's rows repeat in new orders when fewer)."),
     normalize: Normalization = typer.Option(_DEFAULTS.normalize, "--normalize",
                                             help="Input normalisation, folded into the weights at the end."),
+    norm_estimate_batches: int = typer.Option(_DEFAULTS.norm_estimate_batches, "--norm-estimate-batches",
+                                              help="Batches that estimate the normalisation factor."),
     buffer_rows: int = typer.Option(_DEFAULTS.buffer_rows, "--buffer-rows",
                                     help="Rows held in the shuffle buffer (bounds memory whatever the run's size)."),
     seed: int = typer.Option(_DEFAULTS.seed, "--seed", help="Initialisation and shuffling seed."),
     checkpoints: int = typer.Option(_DEFAULTS.checkpoints, "--checkpoints",
                                     help="Checkpoints during training; a rerun resumes from the latest."),
+    dead_feature_window: int = typer.Option(_DEFAULTS.dead_feature_window, "--dead-feature-window",
+                                            help="Steps without firing before a latent counts as dead."),
+    feature_sampling_window: int = typer.Option(_DEFAULTS.feature_sampling_window, "--feature-sampling-window",
+                                                help="Steps over which firing frequency is counted."),
     device: str = typer.Option(_DEFAULTS.device, "--device", help="auto (CUDA when available), cuda, cuda:1 or cpu."),
 ) -> None:
     """Train an SAE on a layer's captured residuals (resumable) and save it in SAELens's format."""
     with input_errors():
         settings = TrainSettings(architecture=architecture, d_sae=d_sae, k=k, sparsity_coefficient=sparsity_coefficient,
                                  lr=lr, batch_size=batch_size, training_rows=training_rows, normalize=normalize,
-                                 buffer_rows=buffer_rows, seed=seed, checkpoints=checkpoints, device=device)
+                                 norm_estimate_batches=norm_estimate_batches, buffer_rows=buffer_rows, seed=seed,
+                                 checkpoints=checkpoints, dead_feature_window=dead_feature_window,
+                                 feature_sampling_window=feature_sampling_window, device=device)
         source = RowSource(run_dir, layer, exclude=exclude_episodes)
         folder = train_sae(source, output_dir, settings, layer=layer)
     typer.echo(f"SAE of layer {layer} trained on {source.rows} rows: {folder}")

@@ -35,6 +35,7 @@ from steering_core.evaluate.plots import layer_label, named
 from steering_core.evaluate.report import alpha_text, cross_fitted_choice, fmt, with_ci
 from steering_core.reporting.tables import text_table
 from steering_core.rollout.settings import LiberoTask, RolloutPair
+from steering_core.sae.fidelity_table import FIDELITY_JSON, TABLE_HEADER, table_rows
 from steering_core.sae.report import FVU_LIMIT
 from steering_core.storage.fileio import read_json, write_json
 from steering_core.storage.layout import DOSE_RESPONSE_FILE, PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
@@ -188,7 +189,17 @@ def summarise(config: RunConfig) -> dict[str, list[dict[str, Any]]]:
                 "latent_cosine": entry.get("latent_cosine"),
                 "mean_difference_cosine": entry.get("mean_difference_cosine"),
             })
-    return {"pairs": pairs, "between": between, "evaluation": evaluation_answer(config)}
+    trained = [read_json(config.sae_layer_path(layer) / FIDELITY_JSON) for layer in config.trained_layers]
+    return {"pairs": pairs, "between": between, "evaluation": evaluation_answer(config), "trained_saes": trained}
+
+
+def format_trained(records: list[dict[str, Any]]) -> str:
+    """Return the judgement of each SAE trained on the run's residuals: its verdict and table."""
+    lines = []
+    for record in records:
+        lines += [f"SAE trained on this run's residuals, layer {record['layer']}, against the borrowed one "
+                  "(held-out episodes): " + record["verdict"], text_table(TABLE_HEADER, table_rows(record))]
+    return "\n".join(lines)
 
 
 def evaluation_answer(config: RunConfig) -> list[dict[str, Any]]:
@@ -269,15 +280,19 @@ def format_summary(summary: dict[str, list[dict[str, Any]]], *, random_sae: bool
                       for row in summary["between"]])]
     lines.append("")
     if random_sae:
-        lines.append("The demo's SAEs are random (untrained, tiny), so they do not reconstruct the residuals: an FVU "
-                     "(fraction of variance unexplained) of 4-7 is expected here and nothing is broken. "
-                     "On a real SAE an FVU above 1 is flagged.")
+        lines.append("The demo's borrowed SAEs are random (untrained, tiny), so they do not reconstruct the residuals: an "
+                     "FVU (fraction of variance unexplained) of 4-7 is expected there and nothing is broken"
+                     + ("; the layers listed below steer through an SAE trained on the demo's own residuals instead"
+                        if summary.get("trained_saes") else "")
+                     + ". On a real SAE an FVU above 1 is flagged.")
     elif poor:
         lines.append(f"! FVU > {FVU_LIMIT:g} for {', '.join(sorted(poor))}: the SAE does not reconstruct these "
                      "residuals, so its latent directions say little about them (the residual-space "
                      "mean difference still holds).")
     else:
         lines.append(f"FVU (fraction of variance unexplained by the SAE) is at most {FVU_LIMIT:g} everywhere.")
+    if summary.get("trained_saes"):
+        lines += ["", format_trained(summary["trained_saes"])]
     if summary.get("evaluation"):
         lines += ["", format_evaluation(summary["evaluation"])]
     return "\n".join(lines)

@@ -8,6 +8,7 @@ from typing import Any
 from prefect import task
 
 from steering_core.sae import report, vectors
+from steering_core.sae.fidelity_table import FIDELITY_JSON
 from steering_core.storage import layout
 from steering_core.storage.fingerprints import file_digest
 from tasks.cache import OUTPUTS, RESULTS, content_key
@@ -37,13 +38,22 @@ def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:
     return {OUTPUTS: [str(pt_path), str(pt_path.with_suffix(".json"))]}
 
 
+def judgement_digest(inputs: dict[str, Any]) -> str | None:
+    """Return the digest of the trained SAE's fidelity.json (None: the layer's SAE is not trained by the run)."""
+    folder = inputs.get("trained_sae")
+    return file_digest(Path(folder) / FIDELITY_JSON) if folder is not None else None
+
+
 @task(
     name="write-report",
     task_run_name="report layer {layer}",
-    cache_policy=content_key("steering_core.sae.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest}),
+    cache_policy=content_key("steering_core.sae.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest,
+                                                                  "judgement": judgement_digest}),
     **RESULTS,
 )
-def write_report(layer: int, layer_path: str, pair_names: list[str], top_k: int) -> dict:
-    """Write summary.md, summary.json and the plots of one layer; return their paths."""
-    md_path = report.write_report(Path(layer_path), top_k=top_k)
+def write_report(layer: int, layer_path: str, pair_names: list[str], top_k: int, trained_sae: str | None = None) -> dict:
+    """Write summary.md, summary.json and the plots of one layer (with the judgement of its trained SAE, if any);
+    return their paths."""
+    md_path = report.write_report(Path(layer_path), top_k=top_k,
+                                  trained_sae=Path(trained_sae) if trained_sae is not None else None)
     return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))]}

@@ -9,14 +9,14 @@ from typing import Any
 from prefect import get_run_logger, task
 
 from steering_core.capture import CaptureSettings, shards
-from steering_core.sae.feature_run import NEURONPEDIA_DIR, FeatureJob, write_layer_features
+from steering_core.sae.feature_run import FeatureJob, write_layer_features
 from steering_core.sae.judge_run import JudgeJob, judge_job
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.training.trainer import train_sae
 from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage.fingerprints import file_digest
-from steering_core.storage.layout import layer_dir
+from steering_core.storage.layout import NEURONPEDIA_DIR, layer_dir
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
 from tasks.capture import GPU_TAG, model_inputs

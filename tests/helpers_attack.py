@@ -134,4 +134,7 @@ def good(world: World, tmp: Path) -> dict[str, list[str]]:
         "serve": ["--checkpoint-path", world.checkpoint, "--tokenizer-path", world.tokenizer, "--arch-file",
                   data / "arch.json", "--vectors", data / "latent_steering", "--device", "cpu", "--port", "0"],
         "make-demos": ["--output-dir", tmp / "demos", "--image-size", "16", "--demos-per-task", "1"],
+        "train-sae": ["--run-dir", data / "residuals" / "demo", "--layer", "1", "--output-dir", tmp / "sae",
+                      "--d-sae", "64", "--k", "4", "--batch-size", "32", "--training-rows", "640",
+                      "--buffer-rows", "512", "--checkpoints", "0", "--norm-estimate-batches", "2", "--device", "cpu"],
     }

@@ -56,6 +56,12 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
     for step in steps:
         result = runner.invoke(app, step)
         assert result.exit_code == 0, (step[0], result.output, result.exception)
+    saes = {layer: str(config.sae[layer].path) for layer in config.layers}
+    for layer in config.trained_layers:  # `train-sae` with the held-out episodes the flow leaves out
+        saes[layer] = str(out / "saes" / "demo" / layer_dir(layer) / "sae")
+        result = runner.invoke(app, ["train-sae", "--run-dir", str(run_dir), "--layer", str(layer), "--output-dir",
+                                     saes[layer], *train_options(config, layer, dataset, out)])
+        assert result.exit_code == 0, (result.output, result.exception)
     for layer in config.layers:
         pairs = {"pairs": [{
             "name": p.name,
@@ -68,7 +74,7 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
         result = runner.invoke(app, [
             "steer", "--pairs-config", str(pairs_file), "--output-root", str(out / "latent_steering"),
             "--layer", str(layer), "--device", "cpu", "--batch-size", str(config.steering.batch_size),
-            "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k)])
+            "--sae", saes[layer], "--top-k", str(config.steering.top_k)])
         assert result.exit_code == 0, (result.output, result.exception)
     evaluate = config.evaluate
     if evaluate is None:
@@ -80,7 +86,7 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
               "--noise-seeds", str(evaluate.noise_seeds), "--batch-size", str(evaluate.batch_size), "--device", "cpu"]
     result = runner.invoke(app, [
         "evaluate", "--pairs-config", str(out / f"layer{layer}_pairs.json"), "--layer", str(layer),
-        "--sae", str(config.sae[layer].path), "--top-k", str(config.steering.top_k), *common])
+        "--sae", saes[layer], "--top-k", str(config.steering.top_k), *common])
     assert result.exit_code == 0, (result.output, result.exception)
     if not evaluate.expert_layers:
         return
@@ -97,3 +103,20 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
     ):
         result = runner.invoke(app, step)
         assert result.exit_code == 0, (step[0], result.output, result.exception)
+
+
+def train_options(config: RunConfig, layer: int, dataset: Path, out: Path) -> list[str]:
+    """Return `train-sae`'s options for the layer's training settings and the episodes the flow holds out."""
+    from steering_core.data.dataset import read_meta
+    from steering_core.data.split import read_split
+    from steering_core.sae.heldout import sae_heldout_episodes
+
+    settings = config.train_settings(layer)
+    options = [arg for name, value in settings.model_dump().items()
+               for arg in ("--" + name.replace("_", "-"), str(value))]
+    task_episodes: dict[str, list[int]] = {}
+    for episode in read_meta(dataset).episodes:
+        task_episodes.setdefault(episode.task, []).append(episode.episode_index)
+    splits = [read_split(out / "manifests" / f"{pair.name}_split.json") for pair in config.pairs]
+    held = sae_heldout_episodes(task_episodes, splits, config.sae[layer].train.heldout_fraction)
+    return options + [arg for episode in held for arg in ("--exclude-episode", str(episode))]

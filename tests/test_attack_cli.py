@@ -187,6 +187,15 @@ CASES = [
     case("make-demos", "--image-size", "0", "--image-size"),
     case("make-demos", "--demos-per-task", "0", "--demos-per-task", exit_code=2),
     case("make-demos", "--num-steps", "1", "--num-steps"),
+    case("train-sae", "--run-dir", missing, "no_such_input", "metadata.json"),
+    case("train-sae", "--run-dir", a_folder, "a_folder", "metadata.json"),
+    case("train-sae", "--layer", "3", "layer 3", "metadata.json"),
+    case("train-sae", "--k", "100", "k is 100", "d_sae (64)"),
+    case("train-sae", "--batch-size", "1000", "batch_size is 1000", "training_rows (640)"),
+    case("train-sae", "--d-sae", "0", "--d-sae"),
+    case("train-sae", "--architecture", "gated", "--architecture", exit_code=2),
+    case("train-sae", "--device", "tpu", "tpu"),
+    case("train-sae", "--output-dir", a_file, "a_file.txt"),
 ]
 
 

@@ -43,7 +43,21 @@ def test_fvu_above_one_is_flagged_on_a_real_sae():
 def test_the_random_demo_sae_is_explained_not_flagged():
     text = format_summary(summary(5.3), random_sae=True)
     assert " !" not in text and "0.410 / 5.300" in text
-    assert "The demo's SAEs are random (untrained, tiny)" in text and "nothing is broken" in text
+    assert "The demo's borrowed SAEs are random (untrained, tiny)" in text and "nothing is broken" in text
+    assert "listed below" not in text
+
+
+def test_a_trained_sae_prints_its_verdict_and_table():
+    record = {"layer": 1, "verdict": "trained reconstructs better: FVU 0.010 trained vs 3.700 borrowed", "saes": {
+        name: {"name": name, "rows": {"rows": 711, "fvu": fvu, "l0": 8.0, "dead": 3, "dense": 1, "d_sae": 256},
+               "actions": {"delta_recon": 0.05, "delta_zero": 0.66, "recovered": recovered}}
+        for name, fvu, recovered in (("trained", 0.01, 0.924), ("borrowed", 3.7, None))}}
+    text = format_summary(summary(5.3) | {"trained_saes": [record]}, random_sae=True)
+    assert "the layers listed below steer through an SAE trained on the demo's own residuals" in text
+    assert ("SAE trained on this run's residuals, layer 1, against the borrowed one (held-out episodes): "
+            "trained reconstructs better: FVU 0.010 trained vs 3.700 borrowed") in text
+    rows = [line for line in text.splitlines() if line.startswith(("trained (", "borrowed ("))]
+    assert len(rows) == 2 and "0.010" in rows[0] and "0.924" in rows[0] and "3.700" in rows[1] and "—" in rows[1]
 
 
 def test_the_evaluation_answer_ends_the_summary():

@@ -652,3 +652,36 @@ def test_bad_input_fails_the_flow_in_its_preflight_task(tmp_path):
     assert list(tasks) == [PREFLIGHT] and tasks[PREFLIGHT].state.is_failed()
     assert f"{text}: not a safetensors file" in tasks[PREFLIGHT].state.message
     assert not config.output_root.exists()
+
+
+def test_the_demo_trains_layer_1s_sae_judges_it_on_held_out_episodes_and_steers_through_it(first_run, demo_config):
+    from steering_core.sae.model import load_sae
+
+    config = load_run_config(demo_config)
+    tasks = task_runs_under(first_run[0])
+    assert tasks["train SAE layer 1"].tags == ["gpu"] and tasks["judge SAE layer01"].tags == ["gpu"]
+    assert "features layer01" in tasks and config.trained_layers == (1,)
+    sae = load_sae(config.trained_sae_dir(1))
+    assert (sae.cfg.hook_name, sae.cfg.model_name, sae.cfg.d_in) == ("blocks.1.hook_resid_post", "pi05", 64)
+    # trained without the evaluation's held-out episodes, judged on exactly their rows
+    held = {e for pair in config.pairs for side in read_json(config.split_path(pair))["tasks"].values()
+            for e in side["holdout"]}
+    trained_on = set(read_json(config.trained_sae_dir(1) / "training.json")["source"]["episodes"])
+    metadata = read_run_metadata(config.run_dir)
+    assert held and not trained_on & held and trained_on | held == set(metadata.episodes)
+    held_rows = sum(r.rows for r in metadata.layer_shards(1) if set(r.episodes) <= held)
+    judged = read_json(config.sae_layer_path(1) / "fidelity.json")
+    assert judged["saes"]["trained"]["rows"]["rows"] == held_rows == judged["saes"]["borrowed"]["rows"]["rows"]
+    # the borrowed SAE is random: the trained one must reconstruct far better, rows and actions alike
+    trained, borrowed = judged["saes"]["trained"], judged["saes"]["borrowed"]
+    assert trained["rows"]["fvu"] < 0.2 < 1 < borrowed["rows"]["fvu"]
+    assert trained["actions"]["recovered"] > borrowed["actions"]["recovered"]
+    assert judged["verdict"].startswith("trained reconstructs better")
+    # layer 1 steers through it; layer 2 through the borrowed SAE of its config
+    steered = read_json(config.layer_path(1) / "open_vs_close" / "directions.json")["sae"]
+    assert steered["weights_path"] == str(config.trained_sae_dir(1) / "sae_weights.safetensors")
+    report = (config.layer_path(1) / "summary.md").read_text()
+    assert judged["verdict"] in report and "../../saes/demo/layer01/features.html" in report
+    assert "trained on this run's own" not in (config.layer_path(2) / "summary.md").read_text()
+    assert (config.sae_layer_path(1) / "features.html").stat().st_size > 10_000
+    assert f"layer 1, against the borrowed one (held-out episodes): {judged['verdict']}" in first_run[1]

@@ -13,11 +13,9 @@ from steering_core.sae.feature_scan import RowBatch, scan_features
 from steering_core.sae.model import load_sae
 from steering_core.sae.neuronpedia import write_neuronpedia
 from steering_core.sae.training.rows import RowSource
-from steering_core.storage.layout import layer_dir
+from steering_core.storage.layout import FEATURE_PAGE_FILE, NEURONPEDIA_DIR, layer_dir
 from steering_core.storage.schema import StrictModel
 
-FEATURE_PAGE_FILE = "features.html"
-NEURONPEDIA_DIR = "neuronpedia"
 ROWS_PER_BATCH = 4096
 
 

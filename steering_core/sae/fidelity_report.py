@@ -26,16 +26,20 @@ from steering_core.sae.action_fidelity import (
     sae_reconstruction,
 )
 from steering_core.sae.fidelity import DENSE_FRACTION, HISTOGRAM_EDGES, RowBatches, RowFidelity, row_fidelity
+from steering_core.sae.fidelity_table import (
+    FIDELITY_JSON,
+    FIDELITY_MD,
+    FIDELITY_PNG,
+    TABLE_HEADER,
+    number,
+    table_rows,
+)
 from steering_core.sae.model import Sae
 from steering_core.storage.fileio import atomic_path, read_json, write_json
 
 logger = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
-FIDELITY_JSON = "fidelity.json"
-FIDELITY_MD = "fidelity.md"
-FIDELITY_PNG = "fidelity.png"
-TABLE_HEADER = ("SAE", "rows", "FVU", "L0", "dead", "dense", "Δ_recon", "Δ_zero", "recovered")
 
 
 @dataclass(frozen=True)
@@ -131,37 +135,20 @@ def verdict(fidelity: Mapping[str, RowFidelity], changes: Mapping[str, ActionFid
     trained = fidelity["trained"]
     recovered = {name: change.recovered for name, change in changes.items()}
     if "borrowed" not in fidelity:
-        actions = f", actions recovered {_number(recovered['trained'])}" if recovered else ""
-        return f"trained SAE: FVU {_number(trained.fvu)}{actions}; no borrowed SAE to compare"
+        actions = f", actions recovered {number(recovered['trained'])}" if recovered else ""
+        return f"trained SAE: FVU {number(trained.fvu)}{actions}; no borrowed SAE to compare"
     borrowed = fidelity["borrowed"]
     if trained.fvu is None or borrowed.fvu is None:
         head = "no FVU: the held-out rows do not vary"
     elif trained.fvu == borrowed.fvu:
-        head = f"trained and borrowed reconstruct equally well: FVU {_number(trained.fvu)}"
+        head = f"trained and borrowed reconstruct equally well: FVU {number(trained.fvu)}"
     else:
         better = "trained" if trained.fvu < borrowed.fvu else "borrowed"
-        head = f"{better} reconstructs better: FVU {_number(trained.fvu)} trained vs {_number(borrowed.fvu)} borrowed"
+        head = f"{better} reconstructs better: FVU {number(trained.fvu)} trained vs {number(borrowed.fvu)} borrowed"
     if recovered:
-        head += (f"; actions recovered {_number(recovered['trained'])} trained vs "
-                 f"{_number(recovered['borrowed'])} borrowed")
+        head += (f"; actions recovered {number(recovered['trained'])} trained vs "
+                 f"{number(recovered['borrowed'])} borrowed")
     return head
-
-
-def _number(value: float | None, spec: str = ".3f") -> str:
-    return "—" if value is None else format(value, spec)
-
-
-def table_rows(record: dict[str, Any]) -> list[tuple[str, ...]]:
-    """Return the table's rows (cells as strings, `TABLE_HEADER` order), one per SAE of a fidelity record."""
-    out = []
-    for label, entry in record["saes"].items():
-        fit, change = entry["rows"], entry["actions"] or {}
-        out.append((
-            f"{label} ({entry['name']})", str(fit["rows"]), _number(fit["fvu"]), _number(fit["l0"], ".1f"),
-            f"{fit['dead']} / {fit['d_sae']}", str(fit["dense"]), _number(change.get("delta_recon"), ".4f"),
-            _number(change.get("delta_zero"), ".4f"), _number(change.get("recovered")),
-        ))
-    return out
 
 
 def fidelity_markdown(record: dict[str, Any]) -> str:
@@ -202,7 +189,7 @@ def plot_fidelity(path: Path, record: dict[str, Any]) -> None:
                label="reconstruction spliced")
         ax.bar([p + 0.2 for p in positions], [e["actions"]["delta_zero"] for e in entries], width=0.4,
                color="0.6", label="zeroed")
-        ax.set_xticks(list(positions), [f"{label}\nrecovered {_number(e['actions']['recovered'], '.2f')}"
+        ax.set_xticks(list(positions), [f"{label}\nrecovered {number(e['actions']['recovered'], '.2f')}"
                                         for label, e in zip(labels, entries, strict=True)])
         ax.legend(fontsize=7)
     else:

@@ -7,6 +7,7 @@ the safetensors files they name), so it can run on its own over an existing outp
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -15,9 +16,11 @@ import torch
 from safetensors.torch import load_file
 
 from steering_core.reporting.plots import figure, save_png
+from steering_core.sae.fidelity_table import FIDELITY_JSON, FIDELITY_MD, FIDELITY_PNG, TABLE_HEADER, table_rows
 from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
 from steering_core.storage.fileio import atomic_path, read_json, write_json
 from steering_core.storage.layout import (
+    FEATURE_PAGE_FILE,
     PAIR_SUMMARY_FILE,
     PAIRWISE_STATS_FILE,
     SUMMARY_JSON,
@@ -32,8 +35,12 @@ TOP_LATENTS_PLOT = "top_latents_{pair}.png"
 FVU_LIMIT = 1.0  # above it the SAE explains less of the residuals' variance than their mean does
 
 
-def write_report(layer_path: Path, *, top_k: int = 20) -> Path:
-    """Write summary.md, summary.json and plots for one layer folder; return the summary.md path."""
+def write_report(layer_path: Path, *, top_k: int = 20, trained_sae: Path | None = None) -> Path:
+    """Write summary.md, summary.json and plots for one layer folder; return the summary.md path.
+
+    `trained_sae`: the folder of the layer's SAE trained on the run's residuals (`saes/<run>/layerNN`), whose
+    judgement against the borrowed SAE and feature page the report shows.
+    """
     pairwise = read_json(layer_path / f"{PAIRWISE_STATS_FILE}.json")
     pairs = [_pair_summary(layer_path / name, top_k) for name in pairwise["pairs"]]
     sae = next((pair["sae"] for pair in pairs if pair["sae"] is not None), None)
@@ -53,6 +60,7 @@ def write_report(layer_path: Path, *, top_k: int = 20) -> Path:
         "pairs": pairs,
         "pairwise": pairwise["entries"],
         "plots": plots,
+        "trained_sae": _trained_sae(layer_path, trained_sae) if trained_sae is not None else None,
     }
     write_json(layer_path / SUMMARY_JSON, summary)
     md_path = layer_path / SUMMARY_MD
@@ -85,6 +93,15 @@ def top_latents(
         }
         for index in order
     ]
+
+
+def _trained_sae(layer_path: Path, folder: Path) -> dict[str, Any]:
+    """Return the trained SAE's judgement (verdict and table rows) and where its files are, relative to the report."""
+    record = read_json(folder / FIDELITY_JSON)
+    where = Path(os.path.relpath(folder, layer_path)).as_posix()
+    return {"folder": where, "verdict": record["verdict"], "table": [list(row) for row in table_rows(record)],
+            "fidelity": f"{where}/{FIDELITY_MD}", "plot": f"{where}/{FIDELITY_PNG}",
+            "feature_page": f"{where}/{FEATURE_PAGE_FILE}"}
 
 
 def _pair_summary(pair_path: Path, top_k: int) -> dict[str, Any]:
@@ -186,8 +203,10 @@ def _markdown(summary: dict[str, Any]) -> str:
             "",
             "`residual_direction` = latent direction @ W_dec"
             + (" + b_dec (seed-compatible option)" if summary["pairs"][0]["include_decoder_bias"] else " (no b_dec)")
-            + ". The SAE was trained on Gemma text, not on pi0.5's fine-tuned LM: check the fidelity below "
-            "(FVU = fraction of variance unexplained by the reconstruction; L0 = active latents per row).",
+            + (". The SAE was trained on this run's own pi0.5 residuals (below: how it compares with the borrowed one)"
+               if summary["trained_sae"] else ". The SAE was trained on Gemma text, not on pi0.5's fine-tuned LM")
+            + ": check the fidelity below (FVU = fraction of variance unexplained by the reconstruction; "
+            "L0 = active latents per row).",
             "",
         ]
         if summary["pairs"][0]["direction_space"] != "residual":
@@ -217,6 +236,13 @@ def _markdown(summary: dict[str, Any]) -> str:
     if poor and sae is not None:
         lines += ["", f"**FVU > {FVU_LIMIT:g} for {', '.join(poor)}: the SAE does not reconstruct these residuals**, "
                   "so its latent directions say little about them; the residual-space mean difference still holds."]
+    if trained := summary["trained_sae"]:
+        lines += ["", "## The SAE trained on this run's residuals, against the borrowed one (held-out episodes)", "",
+                  f"**{trained['verdict']}**", "", "| " + " | ".join(TABLE_HEADER) + " |",
+                  "|" + "---|" * len(TABLE_HEADER)]
+        lines += ["| " + " | ".join(row) + " |" for row in trained["table"]]
+        lines += ["", f"Details: [{trained['fidelity']}]({trained['fidelity']}); its latents, their top frames and "
+                  f"tokens: [feature page]({trained['feature_page']}).", "", f"![fidelity]({trained['plot']})"]
     if summary["pairwise"]:
         lines += ["", "## Pairwise cosines", "", "| pairs | residual cosine | latent cosine | mean-diff cosine |",
                   "|---|---|---|---|"]

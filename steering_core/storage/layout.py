@@ -20,6 +20,8 @@ SPLIT_FILE = "manifests/{pair}_split.json"   # held-out episodes per task (phase
 STEERING_ROOT = "latent_steering"
 SAES_DIR = "saes/{run}"                    # layerNN/: an SAE trained on the run's residuals, its judgement, features
 TRAINED_SAE_DIR = "sae"                    # in saes/<run>/layerNN/: the SAE in SAELens's format (+ training.json)
+FEATURE_PAGE_FILE = "features.html"        # in saes/<run>/layerNN/: the trained SAE's static feature page
+NEURONPEDIA_DIR = "neuronpedia"            # in saes/<run>/layerNN/: its features in Neuronpedia's export layout
 STEERING_EVAL_ROOT = "steering_eval"       # phase 4: steering_eval/layerNN/<pair>/ and per-layer summaries
 PATHWAYS_FILE = "pathways"                 # + .md / .json in STEERING_EVAL_ROOT: language model vs action expert
 # Files of one steering layer folder (STEERING_ROOT/layerNN/) and of its pair folders (layerNN/<pair>/).

@@ -10,6 +10,7 @@ from steering_core.storage.schema import StrictModel
 
 Architecture = Literal["topk", "batchtopk", "jumprelu", "standard"]
 ARCHITECTURES: tuple[str, ...] = Architecture.__args__
+Normalization = Literal["none", "expected_average_only_in"]
 SPARSE_BY_K = ("topk", "batchtopk")  # sparsity set by k; the others by a loss coefficient
 
 
@@ -25,7 +26,7 @@ class TrainSettings(StrictModel):
     batch_size: int = Field(4096, ge=1)  # rows per optimiser step
     training_rows: int = Field(2_000_000, ge=1)  # rows seen in all; the run's rows repeat in new orders if fewer
     # SAELens's: inputs scaled to mean norm sqrt(d_in) during training, the factor folded into the saved weights
-    normalize: Literal["none", "expected_average_only_in"] = "expected_average_only_in"
+    normalize: Normalization = "expected_average_only_in"
     norm_estimate_batches: int = Field(16, ge=1)  # batches of a separate stream that estimate that factor
     # rows shuffled together: 262144 x 2048 float32 rows are 2 GiB, a bound whatever the run's size
     buffer_rows: int = Field(262_144, ge=1)
