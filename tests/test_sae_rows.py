@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers_sae_rows import LAYER, write_rows_run
 
 from steering_core.capture import shards
 from steering_core.sae.training.rows import RowSource
 from steering_core.storage.tensor_files import tensor_locations
+from steering_core.synthetic.residual_run import LAYER, write_rows_run
 
 WIDTH = 8
 
@@ -81,6 +81,7 @@ STREAM_CHILD = """
 import json, sys
 from pathlib import Path
 from steering_core.sae.training.rows import RowSource
+from steering_core.synthetic.residual_run import LAYER, write_rows_run
 
 def status_kib(field):
     line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith(field + ":"))

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers_sae_rows import LAYER, write_rows_run
 from test_sae_rows import write_nan_row
 
 from steering_core.sae.formats import CFG_FILE, SPARSITY_FILE, WEIGHTS_FILE
@@ -21,6 +20,7 @@ from steering_core.sae.model import load_sae
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.training.trainer import CHECKPOINTS_DIR, TRAINING_FILE, read_training_record, train_sae
+from steering_core.synthetic.residual_run import LAYER, write_rows_run
 
 D_IN, DIRECTIONS, ACTIVE = 32, 64, 3
 PLANTED = TrainSettings(d_sae=128, k=4, lr=3e-3, batch_size=256, training_rows=256 * 1200, buffer_rows=4096,
@@ -107,6 +107,7 @@ def test_the_record_names_rows_and_settings_and_a_finished_folder_is_reused(plan
 KILLED_CHILD = """
 import sys, time, torch
 from steering_core.sae.training.rows import RowSource
+from steering_core.synthetic.residual_run import LAYER, write_rows_run
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.training.trainer import train_sae
 torch.set_num_threads(1)
