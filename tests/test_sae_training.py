@@ -144,7 +144,7 @@ def test_a_run_killed_after_a_checkpoint_resumes_to_the_bytes_of_an_uninterrupte
     assert read_training_record(killed)["metrics"]["resumed_from_rows"] > 0
     for name in SAE_FILES:
         assert (killed / name).read_bytes() == (uninterrupted / name).read_bytes(), name
-    assert not (killed / CHECKPOINTS_DIR).exists()
+    assert sorted(p.name for p in killed.iterdir()) == sorted([*SAE_FILES, TRAINING_FILE])  # no staging left
 
 
 def test_nan_rows_stop_training_in_one_line_and_leave_no_sae_files(tmp_path):
@@ -157,6 +157,22 @@ def test_nan_rows_stop_training_in_one_line_and_leave_no_sae_files(tmp_path):
     assert str(error.value).startswith(f"{shard}: tensor `residuals` holds NaN or Inf") and "\n" not in str(error.value)
     left = sorted(p.name for p in (tmp_path / "sae").rglob("*")) if (tmp_path / "sae").exists() else []
     assert left == []
+
+
+@pytest.mark.parametrize("architecture, saved_as", [("jumprelu", "jumprelu"), ("standard", "standard")])
+def test_the_other_architectures_train_into_folders_both_loaders_read(tmp_path, architecture, saved_as):
+    from sae_lens import SAE
+
+    _, rows = planted_rows(512, seed=3)
+    write_rows_run(tmp_path / "run", rows, episodes=2)
+    settings = TrainSettings(architecture=architecture, d_sae=48, sparsity_coefficient=1e-3, batch_size=64,
+                             training_rows=64 * 30, buffer_rows=512, checkpoints=1, device="cpu")
+    out = train_sae(RowSource(tmp_path / "run", LAYER), tmp_path / "sae", settings, layer=LAYER)
+    theirs, ours = SAE.load_from_disk(out), load_sae(out)
+    assert ours.cfg.architecture == saved_as == json.loads((out / CFG_FILE).read_text())["architecture"]
+    with torch.no_grad():
+        latents, norm = ours.encode_with_norm(rows[:100])
+        assert torch.allclose(theirs.decode(theirs.encode(rows[:100])), ours.decode(latents, norm), atol=1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("changes, expected", [
