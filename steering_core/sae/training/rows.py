@@ -99,13 +99,14 @@ class RowSource:
             raise ValueError(f"start_sample is {start_sample}, expected 0 or more")
         pieces = self._pieces(max(1, buffer_rows // PIECES_PER_BUFFER))
         epoch, skip = divmod(start_sample, self.rows)
-        carry = torch.empty(0, self.width)
+        carry, buffer = torch.empty(0, self.width), None
         while True:
             for number, chosen in enumerate(_buffers(pieces, np.random.default_rng([seed, epoch]), buffer_rows)):
                 size = int((chosen[:, 2] - chosen[:, 1]).sum())
                 if skip >= size:  # the whole buffer lies before the start: never read
                     skip -= size
                     continue
+                buffer = None  # the previous buffer is freed before the next one is read: one buffer at a time
                 buffer = self._fill(chosen, size)
                 order = torch.randperm(size, generator=_generator(seed, epoch, number + 1))
                 first, skip = skip, 0
