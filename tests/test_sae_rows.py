@@ -54,6 +54,15 @@ def test_episode_selection_keeps_exactly_the_rows_of_the_chosen_episodes(tmp_pat
     assert source.identity() == RowSource(tmp_path, LAYER, episodes=[1, 4, 7]).identity()
 
 
+def test_the_identity_follows_the_selected_shards_only(tmp_path):
+    x = rows_of(400)
+    write_rows_run(tmp_path / "a", x, episodes=4)
+    write_rows_run(tmp_path / "b", torch.cat([x[:300], x[300:] + 1]), episodes=4)  # episode 3 differs
+    for episodes, same in (([0, 1, 2], True), ([1, 3], False)):
+        a, b = (RowSource(tmp_path / run, LAYER, episodes=episodes).identity() for run in "ab")
+        assert (a == b) is same
+
+
 def test_shuffled_epochs_are_permutations_that_mix_shards_and_depend_on_the_seed(tmp_path):
     x = rows_of(1024)
     write_rows_run(tmp_path, x, episodes=16)  # 64 rows per shard

@@ -167,7 +167,10 @@ def test_the_other_architectures_train_into_folders_both_loaders_read(tmp_path, 
     write_rows_run(tmp_path / "run", rows, episodes=2)
     settings = TrainSettings(architecture=architecture, d_sae=48, sparsity_coefficient=1e-3, batch_size=64,
                              training_rows=64 * 30, buffer_rows=512, checkpoints=1, device="cpu")
-    out = train_sae(RowSource(tmp_path / "run", LAYER), tmp_path / "sae", settings, layer=LAYER)
+    calls = []
+    out = train_sae(RowSource(tmp_path / "run", LAYER), tmp_path / "sae", settings, layer=LAYER,
+                    progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(64 * step, 64 * 30) for step in range(31)]  # rows seen at the start and after each step
     theirs, ours = SAE.load_from_disk(out), load_sae(out)
     assert ours.cfg.architecture == saved_as == json.loads((out / CFG_FILE).read_text())["architecture"]
     with torch.no_grad():
