@@ -27,6 +27,7 @@ BENCHMARKS = (
     "serve_latency",
     "evaluate_cost",
     "rollout_throughput",
+    "sae_training",
 )
 OPT_IN = ("real_size", "policy_real_size")  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers_sae_rows import LAYER, write_rows_run
 
 from steering_core.capture import shards
 from steering_core.sae.training.rows import RowSource
 from steering_core.storage.tensor_files import tensor_locations
+from steering_core.synthetic.residual_run import LAYER, write_rows_run
 
 WIDTH = 8
 
@@ -54,6 +54,15 @@ def test_episode_selection_keeps_exactly_the_rows_of_the_chosen_episodes(tmp_pat
     assert source.identity() == RowSource(tmp_path, LAYER, episodes=[1, 4, 7]).identity()
 
 
+def test_the_identity_follows_the_selected_shards_only(tmp_path):
+    x = rows_of(400)
+    write_rows_run(tmp_path / "a", x, episodes=4)
+    write_rows_run(tmp_path / "b", torch.cat([x[:300], x[300:] + 1]), episodes=4)  # episode 3 differs
+    for episodes, same in (([0, 1, 2], True), ([1, 3], False)):
+        a, b = (RowSource(tmp_path / run, LAYER, episodes=episodes).identity() for run in "ab")
+        assert (a == b) is same
+
+
 def test_shuffled_epochs_are_permutations_that_mix_shards_and_depend_on_the_seed(tmp_path):
     x = rows_of(1024)
     write_rows_run(tmp_path, x, episodes=16)  # 64 rows per shard
@@ -86,32 +95,33 @@ def status_kib(field):
     line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith(field + ":"))
     return int(line.split()[1])
 
-source = RowSource(sys.argv[1], int(sys.argv[2]))
-stream = source.shuffled(512, seed=0, buffer_rows=8192)
-before = status_kib("VmRSS")
-Path("/proc/self/clear_refs").write_text("5")  # the peak so far (imports) is forgotten: VmHWM restarts here
-for _ in range(source.rows // 512):
-    next(stream)
-print(json.dumps({"growth_kib": status_kib("VmHWM") - before, "rows": source.rows}))
+growth = []
+for run in sys.argv[2:]:
+    source = RowSource(run, int(sys.argv[1]))
+    stream = source.shuffled(512, seed=0, buffer_rows=8192)
+    before = status_kib("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # the peak so far is forgotten: VmHWM restarts here
+    for _ in range(source.rows // 512):
+        next(stream)
+    del stream
+    growth.append(status_kib("VmHWM") - before)
+print(json.dumps(growth))
 """
 
 
 def test_streaming_peak_memory_stays_flat_from_1x_to_50x_rows(tmp_path):
-    """The stream's own peak (over the memory after imports, which are 0.5 GB of unrelated libraries) is flat."""
+    """The stream's own peak (above the memory after imports, 0.5 GB of unrelated libraries) is flat."""
     width, base_rows = 64, 12_288
-    growth = {}
-    for scale in (1, 50):
-        run = tmp_path / f"x{scale}"
-        write_rows_run(run, rows_of(base_rows * scale, width), episodes=4 if scale == 1 else 40, storage_dtype="bfloat16")
-        done = subprocess.run([sys.executable, "-c", STREAM_CHILD, str(run), str(LAYER)], capture_output=True,
-                              text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
-        assert done.returncode == 0, done.stderr[-2000:]
-        result = json.loads(done.stdout.strip().splitlines()[-1])
-        assert result["rows"] == base_rows * scale
-        growth[scale] = result["growth_kib"] * 1024
+    episodes = {1: 4, 50: 40}
+    runs = [write_rows_run(tmp_path / f"x{scale}", rows_of(base_rows * scale, width), episodes=count,
+                           storage_dtype="bfloat16") for scale, count in episodes.items()]
+    done = subprocess.run([sys.executable, "-c", STREAM_CHILD, str(LAYER), *map(str, runs)], capture_output=True,
+                          text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    growth_1x, growth_50x = (kib * 1024 for kib in json.loads(done.stdout.strip().splitlines()[-1]))
     whole_run = base_rows * 50 * width * 4  # the 50x run as float32 rows: holding it would break the bound
-    assert whole_run > 2 * growth[1]
-    assert growth[50] <= 1.5 * growth[1], growth
+    assert whole_run > 2 * growth_1x
+    assert growth_50x <= 1.5 * growth_1x, (growth_1x, growth_50x)
 
 
 def write_other_width_shard(run_dir: Path) -> None:

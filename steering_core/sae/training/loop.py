@@ -66,7 +66,9 @@ class CheckpointingTrainer(SAETrainer):
             feature_sampling_window=settings.feature_sampling_window, n_checkpoints=settings.checkpoints,
             n_batches_for_norm_estimate=settings.norm_estimate_batches,
         )
-        super().__init__(config, sae, data_provider=iter(()), save_checkpoint_fn=lambda checkpoint_path: on_checkpoint())
+        # on the device before the optimiser exists: optimiser state loaded from a checkpoint follows the parameters
+        super().__init__(config, sae.to(device), data_provider=iter(()),
+                         save_checkpoint_fn=lambda checkpoint_path: on_checkpoint())
         self.on_step = on_step
         self.last_losses: dict[str, float] = {}
         self.last_explained_variance = float("nan")

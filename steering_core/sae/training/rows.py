@@ -57,7 +57,7 @@ class RowSource:
             raise ValueError(f"{where}: episodes {describe_ranges(missing)} have no rows of layer {self.layer} "
                              f"(captured: {describe_ranges(sorted(captured))}); capture them or leave them out")
         self.episodes = tuple(sorted(wanted - {int(e) for e in exclude}))
-        self._fingerprint = metadata.run_fingerprint
+        self._run_identity = metadata.run.identity()
         wrong = [f"{self.run_dir / r.file}: `width` is {r.width}, expected {self.width} from run.json"
                  for r in records if r.width != self.width]
         if wrong:
@@ -70,9 +70,10 @@ class RowSource:
                              f"{describe_ranges(list(self.episodes))}); expected at least one, choose other episodes")
 
     def identity(self) -> str:
-        """Return the sha256 of the run's fingerprint, the layer and the selected episodes: the rows' identity."""
-        return sha256_json({"run_fingerprint": self._fingerprint, "token_type": self.token_type, "layer": self.layer,
-                            "episodes": list(self.episodes)})
+        """Return the sha256 of the rows' identity: the run's spec, the layer, the selected episodes and the sha256
+        of each shard holding them (shards of other episodes, such as newly captured demos, do not count)."""
+        return sha256_json({"run": self._run_identity, "layer": self.layer, "episodes": list(self.episodes),
+                            "shards": [(record.file, record.sha256) for record, _ in self._shards]})
 
     def sequential(self, batch_rows: int) -> Iterator[tuple[torch.Tensor, dict[str, np.ndarray]]]:
         """Yield float32 (b, width) rows with their (b,) int64 columns (index, episode_index, frame_index,
@@ -99,13 +100,14 @@ class RowSource:
             raise ValueError(f"start_sample is {start_sample}, expected 0 or more")
         pieces = self._pieces(max(1, buffer_rows // PIECES_PER_BUFFER))
         epoch, skip = divmod(start_sample, self.rows)
-        carry = torch.empty(0, self.width)
+        carry, buffer = torch.empty(0, self.width), None
         while True:
             for number, chosen in enumerate(_buffers(pieces, np.random.default_rng([seed, epoch]), buffer_rows)):
                 size = int((chosen[:, 2] - chosen[:, 1]).sum())
                 if skip >= size:  # the whole buffer lies before the start: never read
                     skip -= size
                     continue
+                buffer = None  # the previous buffer is freed before the next one is read: one buffer at a time
                 buffer = self._fill(chosen, size)
                 order = torch.randperm(size, generator=_generator(seed, epoch, number + 1))
                 first, skip = skip, 0

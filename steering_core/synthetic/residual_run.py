@@ -1,4 +1,4 @@
-"""Capture runs made of given residual rows, for the SAE training tests."""
+"""Capture runs made of given residual rows, for the SAE training tests and benchmark."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 
 from steering_core.capture import shards
 
-LAYER = 3
+LAYER = 3  # any captured layer: the rows are given, not computed
 TOKENS_PER_FRAME = 2  # rows of one frame share `index`; their token positions are 5 and 6
 
 
