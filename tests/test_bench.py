@@ -32,6 +32,7 @@ from bench import (  # noqa: E402
     rollout_throughput,
     run_all,
     sae_encoding,
+    sae_training,
     serve_latency,
     slicing_memory,
 )
@@ -102,6 +103,14 @@ def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
     result = run_quick(sae_encoding, cache, tmp_path)
     assert result.checks["latent_mean_max_abs_difference"] < 1e-5
     assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
+
+
+def test_sae_training_benchmark_times_the_step_the_bound_and_the_loader(cache, tmp_path):
+    result = run_quick(sae_training, cache, tmp_path)
+    assert [row["method"].split(":")[0].split(",")[0] for row in result.table] == [
+        "ours", "torch.matmul", "RowSource.shuffled alone (the same stream)"]
+    assert all(row["rows/s"] > 0 for row in result.table) and result.ratio > 0
+    assert result.checks["loader_over_ours"] == result.table[2]["rows/s"] / result.table[0]["rows/s"]
 
 
 def test_real_size_section_runs_at_tiny_size(cache, tmp_path):

@@ -11,6 +11,8 @@ SUBPACKAGES = (
     "steering_core.pi05",
     "steering_core.capture",
     "steering_core.sae",
+    "steering_core.sae.training.loop",
+    "steering_core.sae.judge_run",
     "steering_core.synthetic",
     "steering_core.evaluate",
     "steering_core.evaluate.run",

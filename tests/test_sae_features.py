@@ -29,6 +29,7 @@ from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae, load_sae
 from steering_core.sae.neuronpedia import read_jsonl_gz, write_neuronpedia
 from steering_core.storage.fileio import read_json
+from steering_core.storage.layout import layer_dir
 
 D_IN, D_SAE = 8, 24
 
@@ -179,11 +180,11 @@ class DemoPage:
 
 @pytest.fixture(scope="module")
 def demo_page(attack_world, tmp_path_factory) -> DemoPage:
-    """The feature page of the demo run's layer 1, through its own SAE and steering pairs."""
+    """The feature page of the demo run's layer 1, through the SAE trained on its rows and its steering pairs."""
     import sentencepiece
 
     run = attack_world.data / "residuals" / "demo"
-    sae = load_sae(attack_world.sae(LAYER))
+    sae = load_sae(attack_world.data / "saes" / "demo" / layer_dir(LAYER) / "sae")  # what the CLI steps steered with
     scan = scan_features(shard_batches(run, LAYER), sae, top_n=6)
     pieces = sentencepiece.SentencePieceProcessor(model_file=str(attack_world.tokenizer)).id_to_piece
     path = write_feature_page(

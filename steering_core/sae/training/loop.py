@@ -105,6 +105,8 @@ class CheckpointingTrainer(SAETrainer):
             "scaling_factor": self.activation_scaler.scaling_factor,
             **{name: getattr(self, name) for name in _COUNTERS},
             **{name: getattr(self, name).detach().cpu() for name in _STATISTICS},
+            # SAELens checkpoints after a step but before counting it: the resumed run starts at the next step
+            "n_training_steps": self.n_training_steps + 1,
         }
 
     def load_state(self, state: dict[str, Any]) -> None:

@@ -54,6 +54,9 @@ def train_sae(source: RowSource, out_dir: Path, settings: TrainSettings, *, laye
     stops training with a one-line ValueError naming the file; the final files are then left unwritten.
     """
     out_dir = Path(out_dir)
+    if blocking := next((p for p in (out_dir, *out_dir.parents) if p.exists() and not p.is_dir()), None):
+        raise NotADirectoryError(f"{blocking}: is a file, so the SAE folder {out_dir} cannot be written there; "
+                                 "choose another output folder")
     identity = training_identity(source, settings, layer=layer, model_name=model_name)
     if _finished(out_dir, identity):
         logger.info("%s: already trained with these rows and settings", out_dir)
@@ -87,9 +90,10 @@ def train_sae(source: RowSource, out_dir: Path, settings: TrainSettings, *, laye
         "device": str(device),
         "metrics": {**trainer.last_losses, "explained_variance_last_batch": trainer.last_explained_variance,
                     "l0": trained.cfg.metadata.l0, "dead_latents": trained.cfg.metadata.num_dead_features,
-                    "rows_seen": trainer.n_training_samples, "steps": trainer.n_training_steps,
-                    "resumed_from_rows": resumed, "seconds": seconds},
-    })
+                    "rows_seen": trainer.n_training_samples, "steps": trainer.n_training_steps},
+    })  # the same bytes for the same inputs: how long it took and where it resumed are logged only
+    logger.info("%s: trained in %.1f s (%d rows seen, resumed from %d)", out_dir, seconds,
+                trainer.n_training_samples, resumed)
     shutil.rmtree(checkpoints, ignore_errors=True)
     return out_dir
 
