@@ -196,6 +196,7 @@ CASES = [
     case("train-sae", "--architecture", "gated", "--architecture", exit_code=2),
     case("train-sae", "--device", "tpu", "tpu"),
     case("train-sae", "--output-dir", a_file, "a_file.txt"),
+    case("train-sae", "--exclude-episode", "99", "episodes 99", "metadata.json"),
 ]
 
 

@@ -48,8 +48,9 @@ def config_case(tmp_path: Path, text: str | bytes, *names: str) -> Case:
     return Case(["capture", "--config", path], (str(path), *names))
 
 
-def config_value(name: str, key: str, value: object) -> Attack:
-    """A run config whose `key` (dotted; list positions as digits) is set to `value`."""
+def config_value(name: str, key: str, value: object, shown: str | None = None) -> Attack:
+    """A run config whose `key` (dotted; list positions as digits) is set to `value`; its error names `shown`
+    (default the key)."""
     def attack(world: World, tmp_path: Path) -> Case:
         def edit(data: dict) -> None:
             *parents, last = key.split(".")
@@ -57,8 +58,7 @@ def config_value(name: str, key: str, value: object) -> Attack:
             for part in parents:
                 node = node[int(part)] if isinstance(node, list) else node[part]
             node[int(last) if isinstance(node, list) else last] = value
-        shown = key.replace(".0.", "[0].")
-        return config_case(tmp_path, config_text(world, tmp_path, edit), shown)
+        return config_case(tmp_path, config_text(world, tmp_path, edit), shown or key.replace(".0.", "[0]."))
     return named(name, attack)
 
 
@@ -89,6 +89,9 @@ CONFIG_ATTACKS = [
     config_value("sources_folder_url", "sources.folders", ["s3://bucket/demos"]),
     config_value("dataset_root_url", "dataset.root", "s3://bucket/dataset"),
     config_value("sae_path_url", "sae.1.path", "hf://org/sae"),
+    config_value("sae_train_k_over_latents", "sae.1.train.k", 999, "sae.1.train: k is 999"),
+    config_value("sae_train_architecture", "sae.1.train.architecture", "gated"),
+    config_value("sae_train_heldout_fraction", "sae.1.train.heldout_fraction", 1.5),
     config_value("image_size_huge", "dataset.image_size", 20000),
     config_value("image_size_over_limit", "dataset.image_size", 513),
     config_twice("twice_name", "name: demo", "name: other", "name"),

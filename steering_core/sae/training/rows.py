@@ -37,7 +37,8 @@ class RowSource:
     ) -> None:
         """Select the rows of `layer` in `episodes` (default all captured) minus `exclude`.
 
-        One-line ValueError naming the file: no `metadata.json`, layer not captured, episodes not captured,
+        One-line ValueError naming the file: no `metadata.json`, layer not captured, episodes (selected or
+        excluded) not captured,
         a shard of another width than the run's, or no rows left after the selection.
         """
         self.run_dir, self.layer = Path(run_dir), int(layer)
@@ -53,7 +54,7 @@ class RowSource:
         records = metadata.layer_shards(self.layer)
         captured = {episode for record in records for episode in record.episodes}
         wanted = captured if episodes is None else {int(e) for e in episodes}
-        if missing := sorted(wanted - captured):
+        if missing := sorted((wanted | {int(e) for e in exclude}) - captured):
             raise ValueError(f"{where}: episodes {describe_ranges(missing)} have no rows of layer {self.layer} "
                              f"(captured: {describe_ranges(sorted(captured))}); capture them or leave them out")
         self.episodes = tuple(sorted(wanted - {int(e) for e in exclude}))
