@@ -1,4 +1,5 @@
-"""Session-wide test settings: offline hub access, quiet telemetry, a private digest cache, one Prefect server."""
+"""Session-wide test settings: offline hub access, quiet telemetry, a private digest cache, one Prefect server,
+and the runs several test modules read."""
 
 import os
 import tempfile
@@ -33,3 +34,18 @@ def attack_world(tmp_path_factory):
     from helpers_attack import make_world
 
     return make_world(tmp_path_factory.mktemp("attack"))
+
+
+@pytest.fixture(scope="session")
+def cli_steps_run(tmp_path_factory):
+    """The demo inputs (2 demos per task) and the seed's steps run on them one by one through the CLI
+    (`helpers_pipeline.run_cli_steps`), once for the session; return (run config, output folder)."""
+    from helpers_pipeline import run_cli_steps
+
+    from steering_core.config import load_run_config
+    from steering_core.demo import build_demo
+
+    root = tmp_path_factory.mktemp("cli_steps")
+    config = load_run_config(build_demo(root / "demo", demos_per_task=2))
+    run_cli_steps(config, root / "out")
+    return config, root / "out"

@@ -22,7 +22,6 @@ from uuid import UUID
 
 import pytest
 import torch
-from helpers_pipeline import run_cli_steps
 from prefect import flow, task
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (
@@ -422,12 +421,12 @@ def test_artifacts_are_published(first_run):
     assert "open_vs_close vs on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
 
 
-def test_outputs_equal_the_cli_steps(first_run, demo_config, tmp_path):
-    """Run the seed's steps one by one through the CLI on the same inputs; every output must be equal."""
+def test_outputs_equal_the_cli_steps(first_run, demo_config, cli_steps_run):
+    """The seed's steps run one by one through the CLI on the same demo inputs (built in another folder, shared
+    with test_reproducible): every output must be equal."""
     config = load_run_config(demo_config)
-    out = tmp_path / "cli"
+    out = cli_steps_run[1]
     run_dir = out / "residuals" / "demo"
-    run_cli_steps(config, out)
 
     for pair in config.pairs:
         ours, theirs = read_manifest(config.manifest_path(pair)), read_manifest(out / "manifests" / f"{pair.name}.json")

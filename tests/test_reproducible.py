@@ -7,9 +7,6 @@ import shutil
 import pytest
 from helpers_pipeline import run_cli_steps
 
-from steering_core.config import load_run_config
-from steering_core.demo import build_demo
-
 pytestmark = pytest.mark.slow
 
 # lerobot's data parquet: `datasets` stamps it with a hash of the staging path, which convert replaces by one of
@@ -17,13 +14,11 @@ pytestmark = pytest.mark.slow
 DATASET_PARQUET = "libero_lerobot/*/data/**/*.parquet"
 
 
-def test_two_clean_runs_write_equal_bytes(tmp_path):
-    config = load_run_config(build_demo(tmp_path / "demo", demos_per_task=2))
-    out = tmp_path / "out"
-    run_cli_steps(config, out)
+def test_two_clean_runs_write_equal_bytes(cli_steps_run, tmp_path):
+    config, out = cli_steps_run  # the first clean run, shared with test_flows
     first = tmp_path / "first"
     shutil.move(out, first)
-    run_cli_steps(config, out)  # the same paths, so recorded paths agree too
+    run_cli_steps(config, out)  # the same paths, so recorded paths agree too; `out` then holds the same bytes again
 
     def files(root):
         return {p.relative_to(root): p for p in sorted(root.rglob("*")) if p.is_file()}

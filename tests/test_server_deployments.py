@@ -4,18 +4,23 @@ Starts `prefect server start` on 127.0.0.1 (free port, SQLite in a temporary PRE
 `latent-steering deploy`, starts one worker per pool, triggers `prefect deployment run`, and checks
 through the API that capture ran on `gpu` (two runs sharing the `gpu` concurrency limit of one) and
 the slicing and SAE tasks on `cpu`, with outputs written. Every process it started, and their
-children, is killed at the end.
+children, is killed at the end. Each test has its own server; the two scenarios that mostly wait (no gpu
+worker, a dying machine) run in threads from the module's start, beside the busy first test.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import os
 import re
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
@@ -42,6 +47,7 @@ PREFECT = [sys.executable, "-m", "prefect"]
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
 RUN_TIMEOUT = 900  # seconds for the whole deployment run (4 evaluation runs included) on a busy 2-core machine
 WORKER_GRACE = 5   # seconds a worker gets after SIGTERM before SIGKILL (they rarely stop by themselves)
+SCENARIO_TIMEOUT = 1800  # seconds a background scenario may take (two pipeline runs and a crash recovery)
 
 
 def free_port() -> int:
@@ -126,15 +132,15 @@ def run_cli(env: dict[str, str], *args: str, timeout: int = 180) -> str:
     return done.stdout + done.stderr
 
 
-@pytest.fixture
-def server(tmp_path):
-    """A Prefect server on a free port with its own SQLite database; yields (env, processes)."""
+@contextlib.contextmanager
+def prefect_server(folder: Path) -> Iterator[tuple[dict[str, str], Processes]]:
+    """A Prefect server on a free port with its own SQLite database under `folder`; yields (env, processes)."""
     port = free_port()
     url = f"http://127.0.0.1:{port}/api"
-    env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect_home"), "PREFECT_API_URL": url,
+    env = {**os.environ, "PREFECT_HOME": str(folder / "prefect_home"), "PREFECT_API_URL": url,
            "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_WORKER_QUERY_SECONDS": "2",
            "PREFECT_UI_ENABLED": "false", "HF_HUB_OFFLINE": "1"}
-    logs = tmp_path / "logs"
+    logs = folder / "logs"
     logs.mkdir()
     processes = Processes(env, logs)
     try:
@@ -154,6 +160,44 @@ def server(tmp_path):
         processes.stop()
 
 
+@pytest.fixture
+def server(tmp_path):
+    """A Prefect server for this test alone; yields (env, processes)."""
+    with prefect_server(tmp_path) as started:
+        yield started
+
+
+class Scenario(threading.Thread):
+    """A test's whole scenario on its own server, run in a thread from the start of this module.
+
+    The scenarios below mostly wait (on a worker that never comes, on the crash automation's heartbeat timeout),
+    so they overlap the busy test instead of adding their waits to the suite. Their assertions run in the thread;
+    `result()` raises the first one that failed, in the test the scenario belongs to.
+    """
+
+    def __init__(self, body: Callable[[dict[str, str], Processes, Path], None], folder: Path):
+        super().__init__(name=body.__name__, daemon=True)
+        self.body, self.folder, self.error = body, folder, None
+        self.context = contextvars.copy_context()  # Prefect's settings live in context variables
+
+    def run(self) -> None:
+        self.context.run(self._run)
+
+    def _run(self) -> None:
+        try:
+            with prefect_server(self.folder) as (env, processes):
+                self.body(env, processes, self.folder)
+        except BaseException as error:  # noqa: BLE001  re-raised by result()
+            self.error = error
+
+    def result(self, timeout: float) -> None:
+        self.join(timeout)
+        assert not self.is_alive(), f"{self.name} still running after {timeout:.0f} s (logs in {self.folder})"
+        if self.error is not None:
+            raise self.error
+
+
+@pytest.mark.timeout(SCENARIO_TIMEOUT)  # the background scenarios share the machine with it
 def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, tmp_path):
     """Capture and the steering evaluation run as deployments on the gpu pool, the SAE phase on the cpu pool."""
     env, processes = server
@@ -242,9 +286,8 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
     assert refreshed.work_pool_name == "cpu" and [r.id for r in pipelines] == [parent.id]
 
 
-def test_capture_runs_fail_with_a_clear_message_when_no_gpu_worker_polls(server, tmp_path):
+def no_gpu_worker(env: dict[str, str], processes: Processes, tmp_path: Path) -> None:
     """Only the cpu worker runs: the parent gives up on its capture runs after the wait, naming the pool."""
-    env, processes = server
     config_path = build_demo(tmp_path / "demo", demos_per_task=2)
     raw = yaml.safe_load(config_path.read_text())
     raw["orchestration"] = {"poll_seconds": 1, "worker_wait_seconds": 10}
@@ -276,12 +319,10 @@ def capture_runs(client) -> list:
     return client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-capture"])))
 
 
-@pytest.mark.timeout(1800)
-def test_a_machine_dying_mid_capture_is_recovered_without_a_hand(server, tmp_path):
+def dying_machine(env: dict[str, str], processes: Processes, tmp_path: Path) -> None:
     """The gpu worker dies with its flow-run processes while capture runs are running: the deploy automation marks
     them Crashed when their heartbeats stop, the parent starts them again on a new worker, complete shards are
     kept, the pipeline completes, and the next pipeline run is neither blocked nor starts any cached capture run."""
-    env, processes = server
     config_path = build_demo(tmp_path / "demo", demos_per_task=2)
     raw = yaml.safe_load(config_path.read_text())
     raw["orchestration"] = {"shards_per_capture_run": 2, "poll_seconds": 2}  # four capture runs
@@ -345,3 +386,36 @@ def test_a_machine_dying_mid_capture_is_recovered_without_a_hand(server, tmp_pat
         messages = [log.message for log in client.read_logs(
             log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[second.id])))]
     assert any("4 of 4 capture run(s) cached: not started" in m for m in messages), messages
+
+
+# test -> the scenario it checks, started in the background by `scenarios` when the test is selected
+SCENARIOS = {
+    "test_capture_runs_fail_with_a_clear_message_when_no_gpu_worker_polls": no_gpu_worker,
+    "test_a_machine_dying_mid_capture_is_recovered_without_a_hand": dying_machine,
+}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def scenarios(request, tmp_path_factory) -> Iterator[dict[str, Scenario]]:
+    """Start the scenario of every selected test of SCENARIOS before this module's first test; yield them by test.
+
+    At the end, wait for each (its server and workers are stopped by then, whatever its test did)."""
+    selected = {item.originalname for item in request.session.items if item.module is request.module}
+    started = {name: Scenario(body, tmp_path_factory.mktemp(body.__name__)) for name, body in SCENARIOS.items()
+               if name in selected}
+    for scenario in started.values():
+        scenario.start()
+    yield started
+    for scenario in started.values():
+        scenario.join(SCENARIO_TIMEOUT)
+
+
+def test_capture_runs_fail_with_a_clear_message_when_no_gpu_worker_polls(scenarios):
+    """Only the cpu worker runs: the parent gives up on its capture runs after the wait, naming the pool."""
+    scenarios["test_capture_runs_fail_with_a_clear_message_when_no_gpu_worker_polls"].result(SCENARIO_TIMEOUT)
+
+
+@pytest.mark.timeout(SCENARIO_TIMEOUT + 60)
+def test_a_machine_dying_mid_capture_is_recovered_without_a_hand(scenarios):
+    """The gpu worker dies mid-capture and the pipeline recovers without a hand (see `dying_machine`)."""
+    scenarios["test_a_machine_dying_mid_capture_is_recovered_without_a_hand"].result(SCENARIO_TIMEOUT)
