@@ -215,8 +215,8 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
         assert {p.name for p in client.read_work_pools()} >= {"gpu", "cpu", "sim"}
         assert client.read_concurrency_limit_by_tag("gpu").concurrency_limit == 1
         deployments = {d.name: d for d in client.read_deployments()}
-        assert {"pipeline", "gpu", "scheduled", "sim-rollout"} <= set(deployments)
-        assert deployments["sim-rollout"].work_pool_name == "sim"
+        assert {"pipeline", "gpu", "scheduled", "sim-rollout", "gpu-train-sae"} <= set(deployments)
+        assert deployments["sim-rollout"].work_pool_name == "sim" and deployments["gpu-train-sae"].work_pool_name == "gpu"
         assert deployments["scheduled"].schedules and deployments["gpu"].work_pool_name == "gpu"
         # no scheduled refresh may start during the test (an hour boundary can fall inside it);
         # pausing deletes its auto-scheduled runs, manual runs still work
@@ -242,6 +242,13 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
             flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-rollout"])))
         assert len(rollouts) == len(config.rollout_targets()) * len(config.rollout.sides)
         assert {(r.work_pool_name, r.state.name) for r in rollouts} == {("sim", "Completed")}
+        # the SAE trained on layer 1's residuals: one run on the gpu pool, training then judging on the gpu tag
+        trainings = client.read_flow_runs(
+            flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering-train-sae"])))
+        assert [(r.work_pool_name, r.state.name) for r in trainings] == [("gpu", "Completed")]
+        trained = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[trainings[0].id])))
+        assert sorted((t.name, t.tags) for t in trained) == [("judge SAE layer01", ["gpu"]),
+                                                              ("train SAE layer 1", ["gpu"])]
         chunks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[r.id for r in rollouts])))
         assert sum(t.name.startswith("rollout open_vs_close layer 1 ") for t in chunks) == 2 * 2  # sides x α cells
 
@@ -255,6 +262,7 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(server, t
     # slices (+ the decision slices per pair and expert layer), encodes, directions, pairwise per layer
     assert len(sae_tasks) == 2 * 2 + 2 * len(config.expert_layers) + 2 * 2 * 2 + 2 * 2 + 2
     assert {pool_of[name] for name in sae_tasks} == {"cpu"}
+    assert pool_of["features layer01"] == "cpu"  # the trained SAE's feature page: after the SAE phase, on the cpu pool
 
     # the tag limit of one GPU slot kept the two capture tasks from overlapping
     spans = sorted((t.start_time, t.end_time) for t in tasks if t.name.startswith("capture episodes"))
