@@ -79,8 +79,10 @@ def publish_layer_report(layer_path: Path, flow_key: str) -> None:
 
 
 def ui_report(layer_path: Path, summary: dict[str, Any]) -> str:
-    """Return summary.md with every plot inlined as a PNG data URI, followed by the files' paths and host."""
-    return ui_markdown(layer_path, list(summary["plots"].values()), [SUMMARY_MD, SUMMARY_JSON])
+    """Return summary.md with every plot inlined as a PNG data URI (the trained SAE's judgement too), followed by
+    the files' paths and host."""
+    trained = [summary["trained_sae"]["plot"]] if summary.get("trained_sae") else []
+    return ui_markdown(layer_path, [*summary["plots"].values(), *trained], [SUMMARY_MD, SUMMARY_JSON])
 
 
 def ui_markdown(folder: Path, images: list[str], files: list[str]) -> str:

@@ -412,8 +412,9 @@ def test_artifacts_are_published(first_run):
     assert {key: by_key[key].data for key in progress} == dict.fromkeys(progress, 100.0)
     report = by_key["demo-report-layer01"].data
     assert report.startswith("# Steering vectors, layer01")
-    # readable in the UI on its own: plots inline, no relative images or file:// links
-    assert report.count("](data:image/png;base64,") == 3 and "](pairwise_cosine.png)" not in report
+    # readable in the UI on its own: plots inline (the trained SAE's judgement too), no relative images or file:// links
+    assert report.count("](data:image/png;base64,") == 4 and "](pairwise_cosine.png)" not in report
+    assert "fidelity.png)" not in report
     assert "file://" not in report and "## Files" in report
     assert by_key["demo-pairwise-cosines-layer02"].type == "table"
     assert by_key["demo-evaluation-layer02"].data.startswith("# Steering evaluation, layer02")
