@@ -78,6 +78,9 @@ def build_inputs(folder: Path, base_files: int, demos_per_file: int, steps: int,
             task = SyntheticTask(instruction=task.instruction, scene=scene, motion=task.motion)
         write_libero_file(demos, task, num_demos=demos_per_file, settings=demo_settings(steps))
     write_run_config(config.model_copy(update={
+        # the borrowed SAEs only: an SAE retrained on the added demos' rows would change every pair's vectors at
+        # its layer, while this measures what an added demo file recomputes of capture, SAE phase and evaluation
+        "sae": {layer: sae.model_copy(update={"train": None}) for layer, sae in config.sae.items()},
         "evaluate": config.evaluate.model_copy(update={"device": str(device)}),
         "dataset": config.dataset.model_copy(update={"image_size": image_size}),
         "capture": config.capture.model_copy(update={"device": str(device)}),
