@@ -315,6 +315,39 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
         assert read_json(config.pairs_config_path(layer))["pairs"][0]["name"] == "open_vs_close"
 
 
+def test_the_demo_trains_layer_1s_sae_judges_it_on_held_out_episodes_and_steers_through_it(first_run, demo_config):
+    from steering_core.sae.model import load_sae
+
+    config = load_run_config(demo_config)
+    tasks = task_runs_under(first_run[0])
+    assert tasks["train SAE layer 1"].tags == ["gpu"] and tasks["judge SAE layer01"].tags == ["gpu"]
+    assert "features layer01" in tasks and config.trained_layers == (1,)
+    sae = load_sae(config.trained_sae_dir(1))
+    assert (sae.cfg.hook_name, sae.cfg.model_name, sae.cfg.d_in) == ("blocks.1.hook_resid_post", "pi05", 64)
+    # trained without the evaluation's held-out episodes, judged on exactly their rows
+    held = {e for pair in config.pairs for side in read_json(config.split_path(pair))["tasks"].values()
+            for e in side["holdout"]}
+    trained_on = set(read_json(config.trained_sae_dir(1) / "training.json")["source"]["episodes"])
+    metadata = read_run_metadata(config.run_dir)
+    assert held and not trained_on & held and trained_on | held == set(metadata.episodes)
+    held_rows = sum(r.rows for r in metadata.layer_shards(1) if set(r.episodes) <= held)
+    judged = read_json(config.sae_layer_path(1) / "fidelity.json")
+    assert judged["saes"]["trained"]["rows"]["rows"] == held_rows == judged["saes"]["borrowed"]["rows"]["rows"]
+    # the borrowed SAE is random: the trained one must reconstruct far better, rows and actions alike
+    trained, borrowed = judged["saes"]["trained"], judged["saes"]["borrowed"]
+    assert trained["rows"]["fvu"] < 0.2 < 1 < borrowed["rows"]["fvu"]
+    assert trained["actions"]["recovered"] > borrowed["actions"]["recovered"]
+    assert judged["verdict"].startswith("trained reconstructs better")
+    # layer 1 steers through it; layer 2 through the borrowed SAE of its config
+    steered = read_json(config.layer_path(1) / "open_vs_close" / "directions.json")["sae"]
+    assert steered["weights_path"] == str(config.trained_sae_dir(1) / "sae_weights.safetensors")
+    report = (config.layer_path(1) / "summary.md").read_text()
+    assert judged["verdict"] in report and "../../saes/demo/layer01/features.html" in report
+    assert "trained on this run's own" not in (config.layer_path(2) / "summary.md").read_text()
+    assert (config.sae_layer_path(1) / "features.html").stat().st_size > 10_000
+    assert f"layer 1, against the borrowed one (held-out episodes): {judged['verdict']}" in first_run[1]
+
+
 def test_demo_prints_summary_and_locations(first_run, demo_config):
     config = load_run_config(demo_config)
     output = first_run[1]
@@ -335,7 +368,7 @@ def test_demo_prints_summary_and_locations(first_run, demo_config):
         entry = read_json(config.layer_path(row["layer"]) / "pairwise_stats.json")["entries"]["open_vs_close__on_vs_off"]
         assert row["pairs"] == ("open_vs_close", "on_vs_off") and row["residual_cosine"] == entry["residual_cosine"]
     assert [r["layer"] for r in summary["between"]] == [1, 2]
-    assert "The demo's SAEs are random" in output
+    assert "The demo's borrowed SAEs are random" in output
     assert f"outputs: {config.output_root}" in output
     assert f"report: {config.layer_path(2) / 'summary.md'}" in output
     assert f"report: {config.eval_layer_path(2) / 'summary.md'}" in output
@@ -598,6 +631,11 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     steps = {f"{step} layer {layer}" for layer in config.layers for step in (
         "slice open_vs_close", "encode open_vs_close positive", "directions open_vs_close", "pairwise stats", "report",
         "evaluate open_vs_close", "evaluation summary")}
+    # layer 1's SAE is trained on the run's rows: the new episode's rows retrain it, so every pair of layer 1 is
+    # encoded, directed and evaluated again through the new SAE (layer 2's borrowed SAE keeps the stove pair cached)
+    steps |= {"train SAE layer 1", "judge SAE layer01", "features layer01", "encode open_vs_close negative layer 1",
+              "encode on_vs_off positive layer 1", "encode on_vs_off negative layer 1", "directions on_vs_off layer 1",
+              "evaluate on_vs_off layer 1"}
     # the held-out split of both pairs runs again (their manifests record the dataset's new fingerprint)
     assert recomputed == {
         f"filter demos into {config.filtered_dir}", f"convert to LeRobot {config.dataset.repo_id}",
@@ -617,7 +655,7 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
     assert tasks["capture episodes 0-7"].state.name == "Cached"
     assert tasks["capture decision episodes 0-7"].state.name == "Cached"
     # the refreshed vector (and decision slices) re-evaluate only their own pair
-    assert {tasks[f"evaluate on_vs_off layer {layer}"].state.name for layer in config.layers} == {"Cached"}
+    assert tasks["evaluate on_vs_off layer 2"].state.name == "Cached"
     assert tasks["slice on_vs_off expert layer 2"].state.name == "Cached"
     assert tasks["evaluate on_vs_off expert layer 2"].state.name == "Cached"
 
@@ -652,36 +690,3 @@ def test_bad_input_fails_the_flow_in_its_preflight_task(tmp_path):
     assert list(tasks) == [PREFLIGHT] and tasks[PREFLIGHT].state.is_failed()
     assert f"{text}: not a safetensors file" in tasks[PREFLIGHT].state.message
     assert not config.output_root.exists()
-
-
-def test_the_demo_trains_layer_1s_sae_judges_it_on_held_out_episodes_and_steers_through_it(first_run, demo_config):
-    from steering_core.sae.model import load_sae
-
-    config = load_run_config(demo_config)
-    tasks = task_runs_under(first_run[0])
-    assert tasks["train SAE layer 1"].tags == ["gpu"] and tasks["judge SAE layer01"].tags == ["gpu"]
-    assert "features layer01" in tasks and config.trained_layers == (1,)
-    sae = load_sae(config.trained_sae_dir(1))
-    assert (sae.cfg.hook_name, sae.cfg.model_name, sae.cfg.d_in) == ("blocks.1.hook_resid_post", "pi05", 64)
-    # trained without the evaluation's held-out episodes, judged on exactly their rows
-    held = {e for pair in config.pairs for side in read_json(config.split_path(pair))["tasks"].values()
-            for e in side["holdout"]}
-    trained_on = set(read_json(config.trained_sae_dir(1) / "training.json")["source"]["episodes"])
-    metadata = read_run_metadata(config.run_dir)
-    assert held and not trained_on & held and trained_on | held == set(metadata.episodes)
-    held_rows = sum(r.rows for r in metadata.layer_shards(1) if set(r.episodes) <= held)
-    judged = read_json(config.sae_layer_path(1) / "fidelity.json")
-    assert judged["saes"]["trained"]["rows"]["rows"] == held_rows == judged["saes"]["borrowed"]["rows"]["rows"]
-    # the borrowed SAE is random: the trained one must reconstruct far better, rows and actions alike
-    trained, borrowed = judged["saes"]["trained"], judged["saes"]["borrowed"]
-    assert trained["rows"]["fvu"] < 0.2 < 1 < borrowed["rows"]["fvu"]
-    assert trained["actions"]["recovered"] > borrowed["actions"]["recovered"]
-    assert judged["verdict"].startswith("trained reconstructs better")
-    # layer 1 steers through it; layer 2 through the borrowed SAE of its config
-    steered = read_json(config.layer_path(1) / "open_vs_close" / "directions.json")["sae"]
-    assert steered["weights_path"] == str(config.trained_sae_dir(1) / "sae_weights.safetensors")
-    report = (config.layer_path(1) / "summary.md").read_text()
-    assert judged["verdict"] in report and "../../saes/demo/layer01/features.html" in report
-    assert "trained on this run's own" not in (config.layer_path(2) / "summary.md").read_text()
-    assert (config.sae_layer_path(1) / "features.html").stat().st_size > 10_000
-    assert f"layer 1, against the borrowed one (held-out episodes): {judged['verdict']}" in first_run[1]

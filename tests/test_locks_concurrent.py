@@ -196,6 +196,7 @@ def computed(logs: list[str]) -> dict[str, list[str]]:
         "slice": sorted(re.findall(r"wrote \d+ concept slices to (\S+)", text)),
         "encode": sorted(re.findall(r"concept_stats: (.+): \d+ rows", text)),
         "evaluate": sorted(re.findall(r"dose-response of \d+ directions on \d+ frames in (\S+)", text)),
+        "train": sorted(re.findall(r"(\S+): trained in [\d.]+ s", text)),
     }
 
 
@@ -220,6 +221,7 @@ def test_two_runs_started_together_compute_each_output_once(prefect_server, tmp_
 
     single = computed(finish([(start_run(config_path, prefect_server, tmp_path / "single.log"), tmp_path / "single.log")]))
     assert len(single["evaluate"]) == 2 and len(single["encode"]) == 4  # 2 pairs (x 2 concepts)
+    assert len(single["train"]) == 1  # layer 1's SAE, trained on the run's residuals
     alone = tree(root)
     shutil.rmtree(root)
 

@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -89,7 +90,7 @@ def test_saelens_loads_our_folder_and_agrees_with_load_sae(planted):
         f"blocks.{LAYER}.hook_resid_post", LAYER, "pi05")
 
 
-def test_the_record_names_rows_and_settings_and_a_finished_folder_is_reused(planted):
+def test_the_record_names_rows_and_settings_and_a_finished_folder_is_reused(planted, tmp_path):
     out, source = planted["out"], planted["source"]
     record = read_training_record(out)
     assert record["source"]["identity"] == source.identity() and record["source"]["episodes"] == list(range(7))
@@ -100,9 +101,12 @@ def test_the_record_names_rows_and_settings_and_a_finished_folder_is_reused(plan
     start = time.perf_counter()
     assert train_sae(source, out, PLANTED, layer=LAYER) == out
     assert time.perf_counter() - start < 1.0 and stamps == {n: (out / n).stat().st_mtime_ns for n in SAE_FILES}
-    with pytest.raises(ValueError, match=r"training.json: `identity` is \w+, expected \w+: the folder holds an SAE "
-                                         r"trained from other rows or settings"):
-        train_sae(source, out, PLANTED.model_copy(update={"seed": 1}), layer=LAYER)
+    # other settings (a refresh's new rows alike): the folder is trained again, in place
+    stale = shutil.copytree(out, tmp_path / "stale")
+    other = PLANTED.model_copy(update={"seed": 1, "training_rows": PLANTED.batch_size * 20})
+    assert train_sae(source, stale, other, layer=LAYER) == stale
+    assert read_training_record(stale)["settings"] == other.model_dump(mode="json")
+    assert (stale / WEIGHTS_FILE).read_bytes() != (out / WEIGHTS_FILE).read_bytes()
 
 
 KILLED_CHILD = """

@@ -26,6 +26,7 @@ from steering_core.sae.formats import CFG_FILE, SPARSITY_FILE, WEIGHTS_FILE
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, sha256_json, write_json
+from steering_core.storage.locks import output_lock
 from steering_core.storage.tensor_files import load_safetensors, load_torch_file, save_safetensors, save_torch
 
 logger = logging.getLogger(__name__)
@@ -58,9 +59,17 @@ def train_sae(source: RowSource, out_dir: Path, settings: TrainSettings, *, laye
         raise NotADirectoryError(f"{blocking}: is a file, so the SAE folder {out_dir} cannot be written there; "
                                  "choose another output folder")
     identity = training_identity(source, settings, layer=layer, model_name=model_name)
-    if _finished(out_dir, identity):
-        logger.info("%s: already trained with these rows and settings", out_dir)
-        return out_dir
+    with output_lock(out_dir):  # a second run waits, then finds the folder finished
+        if _finished(out_dir, identity):
+            logger.info("%s: already trained with these rows and settings", out_dir)
+            return out_dir
+        _train(source, out_dir, settings, identity, layer=layer, model_name=model_name, progress=progress)
+    return out_dir
+
+
+def _train(source: RowSource, out_dir: Path, settings: TrainSettings, identity: str, *, layer: int, model_name: str,
+           progress: ProgressCallback | None) -> None:
+    """Train into `out_dir` (resuming from its latest checkpoint of this identity); write the final files."""
     device = resolve_device(settings.device)
     from steering_core.sae.training.loop import CheckpointingTrainer, build_sae  # SAELens is slow to import
 
@@ -95,7 +104,6 @@ def train_sae(source: RowSource, out_dir: Path, settings: TrainSettings, *, laye
     logger.info("%s: trained in %.1f s (%d rows seen, resumed from %d)", out_dir, seconds,
                 trainer.n_training_samples, resumed)
     shutil.rmtree(checkpoints, ignore_errors=True)
-    return out_dir
 
 
 def read_training_record(out_dir: Path) -> dict[str, Any]:
@@ -104,14 +112,13 @@ def read_training_record(out_dir: Path) -> dict[str, Any]:
 
 
 def _finished(out_dir: Path, identity: str) -> bool:
-    """Return True if `out_dir` holds a finished SAE of this identity; refuse one of another identity."""
+    """Return True if `out_dir` holds a finished SAE of this identity (one of another identity is trained again)."""
     record_path = out_dir / TRAINING_FILE
     if not record_path.is_file():
         return False
-    found = read_training_record(out_dir).get("identity")
-    if found != identity:
-        raise ValueError(f"{record_path}: `identity` is {found}, expected {identity}: the folder holds an SAE "
-                         "trained from other rows or settings; choose another output folder or remove this one")
+    if read_training_record(out_dir).get("identity") != identity:
+        logger.info("%s: trained from other rows or settings; training again", out_dir)
+        return False
     missing = [name for name in FINAL_FILES if not (out_dir / name).is_file()]
     if missing:
         logger.info("%s: %s missing, training again", out_dir, ", ".join(missing))
