@@ -153,6 +153,8 @@ def test_a_run_killed_after_a_checkpoint_resumes_to_the_bytes_of_an_uninterrupte
     for name in [*SAE_FILES, TRAINING_FILE]:  # training.json too: the record holds nothing about the kill
         assert (killed / name).read_bytes() == (uninterrupted / name).read_bytes(), name
     assert sorted(p.name for p in killed.iterdir()) == sorted([*SAE_FILES, TRAINING_FILE])  # no staging left
+    # cfg.json's keys are sorted: SAELens's own order follows a set, so it changes with each process's hash seed
+    assert list(json.loads((killed / CFG_FILE).read_text())) == sorted(json.loads((killed / CFG_FILE).read_text()))
 
 
 def test_nan_rows_stop_training_in_one_line_and_leave_no_sae_files(tmp_path):

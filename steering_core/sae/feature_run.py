@@ -3,7 +3,9 @@ then the static feature page and the Neuronpedia export (`feature_page`, `neuron
 
 from __future__ import annotations
 
+import os
 from collections.abc import Collection, Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 
 from steering_core.devices import resolve_device
@@ -36,6 +38,12 @@ class FeatureJob(StrictModel):
     video_backend: str | None = None
 
 
+def export_stamp() -> str:
+    """Return the export's `createdAt`: $SOURCE_DATE_EPOCH (the reproducible-builds convention), else the epoch, so
+    equal inputs give equal bytes whichever run wrote them."""
+    return datetime.fromtimestamp(int(os.environ.get("SOURCE_DATE_EPOCH", "0")), timezone.utc).isoformat()
+
+
 def write_layer_features(job: FeatureJob, *, progress: ProgressCallback | None = None) -> tuple[Path, Path]:
     """Scan the layer's rows through the trained SAE; write the feature page and the Neuronpedia export.
 
@@ -56,5 +64,5 @@ def write_layer_features(job: FeatureJob, *, progress: ProgressCallback | None =
         examples=job.examples, title=f"Features of the SAE trained on {layer_dir(job.layer)} of {job.run_dir.name}",
         video_backend=job.video_backend)
     export = write_neuronpedia(job.output_dir / NEURONPEDIA_DIR, scan, sae, rows, layer=job.layer, token_text=text,
-                               examples=job.examples)
+                               examples=job.examples, created_at=export_stamp())
     return page, export

@@ -182,5 +182,12 @@ def _write_final(out_dir: Path, sae: Any, trainer: Any, record: dict[str, Any]) 
     for name, tensors in ((WEIGHTS_FILE, weights), (SPARSITY_FILE, sparsity)):
         with atomic_path(out_dir / name) as tmp:
             save_safetensors(tensors, tmp)
-    write_json(out_dir / CFG_FILE, cfg)
+    write_json(out_dir / CFG_FILE, _sorted_keys(cfg))  # SAELens orders its fields by a set: per process
     write_json(out_dir / TRAINING_FILE, record)
+
+
+def _sorted_keys(value: Any) -> Any:
+    """Return `value` with every mapping's keys in sorted order, so equal content gives equal bytes."""
+    if isinstance(value, dict):
+        return {key: _sorted_keys(value[key]) for key in sorted(value)}
+    return value
