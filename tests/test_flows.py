@@ -26,6 +26,7 @@ from prefect import flow, task
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (
     ArtifactFilter,
+    ArtifactFilterFlowRunId,
     ArtifactFilterKey,
     FlowFilter,
     FlowFilterName,
@@ -438,8 +439,10 @@ def test_artifacts_are_published(first_run):
                 "evaluate-on-vs-off-layer01"]
     keys = ["demo-report-layer01", "demo-pairwise-cosines-layer02", *progress, "demo-evaluation-layer02",
             "demo-evaluation-pathways"]
-    with get_client(sync_client=True) as client:
-        artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=keys)))
+    with get_client(sync_client=True) as client:  # this run's versions: other runs of the session share the keys
+        runs = [run.id for run in flow_runs_under(client, first_run[0])]
+        artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(
+            key=ArtifactFilterKey(any_=keys), flow_run_id=ArtifactFilterFlowRunId(any_=runs)))
     by_key = {a.key: a for a in artifacts}
     assert set(by_key) == set(keys)
     assert {key: by_key[key].data for key in progress} == dict.fromkeys(progress, 100.0)
