@@ -1,0 +1,461 @@
+"""Publication on object storage, where there is no rename: staging prefix, copy, commit record last.
+
+`publish(path)` uploads a step's output (a file or a folder of the mirror) under a unique staging prefix
+(`<parent>/.staging/<name>.<host>-<pid>-<id>/`), copies it server-side to its final keys, then writes its
+*publication record* `<parent>/.<name>.published.json` (every file's size, sha256 and ETag). The record is
+the commit point: readers (`pull`, `remote_file`) see an output only through its record, so a half-written
+output is invisible. Republishing first deletes the record, so readers never mix two versions. Staging
+left by a dead writer is removed by the next publication of the same output (it holds the output's lock).
+
+`pull(path)` brings the published outputs at, under or around `path` into the mirror, checking each file's
+sha256 against its record; shards (`shard-*.safetensors`) stay in the bucket and are read by ranges
+(`remote_file`), after their size and ETag are checked against the record. Input roots (a checkpoint a user
+uploaded) have no records: their objects are pulled as they are, and skipped when the local copy has the
+object's size and ETag.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fnmatch
+import json
+import logging
+import os
+import socket
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Any, BinaryIO
+
+from steering_core.storage.fileio import atomic_path, sha256_file
+from steering_core.storage.objects import Root, object_path, root_of
+
+logger = logging.getLogger(__name__)
+
+RECORD = ".{name}.published.json"
+STAGING_DIR = ".staging"
+LOCKS_DIR = ".locks"
+STREAMED = ("shard-*.safetensors",)  # read by ranges from the bucket, never pulled
+INPUT_STATE = ".{name}.etag"  # beside a pulled input file in the mirror: the object's ETag it was pulled at
+LEASE_ENV = "LATENT_STEERING_LOCK_LEASE_S"
+_SKIPPED_LOCAL = (".*.lock", ".*.tmp", ".*.etag")  # lock files, staging files, input states: never published
+
+
+class Fetched:
+    """Bytes fetched by ranged reads in this process (the slicing benchmark reads it)."""
+
+    _lock = threading.Lock()
+    total = 0
+
+    @classmethod
+    def add(cls, count: int) -> None:
+        with cls._lock:
+            cls.total += count
+
+
+def _url(root: Root, key: str) -> str:
+    return f"{root.url}/{key}" if key else root.url
+
+
+def _record_url(url: str) -> str:
+    parent, name = url.rsplit("/", 1)
+    return f"{parent}/{RECORD.format(name=name)}"
+
+
+def _local_files(path: Path) -> list[Path]:
+    if path.is_file():
+        return [path]
+    return sorted(p for p in path.rglob("*") if p.is_file() and not any(
+        fnmatch.fnmatch(p.name, pattern) for pattern in _SKIPPED_LOCAL))
+
+
+def publish(path: str | os.PathLike) -> dict[str, Any] | None:
+    """Publish the local file or folder `path` of a mounted output root; return its record (None if not mounted)."""
+    path = Path(os.path.abspath(path))
+    found = root_of(path)
+    if found is None or found[1] == "":
+        return None
+    root, key = found
+    url = _url(root, key)
+    fs, _ = object_path(url)
+    parent_url, name = url.rsplit("/", 1)
+    files = _local_files(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: nothing to publish to {url}")
+    clean_staging(url)
+    staging = f"{parent_url}/{STAGING_DIR}/{name}.{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
+    entries: dict[str, dict[str, Any]] = {}
+    try:
+        for file in files:
+            relative = file.relative_to(path.parent).as_posix()
+            _, staged = object_path(f"{staging}/{relative}")
+            fs.put_file(str(file), staged)
+            entries[relative] = {"size": file.stat().st_size, "sha256": sha256_file(file)}
+        _, record_path = object_path(_record_url(url))
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm_file(record_path)  # from here until the new record, the output is invisible
+        stale = _published_files(fs, parent_url, url) - set(entries)
+        for relative, entry in entries.items():
+            _, staged = object_path(f"{staging}/{relative}")
+            _, final = object_path(f"{parent_url}/{relative}")
+            fs.copy(staged, final)
+            entry["etag"] = fs.info(final).get("ETag")
+        for relative in sorted(stale):
+            with contextlib.suppress(FileNotFoundError):
+                fs.rm_file(object_path(f"{parent_url}/{relative}")[1])
+        record = {"format": 1, "kind": "folder" if path.is_dir() else "file", "files": entries}
+        fs.pipe_file(record_path, json.dumps(record, indent=1, sort_keys=True).encode())
+        fs.invalidate_cache()
+    finally:
+        _remove_prefix(fs, staging)
+    logger.info("published %s (%d files)", url, len(entries))
+    return record
+
+
+def _published_files(fs: Any, parent_url: str, url: str) -> set[str]:
+    """Return the files (relative to the parent) of the objects now at `url`: what a republication replaces."""
+    _, path = object_path(url)
+    _, parent = object_path(parent_url)
+    with contextlib.suppress(FileNotFoundError):
+        if fs.isfile(path):
+            return {PurePosixPath(path).name}
+        return {PurePosixPath(p).relative_to(parent).as_posix() for p in fs.find(path)}
+    return set()
+
+
+def _remove_prefix(fs: Any, url: str) -> None:
+    _, path = object_path(url)
+    with contextlib.suppress(FileNotFoundError):
+        for item in fs.find(path):
+            fs.rm_file(item)
+    fs.invalidate_cache()
+
+
+def clean_staging(url: str) -> list[str]:
+    """Remove every staging prefix of the output `url` (left by dead writers; call while holding its lock)."""
+    parent_url, name = url.rsplit("/", 1)
+    fs, staging = object_path(f"{parent_url}/{STAGING_DIR}")
+    with contextlib.suppress(FileNotFoundError):
+        leftovers = [p for p in fs.ls(staging, detail=False) if PurePosixPath(p).name.startswith(f"{name}.")]
+        for prefix in leftovers:
+            logger.info("removing the staging objects %s left by an interrupted publication", prefix)
+            _remove_prefix(fs, f"{parent_url.split('://')[0]}://{prefix}")
+        return leftovers
+    return []
+
+
+def read_record(url: str) -> dict[str, Any] | None:
+    """Return the publication record of the output `url`, or None when it is not published."""
+    fs, record_path = object_path(_record_url(url))
+    try:
+        data = fs.cat_file(record_path)
+    except FileNotFoundError:
+        return None
+    try:
+        record = json.loads(data)
+        assert isinstance(record, dict) and isinstance(record.get("files"), dict)
+    except (ValueError, AssertionError):
+        raise ValueError(f"{_record_url(url)}: not a publication record (JSON with `files`); republish the step "
+                         "that wrote it") from None
+    return record
+
+
+def _covering_record(root: Root, key: str) -> tuple[str, dict[str, Any]] | None:
+    """Return (parent URL, record) of the published output that is `key` or holds it, else None."""
+    parts = key.split("/")
+    for depth in range(len(parts), 0, -1):
+        url = _url(root, "/".join(parts[:depth]))
+        record = read_record(url)
+        if record is not None:
+            return url.rsplit("/", 1)[0], record
+    return None
+
+
+def _records_under(root: Root, key: str) -> list[tuple[str, dict[str, Any]]]:
+    """Return (parent URL, record) of every published output strictly under the folder `key`."""
+    fs, path = object_path(_url(root, key))
+    try:
+        found = fs.find(path)
+    except FileNotFoundError:
+        return []
+    records = []
+    for item in found:
+        name = PurePosixPath(item).name
+        if name.startswith(".") and name.endswith(".published.json") and f"/{STAGING_DIR}/" not in item:
+            parent_url = f"{root.url.split('://')[0]}://{PurePosixPath(item).parent}"
+            output = name[1:-len(".published.json")]
+            record = read_record(f"{parent_url}/{output}")
+            if record is not None:
+                records.append((parent_url, record))
+    return records
+
+
+def pull(path: str | os.PathLike) -> list[Path]:
+    """Bring the published outputs at, under or holding `path` into the mirror; return the files fetched.
+
+    Files already in the mirror with the record's size and sha256 are kept; shards are left in the bucket.
+    ValueError naming the object when a fetched file's sha256 differs from its record.
+    """
+    found = root_of(path)
+    if found is None:
+        return []
+    root, key = found
+    if root.role == "input":
+        return _pull_input(root, key)
+    records = []
+    if key and (covering := _covering_record(root, key)) is not None:
+        records.append(covering)
+    else:
+        records.extend(_records_under(root, key))
+    fetched = []
+    for parent_url, record in records:
+        parent_key = parent_url[len(root.url) + 1:] if parent_url != root.url else ""
+        for relative, entry in sorted(record["files"].items()):
+            file_key = f"{parent_key}/{relative}" if parent_key else relative
+            if key and not (file_key == key or file_key.startswith(key + "/")):
+                continue
+            if any(fnmatch.fnmatch(PurePosixPath(relative).name, p) for p in STREAMED):
+                continue
+            local = root.mirror / file_key
+            if _local_matches(local, entry):
+                continue
+            _download(f"{parent_url}/{relative}", local, entry)
+            fetched.append(local)
+    return fetched
+
+
+def _local_matches(local: Path, entry: dict[str, Any]) -> bool:
+    if not local.is_file() or local.stat().st_size != entry["size"]:
+        return False
+    from steering_core.storage.fingerprints import file_digest  # cached per file version
+
+    return file_digest(local) == entry["sha256"]
+
+
+def _download(url: str, local: Path, entry: dict[str, Any]) -> None:
+    """Fetch one published object to `local` atomically; ValueError naming it when its bytes are not the record's."""
+    fs, path = object_path(url)
+    with atomic_path(local) as tmp:
+        fs.get_file(path, str(tmp))
+        digest = sha256_file(tmp)
+        if digest != entry["sha256"]:
+            raise ValueError(f"{url}: sha256 is {digest}, expected {entry['sha256']} from its publication record; "
+                             "the object changed after it was published, re-run the step that wrote it")
+
+
+def _pull_input(root: Root, key: str) -> list[Path]:
+    """Fetch the objects of an input root at or under `key` (no records: size and ETag decide what is new)."""
+    fs, path = object_path(_url(root, key))
+    try:
+        listing = fs.find(path, detail=True) if not fs.isfile(path) else {path: fs.info(path)}
+    except FileNotFoundError:
+        return []
+    _, base = object_path(root.url)
+    fetched = []
+    for item, info in sorted(listing.items()):
+        local = root.mirror / PurePosixPath(item).relative_to(base)
+        state = local.parent / INPUT_STATE.format(name=local.name)
+        etag = str(info.get("ETag") or info.get("etag") or info.get("md5Hash") or "")
+        if local.is_file() and local.stat().st_size == info["size"] and state.is_file() and state.read_text() == etag:
+            continue
+        with atomic_path(local) as tmp:
+            fs.get_file(item, str(tmp))
+        with atomic_path(state) as tmp:
+            tmp.write_text(etag)
+        fetched.append(local)
+    return fetched
+
+
+# ----------------------------------------------------------------------------- ranged reads
+
+@dataclass(frozen=True)
+class RemoteFile:
+    """A published object read by ranges: its URL and size, checked against its record."""
+
+    url: str
+    size: int
+
+    def open(self) -> BinaryIO:
+        """Return a binary file reading the object with one ranged GET per read (no read-ahead)."""
+        fs, path = object_path(self.url)
+        return _Counted(fs.open(path, "rb", cache_type="none", block_size=1 << 20, size=self.size))
+
+
+class _Counted:
+    """A file object counting the bytes it reads into `Fetched` (seek, tell, read, readinto, close)."""
+
+    def __init__(self, handle: Any) -> None:
+        self._handle = handle
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._handle.read(size)
+        Fetched.add(len(data))
+        return data
+
+    def readinto(self, buffer: Any) -> int:
+        view = memoryview(buffer).cast("B")
+        data = self._handle.read(len(view))
+        view[: len(data)] = data
+        Fetched.add(len(data))
+        return len(data)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._handle.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._handle.tell()
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def __enter__(self) -> _Counted:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def remote_file(path: str | os.PathLike) -> RemoteFile | None:
+    """Return the published object standing for a local path that is absent from the mirror, else None.
+
+    ValueError naming the object when it is missing, or its size or ETag differs from its publication record.
+    """
+    path = Path(os.path.abspath(path))
+    found = root_of(path)
+    if found is None or path.exists():
+        return None
+    root, key = found
+    url = _url(root, key)
+    covering = _covering_record(root, key) if root.role == "output" else None
+    fs, object_key = object_path(url)
+    try:
+        info = fs.info(object_key)
+    except FileNotFoundError:
+        if covering is None:
+            return None
+        raise FileNotFoundError(f"{url}: listed by its publication record but missing from the bucket; re-run "
+                                "the step that wrote it") from None
+    if covering is not None:
+        parent_url, record = covering
+        entry = record["files"].get(url[len(parent_url) + 1:])
+        if entry is None:
+            return None
+        if info["size"] != entry["size"] or info.get("ETag") != entry.get("etag"):
+            raise ValueError(f"{url}: size {info['size']}, ETag {info.get('ETag')} differ from its publication record "
+                             f"(size {entry['size']}, ETag {entry.get('etag')}); the object changed after it was "
+                             "published, re-run the step that wrote it")
+    elif root.role == "output":
+        return None  # written but never published: invisible
+    return RemoteFile(url, int(info["size"]))
+
+
+# ----------------------------------------------------------------------------- locks without a shared disk
+
+def lease_seconds() -> float:
+    """Return how long a lock object may go unrenewed before waiters take it as abandoned ($LATENT_STEERING_LOCK_LEASE_S)."""
+    return float(os.environ.get(LEASE_ENV, "60"))
+
+
+@contextlib.contextmanager
+def bucket_lock(path: str | os.PathLike) -> Iterator[None]:
+    """Hold the bucket-wide lock on the output `path` of a mounted root (no-op for other paths).
+
+    The lock is an object `<root>/.locks/<key>.lock` made by a conditional create (S3 `If-None-Match: *`),
+    so only one writer can make it. Its holder rewrites it every lease/4 seconds. A waiter that sees the
+    same ETag for a whole lease, by its own clock, takes the holder as dead and deletes the object: no
+    clock is shared between machines, and a killed worker delays the next one by at most one lease.
+    """
+    found = root_of(path)
+    if found is None or found[0].role != "output":
+        yield
+        return
+    root, key = found
+    url = f"{root.url}/{LOCKS_DIR}/{key}.lock"
+    fs, lock_path = object_path(url)
+    holder = f"{socket.gethostname()}-{os.getpid()}-{threading.get_ident()}-{uuid.uuid4().hex[:8]}"
+    lease = lease_seconds()
+    seen: tuple[str | None, float] = (None, time.monotonic())
+    waited = False
+    while not _create_if_absent(fs, lock_path, holder):
+        try:
+            etag = fs.info(lock_path, refresh=True).get("ETag")
+        except FileNotFoundError:
+            continue
+        now = time.monotonic()
+        if etag != seen[0]:
+            seen = (etag, now)
+        elif now - seen[1] > lease:
+            logger.warning("%s: lock not renewed for %.0f s; its holder is gone, taking it over", url, lease)
+            with contextlib.suppress(FileNotFoundError):
+                fs.rm_file(lock_path)
+            continue
+        if not waited:
+            logger.info("%s is being written by another machine; waiting", _url(root, key))
+            waited = True
+        time.sleep(min(1.0, lease / 8))
+    stop = threading.Event()
+    renewer = threading.Thread(target=_renew, args=(fs, lock_path, holder, lease / 4, stop), daemon=True)
+    renewer.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        renewer.join()
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm_file(lock_path)
+        fs.invalidate_cache()
+
+
+def _create_if_absent(fs: Any, path: str, holder: str) -> bool:
+    """Create the object `path` only if it does not exist; return False when it does."""
+    body = json.dumps({"holder": holder}).encode()
+    protocol = fs.protocol[0] if isinstance(fs.protocol, (tuple, list)) else fs.protocol
+    try:
+        if protocol in ("s3", "s3a"):
+            bucket, _, key = path.partition("/")
+            fs.call_s3("put_object", Bucket=bucket, Key=key, Body=body, IfNoneMatch="*")
+        elif protocol in ("gs", "gcs"):
+            fs.pipe_file(path, body, if_generation_match=0)
+        else:  # a local file system: exclusive create
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "xb") as handle:
+                handle.write(body)
+    except FileExistsError:
+        return False
+    except Exception as err:  # noqa: BLE001  s3fs/gcsfs report a failed precondition in their own ways
+        if "412" in str(err) or "PreconditionFailed" in str(err) or "conditionNotMet" in str(err):
+            return False
+        raise
+    fs.invalidate_cache()
+    return True
+
+
+def _renew(fs: Any, path: str, holder: str, every: float, stop: threading.Event) -> None:
+    """Rewrite the lock object every `every` seconds until `stop`, so waiters see it alive."""
+    beat = 0
+    while not stop.wait(every):
+        beat += 1
+        with contextlib.suppress(Exception):
+            fs.pipe_file(path, json.dumps({"holder": holder, "beat": beat}).encode())
+
+
+def staging_files(url: str) -> list[str]:
+    """Return every object under staging prefixes below the root `url` (for tests and the run's end check)."""
+    fs, path = object_path(url)
+    try:
+        return sorted(p for p in fs.find(path) if f"/{STAGING_DIR}/" in f"/{p}")
+    except FileNotFoundError:
+        return []
+
+
+def temporary_copy(url: str) -> Path:
+    """Return a local temporary copy of the single object `url` (a run config handed to another machine)."""
+    fs, path = object_path(url)
+    folder = Path(tempfile.mkdtemp(prefix="latent-steering-"))
+    local = folder / PurePosixPath(path).name
+    fs.get_file(path, str(local))
+    return local
