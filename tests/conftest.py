@@ -1,10 +1,11 @@
 """Session-wide test settings: offline hub access, quiet telemetry, a private digest cache, one Prefect server,
-and the runs several test modules read."""
+the S3 endpoint, and the runs several test modules read."""
 
 import os
 import tempfile
 
 import pytest
+from helpers_s3 import bucket, s3_endpoint  # noqa: F401  the S3 endpoint fixtures
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")

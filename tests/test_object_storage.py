@@ -7,7 +7,6 @@ import threading
 import time
 
 import pytest
-from helpers_s3 import bucket, s3_endpoint  # noqa: F401  fixtures
 
 from steering_core.storage import objects, publish
 
