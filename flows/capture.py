@@ -21,6 +21,7 @@ from flows.children import Child, run_children
 from steering_core.capture import CaptureSettings, shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
+from steering_core.storage.publish import pulled
 from tasks import capture as capture_tasks
 from tasks.cache import is_cached, rooted
 
@@ -29,7 +30,7 @@ CAPTURE_FLOW = "latent-steering-capture"
 
 def capture_plan(config: RunConfig, episodes: Sequence[int] | None = None) -> list[list[int]]:
     """Return the episodes of each capture run (all dataset episodes, or only `episodes`), in order."""
-    known = [e.episode_index for e in read_meta(config.dataset_root).episodes]
+    known = [e.episode_index for e in read_meta(pulled(config.dataset_root)).episodes]
     wanted = known if episodes is None else sorted(set(episodes) & set(known))
     per_run = config.orchestration.shards_per_capture_run
     runs: dict[int, list[int]] = {}

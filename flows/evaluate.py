@@ -18,6 +18,8 @@ from steering_core.config import RunConfig, load_run_config
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
 from steering_core.storage.layout import PATHWAYS_FILE, stream_layer_dir
+from steering_core.storage.objects import localize
+from steering_core.storage.publish import pulled
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
 from tasks.cache import is_cached, rooted
@@ -80,7 +82,7 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]
         result = rooted(evaluate_tasks.evaluation_pathways, config.output_root)(
             str(config.eval_root), config.eval_layers(), names)
         summaries[PATHWAYS_FILE] = result["pathways"]
-        create_markdown_artifact(Path(result["pathways"]).read_text(encoding="utf-8"),
+        create_markdown_artifact(pulled(localize(result["pathways"])).read_text(encoding="utf-8"),
                                  key=artifact_key(config.name, "evaluation", PATHWAYS_FILE),
                                  description=f"Steering pathways, language model vs action expert ({config.eval_root})")
     return summaries

@@ -40,7 +40,7 @@ from flows.capture import capture_mode, run_capture
 from flows.evaluate import run_evaluation
 from flows.rollout import run_rollouts
 from flows.train_sae import feature_pages, run_training
-from steering_core.config import RunConfig, load_run_config
+from steering_core.config import RunConfig, load_run_config, share_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.refresh import (
     SOURCES_RECORD_FILE,
@@ -49,6 +49,8 @@ from steering_core.refresh import (
     write_sources_record,
 )
 from steering_core.sae.vectors import SIDES
+from steering_core.storage.objects import is_url, localize, portable
+from steering_core.storage.publish import publish, pulled
 from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report
@@ -65,11 +67,12 @@ CPU_TASKS = get_current_settings().tasks.runner.thread_pool_max_workers or 4
 def latent_steering(config_path: str) -> dict[str, Any]:
     """Run the whole pipeline described by a run config (YAML); return where its outputs are."""
     logger = get_run_logger()
-    config_path = str(Path(config_path).resolve())
+    config_path = config_path if is_url(config_path) else str(Path(config_path).resolve())
     config = load_run_config(config_path)
     preflight(config_path, capture_device=capture_mode(config) == "local")  # minutes before the GPU hours
+    config_path = share_run_config(config) or config_path  # on a bucket root, workers elsewhere read it there
     record_path = config.output_root / SOURCES_RECORD_FILE
-    sources = scan_inputs(config, previous=read_sources_record(record_path))
+    sources = scan_inputs(config, previous=read_sources_record(pulled(record_path)))
 
     task_texts = prepare_data(config)
     holdouts = holdout_splits(config)
@@ -83,15 +86,15 @@ def latent_steering(config_path: str) -> dict[str, Any]:
 
     features = feature_pages(config)  # of the trained SAEs: their latents in the pairs' directions
     for layer_path in reports.values():
-        publish_layer_report(Path(layer_path), config.name)
+        publish_layer_report(pulled(layer_path), config.name)
     evaluations = run_evaluation(config, config_path) if config.evaluate is not None else {}
     rollouts = run_rollouts(config, config_path) if config.rollout is not None else {}
-    write_sources_record(record_path, sources.with_config(config.fingerprint()))
+    publish(write_sources_record(record_path, sources.with_config(config.fingerprint())))
     logger.info("done: reports in %s", ", ".join(str(Path(p) / "summary.md") for p in reports.values()))
-    return {"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
+    return portable({"output_root": str(config.output_root), "run_dir": str(config.run_dir), "capture": mode,
             "reports": {str(layer): path for layer, path in reports.items()}, "trained_saes": trained,
             "feature_pages": features,
-            "evaluations": evaluations, "rollouts": rollouts}
+            "evaluations": evaluations, "rollouts": rollouts})  # on a bucket root: URLs
 
 
 def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
@@ -152,7 +155,7 @@ def steering_vectors(
     stats: dict[tuple[str, int, str], PrefectFuture] = {}
     specs = {}
     for layer in config.layers:
-        concepts = {pair.name: slices[pair.name, layer].result()["concepts"] for pair in config.pairs}
+        concepts = {pair.name: localize(slices[pair.name, layer].result()["concepts"]) for pair in config.pairs}
         pairs_config = config.pairs_config(layer, task_texts, concepts)
         path = config.pairs_config_path(layer)
         rooted(sae.write_pairs_config, root)(layer, pairs_config, str(path))

@@ -25,6 +25,7 @@ from steering_core.refresh import (
     read_sources_record,
     scan_inputs,
 )
+from steering_core.storage.publish import pulled
 
 REFRESH_FLOW = "latent-steering-refresh"
 
@@ -35,7 +36,7 @@ def refresh(config_path: str, rehash: bool = False) -> dict[str, Any]:
     logger = get_run_logger()
     config_path = str(Path(config_path).resolve())
     config = load_run_config(config_path)
-    previous = read_sources_record(config.output_root / SOURCES_RECORD_FILE)
+    previous = read_sources_record(pulled(config.output_root / SOURCES_RECORD_FILE))
     current = scan_inputs(config, previous=previous, rehash=rehash)
     changes = diff_sources(previous, current, config_fingerprint=config.fingerprint())
     if not changes:

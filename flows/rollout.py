@@ -19,6 +19,7 @@ from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
 from steering_core.serve.auth import read_api_key
 from steering_core.storage.fileio import read_json
 from steering_core.storage.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
+from steering_core.storage.publish import pulled
 from tasks import rollout as rollout_tasks
 from tasks.artifacts import artifact_key, ui_markdown
 from tasks.cache import rooted
@@ -50,7 +51,7 @@ def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = 
 
 def ui_rollouts(layer_path: Path) -> str:
     """Return a layer's rollout summary for the Prefect UI: its plots inline, then where the files and videos are."""
-    summary = read_json(layer_path / SUMMARY_JSON)
+    summary = read_json(pulled(layer_path / SUMMARY_JSON))
     plots = [f"{pair['pair']}/{file}" for pair in summary["pairs"] for file in pair["plots"].values()]
     videos = [f"{pair['pair']}/{file}" for pair in summary["pairs"] for file in pair["videos"].values()]
     return ui_markdown(layer_path, plots, [SUMMARY_MD, SUMMARY_JSON, *videos])

@@ -27,8 +27,9 @@ from prefect.tasks import Task
 
 from steering_core.config import RunConfig
 from steering_core.reporting.tables import text_table
+from steering_core.storage.objects import is_url
 from tasks import capture, data, preflight, report, rollout, sae
-from tasks.cache import OUTPUTS, cache_store
+from tasks.cache import OUTPUTS, cache_store, read_record_bytes, record_location
 
 SETTLE_SECONDS = 30.0
 PAGE = 200  # task runs per API call (the server's default limit)
@@ -146,9 +147,9 @@ def _summary(run: TaskRun, config: RunConfig) -> dict[str, Any]:
     key = data.get("storage_key") if isinstance(data, dict) else getattr(data, "storage_key", None)
     if not key:
         return {}
-    path = Path(key) if Path(key).is_absolute() else cache_store(config.output_root) / key
+    location = key if is_url(key) or Path(key).is_absolute() else record_location(cache_store(config.output_root), key)
     try:
-        result = ResultRecord.deserialize(path.read_bytes()).result
+        result = ResultRecord.deserialize(read_record_bytes(location) or b"").result
     except (OSError, ValueError):
         return {}
     return result if isinstance(result, dict) else {}

@@ -21,6 +21,7 @@ from steering_core.sae.feature_run import FeatureJob
 from steering_core.sae.heldout import sae_heldout_episodes
 from steering_core.sae.judge_run import JudgedPair, JudgeJob
 from steering_core.storage.layout import layer_dir
+from steering_core.storage.publish import pulled
 from tasks import sae_train
 from tasks.cache import is_cached, rooted
 
@@ -29,12 +30,12 @@ TRAIN_FLOW = "latent-steering-train-sae"
 
 def heldout_episodes(config: RunConfig, layer: int) -> list[int]:
     """Return the episodes the layer's SAE is not trained on (and is judged on)."""
-    captured = set(shards.read_run_metadata(config.run_dir).episodes)
+    captured = set(shards.read_run_metadata(pulled(config.run_dir / shards.METADATA_FILE).parent).episodes)
     task_episodes: dict[str, list[int]] = {}
-    for episode in read_meta(config.dataset_root).episodes:
+    for episode in read_meta(pulled(config.dataset_root)).episodes:
         if episode.episode_index in captured:
             task_episodes.setdefault(episode.task, []).append(episode.episode_index)
-    splits = [read_split(config.split_path(pair)) for pair in config.pairs]
+    splits = [read_split(pulled(config.split_path(pair))) for pair in config.pairs]
     return list(sae_heldout_episodes(task_episodes, splits, config.sae_for(layer).train.heldout_fraction))
 
 

@@ -13,11 +13,12 @@ from pydantic import ValidationError
 from typer.core import TyperGroup
 
 from latent_steering_cli.lazy import LazyCommands, current_options
-from steering_core.storage.fileio import check_local
+from steering_core.storage.objects import is_url
 
 # Options holding one string that lists several values (e.g. `--layers "12 14"`); the seed passes them
 # space-separated as separate words, which are joined back into that one value.
 JOINED_LIST_OPTIONS = ("--layers",)
+_MOUNTED = "latent_steering.mounted"  # context key: the mirror paths of URL options, as they were before the command
 
 
 def seed_spellings(command: Any, args: Sequence[str]) -> list[str]:
@@ -59,19 +60,10 @@ def seed_spellings(command: Any, args: Sequence[str]) -> list[str]:
     return out
 
 
-def check_local_paths(command: Any, args: Sequence[str]) -> None:
-    """Refuse a URL (`s3://...`) given to any path option of `command`, naming the option (ValueError)."""
-    paths = {name for param in command.params if _holds_path(getattr(param, "type_descriptor", None))
-             for name in param.opts}
-    for position, word in enumerate(args):
-        if word == "--":
-            return
-        name, equals, value = word.partition("=")
-        if name in paths and (equals or position + 1 < len(args)):
-            try:
-                check_local(value if equals else args[position + 1])
-            except ValueError as err:
-                raise ValueError(f"{name}: {err}") from None
+def path_options(command: Any) -> set[str]:
+    """Return the flags of `command`'s options that take a path (or a list or optional of one)."""
+    return {name for param in command.params if _holds_path(getattr(param, "type_descriptor", None))
+            for name in param.opts}
 
 
 def _holds_path(descriptor: Any) -> bool:
@@ -83,16 +75,30 @@ def _holds_path(descriptor: Any) -> bool:
 
 class SeedSpellingGroup(TyperGroup):
     """Command group that accepts the seed scripts' flag spellings (see `seed_spellings`) for every subcommand,
-    and refuses URLs given as paths (`check_local_paths`) with one line."""
+    and URLs (`s3://...`, `gs://...`) for its path options (`latent_steering_cli.storage`): mounted and pulled
+    before the command, what it changed there published after it."""
 
     def resolve_command(self, ctx: Any, args: list[str]) -> tuple[str | None, Any, list[str]]:
         name, command, rest = super().resolve_command(ctx, args)
         if command is None:
             return name, command, rest
         rest = seed_spellings(command, rest)
-        with input_errors():
-            check_local_paths(command, rest)
+        if any(is_url(word.partition("=")[2] or word) for word in rest):
+            from latent_steering_cli.storage import mount_urls, snapshot
+
+            with input_errors(OSError):
+                rest, mounted = mount_urls(path_options(command), rest)
+            ctx.meta[_MOUNTED] = snapshot(mounted)
         return name, command, rest
+
+    def invoke(self, ctx: Any) -> Any:
+        result = super().invoke(ctx)
+        if ctx.meta.get(_MOUNTED):
+            from latent_steering_cli.storage import publish_changed
+
+            with input_errors(OSError):
+                publish_changed(ctx.meta[_MOUNTED])
+        return result
 
 
 class Commands(SeedSpellingGroup, LazyCommands):

@@ -15,8 +15,10 @@ The output root may be shared, so records are checked as plain JSON before Prefe
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
+import functools
 import hashlib
 import inspect
 import json
@@ -34,8 +36,10 @@ from prefect.context import TaskRunContext
 from prefect.states import State
 from prefect.tasks import Task
 from prefect.utilities.callables import get_call_parameters
+from pydantic import BaseModel
 from safetensors import SafetensorError
 
+from steering_core.storage import objects, publish
 from steering_core.storage.fileio import sha256_json
 from steering_core.storage.fingerprints import code_version, plain
 
@@ -117,6 +121,7 @@ class ContentKey(CachePolicy):
         self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any
     ) -> str:
         task_fn = task_ctx.task.fn
+        inputs = pull_inputs(inputs) if self.store is not None and objects.url_of(self.store) else inputs
         identity = {
             "task": f"{task_fn.__module__}.{task_fn.__qualname__}",
             "source": hashlib.sha256(inspect.getsource(task_fn).encode()).hexdigest(),
@@ -128,9 +133,9 @@ class ContentKey(CachePolicy):
             },
             "derived": {name: fingerprint(inputs) for name, fingerprint in sorted(self.derived.items())},
         }
-        key = sha256_json(identity)
+        key = sha256_json(objects.portable(identity))  # equal on every machine mirroring the same bucket
         if self.store is not None:
-            _drop_if_outputs_missing(self.store / key)
+            _drop_if_outputs_missing(self.store, key)
         return key
 
 
@@ -144,24 +149,54 @@ def content_key(
     return ContentKey(modules=modules, fingerprints=fingerprints, derived=dict(derived or {}), ignore=ignore)
 
 
-def _drop_if_outputs_missing(record_path: Path) -> None:
+def _drop_if_outputs_missing(store: Path, key: str) -> None:
     """Delete a cache record that is not plain JSON of our schema, or whose summary lists a vanished output.
 
-    Runs before Prefect looks the key up, so Prefect only ever reads records checked here.
+    Runs before Prefect looks the key up, so Prefect only ever reads records checked here. On a bucket root the
+    record is an object beside the outputs, and an output counts as there when it is published.
     """
-    if not record_path.is_file():
+    location = record_location(store, key)
+    data = read_record_bytes(location)
+    if data is None:
         return
     try:
-        result = read_cache_record(record_path)
+        result = parse_cache_record(location, data)
     except ValueError as err:  # tampered or damaged: never handed to Prefect's deserializers; recompute instead
         logger.warning("refused cache record: %s; the task will run again", err)
-        record_path.unlink(missing_ok=True)
+        _delete_record(location)
         return
     outputs = result.get(OUTPUTS, []) if isinstance(result, dict) else []
-    missing = [p for p in outputs if not Path(p).exists()]
+    missing = [p for p in outputs if not (publish.is_published(p) if objects.is_url(p) else Path(p).exists())]
     if missing:
-        logger.info("%s: cached outputs are gone (%s); the task will run again", record_path.name, ", ".join(missing[:3]))
-        record_path.unlink(missing_ok=True)
+        logger.info("%s: cached outputs are gone (%s); the task will run again", key, ", ".join(missing[:3]))
+        _delete_record(location)
+
+
+def record_location(store: Path, key: str) -> Path | str:
+    """Return where the cache record `key` lives: a file of `store`, or its object when `store` mirrors a bucket."""
+    url = objects.url_of(store)
+    return store / key if url is None else f"{url}/{key}"
+
+
+def read_record_bytes(location: Path | str) -> bytes | None:
+    """Return the bytes of a cache record (a file, or an object URL), or None when there is none."""
+    if not objects.is_url(location):
+        return Path(location).read_bytes() if Path(location).is_file() else None
+    fs, path = objects.object_path(location)
+    try:
+        return fs.cat_file(path)
+    except FileNotFoundError:
+        return None
+
+
+def _delete_record(location: Path | str) -> None:
+    if isinstance(location, Path):
+        location.unlink(missing_ok=True)
+        return
+    fs, path = objects.object_path(location)
+    with contextlib.suppress(FileNotFoundError):
+        fs.rm_file(path)
+    fs.invalidate_cache()
 
 
 # The only serializer a record may name: Prefect's JSON serializer exactly as `RESULTS` writes it. Any
@@ -181,13 +216,18 @@ def read_cache_record(path: str | os.PathLike) -> Any:
     storage block, `storage_key` naming the record itself, and a summary of plain JSON values (no key
     that Prefect's decoder would turn into an import). ValueError naming the file otherwise.
     """
-    path = Path(path)
+    return parse_cache_record(Path(path), Path(path).read_bytes())
+
+
+def parse_cache_record(path: Path | str, data: bytes) -> Any:
+    """Return the task summary of the cache record `data` stored at `path` (a file or an object URL); see
+    `read_cache_record`."""
 
     def refuse(why: str) -> ValueError:
         return ValueError(f"{path}: {why}; expected a JSON task summary written by this project")
 
     try:
-        record = json.loads(path.read_bytes())
+        record = json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise refuse("not JSON") from None
     if not isinstance(record, dict) or set(record) != {"metadata", "result"} or not isinstance(record["metadata"], dict):
@@ -199,7 +239,9 @@ def read_cache_record(path: str | os.PathLike) -> Any:
     if serializer != _JSON_SERIALIZER:
         kind = serializer.get("type") if isinstance(serializer, dict) else serializer
         raise refuse(f"serializer {kind!r} with settings {serializer!r} (only Prefect's plain JSON serializer)")
-    if metadata.get("storage_block_id") is not None or metadata.get("storage_key") != str(path):
+    on_bucket = objects.is_url(path)  # kept through our saved block, which names records by key alone
+    names = {str(path), str(path).rsplit("/", 1)[-1]} if on_bucket else {str(path)}
+    if (metadata.get("storage_block_id") is not None and not on_bucket) or metadata.get("storage_key") not in names:
         raise refuse(f"storage {metadata.get('storage_block_id')!r}, {metadata.get('storage_key')!r} is not this file")
     if not isinstance(record["result"], str):
         raise refuse("result is not JSON text")
@@ -239,13 +281,85 @@ def is_cached(task: Task, output_root: str | os.PathLike, *args: Any, **kwargs: 
     if not isinstance(policy, ContentKey):
         return False
     key = policy.compute_key(SimpleNamespace(task=task), get_call_parameters(task.fn, args, kwargs), {})
-    return (cache_store(output_root) / key).is_file()
+    return read_record_bytes(record_location(cache_store(output_root), key)) is not None
 
 
 def rooted(task: Task, output_root: str | os.PathLike) -> Task:
-    """Return `task` with results and cache records under `<output_root>/.prefect-cache`."""
+    """Return `task` with results and cache records under `<output_root>/.prefect-cache`.
+
+    On a bucket root (`steering_core.storage.objects`) the records are objects there (a `RemoteFileSystem`
+    result storage), the task pulls the published outputs it reads before its cache key is computed, publishes
+    the outputs its summary lists, and its summary names outputs by URL, so it is the same on every machine.
+    """
     store = cache_store(output_root)
+    url = objects.url_of(store)
     policy = task.cache_policy
     if isinstance(policy, ContentKey):
         policy = dataclasses.replace(policy, store=store)
-    return task.with_options(result_storage=store, cache_policy=policy)
+    if url is None:
+        return task.with_options(result_storage=store, cache_policy=policy)
+    bucket_task = task.with_options(result_storage=result_block(url), cache_policy=policy)
+    bucket_task.fn = _through_bucket(task.fn, pulls=not isinstance(policy, ContentKey))
+    return bucket_task
+
+
+RESULT_BLOCK = "latent-steering-results-{digest}"  # a RemoteFileSystem block per bucket cache folder
+
+
+@functools.cache
+def result_block(url: str) -> str:
+    """Return the slug of the saved `RemoteFileSystem` block whose base path is `url` (saved once per process:
+    Prefect keeps task results only in storage saved on its server)."""
+    from prefect.filesystems import RemoteFileSystem
+
+    name = RESULT_BLOCK.format(digest=hashlib.sha256(url.encode()).hexdigest()[:12])
+    RemoteFileSystem(basepath=url).save(name, overwrite=True)
+    return f"remote-file-system/{name}"
+
+
+def pull_inputs(inputs: dict[str, Any]) -> dict[str, Any]:
+    """Return `inputs` with URLs named as mirror paths, after pulling every published output they name."""
+    inputs = objects.localize(inputs)
+    for path in sorted(set(_mirror_paths(inputs))):
+        publish.pull(path)
+    return inputs
+
+
+def _mirror_paths(value: Any) -> list[str]:
+    """Return every text in `value` (nested, settings models included) that names a path under a mounted mirror."""
+    if isinstance(value, BaseModel):
+        return _mirror_paths(value.model_dump(mode="json"))
+    if isinstance(value, str | Path):
+        return [str(value)] if objects.url_of(value) is not None else []
+    items = value.values() if isinstance(value, Mapping) else value if isinstance(value, list | tuple) else ()
+    return [path for item in items for path in _mirror_paths(item)]
+
+
+def _through_bucket(fn: Callable[..., Any], *, pulls: bool) -> Callable[..., Any]:
+    """Return `fn` run on mirror paths (pulled first when no cache key pulled them), its outputs published after."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        args, kwargs = objects.localize(args), objects.localize(kwargs)
+        if pulls:
+            pull_inputs({"args": args, "kwargs": kwargs})
+        summary = fn(*args, **kwargs)
+        for path in publish_units(summary):
+            if path.exists():  # else written on another machine (a group captured there): published already
+                publish.publish(path)
+        return objects.portable(summary)
+
+    return run
+
+
+def publish_units(summary: Any) -> list[Path]:
+    """Return what a task's summary says it wrote, as units to publish: its `folder` whole, else each output."""
+    if not isinstance(summary, dict):
+        return []
+    folder = summary.get("folder")
+    units = [Path(folder)] if isinstance(folder, str) else []
+    for output in summary.get(OUTPUTS, []):
+        path = Path(output)
+        if not any(path == unit or unit in path.parents for unit in units):
+            units.append(path)
+    return units

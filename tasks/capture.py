@@ -92,9 +92,11 @@ def sliced_shards(inputs: dict[str, Any]) -> Any:
 
 
 def shard_files(run_dir: str, settings: CaptureSettings, episodes: list[int]) -> list[str]:
-    """Return the shard files (every layer) that hold `episodes`."""
+    """Return the shard files and their sidecars (every layer) that hold `episodes`: each shard before its sidecar,
+    which is published after it, as it is written after it."""
     keys = shards.group_episodes(episodes, settings.episodes_per_shard)
-    return [str(shards.shard_path(run_dir, settings.token_type, layer, key)) for layer in settings.layers for key in keys]
+    return [str(where(run_dir, settings.token_type, layer, key)) for layer in settings.layers for key in keys
+            for where in (shards.shard_path, shards.sidecar_path)]
 
 
 # ----------------------------------------------------------------------------- tasks
@@ -121,7 +123,8 @@ def capture_episodes(
     if result.reduced_batch_size is not None:
         get_run_logger().warning("%s: CUDA ran out of memory; captured %d frame(s) per pass instead of %d",
                                  label, result.reduced_batch_size, settings.batch_size)
-    return {OUTPUTS: shard_files(run_dir, settings, episodes), "written": list(result.written),
+    files = [*shard_files(run_dir, settings, episodes), str(Path(run_dir) / shards.RUN_FILE)]
+    return {OUTPUTS: files, "written": list(result.written),
             "skipped": list(result.skipped), "frames": result.frames, "reduced_batch_size": result.reduced_batch_size}
 
 
@@ -156,4 +159,5 @@ def slice_layer(pair: str, layer: int, run_dir: str, concept_map_path: str, outp
     progress.finish()
     folder = Path(output_dir) / layer_dir(layer)
     concepts = {name: str(folder / entry["pt"]) for name, entry in read_json(index_path)["concepts"].items()}
-    return {OUTPUTS: [str(index_path), *concepts.values()], "concepts": concepts, "index": str(index_path)}
+    return {OUTPUTS: [str(index_path), *concepts.values()], "concepts": concepts, "index": str(index_path),
+            "folder": str(folder)}

@@ -10,6 +10,7 @@ from prefect import task
 from steering_core.sae import report, vectors
 from steering_core.sae.fidelity_table import FIDELITY_JSON
 from steering_core.storage import layout
+from steering_core.storage.fileio import read_json
 from steering_core.storage.fingerprints import file_digest
 from tasks.cache import OUTPUTS, RESULTS, content_key
 
@@ -56,4 +57,5 @@ def write_report(layer: int, layer_path: str, pair_names: list[str], top_k: int,
     return their paths."""
     md_path = report.write_report(Path(layer_path), top_k=top_k,
                                   trained_sae=Path(trained_sae) if trained_sae is not None else None)
-    return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON))]}
+    plots = [str(md_path.parent / name) for name in read_json(md_path.with_name(layout.SUMMARY_JSON))["plots"].values()]
+    return {OUTPUTS: [str(md_path), str(md_path.with_name(layout.SUMMARY_JSON)), *plots]}

@@ -5,6 +5,7 @@ A real bucket or MinIO works the same way: the code reads the endpoint from AWS_
 
 from __future__ import annotations
 
+import logging
 import os
 import uuid
 from collections.abc import Iterator
@@ -21,6 +22,7 @@ def s3_endpoint() -> Iterator[str]:
     """Start moto's S3 server on a free loopback port; set the standard AWS variables to it; yield its URL."""
     from moto.server import ThreadedMotoServer
 
+    logging.getLogger("werkzeug").setLevel(logging.WARNING)  # one line per request otherwise
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
     host, port = server.get_host_and_port()

@@ -73,8 +73,9 @@ def config_twice(name: str, anchor: str, line: str, key: str) -> Attack:
 
 ESCAPES = {"parent": "../../..", "absolute": "/tmp/elsewhere", "inner_parent": "a/../../b", "empty_part": "a//b",
            "home": "~/x", "backslash": "a\\..\\b", "dot": ".", "trailing_parent": "libero/..", "blank": " "}
-URLS = {"s3": "s3://bucket/x", "gs": "gs://bucket/x", "http": "http://host/x", "https": "https://host/x",
-        "file": "file:///tmp/x", "hf": "hf://datasets/x"}
+# URLs of stores that are not object storage (s3://, gs:// and file:// roots are accepted: test_object_storage)
+URLS = {"http": "http://host/x", "https": "https://host/x", "hf": "hf://datasets/x", "ftp": "ftp://host/x",
+        "s3_no_bucket": "s3://", "gs_parent": "gs://bucket/../x"}
 
 CONFIG_ATTACKS = [
     *(config_value(f"repo_id_{kind}", "dataset.repo_id", value) for kind, value in ESCAPES.items()),
@@ -84,10 +85,10 @@ CONFIG_ATTACKS = [
     config_value("pair_name_nested", "pairs.0.name", "a/b"),
     config_value("suite_parent", "sources.suite", "../../x"),
     *(config_value(f"output_root_{scheme}", "output_root", url) for scheme, url in URLS.items()),
-    config_value("checkpoint_url", "model.checkpoint", "s3://bucket/pi05"),
-    config_value("tokenizer_url", "model.tokenizer", "gs://bucket/tokenizer.model"),
-    config_value("sources_folder_url", "sources.folders", ["s3://bucket/demos"]),
-    config_value("dataset_root_url", "dataset.root", "s3://bucket/dataset"),
+    config_value("checkpoint_url", "model.checkpoint", "http://host/pi05"),
+    config_value("tokenizer_url", "model.tokenizer", "https://host/tokenizer.model"),
+    config_value("sources_folder_url", "sources.folders", ["ftp://host/demos"]),
+    config_value("dataset_root_url", "dataset.root", "s3://bucket//dataset"),
     config_value("sae_path_url", "sae.1.path", "hf://org/sae"),
     config_value("sae_train_k_over_latents", "sae.1.train.k", 999, "sae.1.train: k is 999"),
     config_value("sae_train_architecture", "sae.1.train.architecture", "gated"),
@@ -121,15 +122,15 @@ def binary_config_with_run(world: World, tmp_path: Path) -> Case:
 # ----------------------------------------------------------------------------- URLs given to CLI path options
 
 
-def cli_url(name: str, flag: str, argv: Callable[[World, Path], list], url: str = "s3://bucket/x") -> Attack:
-    """A command whose path option `flag` is given `url` (the other options sound)."""
+def cli_url(name: str, flag: str, argv: Callable[[World, Path], list], url: str = "http://host/x") -> Attack:
+    """A command whose path option `flag` is given `url`, a URL of no object storage (the other options sound)."""
     def attack(world: World, tmp_path: Path) -> Case:
         words = [str(word) for word in argv(world, tmp_path)]
         if f"{flag}=" in words:  # the `--flag=value` spelling
             words[words.index(f"{flag}=")] = f"{flag}={url}"
         else:
             words += [flag, url]
-        return Case(words, (flag, url, "is a URL"))
+        return Case(words, (flag, url, "unsupported storage URL"))
     return named(name, attack)
 
 
@@ -168,7 +169,7 @@ def _evaluate(world: World, tmp_path: Path) -> list:
 URL_ATTACKS = [
     cli_url("convert_output_dir", "--output-dir", _convert),
     cli_url("convert_output_dir_equals", "--output-dir", lambda w, t: [*_convert(w, t), "--output-dir="]),
-    cli_url("convert_input_dir", "--input-dir", lambda w, t: [*_convert(w, t), "--output-dir", t / "ds"], "gs://b/demos"),
+    cli_url("convert_input_dir", "--input-dir", lambda w, t: [*_convert(w, t), "--output-dir", t / "ds"], "gs://b/../demos"),
     cli_url("filter_output_dir", "--output-dir", lambda w, t: ["filter", "--input-dir", w.inputs / "inputs" / "demos"]),
     cli_url("make_demos_output_dir", "--output-dir", lambda w, t: ["make-demos", "--image-size", "16"], "http://h/x"),
     cli_url("manifest_lerobot_root", "--lerobot-root",
@@ -183,13 +184,13 @@ URL_ATTACKS = [
                           "--output-dir", t / "run"], "hf://org/pi05"),
     cli_url("capture_config", "--config", lambda w, t: ["capture"]),
     cli_url("slice_output_dir", "--output-dir", _slice),
-    cli_url("slice_split", "--split", lambda w, t: [*_slice(w, t), "--output-dir", t / "slices"], "gs://b/split.json"),
+    cli_url("slice_split", "--split", lambda w, t: [*_slice(w, t), "--output-dir", t / "slices"], "ftp://b/split.json"),
     cli_url("split_output", "--output", lambda w, t: ["split", "--manifest", w.data / "manifests" / f"{PAIR}.json"]),
     cli_url("steer_output_root", "--output-root", _steer),
     cli_url("steer_pairs_config", "--pairs-config", lambda w, t: ["steer", "--layer", "1", "--sae", "none"]),
     cli_url("evaluate_lerobot_root", "--lerobot-root", lambda w, t: [*_evaluate(w, t), "--data-root", w.data]),
     cli_url("evaluate_data_root", "--data-root", lambda w, t: [*_evaluate(w, t), "--lerobot-root", w.dataset]),
-    cli_url("run_config", "--config", lambda w, t: ["run"], "file:///tmp/run.yaml"),
+    cli_url("run_config", "--config", lambda w, t: ["run"], "https://host/run.yaml"),
 ]
 
 

@@ -13,7 +13,6 @@ from steering_core.storage.fileio import (
     Crc32,
     atomic_dir,
     atomic_path,
-    check_local,
     feed_file,
     read_json,
     remove_stale_staging,
@@ -90,14 +89,6 @@ def test_read_json_refuses_binary_files_and_keys_given_twice(tmp_path):
     twice.write_text('{"a": {"b": 1, "b": 2}}')
     with pytest.raises(ValueError, match=r"twice.json: key 'b' appears twice in one object; keep one"):
         read_json(twice)
-
-
-def test_check_local_refuses_urls_only():
-    for url in ("s3://bucket/x", "gs://b", "http://host/x", "hf://org/x", "s3:/bucket/x"):  # the last: Path("s3://...")
-        with pytest.raises(ValueError, match="is a URL; only local paths are supported"):
-            check_local(url)
-    for local in ("data", "/abs/s3://x", "./s3://x", "C:/data", Path("a:b"), 3):
-        assert check_local(local) == local
 
 
 def test_hashes_match_hashlib(tmp_path):

@@ -50,11 +50,18 @@ from steering_core.config.sections import (
     SourcesSection,
     SteeringSection,
 )
-from steering_core.config.yaml_files import CONFIG_FILE, format_errors, load_run_config, write_run_config
+from steering_core.config.yaml_files import (
+    CONFIG_FILE,
+    format_errors,
+    load_run_config,
+    share_run_config,
+    write_run_config,
+)
 
 __all__ = [
     "CONFIG_FILE", "PAIRS_CONFIG_FILE", "CaptureSection", "ConfigPath", "DatasetSection", "EvaluateSection",
     "ModelSection", "OrchestrationSection", "PairSection", "RolloutSection", "RunConfig", "SaeSection", "SaeTrainSection",
     "SliceSection",
-    "SourcesSection", "SteeringSection", "format_errors", "load_run_config", "write_run_config",
+    "SourcesSection", "SteeringSection", "format_errors", "load_run_config", "share_run_config",
+    "write_run_config",
 ]

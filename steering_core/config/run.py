@@ -14,11 +14,11 @@ from steering_core.capture.slicing import SliceSettings
 from steering_core.config.sections import (
     SAFE_NAME,
     CaptureSection,
-    ConfigPath,
     DatasetSection,
     EvaluateSection,
     ModelSection,
     OrchestrationSection,
+    OutputPath,
     PairSection,
     RolloutSection,
     SaeSection,
@@ -41,7 +41,7 @@ class RunConfig(StrictModel):
     """A whole pipeline run: sources -> dataset -> manifests -> capture -> slices -> steering vectors."""
 
     name: str = Field("run", pattern=SAFE_NAME.pattern)  # residuals/<name>/
-    output_root: ConfigPath = Field(Path("data"), validate_default=True)
+    output_root: OutputPath = Field(Path("data"), validate_default=True)
     sources: SourcesSection | None = None  # hdf5 demos to filter and convert; None with `dataset.existing`
     dataset: DatasetSection
     pairs: tuple[PairSection, ...] = Field(min_length=1)

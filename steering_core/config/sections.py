@@ -4,6 +4,7 @@ each step's own settings minus the fields the run config supplies itself (`SUPPL
 from __future__ import annotations
 
 import copy
+import os
 import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -28,8 +29,9 @@ from steering_core.pi05 import Pi05Arch
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.vectors import SteeringSettings
-from steering_core.storage.fileio import check_local
 from steering_core.storage.layout import check_name
+from steering_core.storage.objects import is_url, mount
+from steering_core.storage.publish import pull
 from steering_core.storage.schema import StrictModel
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -52,7 +54,25 @@ def _resolve_path(value: Path, info: ValidationInfo) -> Path:
     return value if value.is_absolute() or base is None else Path(base) / value
 
 
-ConfigPath = Annotated[Path, BeforeValidator(check_local), AfterValidator(_resolve_path)]
+def _mounted(role: str) -> Any:
+    """Return a validator mounting a URL (`s3://...`, `gs://...`) as its local mirror folder (`storage.objects`);
+    an input root is pulled into it."""
+    def validate(value: Any) -> Any:
+        if not is_url(value):
+            return value
+        path = mount(os.fspath(value), role)
+        if role == "input":
+            try:
+                pull(path)  # what the run reads, fetched once per machine (again only when an object changed)
+            except (OSError, RuntimeError) as err:  # s3fs and gcsfs report unreachable or denied stores so
+                raise ValueError(f"{os.fspath(value)}: cannot be read from this machine ({type(err).__name__}: "
+                                 f"{err}); check the URL and the AWS_* / GOOGLE_APPLICATION_CREDENTIALS settings") from None
+        return path
+    return validate
+
+
+ConfigPath = Annotated[Path, BeforeValidator(_mounted("input")), AfterValidator(_resolve_path)]  # read by the run
+OutputPath = Annotated[Path, BeforeValidator(_mounted("output")), AfterValidator(_resolve_path)]  # written by it
 
 
 def options_model(settings: type[StrictModel], supplied: tuple[str, ...], name: str, **extra: Any) -> type[StrictModel]:
@@ -72,7 +92,7 @@ def options_model(settings: type[StrictModel], supplied: tuple[str, ...], name: 
 
 
 # Sections derived from the steps' own settings (the run config supplies the removed fields).
-_ConvertOptions = options_model(ConvertSettings, (), "_ConvertOptions", root=(ConfigPath | None, None))
+_ConvertOptions = options_model(ConvertSettings, (), "_ConvertOptions", root=(OutputPath | None, None))
 CaptureSection = options_model(CaptureSettings, tuple(SUPPLIED["capture"]), "CaptureSection")
 SliceSection = options_model(SliceSettings, tuple(SUPPLIED["slicing"]), "SliceSection")
 SteeringSection = options_model(SteeringSettings, tuple(SUPPLIED["steering"]), "SteeringSection")

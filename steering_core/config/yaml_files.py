@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Hashable
 from pathlib import Path
@@ -13,6 +14,8 @@ from pydantic import ValidationError
 from steering_core.config.run import RunConfig
 from steering_core.config.sections import SUPPLIED
 from steering_core.storage.fileio import atomic_path, read_text
+from steering_core.storage.objects import is_url, object_path, portable, url_of
+from steering_core.storage.publish import temporary_copy
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 
@@ -23,6 +26,11 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
     Raises FileNotFoundError when the file is missing, ValueError listing every problem as
     `<file>: <key path>: <message>` otherwise.
     """
+    if is_url(path):  # a config handed to workers on other machines through the bucket
+        try:
+            path = temporary_copy(os.fspath(path))
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{os.fspath(path)}: run config not found in the bucket") from None
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: run config not found; pass --config with a YAML file (see README)")
@@ -105,3 +113,24 @@ def write_run_config(config: RunConfig, path: str | os.PathLike) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(yaml.safe_dump(payload, sort_keys=False, allow_unicode=True), encoding="utf-8")
     return path
+
+
+SHARED_CONFIGS = ".runs"  # under a bucket output root: the run configs handed to workers on other machines
+
+
+def share_run_config(config: RunConfig) -> str | None:
+    """Put `config` in its bucket output root for workers on other machines; return its URL (None: a local root).
+
+    Paths in the mirrors are written as their URLs, so each worker reads them through its own mirror; other
+    paths stay as they are and must name the same files on every machine. The name carries the content's
+    hash, so a run never reads another run's config.
+    """
+    url = url_of(config.output_root)
+    if url is None:
+        return None
+    text = yaml.safe_dump(portable(config.model_dump(mode="json", exclude_defaults=True)), sort_keys=False,
+                          allow_unicode=True).encode("utf-8")
+    shared = f"{url}/{SHARED_CONFIGS}/{config.name}-{hashlib.sha256(text).hexdigest()[:16]}.yaml"
+    fs, path = object_path(shared)
+    fs.pipe_file(path, text)
+    return shared

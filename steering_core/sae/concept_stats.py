@@ -109,8 +109,13 @@ class ConceptReader:
 
 
 def concept_stats_path(layer_path: Path, source: ConceptSource) -> Path:
-    """Return the statistics file stem of one concept file (suffix-less; .safetensors and .json are added)."""
-    digest = sha256_json(str(source.path.resolve()))[:10]
+    """Return the statistics file stem of one concept file (suffix-less; .safetensors and .json are added).
+
+    The stem carries a digest of where the concept file is: relative to the output root holding `layer_path`
+    when it lies there (so equal on every machine and every root), else its absolute path.
+    """
+    where, root = source.path.resolve(), layer_path.resolve().parent.parent
+    digest = sha256_json(where.relative_to(root).as_posix() if root in where.parents else str(where))[:10]
     return layer_path / CONCEPTS_DIR / CONCEPT_STATS.format(stem=safe_file_name(source.label), digest=digest)
 
 

@@ -14,7 +14,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import shutil
 import socket
 import stat
@@ -24,7 +23,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from isal.isal_zlib import crc32  # zlib's CRC-32, same values, by carry-less multiply: ~8x zlib's speed
+from isal.isal_zlib import crc32
+
+from steering_core.storage.objects import (  # zlib's CRC-32, same values, by carry-less multiply: ~8x zlib's speed
+    localize,
+    portable,
+)
 
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 
@@ -187,11 +191,12 @@ def check_output_dir(path: str | os.PathLike, what: str = "output folder") -> Pa
 
 
 def write_json(path: str | os.PathLike, payload: Any) -> Path:
-    """Write `payload` as indented JSON atomically; return the path.
+    """Write `payload` as indented JSON atomically; return the path. Mirror paths are written as URLs.
 
     NaN and Inf are refused (JSON has neither; Python would write bare `NaN`), naming the key; nothing is written.
     """
     path = Path(path)
+    payload = portable(payload)  # paths in object-storage mirrors are written as their URLs
     try:
         text = json.dumps(payload, indent=2, ensure_ascii=False, allow_nan=False)
     except ValueError:
@@ -248,25 +253,16 @@ def read_json(path: str | os.PathLike) -> Any:
 
 
 def parse_json(text: str, where: str) -> Any:
-    """Return the parsed JSON `text`; ValueError starting with `where` when malformed or a key is given twice."""
+    """Return the parsed JSON `text`; ValueError starting with `where` when malformed or a key is given twice.
+
+    URLs of mounted object-storage roots are read as their mirror paths on this machine (`write_json` undone).
+    """
     try:
-        return json.loads(text, object_pairs_hook=_unique_keys)
+        return localize(json.loads(text, object_pairs_hook=_unique_keys))
     except json.JSONDecodeError as err:
         raise ValueError(f"{where}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
     except DuplicateKeyError as err:
         raise ValueError(f"{where}: {err}; keep one") from None
-
-
-# `s3://bucket`, `gs://b`, `http://host` (and `s3:/bucket`, what a Path makes of it); not a drive letter `C:/`.
-_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]+:/")
-
-
-def check_local(value: Any) -> Any:
-    """Return `value` unless it is a URL (`s3://...`): ValueError, as object storage is not supported yet."""
-    if isinstance(value, (str, os.PathLike)) and _URL.match(os.fspath(value)):
-        raise ValueError(f"{os.fspath(value)!r} is a URL; only local paths are supported (object storage is not "
-                         "yet): mount it and give the local path")
-    return value
 
 
 def sha256_file(path: str | os.PathLike) -> str:
@@ -300,6 +296,7 @@ class Crc32:
 
 
 def sha256_json(payload: Any) -> str:
-    """Return the hex sha256 of `payload` serialised canonically (sorted keys, no spaces)."""
-    text = json.dumps(payload, sort_keys=True, separators=(",", ":"), ensure_ascii=False, default=str)
+    """Return the hex sha256 of `payload` serialised canonically (sorted keys, no spaces); mirror paths count by
+    their URLs, so an identity is the same on every machine."""
+    text = json.dumps(portable(payload), sort_keys=True, separators=(",", ":"), ensure_ascii=False, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

@@ -21,6 +21,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from steering_core.storage.fileio import sha256_file, sha256_json, write_json
+from steering_core.storage.publish import pulled_etag
 
 PROJECT_PACKAGES = ("steering_core",)  # imports followed when versioning code
 _PROJECT_ROOT = Path(__file__).resolve().parents[2]  # the folder holding steering_core/
@@ -84,16 +85,17 @@ def _store_digest(version: tuple, digest: str) -> None:
         logger.debug("digest of %s not stored (%s)", version[0], err)
 
 
-def tree_listing(folders: Iterable[str | os.PathLike], pattern: str = "*.hdf5") -> list[tuple[str, int, int]]:
+def tree_listing(folders: Iterable[str | os.PathLike], pattern: str = "*.hdf5") -> list[tuple[str, int, int | str]]:
     """Return (path, size, mtime_ns) of each file matching `pattern` directly in the folders: a cheap fingerprint.
 
-    Used where hashing every candidate would be costly and a later step hashes what it selects.
+    Used where hashing every candidate would be costly and a later step hashes what it selects. A file pulled
+    from object storage counts by its object's ETag instead of its mtime, which differs on every machine.
     """
     listing = []
     for folder in folders:
         for path in sorted(Path(folder).glob(pattern)):
             stat = path.stat()
-            listing.append((str(path.resolve()), stat.st_size, stat.st_mtime_ns))
+            listing.append((str(path.resolve()), stat.st_size, pulled_etag(path) or stat.st_mtime_ns))
     return listing
 
 

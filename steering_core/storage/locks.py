@@ -15,6 +15,10 @@ either, so none can form: locks are taken in one global order, by output path (a
 holds, a run folder's groups by number), a call taking several takes them in that order, and a thread
 asking for a lock that does not come after every lock it holds gets a RuntimeError instead of a wait.
 
+On an output root in object storage (`steering_core.storage.objects`), each lock also holds the bucket-wide lock
+object of its output (`publish.bucket_lock`), taken after the local one, so machines without a shared disk
+exclude each other too.
+
 A lock ends when its file is closed, at the latest with the process (forked children close their copies),
 so a killed step never leaves a stale lock. Group lock files, and an output's lock file when the block
 wrote no output, are removed by their holder before it lets go; a process that was waiting on the removed
@@ -30,6 +34,8 @@ import os
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+
+from steering_core.storage.publish import bucket_lock
 
 logger = logging.getLogger(__name__)
 
@@ -66,7 +72,9 @@ def group_locks(run_dir: str | os.PathLike, groups: Iterable[int]) -> Iterator[N
     run_dir = Path(run_dir)
     locks = [(order(run_dir, group), run_dir / GROUP_LOCK.format(group=group), f"{run_dir}: shard group {group}")
              for group in set(groups)]
-    with _holding(locks, keep=lambda: False):
+    with _holding(locks, keep=lambda: False), contextlib.ExitStack() as bucket:
+        for group in sorted(set(groups)):
+            bucket.enter_context(bucket_lock(run_dir / GROUP_LOCK.format(group=group)))
         yield
 
 
@@ -82,7 +90,7 @@ def output_lock(output: str | os.PathLike) -> Iterator[None]:
     made = [p for p in (folder, *folder.parents) if not p.exists()]  # deepest first
     lock = (order(output), folder / OUTPUT_LOCK.format(name=output.name), f"{folder}: output {output.name}")
     try:
-        with _holding([lock], keep=lambda: output.exists() or output.is_symlink()):
+        with _holding([lock], keep=lambda: output.exists() or output.is_symlink()), bucket_lock(output):
             yield
     finally:
         if not output.exists() and not output.is_symlink():

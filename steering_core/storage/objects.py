@@ -55,7 +55,8 @@ def split_url(url: str) -> tuple[str, str]:
         raise ValueError(f"{url!r}: unsupported storage URL; expected a local path, file://, s3:// or gs://")
     parts = PurePosixPath(path).parts if protocol != "file" else ()
     if protocol != "file" and (not path or any(p in (".", "..") for p in parts) or "//" in path):
-        raise ValueError(f"{url!r}: expected {protocol}://<bucket>[/<prefix>] without empty, `.` or `..` parts")
+        raise ValueError(f"{url!r}: unsupported storage URL; expected {protocol}://<bucket>[/<prefix>] without empty, "
+                         "`.` or `..` parts")
     return protocol, path
 
 

@@ -164,31 +164,42 @@ def read_record(url: str) -> dict[str, Any] | None:
     return record
 
 
-def _covering_record(root: Root, key: str) -> tuple[str, dict[str, Any]] | None:
-    """Return (parent URL, record) of the published output that is `key` or holds it, else None."""
-    parts = key.split("/")
-    for depth in range(len(parts), 0, -1):
-        url = _url(root, "/".join(parts[:depth]))
-        record = read_record(url)
+def covering_record(url: str) -> tuple[str, dict[str, Any]] | None:
+    """Return (parent URL, record) of the published output that is `url` or holds it, else None."""
+    protocol, _, rest = url.partition("://")
+    parts = rest.split("/")
+    for depth in range(len(parts), 1, -1):  # never the bucket itself
+        candidate = f"{protocol}://{'/'.join(parts[:depth])}"
+        record = read_record(candidate)
         if record is not None:
-            return url.rsplit("/", 1)[0], record
+            return candidate.rsplit("/", 1)[0], record
     return None
 
 
-def _records_under(root: Root, key: str) -> list[tuple[str, dict[str, Any]]]:
-    """Return (parent URL, record) of every published output strictly under the folder `key`."""
-    fs, path = object_path(_url(root, key))
+def is_published(url: str) -> bool:
+    """Return True when the file or folder `url` is a published output or lies in one."""
+    found = covering_record(url)
+    if found is None:
+        return False
+    parent_url, record = found
+    relative = url[len(parent_url) + 1:]
+    return any(name == relative or name.startswith(relative + "/") for name in record["files"])
+
+
+def records_under(url: str) -> list[tuple[str, dict[str, Any]]]:
+    """Return (parent URL, record) of every published output strictly under the folder `url`."""
+    fs, path = object_path(url)
     try:
         found = fs.find(path)
     except FileNotFoundError:
         return []
+    protocol = url.split("://")[0]
     records = []
     for item in found:
         name = PurePosixPath(item).name
         if name.startswith(".") and name.endswith(".published.json") and f"/{STAGING_DIR}/" not in item:
-            parent_url = f"{root.url.split('://')[0]}://{PurePosixPath(item).parent}"
-            output = name[1:-len(".published.json")]
-            record = read_record(f"{parent_url}/{output}")
+            parent_url = f"{protocol}://{PurePosixPath(item).parent}"
+            record = read_record(f"{parent_url}/{name[1:-len('.published.json')]}")
             if record is not None:
                 records.append((parent_url, record))
     return records
@@ -207,10 +218,10 @@ def pull(path: str | os.PathLike) -> list[Path]:
     if root.role == "input":
         return _pull_input(root, key)
     records = []
-    if key and (covering := _covering_record(root, key)) is not None:
+    if key and (covering := covering_record(_url(root, key))) is not None:
         records.append(covering)
     else:
-        records.extend(_records_under(root, key))
+        records.extend(records_under(_url(root, key)))
     fetched = []
     for parent_url, record in records:
         parent_key = parent_url[len(root.url) + 1:] if parent_url != root.url else ""
@@ -226,6 +237,12 @@ def pull(path: str | os.PathLike) -> list[Path]:
             _download(f"{parent_url}/{relative}", local, entry)
             fetched.append(local)
     return fetched
+
+
+def pulled(path: str | os.PathLike) -> Path:
+    """Return `path` after pulling what is published there (a mirror path); any other path as it is."""
+    pull(path)
+    return Path(path)
 
 
 def _local_matches(local: Path, entry: dict[str, Any]) -> bool:
@@ -245,6 +262,13 @@ def _download(url: str, local: Path, entry: dict[str, Any]) -> None:
         if digest != entry["sha256"]:
             raise ValueError(f"{url}: sha256 is {digest}, expected {entry['sha256']} from its publication record; "
                              "the object changed after it was published, re-run the step that wrote it")
+
+
+def pulled_etag(path: str | os.PathLike) -> str | None:
+    """Return the ETag of the object a file of an input mirror was pulled from, or None (not pulled)."""
+    path = Path(path)
+    state = path.parent / INPUT_STATE.format(name=path.name)
+    return state.read_text() if root_of(path) is not None and state.is_file() else None
 
 
 def _pull_input(root: Root, key: str) -> list[Path]:
@@ -330,7 +354,7 @@ def remote_file(path: str | os.PathLike) -> RemoteFile | None:
         return None
     root, key = found
     url = _url(root, key)
-    covering = _covering_record(root, key) if root.role == "output" else None
+    covering = covering_record(url) if root.role == "output" else None
     fs, object_key = object_path(url)
     try:
         info = fs.info(object_key)

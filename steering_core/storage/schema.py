@@ -9,6 +9,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from steering_core.storage.fileio import read_json, sha256_json
+from steering_core.storage.objects import portable
 
 
 class StrictModel(BaseModel):
@@ -18,7 +19,7 @@ class StrictModel(BaseModel):
 
     def fingerprint(self) -> str:
         """Return the sha256 of this model's canonical JSON: part of a step's identity."""
-        return sha256_json(self.model_dump(mode="json"))
+        return sha256_json(portable(self.model_dump(mode="json")))  # paths in mirrors count by their URLs
 
 
 M = TypeVar("M", bound=BaseModel)

@@ -1,0 +1,77 @@
+"""URLs given to the path options of any command: mounted as local mirrors, pulled before, published after.
+
+`latent-steering slice --run-dir s3://bucket/data/residuals/demo ...` works like the local command on the
+option's mirror folder (`steering_core.storage.objects`): what is published there is pulled first (shards
+stay in the bucket and are read by ranges), and each mirror folder or file the command changed is published
+when it succeeds. A prefix that holds no publication record is a user's input (a checkpoint uploaded by
+hand): its objects are pulled as they are.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from steering_core.storage.objects import is_url, mount, object_path
+from steering_core.storage.publish import publish, pull, read_record, records_under
+
+Snapshot = dict[Path, dict[str, tuple[int, int]]]
+
+
+def mount_urls(paths: set[str], args: Sequence[str]) -> tuple[list[str], list[Path]]:
+    """Return `args` with each URL given to an option of `paths` replaced by its pulled mirror path, and those paths."""
+    out, mounted = list(args), []
+    for position, word in enumerate(args):
+        if word == "--":
+            break
+        name, equals, value = word.partition("=")
+        if name not in paths or not (equals or position + 1 < len(args)):
+            continue
+        value = value if equals else args[position + 1]
+        if not is_url(value):
+            continue
+        try:
+            local = _mounted(value)
+        except ValueError as err:
+            raise ValueError(f"{name}: {err}") from None
+        mounted.append(local)
+        if equals:
+            out[position] = f"{name}={local}"
+        else:
+            out[position + 1] = str(local)
+    return out, mounted
+
+
+def _mounted(url: str) -> Path:
+    """Mount `url` as an output root when it holds published outputs (or nothing yet), else as an input; pull it."""
+    url = url.rstrip("/")
+    published = read_record(url) is not None or records_under(url)
+    local = mount(url, "output")
+    if not published and not _exists(url):
+        return local  # a new output: nothing to pull
+    if not published:
+        local = mount(url, "input")
+    pull(local)
+    return local
+
+
+def _exists(url: str) -> bool:
+    fs, path = object_path(url)
+    return fs.exists(path)
+
+
+def snapshot(paths: Sequence[Path]) -> Snapshot:
+    """Return (size, mtime_ns) of every file under each path, to tell afterwards which ones a command changed."""
+    def files(path: Path) -> dict[str, tuple[int, int]]:
+        found = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+        return {os.fspath(p): (p.stat().st_size, p.stat().st_mtime_ns) for p in found}
+    return {path: files(path) for path in paths}
+
+
+def publish_changed(before: Snapshot) -> list[Path]:
+    """Publish each mounted path whose files changed since `before`; return them."""
+    changed = [path for path, files in before.items() if path.exists() and snapshot([path])[path] != files]
+    for path in changed:
+        publish(path)
+    return changed
