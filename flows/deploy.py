@@ -155,16 +155,18 @@ def storage_values(url: str, block: str) -> dict[str, str]:
 
 def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR, storage: dict[str, str] | None = None
                ) -> None:
-    """Run `prefect deploy --all` on prefect.yaml with the run config's absolute path as parameter and the values
-    of the storage placeholders (`storage_values`, none by default) in its environment."""
+    """Run `prefect deploy --all` on prefect.yaml with the run config as parameter (a URL as it is, so every worker
+    reads it from the bucket; a path made absolute) and the values of the storage placeholders (`storage_values`,
+    none by default) in its environment."""
     prefect_file = project_dir / PREFECT_FILE
     if not prefect_file.is_file():
         raise FileNotFoundError(
             f"{prefect_file}: not found; run `latent-steering deploy` from a checkout of the repository"
         )
-    config_path = Path(config_path).resolve()
-    if not config_path.is_file():
-        raise FileNotFoundError(f"{config_path}: run config not found; pass --config with an existing YAML file")
+    if not objects.is_url(config_path):
+        config_path = Path(config_path).resolve()
+        if not config_path.is_file():
+            raise FileNotFoundError(f"{config_path}: run config not found; pass --config with an existing YAML file")
     inherited = {k: v for k, v in os.environ.items() if k not in STORAGE_PLACEHOLDERS}  # only --storage sets them
     env = {**inherited, **(storage or {}), CONFIG_ENV: str(config_path), "PREFECT_API_URL": require_api_url()}
     command = [sys.executable, "-m", "prefect", "--no-prompt", "deploy", "--all", "--prefect-file", PREFECT_FILE]

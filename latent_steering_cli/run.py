@@ -111,7 +111,8 @@ def _echo_outcome(run_config: RunConfig, random_sae: bool) -> None:
 
 @app.command("deploy")
 def deploy_command(
-    config: Path = typer.Option(..., "--config", help="Run config (YAML) the deployments run with."),
+    config: str = typer.Option(..., "--config", help="Run config (YAML) the deployments run with: a path, or its URL "
+                                                     "(s3://...) for workers on other machines."),
     gpu_slots: int = typer.Option(1, "--gpu-slots", min=1, help="GPU tasks allowed at once across all gpu workers."),
     storage: str | None = typer.Option(
         None, "--storage", help="Bucket URL (s3://bucket/prefix, gs://...) for Prefect's results: checked writable, "

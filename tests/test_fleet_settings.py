@@ -17,7 +17,7 @@ from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterTag
 from prefect.exceptions import ObjectNotFound
 from typer.testing import CliRunner
 
-from flows.deploy import CRASH_AUTOMATION, GPU_TAG, PROJECT_TAG
+from flows.deploy import CRASH_AUTOMATION, GPU_TAG, PROJECT_TAG, deploy_all
 from latent_steering_cli import app
 from steering_core.demo import build_demo
 from steering_core.storage import objects
@@ -56,11 +56,16 @@ def deploy(config_path: Path, *options: str) -> tuple[int, list[str]]:
     return result.exit_code, result.output.strip().splitlines()
 
 
-def job_envs() -> dict[str, dict[str, str]]:
-    """Return the job env of every project deployment on the server, by deployment name."""
+def deployments() -> dict[str, object]:
+    """Return every project deployment on the server, by name."""
     tagged = DeploymentFilter(tags=DeploymentFilterTags(all_=[PROJECT_TAG]))
     with get_client(sync_client=True) as client:
-        return {d.name: d.job_variables["env"] for d in client.read_deployments(deployment_filter=tagged)}
+        return {d.name: d for d in client.read_deployments(deployment_filter=tagged)}
+
+
+def job_envs() -> dict[str, dict[str, str]]:
+    """Return the job env of every project deployment, by name."""
+    return {name: d.job_variables["env"] for name, d in deployments().items()}
 
 
 def results_basepath() -> str:
@@ -68,7 +73,7 @@ def results_basepath() -> str:
         return client.read_block_document_by_name("latent-steering-results", "remote-file-system").data["basepath"]
 
 
-def test_storage_is_saved_as_the_result_block_and_named_in_every_deployment(config_path, bucket, monkeypatch):
+def test_storage_is_saved_as_the_result_block_and_named_in_every_deployment(config_path, bucket):
     url = f"{bucket}/fleet"
     code, lines = deploy(config_path, "--storage", f"{url}/")
     assert code == 0, lines
@@ -86,14 +91,23 @@ def test_storage_is_saved_as_the_result_block_and_named_in_every_deployment(conf
     Block.load(envs["pipeline"]["PREFECT_RESULTS_DEFAULT_STORAGE_BLOCK"]).write_path("result", b"42")
     assert fs.cat_file(f"{url.removeprefix('s3://')}/.prefect-cache/result") == b"42"
 
-    # deployed again without --storage (a stray shell setting does not leak in): no storage setting, block kept
+
+
+def test_without_storage_the_deployments_carry_no_storage_setting(config_path, monkeypatch):
+    """Also after a deploy with --storage (the test above); a stray shell setting does not leak in."""
     monkeypatch.setenv("LATENT_STEERING_STORAGE", "s3://stray")
     code, lines = deploy(config_path)
     assert code == 0, lines
     envs = job_envs()
     assert set(envs) == DEPLOYMENTS
     assert all(not STORAGE_KEYS & set(env) and BASE_ENV.items() <= env.items() for env in envs.values()), envs
-    assert results_basepath() == f"{url}/.prefect-cache"
+
+
+def test_a_config_url_is_every_deployment_parameter_as_it_is(config_path, bucket):
+    """Workers on other machines read the run config from the bucket (a path would be made absolute)."""
+    url = f"{bucket}/fleet/run.yaml"
+    deploy_all(url)
+    assert {name: d.parameters for name, d in deployments().items()} == {name: {"config_path": url} for name in DEPLOYMENTS}
 
 
 @pytest.mark.parametrize("storage", ["ftp://host/folder", "s3://", "s3://bucket/../up", "/local/folder"])
