@@ -120,7 +120,8 @@ def deploy_command(
 ) -> None:
     """Create the `gpu` and `cpu` work pools and the `gpu` concurrency limit, then deploy every flow.
 
-    Needs PREFECT_API_URL (a running `prefect server start`); run it from the repository root.
+    Needs PREFECT_API_URL (a running `prefect server start`); run it from the repository root. With --storage, the
+    bucket is checked writable first and Prefect's results go there (deployments/README.md, "A fleet").
     """
     with input_errors(RuntimeError):
         load_run_config(config)

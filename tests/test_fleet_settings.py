@@ -76,7 +76,7 @@ def results_basepath() -> str:
 def test_storage_is_saved_as_the_result_block_and_named_in_every_deployment(config_path, bucket):
     url = f"{bucket}/fleet"
     code, lines = deploy(config_path, "--storage", f"{url}/")
-    assert code == 0, lines
+    assert code == 0 and f"result storage: block latent-steering-results -> {url}/.prefect-cache" in lines, lines
     assert results_basepath() == f"{url}/.prefect-cache"
     envs = job_envs()
     assert set(envs) == DEPLOYMENTS
