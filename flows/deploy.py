@@ -1,16 +1,22 @@
-"""`latent-steering deploy`: work pools, the `gpu` concurrency limit, the crash automation, then every deployment
-of prefect.yaml.
+"""`latent-steering deploy`: work pools, the `gpu` concurrency limit, the crash automation, the result storage
+(with `--storage`), then every deployment of prefect.yaml.
 
 Runs against the server named by PREFECT_API_URL; without it, Prefect would silently deploy to a
 throwaway embedded server, so that is refused.
+
+Storage (`--storage s3://bucket/prefix`): checked writable from this machine, saved as the RemoteFileSystem block
+`latent-steering-results` (basepath `<url>/.prefect-cache`), and named in the deployments' job env so flow results
+go there too. Only the URL is stored: each worker reads the endpoint and credentials from its own environment.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import socket
 import subprocess
 import sys
+import uuid
 from datetime import timedelta
 from pathlib import Path
 
@@ -20,14 +26,23 @@ from prefect.client.schemas.objects import StateType
 from prefect.events.actions import ChangeFlowRunState
 from prefect.events.schemas.automations import AutomationCore, EventTrigger, Posture
 from prefect.exceptions import ObjectNotFound
+from prefect.filesystems import RemoteFileSystem
 from prefect.settings import PREFECT_API_URL
 from prefect.workers.process import ProcessWorker
+
+from steering_core.storage import objects
 
 logger = logging.getLogger(__name__)
 
 PROJECT_DIR = Path(__file__).resolve().parent.parent
 PREFECT_FILE = "deployments/prefect.yaml"   # relative to the repository root
 CONFIG_ENV = "LATENT_STEERING_CONFIG"        # read by prefect.yaml's `{{ $LATENT_STEERING_CONFIG }}`
+RESULTS_BLOCK = "latent-steering-results"    # RemoteFileSystem block of Prefect's results on the storage
+RESULTS_FOLDER = ".prefect-cache"            # under the storage URL, as under every output root
+STORAGE_ENV = "LATENT_STEERING_STORAGE"      # the storage URL, in the deployments' job env (for information)
+# prefect.yaml's storage placeholders (`{{ NAME }}`, resolved from the environment of `prefect deploy`): an unset
+# one drops its key from the job env, so deployments made without --storage carry no storage setting at all
+STORAGE_PLACEHOLDERS = (STORAGE_ENV, "LATENT_STEERING_RESULTS_BLOCK", "LATENT_STEERING_PERSIST_RESULTS")
 GPU_POOL, CPU_POOL, SIM_POOL = "gpu", "cpu", "sim"
 GPU_TAG = "gpu"                              # tag of every GPU task; its limit = GPUs across all workers
 PROJECT_TAG = "latent-steering"              # tag of every deployment in prefect.yaml, so of their flow runs
@@ -107,17 +122,53 @@ def ensure_crash_automation(timeout_seconds: float = HEARTBEAT_TIMEOUT) -> None:
     logger.info("automation %r: flow runs silent for %.0f s are marked Crashed", CRASH_AUTOMATION, timeout_seconds)
 
 
-def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR) -> None:
-    """Run `prefect deploy --all` on prefect.yaml with the run config's absolute path as parameter."""
+def check_storage(url: str) -> str:
+    """Return `url` normalised (`<protocol>://<path>`) once a probe object was written and deleted under it from
+    this machine; ValueError in one line naming the URL otherwise."""
+    if not objects.is_url(url):
+        raise ValueError(f"--storage {url!r}: expected a URL such as s3://bucket/prefix (or gs://, file://)")
+    protocol, path = objects.split_url(url)
+    url = f"{protocol}://{path}"
+    fs, probe = objects.object_path(f"{url}/.deploy-probe-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}")
+    try:
+        fs.pipe_file(probe, b"latent-steering deploy: write probe\n")
+        fs.rm_file(probe)
+    except Exception as err:  # whatever the cause (no bucket, no credentials, no endpoint), runs could not write
+        reason = " ".join(f"{type(err).__name__}: {err}".split())
+        raise ValueError(f"{url}: not writable from this machine ({reason}); check the URL and the AWS_* / "
+                         "GOOGLE_APPLICATION_CREDENTIALS settings of this environment") from None
+    return url
+
+
+def save_results_block(basepath: str) -> str:
+    """Save (or replace) the result-storage block of `basepath`; return its slug (`<block type>/<name>`)."""
+    RemoteFileSystem(basepath=basepath).save(RESULTS_BLOCK, overwrite=True)
+    slug = f"{RemoteFileSystem.get_block_type_slug()}/{RESULTS_BLOCK}"
+    logger.info("result storage: block %s -> %s", slug, basepath)
+    return slug
+
+
+def storage_values(url: str, block: str) -> dict[str, str]:
+    """Return the values of STORAGE_PLACEHOLDERS for deployments whose results go to the block `block` of `url`."""
+    return dict(zip(STORAGE_PLACEHOLDERS, (url, block, "true"), strict=True))
+
+
+def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR, storage: dict[str, str] | None = None
+               ) -> None:
+    """Run `prefect deploy --all` on prefect.yaml with the run config as parameter (a URL as it is, so every worker
+    reads it from the bucket; a path made absolute) and the values of the storage placeholders (`storage_values`,
+    none by default) in its environment."""
     prefect_file = project_dir / PREFECT_FILE
     if not prefect_file.is_file():
         raise FileNotFoundError(
             f"{prefect_file}: not found; run `latent-steering deploy` from a checkout of the repository"
         )
-    config_path = Path(config_path).resolve()
-    if not config_path.is_file():
-        raise FileNotFoundError(f"{config_path}: run config not found; pass --config with an existing YAML file")
-    env = {**os.environ, CONFIG_ENV: str(config_path), "PREFECT_API_URL": require_api_url()}
+    if not objects.is_url(config_path):
+        config_path = Path(config_path).resolve()
+        if not config_path.is_file():
+            raise FileNotFoundError(f"{config_path}: run config not found; pass --config with an existing YAML file")
+    inherited = {k: v for k, v in os.environ.items() if k not in STORAGE_PLACEHOLDERS}  # only --storage sets them
+    env = {**inherited, **(storage or {}), CONFIG_ENV: str(config_path), "PREFECT_API_URL": require_api_url()}
     command = [sys.executable, "-m", "prefect", "--no-prompt", "deploy", "--all", "--prefect-file", PREFECT_FILE]
     logger.info("running %s in %s", " ".join(command[2:]), project_dir)
     done = subprocess.run(command, cwd=project_dir, env=env, capture_output=True, text=True, check=False)
@@ -126,10 +177,19 @@ def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR) 
     logger.info("deployments created from %s", prefect_file)
 
 
-def setup(config_path: str | os.PathLike, gpu_slots: int = 1, project_dir: Path = PROJECT_DIR) -> None:
-    """Create pools, the GPU limit and the crash automation, then deploy the parent, capture and refresh flows."""
+def setup(config_path: str | os.PathLike, gpu_slots: int = 1, project_dir: Path = PROJECT_DIR,
+          storage: str | None = None) -> str | None:
+    """Create pools, the GPU limit and the crash automation, the result storage of `storage` (a URL, checked
+    first), then deploy the parent, capture and refresh flows; return the results' basepath (None without storage)."""
+    if storage is not None:
+        storage = check_storage(storage)  # before anything changes on the server
     logger.info("setting up deployments on %s", require_api_url())
     ensure_pools()
     set_gpu_limit(gpu_slots)
     ensure_crash_automation()
-    deploy_all(config_path, project_dir)
+    if storage is None:
+        deploy_all(config_path, project_dir)
+        return None
+    basepath = f"{storage}/{RESULTS_FOLDER}"
+    deploy_all(config_path, project_dir, storage_values(storage, save_results_block(basepath)))
+    return basepath

@@ -111,18 +111,25 @@ def _echo_outcome(run_config: RunConfig, random_sae: bool) -> None:
 
 @app.command("deploy")
 def deploy_command(
-    config: Path = typer.Option(..., "--config", help="Run config (YAML) the deployments run with."),
+    config: str = typer.Option(..., "--config", help="Run config (YAML) the deployments run with: a path, or its URL "
+                                                     "(s3://...) for workers on other machines."),
     gpu_slots: int = typer.Option(1, "--gpu-slots", min=1, help="GPU tasks allowed at once across all gpu workers."),
+    storage: str | None = typer.Option(
+        None, "--storage", help="Bucket URL (s3://bucket/prefix, gs://...) for Prefect's results: checked writable, "
+                                "saved as the block `latent-steering-results`, named in the deployments' env."),
 ) -> None:
     """Create the `gpu` and `cpu` work pools and the `gpu` concurrency limit, then deploy every flow.
 
-    Needs PREFECT_API_URL (a running `prefect server start`); run it from the repository root.
+    Needs PREFECT_API_URL (a running `prefect server start`); run it from the repository root. With --storage, the
+    bucket is checked writable first and Prefect's results go there (deployments/README.md, "A fleet").
     """
     with input_errors(RuntimeError):
         load_run_config(config)
-        from flows.deploy import setup
+        from flows.deploy import RESULTS_BLOCK, setup
 
-        setup(config, gpu_slots=gpu_slots)
+        results = setup(config, gpu_slots=gpu_slots, storage=storage)
     typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-evaluate/gpu-evaluate, "
                "latent-steering-train-sae/gpu-train-sae, latent-steering-rollout/sim-rollout, latent-steering-refresh/scheduled")
+    if results is not None:
+        typer.echo(f"result storage: block {RESULTS_BLOCK} -> {results}")
     typer.echo("start workers: prefect worker start --pool gpu  |  prefect worker start --pool cpu")
