@@ -1,0 +1,177 @@
+"""Steps on a bucket root (moto's S3 server): tasks through `rooted`, and CLI commands given URLs.
+
+Each "machine" is this process with all roots unmounted and a new, empty mirror folder: it shares nothing
+with the previous one but the bucket and the Prefect server. Expectations come from the bytes the tests
+write themselves (or a local run of the same command), never from the code under test.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+from prefect import flow, task
+
+from steering_core.storage import objects, publish
+from steering_core.storage.fingerprints import file_digest
+from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, parse_cache_record, rooted
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module", autouse=True)
+def prefect_backend(prefect_server):
+    """Every test here talks to the session's Prefect test server (tests/conftest.py)."""
+    return prefect_server
+
+
+def _fs():
+    return objects.filesystem("s3")
+
+
+def _objects(url: str) -> dict[str, bytes]:
+    """Return key (relative to `url`) -> bytes of every object under `url`, read fresh from the bucket."""
+    fs = _fs()
+    fs.invalidate_cache()
+    base = url[len("s3://"):]
+    return {path[len(base) + 1:]: fs.cat_file(path) for path in fs.find(base)}
+
+
+def _put(url: str, data: bytes) -> None:
+    _fs().pipe_file(url[len("s3://"):], data)
+    _fs().invalidate_cache()
+
+
+def _machine(tmp_path: Path, monkeypatch, name: str, bucket: str) -> tuple[Path, Path]:
+    """Start "another machine": no roots mounted, an empty mirror; return (data root, input root) mirrors."""
+    objects.unmount_all()
+    mirror = tmp_path / name
+    assert not mirror.exists()
+    monkeypatch.setenv(objects.MIRROR_ENV, str(mirror))
+    return objects.mount(f"{bucket}/data"), objects.mount(f"{bucket}/inputs", role="input")
+
+
+# ----------------------------------------------------------------------------- tasks through a bucket root
+
+@task(cache_policy=content_key("steering_core.storage.layout", source=file_digest), **RESULTS)
+def double(source: str, output: str) -> dict:
+    """Write the source's text twice into `output`."""
+    Path(output).parent.mkdir(parents=True, exist_ok=True)
+    Path(output).write_text(Path(source).read_text() * 2)
+    return {OUTPUTS: [output]}
+
+
+@task(cache_policy=content_key(source=file_digest), **RESULTS)
+def shout(source: str, output: str) -> dict:
+    """Write the source's text in capitals into `output`."""
+    Path(output).parent.mkdir(parents=True, exist_ok=True)
+    Path(output).write_text(Path(source).read_text().upper())
+    return {OUTPUTS: [output]}
+
+
+@flow
+def first_step(root: str, source: str) -> tuple[str, dict]:
+    state = rooted(double, root)(source, f"{root}/steps/doubled.txt", return_state=True)
+    return state.name, state.result()
+
+
+@flow
+def two_steps(root: str, source: str) -> tuple[list[str], list]:
+    first = rooted(double, root)(source, f"{root}/steps/doubled.txt", return_state=True)
+    summary = first.result()
+    second = rooted(shout, root)(summary[OUTPUTS][0], f"{root}/steps/shouted.txt", return_state=True)
+    return [first.name, second.name], [summary, second.result(raise_on_failure=False)]
+
+
+@flow
+def next_step(root: str, source: str) -> tuple[str, object]:
+    state = rooted(shout, root)(source, f"{root}/steps/shouted.txt", return_state=True)
+    return state.name, state.result(raise_on_failure=False)
+
+
+def _cache_records(bucket: str) -> dict[str, dict]:
+    """Return cache record key -> the task summary it holds, read from the bucket with plain `json`."""
+    return {key: parse_cache_record(f"{bucket}/data/{CACHE_DIR}/{key}", data)
+            for key, data in _objects(f"{bucket}/data/{CACHE_DIR}").items()}
+
+
+def test_a_task_publishes_its_output_and_keeps_its_record_in_the_bucket(bucket, tmp_path, monkeypatch):
+    root, inputs = _machine(tmp_path, monkeypatch, "one", bucket)
+    _put(f"{bucket}/inputs/words.txt", b"ab\n")
+    name, summary = first_step(str(root), str(publish.pulled(inputs / "words.txt")))
+    assert name == "Completed"
+    assert summary == {OUTPUTS: [f"{bucket}/data/steps/doubled.txt"]}  # by URL, not by this machine's mirror
+    stored = _objects(f"{bucket}/data")
+    assert stored["steps/doubled.txt"] == b"ab\nab\n"
+    record = json.loads(stored["steps/.doubled.txt.published.json"])
+    assert record["files"]["doubled.txt"]["sha256"] == hashlib.sha256(b"ab\nab\n").hexdigest()
+    assert record["files"]["doubled.txt"]["size"] == 6
+    assert list(_cache_records(bucket).values()) == [summary]  # one record, in the bucket, holding the summary
+    assert {key.split("/")[0] for key in stored} == {"steps", CACHE_DIR}
+    assert publish.staging_files(bucket) == []
+
+
+def test_another_machine_finds_the_task_cached_and_pulls_its_output(bucket, tmp_path, monkeypatch):
+    root, inputs = _machine(tmp_path, monkeypatch, "one", bucket)
+    _put(f"{bucket}/inputs/words.txt", b"ab\n")
+    assert first_step(str(root), str(publish.pulled(inputs / "words.txt")))[0] == "Completed"
+
+    root, inputs = _machine(tmp_path, monkeypatch, "two", bucket)
+    names, (summary, shouted) = two_steps(str(root), str(inputs / "words.txt"))
+    assert names == ["Cached", "Completed"]
+    assert summary == {OUTPUTS: [f"{bucket}/data/steps/doubled.txt"]}
+    assert (root / "steps" / "doubled.txt").read_bytes() == b"ab\nab\n"  # pulled into this machine's mirror
+    assert shouted == {OUTPUTS: [f"{bucket}/data/steps/shouted.txt"]}
+    assert _objects(f"{bucket}/data/steps")["shouted.txt"] == b"AB\nAB\n"
+    assert len(_cache_records(bucket)) == 2
+
+
+def test_an_input_changed_in_the_bucket_runs_the_task_again(bucket, tmp_path, monkeypatch):
+    root, inputs = _machine(tmp_path, monkeypatch, "one", bucket)
+    _put(f"{bucket}/inputs/words.txt", b"ab\n")
+    source = str(inputs / "words.txt")
+    assert two_steps(str(root), source)[0] == ["Completed", "Completed"]
+    assert two_steps(str(root), source)[0] == ["Cached", "Cached"]
+    _put(f"{bucket}/inputs/words.txt", b"cd\n")  # same size, new bytes
+    assert two_steps(str(root), source)[0] == ["Completed", "Completed"]
+    stored = _objects(f"{bucket}/data/steps")
+    assert (stored["doubled.txt"], stored["shouted.txt"]) == (b"cd\ncd\n", b"CD\nCD\n")
+    assert len(_cache_records(bucket)) == 4  # two keys per task
+
+    root, inputs = _machine(tmp_path, monkeypatch, "two", bucket)  # the new content is what another machine sees
+    assert two_steps(str(root), str(inputs / "words.txt"))[0] == ["Cached", "Cached"]
+    assert (root / "steps" / "doubled.txt").read_bytes() == b"cd\ncd\n"
+
+
+def test_an_output_altered_after_publication_fails_the_next_step_naming_it(bucket, tmp_path, monkeypatch):
+    root, inputs = _machine(tmp_path, monkeypatch, "one", bucket)
+    _put(f"{bucket}/inputs/words.txt", b"ab\n")
+    assert first_step(str(root), str(inputs / "words.txt"))[0] == "Completed"
+    url = f"{bucket}/data/steps/doubled.txt"
+    altered = b"XY\nXY\n"  # same size, other bytes, no new record
+    _put(url, altered)
+    before = _objects(bucket)
+
+    root, _ = _machine(tmp_path, monkeypatch, "two", bucket)
+    name, error = next_step(str(root), url)
+    assert name == "Failed"
+    assert isinstance(error, ValueError)
+    got, published = hashlib.sha256(altered).hexdigest(), hashlib.sha256(b"ab\nab\n").hexdigest()
+    assert str(error).startswith(f"{url}: sha256 is {got}, expected {published}")
+    assert "\n" not in str(error)
+    assert _objects(bucket) == before  # no output, no record, no staging
+    assert not (root / "steps" / "doubled.txt").exists() and not (root / "steps" / "shouted.txt").exists()
+
+
+def test_a_record_whose_outputs_were_unpublished_runs_the_task_again(bucket, tmp_path, monkeypatch):
+    root, inputs = _machine(tmp_path, monkeypatch, "one", bucket)
+    _put(f"{bucket}/inputs/words.txt", b"ab\n")
+    source = str(inputs / "words.txt")
+    assert first_step(str(root), source)[0] == "Completed"
+    _fs().rm_file(f"{bucket[5:]}/data/steps/.doubled.txt.published.json")
+    _fs().invalidate_cache()
+    assert first_step(str(root), source)[0] == "Completed"  # the local mirror copy does not count
+    assert "steps/.doubled.txt.published.json" in _objects(f"{bucket}/data")
+    assert first_step(str(root), source)[0] == "Cached"
