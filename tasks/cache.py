@@ -299,7 +299,7 @@ def rooted(task: Task, output_root: str | os.PathLike) -> Task:
     if url is None:
         return task.with_options(result_storage=store, cache_policy=policy)
     bucket_task = task.with_options(result_storage=result_block(url), cache_policy=policy)
-    bucket_task.fn = _through_bucket(task.fn, pulls=not isinstance(policy, ContentKey))
+    bucket_task.fn = _through_bucket(task.fn)
     return bucket_task
 
 
@@ -335,14 +335,18 @@ def _mirror_paths(value: Any) -> list[str]:
     return [path for item in items for path in _mirror_paths(item)]
 
 
-def _through_bucket(fn: Callable[..., Any], *, pulls: bool) -> Callable[..., Any]:
-    """Return `fn` run on mirror paths (pulled first when no cache key pulled them), its outputs published after."""
+def _through_bucket(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Return `fn` run on mirror paths, pulled first, its outputs published after.
+
+    Pulled here even when the cache key pulled them already (then only checked against their records): Prefect
+    logs an error raised while computing a key and runs the task without one, so an object changed after its
+    publication would otherwise fail the task as a missing mirror file instead of naming the object.
+    """
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Any:
         args, kwargs = objects.localize(args), objects.localize(kwargs)
-        if pulls:
-            pull_inputs({"args": args, "kwargs": kwargs})
+        pull_inputs({"args": args, "kwargs": kwargs})
         summary = fn(*args, **kwargs)
         for path in publish_units(summary):
             if path.exists():  # else written on another machine (a group captured there): published already
