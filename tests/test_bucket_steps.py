@@ -9,10 +9,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from unittest.mock import ANY
 
 import pytest
 from prefect import flow, task
+from typer.testing import CliRunner
+
+from latent_steering_cli import app
+from steering_core.config import RunConfig, load_run_config
+from steering_core.demo import build_demo
 
 from steering_core.storage import objects, publish
 from steering_core.storage.fingerprints import file_digest
@@ -180,3 +187,90 @@ def test_a_record_whose_outputs_were_unpublished_runs_the_task_again(bucket, tmp
     assert first_step(str(root), source)[0] == "Completed"  # the local mirror copy does not count
     assert "steps/.doubled.txt.published.json" in _objects(f"{bucket}/data")
     assert first_step(str(root), source)[0] == "Cached"
+
+
+# ----------------------------------------------------------------------------- CLI commands given URLs
+
+@dataclass(frozen=True)
+class Local:
+    """The demo's inputs and the steps run with local paths only: what the URL runs must equal."""
+
+    config: RunConfig
+    out: Path  # arch.json, libero_lerobot/<repo>/, manifest.json, concept_map.json, run/, slices/
+
+    @property
+    def dataset(self) -> Path:
+        return self.out / "libero_lerobot" / self.config.dataset.repo_id
+
+    def manifest_args(self, output: str | Path) -> list[str]:
+        pair = self.config.pairs[0]
+        return ["manifest", "--lerobot-root", str(self.dataset), "--task-a-text", pair.positive, "--task-b-text",
+                pair.negative, "--output", str(output), "--repo-id", self.config.dataset.repo_id]
+
+    def concept_map_args(self, manifest: str | Path, output: str | Path, dataset: str | Path | None = None) -> list[str]:
+        return ["concept-map", "--manifest-path", str(manifest), "--output-path", str(output), "--lerobot-root",
+                str(dataset or self.dataset), "--repo-id", self.config.dataset.repo_id]
+
+    def capture_args(self, output: str | Path) -> list[str]:
+        model = self.config.model
+        return ["capture", "--checkpoint-path", str(model.checkpoint), "--tokenizer-path", str(model.tokenizer),
+                "--lerobot-root", str(self.dataset), "--repo-id", self.config.dataset.repo_id, "--output-dir",
+                str(output), "--layers", "1", "--batch-size", str(self.config.capture.batch_size), "--device", "cpu",
+                "--num-workers", "0", "--arch-file", str(self.out / "arch.json")]
+
+    def slice_args(self, run_dir: str | Path, concept_map: str | Path, output: str | Path) -> list[str]:
+        return ["slice", "--run-dir", str(run_dir), "--concept-map-path", str(concept_map), "--output-dir",
+                str(output), "--layers", "1"]
+
+
+def cli(*args: str | Path) -> str:
+    result = CliRunner().invoke(app, [str(arg) for arg in args])
+    assert result.exit_code == 0, (args[0], result.output, result.exception)
+    return result.output
+
+
+@pytest.fixture(scope="module")
+def local(tmp_path_factory) -> Local:
+    """The demo inputs (2 demos per task), converted, and one pair's manifest, concept map, layer-1 capture and
+    slices written with local paths (about 20 s)."""
+    base = tmp_path_factory.mktemp("bucket_cli")
+    config = load_run_config(build_demo(base / "demo", demos_per_task=2))
+    world = Local(config, base / "out")
+    world.out.mkdir()
+    (world.out / "arch.json").write_text(config.model.arch.model_dump_json())
+    pair = config.pairs[0]
+    cli("filter", "--input-dir", config.sources.folders[0], "--output-dir", world.out / "filtered",
+        "--task", pair.positive, "--task", pair.negative)
+    cli("convert", "--input-dir", world.out / "filtered", "--repo-id", config.dataset.repo_id, "--output-dir",
+        world.dataset, "--image-size", str(config.dataset.image_size))
+    cli(*world.manifest_args(world.out / "manifest.json"))
+    cli(*world.concept_map_args(world.out / "manifest.json", world.out / "concept_map.json"))
+    cli(*world.capture_args(world.out / "run"))
+    cli(*world.slice_args(world.out / "run", world.out / "concept_map.json", world.out / "slices"))
+    return world
+
+
+def _published(url: str) -> dict:
+    """Return the publication record of the output `url`, read from the bucket with plain `json`."""
+    parent, name = url.rsplit("/", 1)
+    return json.loads(_objects(parent)[f".{name}.published.json"])
+
+
+def test_manifest_and_concept_map_write_to_and_read_from_bucket_urls(local, bucket, tmp_path, monkeypatch):
+    _machine(tmp_path, monkeypatch, "one", bucket)
+    manifest, concept_map = f"{bucket}/data/manifests/pair.json", f"{bucket}/data/manifests/pair_concept_map.json"
+    cli(*local.manifest_args(manifest))
+    expected = (local.out / "manifest.json").read_bytes()
+    assert _objects(f"{bucket}/data/manifests")["pair.json"] == expected
+    assert _published(manifest)["files"] == {"pair.json": {
+        "size": len(expected), "sha256": hashlib.sha256(expected).hexdigest(), "etag": ANY}}
+
+    _machine(tmp_path, monkeypatch, "two", bucket)
+    cli(*local.concept_map_args(manifest, concept_map))
+    # the concept map names its manifest: by URL here, by the local path there; nothing else differs
+    local_map = (local.out / "concept_map.json").read_bytes()
+    expected = local_map.replace(str(local.out / "manifest.json").encode(), manifest.encode())
+    assert expected != local_map
+    assert _objects(f"{bucket}/data/manifests")["pair_concept_map.json"] == expected
+    assert _published(concept_map)["files"]["pair_concept_map.json"]["sha256"] == hashlib.sha256(expected).hexdigest()
+    assert publish.staging_files(bucket) == []
