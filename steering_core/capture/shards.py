@@ -1,4 +1,4 @@
-"""The residual run format: shards written atomically, read memory-mapped, checked by sha256.
+"""The residual run format: shards written atomically, read with plain or ranged reads, checked by sha256.
 
 A run folder holds
 
@@ -37,7 +37,13 @@ from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import layer_dir
 from steering_core.storage.schema import M, StrictModel, read_model
-from steering_core.storage.tensor_files import TensorLocation, read_layout, read_rows_into, require_finite
+from steering_core.storage.tensor_files import (
+    TensorLocation,
+    layout_of,
+    open_read,
+    read_rows_into,
+    require_finite,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -317,22 +323,24 @@ def open_shard(
     rows: int | None = None,
     sha256: str | None = None,
 ) -> Iterator[ShardReader]:
-    """Yield a memory-mapped shard after checking its keys, shapes and dtypes (and sha256 if given).
+    """Yield an open shard after checking its keys, shapes and dtypes (and sha256 if given).
 
+    The shard is read with plain reads of its file or, absent here under a mounted URL root, with ranged
+    reads of its published object (`open_read`): its header, then whatever the reader asks for. A remote
+    shard's identity check is its object's size and ETag against its publication record (done on open);
+    `sha256` is checked for local files only, as it would fetch the whole object.
     Every problem is collected and raised once as a ValueError naming the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: shard not found; re-run capture to write it")
-    if sha256 is not None and (found := sha256_file(path)) != sha256:
-        raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
-    try:
-        layout, locations = read_layout(path)
-    except ValueError as err:
-        raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
-    header = _header(layout)
-    found_rows, found_width, found_dtype = _validate_shard(path, layout, width, dtype, rows, header)
-    with open(path, "rb", buffering=0) as handle:
+    with open_read(path, missing="shard not found; re-run capture to write it") as (handle, size):
+        if sha256 is not None and path.is_file() and (found := sha256_file(path)) != sha256:
+            raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
+        try:
+            layout, locations = layout_of(path, handle, size)
+        except ValueError as err:
+            raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
+        header = _header(layout)
+        found_rows, found_width, found_dtype = _validate_shard(path, layout, width, dtype, rows, header)
         yield ShardReader(path, handle, locations, found_rows, found_width, found_dtype,
                           row_columns(header.get("token_type", "")))
 

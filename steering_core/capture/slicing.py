@@ -8,6 +8,9 @@ bounded buffer, copying its selected rows to their place in the concepts' output
 (`slice_copy`, `slice_files`), so no concept is ever held whole in memory. Peak memory is that
 buffer plus, for frame means, one shard's rows. The same read checks each shard against its
 record (`shard_checks`); a mismatch stops the layer before its folder replaces the old one.
+A run under a mounted URL root whose shards stay in the bucket is read by ranges (`tensor_files.open_read`):
+each shard's header and row columns, then only the runs of rows the concepts select (`slice_copy`); such a
+shard's identity check is its object's size and ETag against its publication record, on each open.
 
 Outputs, per layer (the seed's layout):
 
@@ -42,7 +45,7 @@ from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, sha
 from steering_core.storage.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel, describe_ranges
-from steering_core.storage.tensor_files import TensorLocation
+from steering_core.storage.tensor_files import TensorLocation, open_read
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +68,7 @@ class SliceSettings(StrictModel):
     reduce: Reduce = "token"  # one row per captured token, or their mean per frame
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
     verify_checksums: bool = True  # check every shard read against its record's CRC-32 (or sha256): a damaged one stops
+    # (shards read by ranges from a bucket are checked by their objects' size and ETag instead, see shard_checks)
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
     holdout_episodes: tuple[int, ...] = ()  # episodes held out for evaluation: their frames are never sliced
 
@@ -399,7 +403,7 @@ def _write_slices(
             parts = [(shares[position], files[concept]) for concept, (shares, _) in plans.items() if position in shares]
             digest = checks.digest(position)
             if parts or digest is not None:
-                with open(locations[position].path, "rb", buffering=0) as handle:
+                with open_read(locations[position].path) as (handle, _):
                     copy_shard(handle, locations[position], parts, buffer, settings.device, digest)
                 if digest is not None:
                     checks.found(position, digest)
