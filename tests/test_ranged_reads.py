@@ -56,9 +56,11 @@ def run(bucket, tmp_path):
     return run_dir, sorted(run_dir.rglob("shard-*.safetensors"))
 
 
-def leave_in_bucket(run_dir, files) -> None:
-    """Publish the run, then delete its shards here: they are read from the bucket from now on."""
-    publish.publish(run_dir)
+def leave_in_bucket(run_dir, files, per_file=False) -> None:
+    """Publish the run (whole, or file by file as capture's tasks do), then delete its shards here: they are read
+    from the bucket from now on."""
+    for unit in sorted(p for p in run_dir.rglob("*") if p.is_file()) if per_file else [run_dir]:
+        publish.publish(unit)
     for file in files:
         file.unlink()
 
@@ -107,7 +109,7 @@ def test_sae_training_rows_from_the_bucket_equal_local_ones(run):
     shuffled = local.shuffled(8, seed=1, buffer_rows=40)
     first_batches = [next(shuffled) for _ in range(12)]
     headers = sum(tensor_locations(file)[shards.RESIDUALS].offset for file in files)
-    leave_in_bucket(run_dir, files)
+    leave_in_bucket(run_dir, files, per_file=True)
     before = publish.Fetched.total
     remote = RowSource(run_dir, LAYER, episodes=[0, 3, 5])
     remote_sequential = list(remote.sequential(7))

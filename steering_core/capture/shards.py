@@ -36,12 +36,14 @@ from safetensors.torch import save_file
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import layer_dir
+from steering_core.storage.publish import RemoteFile
 from steering_core.storage.schema import M, StrictModel, read_model
 from steering_core.storage.tensor_files import (
     TensorLocation,
     layout_of,
     open_read,
     read_rows_into,
+    readable,
     require_finite,
 )
 
@@ -275,9 +277,10 @@ def find_complete_shard(
 class ShardReader:
     """An open, validated shard: row columns as numpy, residual rows read with plain file reads."""
 
-    def __init__(self, path: Path, handle: Any, locations: dict[str, TensorLocation], rows: int, width: int,
-                 dtype: str, names: tuple[str, ...]):
+    def __init__(self, path: Path, source: Path | RemoteFile, handle: Any, locations: dict[str, TensorLocation],
+                 rows: int, width: int, dtype: str, names: tuple[str, ...]):
         self.path, self._handle, self._locations = path, handle, locations
+        self.source = source  # the file or checked object read: `open_read(source)` opens it again unchecked
         self.rows, self.width, self.dtype = rows, width, dtype
         self.column_names = names  # ROW_COLUMNS, plus `step` in shards of the action token types
 
@@ -332,8 +335,9 @@ def open_shard(
     Every problem is collected and raised once as a ValueError naming the file.
     """
     path = Path(path)
-    with open_read(path, missing="shard not found; re-run capture to write it") as (handle, size):
-        if sha256 is not None and path.is_file() and (found := sha256_file(path)) != sha256:
+    source = readable(path)
+    with open_read(source, missing="shard not found; re-run capture to write it") as (handle, size):
+        if sha256 is not None and isinstance(source, Path) and (found := sha256_file(path)) != sha256:
             raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
         try:
             layout, locations = layout_of(path, handle, size)
@@ -341,7 +345,7 @@ def open_shard(
             raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
         header = _header(layout)
         found_rows, found_width, found_dtype = _validate_shard(path, layout, width, dtype, rows, header)
-        yield ShardReader(path, handle, locations, found_rows, found_width, found_dtype,
+        yield ShardReader(path, source, handle, locations, found_rows, found_width, found_dtype,
                           row_columns(header.get("token_type", "")))
 
 

@@ -35,7 +35,7 @@ from safetensors.torch import load_file, save
 from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.storage.fileio import crc32
 from steering_core.storage.finite import non_finite
-from steering_core.storage.publish import remote_file
+from steering_core.storage.publish import RemoteFile, remote_file
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
@@ -67,26 +67,32 @@ def check_safetensors(path: str | os.PathLike) -> dict[str, Any]:
         return _checked_header(path, handle, size)[0]
 
 
+def readable(path: str | os.PathLike) -> Path | RemoteFile:
+    """Return what `open_read` reads for `path`: the published object standing for it when it is absent here
+    under a mounted URL root (`publish.remote_file`: its size and ETag checked against its publication record
+    now, the identity check of a file never downloaded whole), else the local path."""
+    return remote_file(path) or Path(path)
+
+
 @contextlib.contextmanager
-def open_read(path: str | os.PathLike, missing: str | None = None) -> Iterator[tuple[BinaryIO, int]]:
+def open_read(source: str | os.PathLike | RemoteFile, missing: str | None = None) -> Iterator[tuple[BinaryIO, int]]:
     """Yield (unbuffered binary handle, size) of a file to read with seek / read / readinto.
 
-    A path of a mounted URL root whose file is absent here is read from its published object by ranges
-    (`publish.remote_file`: one ranged GET per read, never the whole object; its size and ETag are checked
-    against its publication record on open, the identity check of a file never downloaded whole). Other
-    paths are local files; `missing`: the text of the FileNotFoundError naming a local file that is not there.
+    `source` is a path (resolved by `readable`) or what `readable` returned for one, to open it again without
+    checking it again. A published object is read by ranges: one ranged GET per read, never the whole object.
+    `missing`: the text of the FileNotFoundError naming a local file that is not there.
     """
-    remote = remote_file(path)
-    if remote is not None:
+    remote = source if isinstance(source, RemoteFile) else readable(source)
+    if isinstance(remote, RemoteFile):
         with remote.open() as handle:
             yield handle, remote.size
         return
     try:
-        handle = open(path, "rb", buffering=0)
+        handle = open(remote, "rb", buffering=0)
     except (FileNotFoundError, IsADirectoryError):
         if missing is None:
             raise
-        raise FileNotFoundError(f"{path}: {missing}") from None
+        raise FileNotFoundError(f"{remote}: {missing}") from None
     with handle:
         yield handle, os.fstat(handle.fileno()).st_size
 
