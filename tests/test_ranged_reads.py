@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -126,3 +132,17 @@ def test_sae_training_rows_from_the_bucket_equal_local_ones(run):
     shuffled = remote.shuffled(8, seed=1, buffer_rows=40)
     assert all(torch.equal(next(shuffled), expected) for expected in first_batches)
     assert not any(file.exists() for file in files)
+
+
+def test_the_remote_slicing_benchmark_runs_at_quick_size(tmp_path):
+    """bench.slicing_remote in its own process (it starts its own S3 endpoint): equal slices, bytes bounded."""
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run([sys.executable, "-m", "bench.slicing_remote", "--quick", f"--cache-dir={tmp_path}",
+                           f"--json={tmp_path / 'result.json'}"], cwd=root, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-4000:]
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert [row["selection"] for row in result["table"]] == [
+        f"{size} shards, {selection}" for size in ("1-episode", "8-episode") for selection in ("fixed pair", "every row")]
+    assert result["checks"]["same_slices"] and 1 <= result["checks"]["bytes_ratio"] <= 1.2
+    assert result["ratio"] > 0 and result["command"] == "uv run python -m bench.slicing_remote --quick"

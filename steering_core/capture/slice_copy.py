@@ -4,9 +4,9 @@ The shard is read through one bounded buffer. A checked shard is read whole, fro
 byte goes to its digest (`shard_checks`), so checking costs no second read; an unchecked one (a shard read
 by ranges from a bucket is never checked whole) is read only in the runs of rows some concept needs, runs
 joined across their smallest gaps while the unneeded rows read stay within SLACK of the needed ones: few
-reads (one ranged GET each, per buffer), and bytes read at most 1 + SLACK times the rows selected. Rows are written where they belong in each
-concept's `.safetensors` (`SliceFile.write`); with reduce=frame a concept's rows of the shard are
-gathered and their per-frame means written instead.
+reads (one ranged GET each, per buffer), and bytes read at most 1 + SLACK times the rows selected.
+Rows are written where they belong in each concept's `.safetensors` (`SliceFile.write`); with
+reduce=frame a concept's rows of the shard are gathered and their per-frame means written instead.
 """
 
 from __future__ import annotations
