@@ -142,7 +142,7 @@ def test_the_remote_slicing_benchmark_runs_at_quick_size(tmp_path):
                            f"--json={tmp_path / 'result.json'}"], cwd=root, env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-4000:]
     result = json.loads((tmp_path / "result.json").read_text())
-    assert [row["selection"] for row in result["table"]] == [
-        f"{size} shards, {selection}" for size in ("1-episode", "8-episode") for selection in ("fixed pair", "every row")]
+    assert [row["selection"] for row in result["table"]] == [f"{size} shards, {selection}" for size in (
+        "1-episode", "8-episode") for selection in ("fixed pair", "every row")]
     assert result["checks"]["same_slices"] and 1 <= result["checks"]["bytes_ratio"] <= 1.2
     assert result["ratio"] > 0 and result["command"] == "uv run python -m bench.slicing_remote --quick"
