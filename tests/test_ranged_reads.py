@@ -108,6 +108,20 @@ def test_a_shard_changed_in_the_bucket_is_named_in_one_line(run, tmp_path):
     assert "\n" not in str(err.value)
 
 
+def test_run_metadata_is_rebuilt_where_the_shards_are_only_in_the_bucket(run):
+    run_dir, files = run
+    metadata = run_dir / shards.METADATA_FILE
+    expected = metadata.read_bytes()
+    leave_in_bucket(run_dir, files, per_file=True)
+    metadata.unlink()
+    shards.write_run_metadata(run_dir)
+    assert metadata.read_bytes() == expected
+    fs, key = objects.object_path(objects.url_of(files[0]))
+    fs.rm_file(key)  # gone from the bucket, still listed by its publication record
+    with pytest.raises(ValueError, match=f"its shard {files[0].relative_to(run_dir)} is missing; re-run capture"):
+        shards.write_run_metadata(run_dir)
+
+
 def test_sae_training_rows_from_the_bucket_equal_local_ones(run):
     run_dir, files = run
     local = RowSource(run_dir, LAYER, episodes=[0, 3, 5])

@@ -36,7 +36,7 @@ from safetensors.torch import save_file
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import layer_dir
-from steering_core.storage.publish import RemoteFile
+from steering_core.storage.publish import RemoteFile, remote_file
 from steering_core.storage.schema import M, StrictModel, read_model
 from steering_core.storage.tensor_files import (
     TensorLocation,
@@ -352,7 +352,8 @@ def open_shard(
 def write_run_metadata(run_dir: str | os.PathLike) -> Path:
     """(Re)build `metadata.json` from `run.json` and every sidecar; return its path.
 
-    Safe to call from any worker at any time: it reads only finished sidecars.
+    Safe to call from any worker at any time: it reads only finished sidecars. Each sidecar's shard must be
+    here or, under a mounted URL root, published in the bucket (a shard another machine captured).
     """
     run_dir = Path(run_dir)
     spec = read_run_spec(run_dir)
@@ -361,7 +362,7 @@ def write_run_metadata(run_dir: str | os.PathLike) -> Path:
     for layer in spec.layers:
         for sidecar in sorted(layer_path(run_dir, spec.token_type, layer).glob(SIDECAR_FILE.format(key="*"))):
             record = read_shard_record(sidecar)
-            if not (run_dir / record.file).is_file():
+            if not _present(run_dir / record.file):
                 problems.append(f"{sidecar}: its shard {record.file} is missing; re-run capture")
             elif record.layer != layer:
                 problems.append(f"{sidecar}: `layer` is {record.layer}, expected {layer} from its folder")
@@ -383,6 +384,14 @@ def write_run_metadata(run_dir: str | os.PathLike) -> Path:
         tasks=dict(sorted(tasks.items())),
     )
     return write_json(run_dir / METADATA_FILE, metadata.model_dump(mode="json"))
+
+
+def _present(path: Path) -> bool:
+    """Return whether a shard is here, or published in the bucket of its mounted root (`remote_file`)."""
+    try:
+        return path.is_file() or remote_file(path) is not None
+    except FileNotFoundError:  # listed by its publication record, gone from the bucket
+        return False
 
 
 def read_run_metadata(run_dir: str | os.PathLike) -> RunMetadata:
