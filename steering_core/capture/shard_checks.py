@@ -6,7 +6,7 @@ A shard the copy did not finish (it failed to open, say) is hashed from its file
 asked for, so a damaged shard is named as changed whatever error its damage caused first.
 A shard read by ranges from a bucket (absent here under a mounted URL root) is not checked here: a
 CRC-32 would fetch all of it. Its identity check is its object's size and ETag against its publication
-record, made on every open (`tensor_files.open_read`).
+record, made when slicing's first pass opens it (`tensor_files.readable`).
 """
 
 from __future__ import annotations

@@ -275,7 +275,7 @@ def find_complete_shard(
 
 
 class ShardReader:
-    """An open, validated shard: row columns as numpy, residual rows read with plain file reads."""
+    """An open, validated shard: row columns as numpy, residual rows read with plain (or ranged) reads."""
 
     def __init__(self, path: Path, source: Path | RemoteFile, handle: Any, locations: dict[str, TensorLocation],
                  rows: int, width: int, dtype: str, names: tuple[str, ...]):
