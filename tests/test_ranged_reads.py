@@ -93,6 +93,16 @@ def test_slices_from_the_bucket_equal_local_ones_and_fetch_only_the_selected_row
     assert selected + headers <= fetched <= 1.2 * (selected + headers) < span + headers
 
 
+def test_runs_of_selected_rows_are_joined_across_the_smallest_gaps_within_a_tenth_of_the_rows():
+    import numpy as np
+
+    from steering_core.capture.slice_copy import _spans
+
+    rows = np.array([0, 1, 2, 4, 5, 9, *range(20, 40)])  # 26 rows; gaps of 1, 3 and 10 rows: 2.6 may be read
+    assert _spans(rows) == [(0, 6), (9, 10), (20, 40)]
+    assert _spans(np.arange(5, 9)) == [(5, 9)] and _spans(np.array([], dtype=np.int64)) == []
+
+
 def test_a_shard_changed_in_the_bucket_is_named_in_one_line(run, tmp_path):
     run_dir, files = run
     concept_map = write_map(tmp_path / "map.json", CONCEPTS)
