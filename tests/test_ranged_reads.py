@@ -8,10 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from steering_core.capture import shards
+from steering_core.capture.slice_copy import _spans
 from steering_core.capture.slicing import SliceSettings, slice_concepts
 from steering_core.data.concept_map import ConceptMap, ConceptRow, write_concept_map
 from steering_core.sae.training.rows import RowSource
@@ -94,10 +96,6 @@ def test_slices_from_the_bucket_equal_local_ones_and_fetch_only_the_selected_row
 
 
 def test_runs_of_selected_rows_are_joined_across_the_smallest_gaps_within_a_tenth_of_the_rows():
-    import numpy as np
-
-    from steering_core.capture.slice_copy import _spans
-
     rows = np.array([0, 1, 2, 4, 5, 9, *range(20, 40)])  # 26 rows; gaps of 1, 3 and 10 rows: 2.6 may be read
     assert _spans(rows) == [(0, 6), (9, 10), (20, 40)]
     assert _spans(np.arange(5, 9)) == [(5, 9)] and _spans(np.array([], dtype=np.int64)) == []
