@@ -28,6 +28,7 @@ BENCHMARKS = (
     "evaluate_cost",
     "rollout_throughput",
     "sae_training",
+    "slicing_remote",
 )
 OPT_IN = ("real_size", "policy_real_size")  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"

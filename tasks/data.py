@@ -41,7 +41,9 @@ def filter_demos(sources: list[str], output_dir: str, settings: FilterSettings) 
     """Select demo files into `output_dir` (links + selection.json); return the selected file names."""
     selection = filtering.filter_demos(sources, output_dir, settings)
     get_run_logger().info("%d file(s) selected into %s", len(selection.files), output_dir)
-    return {OUTPUTS: [str(Path(output_dir) / SELECTION_FILE)], "files": [f.name for f in selection.files]}
+    # on a bucket root the folder is published whole, its links as copies of the files they name
+    return {OUTPUTS: [str(Path(output_dir) / SELECTION_FILE)], "files": [f.name for f in selection.files],
+            "folder": output_dir}
 
 
 @task(

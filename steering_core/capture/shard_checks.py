@@ -4,6 +4,9 @@ The copy reads each checked shard whole, front to back, once, and feeds its byte
 (`ShardChecks.digest`): the check then costs a CRC-32 of bytes already in the cache, not a second read.
 A shard the copy did not finish (it failed to open, say) is hashed from its file when the check is
 asked for, so a damaged shard is named as changed whatever error its damage caused first.
+A shard read by ranges from a bucket (absent here under a mounted URL root) is not checked here: a
+CRC-32 would fetch all of it. Its identity check is its object's size and ETag against its publication
+record, made when slicing's first pass opens it (`tensor_files.readable`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from typing import Protocol
 
 from steering_core.capture.shards import ShardRecord, checksum_mismatch
 from steering_core.storage.fileio import Crc32, feed_file
+from steering_core.storage.objects import url_of
 
 
 class Digest(Protocol):
@@ -35,10 +39,11 @@ def record_check(record: ShardRecord) -> tuple[str, Callable[[], Digest], str]:
 
 
 class ShardChecks:
-    """The checks of the shards at `positions` of `records` (none when not `enabled`)."""
+    """The checks of the local shards at `positions` of `records` (none when not `enabled`)."""
 
     def __init__(self, run_dir: Path, records: Sequence[ShardRecord], positions: Sequence[int], enabled: bool) -> None:
-        self._paths = {p: run_dir / records[p].file for p in positions} if enabled else {}
+        paths = {p: run_dir / records[p].file for p in positions} if enabled else {}
+        self._paths = {p: path for p, path in paths.items() if not _in_bucket(path)}
         self._checks = {p: record_check(records[p]) for p in self._paths}
         self._found: dict[int, str] = {}
 
@@ -75,6 +80,11 @@ class ShardChecks:
             if problems := self.mismatches():
                 raise ValueError("\n".join(problems)) from None
             raise
+
+
+def _in_bucket(path: Path) -> bool:
+    """Return whether a shard is read by ranges from a bucket: absent here, under a mounted URL root."""
+    return url_of(path) is not None and not path.exists()
 
 
 def _file_digest(path: Path, digest: Digest) -> str:

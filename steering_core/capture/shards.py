@@ -1,4 +1,4 @@
-"""The residual run format: shards written atomically, read memory-mapped, checked by sha256.
+"""The residual run format: shards written atomically, read with plain or ranged reads, checked by sha256.
 
 A run folder holds
 
@@ -36,8 +36,16 @@ from safetensors.torch import save_file
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
 from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import layer_dir
+from steering_core.storage.publish import RemoteFile, remote_file
 from steering_core.storage.schema import M, StrictModel, read_model
-from steering_core.storage.tensor_files import TensorLocation, read_layout, read_rows_into, require_finite
+from steering_core.storage.tensor_files import (
+    TensorLocation,
+    layout_of,
+    open_read,
+    read_rows_into,
+    readable,
+    require_finite,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -267,11 +275,12 @@ def find_complete_shard(
 
 
 class ShardReader:
-    """An open, validated shard: row columns as numpy, residual rows read with plain file reads."""
+    """An open, validated shard: row columns as numpy, residual rows read with plain (or ranged) reads."""
 
-    def __init__(self, path: Path, handle: Any, locations: dict[str, TensorLocation], rows: int, width: int,
-                 dtype: str, names: tuple[str, ...]):
+    def __init__(self, path: Path, source: Path | RemoteFile, handle: Any, locations: dict[str, TensorLocation],
+                 rows: int, width: int, dtype: str, names: tuple[str, ...]):
         self.path, self._handle, self._locations = path, handle, locations
+        self.source = source  # the file or checked object read: `open_read(source)` opens it again unchecked
         self.rows, self.width, self.dtype = rows, width, dtype
         self.column_names = names  # ROW_COLUMNS, plus `step` in shards of the action token types
 
@@ -317,30 +326,34 @@ def open_shard(
     rows: int | None = None,
     sha256: str | None = None,
 ) -> Iterator[ShardReader]:
-    """Yield a memory-mapped shard after checking its keys, shapes and dtypes (and sha256 if given).
+    """Yield an open shard after checking its keys, shapes and dtypes (and sha256 if given).
 
+    The shard is read with plain reads of its file or, absent here under a mounted URL root, with ranged
+    reads of its published object (`open_read`): its header, then whatever the reader asks for. A remote
+    shard's identity check is its object's size and ETag against its publication record (done on open);
+    `sha256` is checked for local files only, as it would fetch the whole object.
     Every problem is collected and raised once as a ValueError naming the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: shard not found; re-run capture to write it")
-    if sha256 is not None and (found := sha256_file(path)) != sha256:
-        raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
-    try:
-        layout, locations = read_layout(path)
-    except ValueError as err:
-        raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
-    header = _header(layout)
-    found_rows, found_width, found_dtype = _validate_shard(path, layout, width, dtype, rows, header)
-    with open(path, "rb", buffering=0) as handle:
-        yield ShardReader(path, handle, locations, found_rows, found_width, found_dtype,
+    source = readable(path)
+    with open_read(source, missing="shard not found; re-run capture to write it") as (handle, size):
+        if sha256 is not None and isinstance(source, Path) and (found := sha256_file(path)) != sha256:
+            raise ValueError(checksum_mismatch(path, "sha256", found, sha256))
+        try:
+            layout, locations = layout_of(path, handle, size)
+        except ValueError as err:
+            raise ValueError(f"{path}: not a readable safetensors file ({err}); re-run capture to rewrite it") from None
+        header = _header(layout)
+        found_rows, found_width, found_dtype = _validate_shard(path, layout, width, dtype, rows, header)
+        yield ShardReader(path, source, handle, locations, found_rows, found_width, found_dtype,
                           row_columns(header.get("token_type", "")))
 
 
 def write_run_metadata(run_dir: str | os.PathLike) -> Path:
     """(Re)build `metadata.json` from `run.json` and every sidecar; return its path.
 
-    Safe to call from any worker at any time: it reads only finished sidecars.
+    Safe to call from any worker at any time: it reads only finished sidecars. Each sidecar's shard must be
+    here or, under a mounted URL root, published in the bucket (a shard another machine captured).
     """
     run_dir = Path(run_dir)
     spec = read_run_spec(run_dir)
@@ -349,7 +362,7 @@ def write_run_metadata(run_dir: str | os.PathLike) -> Path:
     for layer in spec.layers:
         for sidecar in sorted(layer_path(run_dir, spec.token_type, layer).glob(SIDECAR_FILE.format(key="*"))):
             record = read_shard_record(sidecar)
-            if not (run_dir / record.file).is_file():
+            if not _present(run_dir / record.file):
                 problems.append(f"{sidecar}: its shard {record.file} is missing; re-run capture")
             elif record.layer != layer:
                 problems.append(f"{sidecar}: `layer` is {record.layer}, expected {layer} from its folder")
@@ -371,6 +384,14 @@ def write_run_metadata(run_dir: str | os.PathLike) -> Path:
         tasks=dict(sorted(tasks.items())),
     )
     return write_json(run_dir / METADATA_FILE, metadata.model_dump(mode="json"))
+
+
+def _present(path: Path) -> bool:
+    """Return whether a shard is here, or published in the bucket of its mounted root (`remote_file`)."""
+    try:
+        return path.is_file() or remote_file(path) is not None
+    except FileNotFoundError:  # listed by its publication record, gone from the bucket
+        return False
 
 
 def read_run_metadata(run_dir: str | os.PathLike) -> RunMetadata:

@@ -1,10 +1,12 @@
 """Slicing's second pass over one shard: its selected rows, read once, go straight to the concepts' files.
 
 The shard is read through one bounded buffer. A checked shard is read whole, front to back, and every
-byte goes to its digest (`shard_checks`), so checking costs no second read; an unchecked one is read
-only from the first row any concept needs to the last. Rows are written where they belong in each
-concept's `.safetensors` (`SliceFile.write`); with reduce=frame a concept's rows of the shard are
-gathered and their per-frame means written instead.
+byte goes to its digest (`shard_checks`), so checking costs no second read; an unchecked one (a shard read
+by ranges from a bucket is never checked whole) is read only in the runs of rows some concept needs, runs
+joined across their smallest gaps while the unneeded rows read stay within SLACK of the needed ones: few
+reads (one ranged GET each, per buffer), and bytes read at most 1 + SLACK times the rows selected.
+Rows are written where they belong in each concept's `.safetensors` (`SliceFile.write`); with
+reduce=frame a concept's rows of the shard are gathered and their per-frame means written instead.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from steering_core.capture.shard_checks import Digest
 from steering_core.capture.shards import SHARD_FIX
 from steering_core.capture.slice_files import SliceFile
 from steering_core.storage.tensor_files import TensorLocation, require_finite
+
+SLACK = 0.1  # unneeded rows an unchecked copy may read to join runs of needed ones, per needed row
 
 
 @dataclass
@@ -48,16 +52,15 @@ def copy_shard(
     count, row_bytes = location.shape[0], location.row_bytes
     if digest is not None:
         _feed(handle, 0, location.offset, buffer, digest)  # header and row columns
-        first, stop = 0, count
+        spans = [(0, count)]
     else:
-        needed = [part.rows for part, _ in parts if len(part.rows)]
-        first, stop = (min(int(r[0]) for r in needed), max(int(r[-1]) for r in needed) + 1) if needed else (0, 0)
+        spans = _spans(np.unique(np.concatenate([part.rows for part, _ in parts] or [np.empty(0, np.int64)])))
     gathered = {id(part): torch.empty(len(part.rows), location.shape[1]) for part, _ in parts
                 if part.frame_of_row is not None}
     per_chunk = buffer.numel() // row_bytes
-    for start in range(first, stop, per_chunk):
-        raw = _read(handle, location.offset + start * row_bytes, buffer[: min(per_chunk, stop - start) * row_bytes],
-                    location)
+    for start, size in ((start, min(per_chunk, stop - start)) for first, stop in spans
+                        for start in range(first, stop, per_chunk)):
+        raw = _read(handle, location.offset + start * row_bytes, buffer[: size * row_bytes], location)
         if digest is not None:
             digest.update(raw.numpy())
         rows = raw.view(location.dtype).view(-1, *location.shape[1:]).to(torch.float32)  # no copy when float32
@@ -99,6 +102,18 @@ def _feed(handle: BinaryIO, start: int, stop: int | None, buffer: torch.Tensor, 
             break
         digest.update(view[:size])
         start += size
+
+
+def _spans(rows: np.ndarray) -> list[tuple[int, int]]:
+    """Return [start, stop) spans covering the ascending unique `rows`: their runs, joined across the smallest
+    gaps while the rows of the gaps joined total at most SLACK times the rows."""
+    if not len(rows):
+        return []
+    gaps = np.diff(rows) - 1
+    breaks = np.flatnonzero(gaps)  # rows[i + 1] starts a new run
+    by_size = breaks[np.argsort(gaps[breaks], kind="stable")]
+    kept = np.sort(by_size[np.cumsum(gaps[by_size]) > SLACK * len(rows)])
+    return list(zip(rows[np.concatenate([[0], kept + 1])].tolist(), (rows[np.append(kept, -1)] + 1).tolist()))
 
 
 def _runs(*sequences: np.ndarray) -> list[tuple[int, int]]:

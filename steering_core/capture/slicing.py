@@ -8,6 +8,10 @@ bounded buffer, copying its selected rows to their place in the concepts' output
 (`slice_copy`, `slice_files`), so no concept is ever held whole in memory. Peak memory is that
 buffer plus, for frame means, one shard's rows. The same read checks each shard against its
 record (`shard_checks`); a mismatch stops the layer before its folder replaces the old one.
+A run under a mounted URL root whose shards stay in the bucket is read by ranges (`tensor_files.open_read`):
+each shard's header and row columns, then only the runs of rows the concepts select (`slice_copy`); such a
+shard's identity check is its object's size and ETag against its publication record, when the first pass
+opens it.
 
 Outputs, per layer (the seed's layout):
 
@@ -41,8 +45,9 @@ from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
 from steering_core.storage.layout import SLICE_INDEX_FILE, layer_dir
 from steering_core.storage.locks import output_lock
+from steering_core.storage.publish import RemoteFile
 from steering_core.storage.schema import StrictModel, describe_ranges
-from steering_core.storage.tensor_files import TensorLocation
+from steering_core.storage.tensor_files import TensorLocation, open_read
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +60,7 @@ _UNSAFE = {"/", "\\", "\0", ":"}  # path separators (and ':' for Windows/macOS s
 
 
 Reduce = Literal["token", "frame"]  # rows per captured frame in a slice
+Opened = tuple[Path | RemoteFile, TensorLocation]  # a shard of the first pass: its file or checked object, its rows
 
 
 class SliceSettings(StrictModel):
@@ -65,6 +71,7 @@ class SliceSettings(StrictModel):
     reduce: Reduce = "token"  # one row per captured token, or their mean per frame
     max_samples_per_concept: int | None = None  # cap on rows (token) or frames (frame), evenly spaced
     verify_checksums: bool = True  # check every shard read against its record's CRC-32 (or sha256): a damaged one stops
+    # (shards read by ranges from a bucket are checked by their objects' size and ETag instead, see shard_checks)
     device: str = "cpu"  # where frame means are computed; outputs are always saved from CPU
     holdout_episodes: tuple[int, ...] = ()  # episodes held out for evaluation: their frames are never sliced
 
@@ -226,11 +233,11 @@ def _slice_layer(
             return target / SLICE_INDEX_FILE
         checks = ShardChecks(run_dir, records, _positions_read(records, concept_map), settings.verify_checksums)
         with checks.blame():
-            selections, locations = _select_rows(run_dir, records, concept_map, map_path, settings)
+            selections, opened = _select_rows(run_dir, records, concept_map, map_path, settings)
             plans = {concept: _plan(selection, settings.reduce) for concept, selection in selections.items()}
             with atomic_dir(target, overwrite=True) as staging:
                 staging.mkdir(parents=True)
-                files = _write_slices(staging, plans, len(records), locations, checks, metadata.run.width, settings,
+                files = _write_slices(staging, plans, len(records), opened, checks, metadata.run.width, settings,
                                       advance)
                 _write_index(staging, header, files, concept_map)
                 checks.check()  # before the staging folder takes the target's place
@@ -278,15 +285,15 @@ def _positions_read(records: Sequence[ShardRecord], concept_map: ConceptMap) -> 
 
 def _select_rows(
     run_dir: Path, records: Sequence[ShardRecord], concept_map: ConceptMap, map_path: Path, settings: SliceSettings
-) -> tuple[dict[str, _Selection], dict[int, TensorLocation]]:
+) -> tuple[dict[str, _Selection], dict[int, Opened]]:
     """First pass over the row columns: return each concept's rows, checking every segment is fully captured,
-    and where each opened shard keeps its residual matrix (shard position -> location)."""
+    and per opened shard (by position) what `open_read` opens again and where it keeps its residual matrix."""
     by_episode: dict[int, list[tuple[str, int, ConceptRow]]] = {}
     for concept, segments in concept_map.concepts.items():
         for number, segment in enumerate(segments):
             by_episode.setdefault(segment.episode_index, []).append((concept, number, segment))
     selections = {concept: _Selection() for concept in concept_map.concepts}
-    locations: dict[int, TensorLocation] = {}
+    opened: dict[int, Opened] = {}
     frames_found: dict[tuple[str, int], set[int]] = {}
     problems: list[str] = []
     for position, record in enumerate(records):
@@ -295,7 +302,7 @@ def _select_rows(
             continue
         with open_shard(run_dir / record.file, width=record.width, dtype=record.dtype, rows=record.rows) as reader:
             cols = reader.columns()
-            locations[position] = reader.residual_location()
+            opened[position] = reader.source, reader.residual_location()
         per_concept: dict[str, np.ndarray] = {}
         for concept, number, segment in wanted:
             hit = (
@@ -340,7 +347,7 @@ def _select_rows(
     if settings.max_samples_per_concept is not None:
         for concept, selection in selections.items():
             _subsample(selection, settings.max_samples_per_concept, by_frame=settings.reduce == "frame")
-    return selections, locations
+    return selections, opened
 
 
 def _subsample(selection: _Selection, limit: int, *, by_frame: bool) -> None:
@@ -377,7 +384,7 @@ def _write_slices(
     staging: Path,
     plans: dict[str, tuple[dict[int, Part], dict[str, np.ndarray]]],
     shards: int,
-    locations: dict[int, TensorLocation],
+    opened: dict[int, Opened],
     checks: ShardChecks,
     width: int,
     settings: SliceSettings,
@@ -393,14 +400,15 @@ def _write_slices(
     stems = slice_file_names(list(plans))
     files = {concept: SliceFile(staging / SLICE_SAFETENSORS.format(name=stems[concept]), columns, width)
              for concept, (_, columns) in plans.items()}
-    buffer = torch.empty(max([_BUFFER_BYTES, *(where.row_bytes for where in locations.values())]), dtype=torch.uint8)
+    buffer = torch.empty(max([_BUFFER_BYTES, *(where.row_bytes for _, where in opened.values())]), dtype=torch.uint8)
     try:
         for position in range(shards):
             parts = [(shares[position], files[concept]) for concept, (shares, _) in plans.items() if position in shares]
             digest = checks.digest(position)
             if parts or digest is not None:
-                with open(locations[position].path, "rb", buffering=0) as handle:
-                    copy_shard(handle, locations[position], parts, buffer, settings.device, digest)
+                source, location = opened[position]
+                with open_read(source) as (handle, _):
+                    copy_shard(handle, location, parts, buffer, settings.device, digest)
                 if digest is not None:
                     checks.found(position, digest)
             advance()

@@ -23,7 +23,7 @@ from steering_core.evaluate.directions import MEAN_DIFFERENCE, RESIDUAL
 from steering_core.evaluate.metrics import ACTION_GROUPS
 from steering_core.evaluate.plots import layer_label, named, plot_efficacy, plot_shift, plot_trajectory
 from steering_core.evaluate.settings import MIN_EPISODES_PER_SIDE
-from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.fileio import read_json, write_json, write_text
 from steering_core.storage.layout import (
     DOSE_RESPONSE_FILE,
     EFFICACY_PLOT,
@@ -166,8 +166,7 @@ def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
                "plots": plots}
     write_json(layer_path / SUMMARY_JSON, summary)
     md_path = layer_path / SUMMARY_MD
-    with atomic_path(md_path) as tmp:
-        tmp.write_text(summary_markdown(summary), encoding="utf-8")
+    write_text(md_path, summary_markdown(summary))
     return md_path
 
 
@@ -273,8 +272,7 @@ def write_pathways(eval_root: Path, layers: list[tuple[int, str]], pair_names: l
     pathways = {"format_version": EVAL_FORMAT_VERSION, "notes": notes, "rows": rows}
     write_json(eval_root / f"{PATHWAYS_FILE}.json", pathways)
     md_path = eval_root / f"{PATHWAYS_FILE}.md"
-    with atomic_path(md_path) as tmp:
-        tmp.write_text(pathways_markdown(pathways), encoding="utf-8")
+    write_text(md_path, pathways_markdown(pathways))
     return md_path
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from steering_core.rollout.plots import Thresholds, plot_joints, plot_success
 from steering_core.rollout.records import KINDS, ROLLOUT_FORMAT_VERSION, SIDES, read_cell
 from steering_core.rollout.stats import Proportion, exceeds
-from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.fileio import read_json, write_json, write_text
 from steering_core.storage.layout import (
     JOINTS_PLOT,
     ROLLOUT_FILE,
@@ -146,8 +146,7 @@ def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None,
         "videos": {r["cell"]: f"{r['cell']}/{r['episodes'][0]['video']}" for r in records if r["episodes"][0]["video"]},
     }
     write_json(pair_path / f"{ROLLOUT_PAIR_TABLE}.json", summary)
-    with atomic_path(pair_path / f"{ROLLOUT_PAIR_TABLE}.md") as tmp:
-        tmp.write_text(pair_markdown(summary), encoding="utf-8")
+    write_text(pair_path / f"{ROLLOUT_PAIR_TABLE}.md", pair_markdown(summary))
     return summary
 
 
@@ -188,8 +187,7 @@ def write_layer_summary(layer_path: Path, pair_names: Sequence[str], note: str |
                               "unit)", "pairs": pairs}
     write_json(layer_path / SUMMARY_JSON, summary)
     md_path = layer_path / SUMMARY_MD
-    with atomic_path(md_path) as tmp:
-        tmp.write_text(summary_markdown(summary), encoding="utf-8")
+    write_text(md_path, summary_markdown(summary))
     return md_path
 
 

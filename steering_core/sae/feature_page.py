@@ -23,7 +23,7 @@ import torch
 from steering_core.sae.feature_scan import FeatureScan, FrameContext, RowBatch, example_frames, frame_contexts
 from steering_core.sae.model import Sae
 from steering_core.sae.vectors import read_pair_vectors
-from steering_core.storage.fileio import atomic_path, read_json
+from steering_core.storage.fileio import read_json, write_text
 from steering_core.storage.layout import PAIR_SUMMARY_FILE, PAIRWISE_STATS_FILE
 
 logger = logging.getLogger(__name__)
@@ -146,8 +146,7 @@ def write_feature_page(
     body = [_header(scan, sae, title, pairs, latents, scan.most_active(most_active))]
     body += [_latent_section(scan, latent, pairs, decoder, contexts, thumbnails, token_text, examples)
              for latent in latents]
-    with atomic_path(path) as tmp:
-        tmp.write_text(_document(title or f"Features of {sae.name}", "\n".join(body)), encoding="utf-8")
+    write_text(path, _document(title or f"Features of {sae.name}", "\n".join(body)))
     logger.info("feature page of %d latents written to %s", len(latents), path)
     return Path(path)
 

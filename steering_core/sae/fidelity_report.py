@@ -35,7 +35,7 @@ from steering_core.sae.fidelity_table import (
     table_rows,
 )
 from steering_core.sae.model import Sae
-from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.fileio import read_json, write_json, write_text
 
 logger = logging.getLogger(__name__)
 
@@ -114,8 +114,7 @@ def judge_layer(
         },
     }
     plot_fidelity(out_dir / FIDELITY_PNG, record)
-    with atomic_path(out_dir / FIDELITY_MD) as tmp:
-        tmp.write_text(fidelity_markdown(record), encoding="utf-8")
+    write_text(out_dir / FIDELITY_MD, fidelity_markdown(record))
     write_json(out_dir / FIDELITY_JSON, record)  # last: its presence means the folder is complete
     logger.info("layer %d: %s (%s)", layer, record["verdict"], out_dir)
     return out_dir

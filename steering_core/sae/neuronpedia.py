@@ -34,6 +34,7 @@ from steering_core.sae.feature_page import RowsOfEpisodes, TokenText, token_stri
 from steering_core.sae.feature_scan import FeatureScan, FrameContext, example_frames, frame_contexts
 from steering_core.sae.model import Sae
 from steering_core.storage.fileio import atomic_dir
+from steering_core.storage.objects import portable
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +175,7 @@ def _source_set(model_id: str, source_set: str, description: str, common: dict) 
 def _source(source_id: str, source_set: str, sae: Sae, scan: FeatureScan, dataset: str | None,
             common: dict) -> dict[str, Any]:
     return {"id": source_id, "modelId": common["modelId"], "setName": source_set, "creatorId": common["creatorId"],
-            "hasDashboards": True, "inferenceEnabled": False, "saelensConfig": json.dumps(sae.cfg.model_dump(mode="json")),
+            "hasDashboards": True, "inferenceEnabled": False, "saelensConfig": json.dumps(portable(sae.cfg.model_dump(mode="json"))),
             "visibility": "PUBLIC", "num_prompts": scan.frames, "dataset": dataset, "createdAt": common["createdAt"]}
 
 

@@ -18,7 +18,7 @@ from safetensors.torch import load_file
 from steering_core.reporting.plots import figure, save_png
 from steering_core.sae.fidelity_table import FIDELITY_JSON, FIDELITY_MD, FIDELITY_PNG, TABLE_HEADER, table_rows
 from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
-from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.fileio import read_json, write_json, write_text
 from steering_core.storage.layout import (
     FEATURE_PAGE_FILE,
     PAIR_SUMMARY_FILE,
@@ -64,8 +64,7 @@ def write_report(layer_path: Path, *, top_k: int = 20, trained_sae: Path | None 
     }
     write_json(layer_path / SUMMARY_JSON, summary)
     md_path = layer_path / SUMMARY_MD
-    with atomic_path(md_path) as tmp:
-        tmp.write_text(_markdown(summary), encoding="utf-8")
+    write_text(md_path, _markdown(summary))
     logger.info("report written to %s", md_path)
     return md_path
 

@@ -141,6 +141,13 @@ def portable(value: Any) -> Any:
     return _mapped(value, [(str(r.mirror), r.url) for r in roots()])
 
 
+def portable_text(text: str) -> str:
+    """Return `text` with every mirror path in it written as its URL (a report naming files)."""
+    for root in sorted(roots(), key=lambda r: -len(str(r.mirror))):
+        text = text.replace(str(root.mirror), root.url)
+    return text
+
+
 def localize(value: Any) -> Any:
     """Return `value` with every text naming a mounted URL replaced by its mirror path: `portable` undone."""
     return _mapped(value, [(r.url, str(r.mirror)) for r in roots()])

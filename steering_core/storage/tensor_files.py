@@ -6,12 +6,14 @@ checks the framing first (each tensor's shape must fill its data_offsets exactly
 refuses pickled objects other than tensors with a message that does not advise `weights_only=False`.
 `require_finite` is the one NaN/Inf check every step calls at its boundaries (one reduction per tensor),
 `require_finite_file` applies it to a safetensors file chunk by chunk. `tensor_locations` / `read_rows_into` read tensors with plain
-file reads straight into caller-owned memory, `safetensors_layout` lets a file be written tensor by
+file reads straight into caller-owned memory, from a local file or, through `open_read`, by ranged reads of the object
+a mounted URL root publishes for it, `safetensors_layout` lets a file be written tensor by
 tensor, and `save_torch` writes torch.save files with a fast CRC-32 in place of torch's slower one.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import mmap
@@ -21,7 +23,7 @@ import re
 import struct
 import threading
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -33,6 +35,7 @@ from safetensors.torch import load_file, save
 from steering_core.devices import SAFETENSORS_DTYPES
 from steering_core.storage.fileio import crc32
 from steering_core.storage.finite import non_finite
+from steering_core.storage.publish import RemoteFile, remote_file
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
@@ -59,19 +62,50 @@ def check_safetensors(path: str | os.PathLike) -> dict[str, Any]:
     Checked: the header length fits the file, the header is a JSON object, and every tensor's
     `data_offsets` lie inside the data section and hold exactly its shape and dtype.
     """
-    return _checked_header(Path(path))[0]
+    path = Path(path)
+    with open_read(path) as (handle, size):
+        return _checked_header(path, handle, size)[0]
 
 
-def _checked_header(path: Path) -> tuple[dict[str, Any], int]:
-    """Return (`check_safetensors` header, byte offset where the data section starts)."""
-    size = path.stat().st_size
-    with open(path, "rb") as handle:
-        head = handle.read(_LENGTH_BYTES)
-        length = int.from_bytes(head, "little") if len(head) == _LENGTH_BYTES else -1
-        if not 2 <= length <= min(size - _LENGTH_BYTES, _MAX_HEADER):
-            found = f"{size} bytes" if length < 0 else f"a header length of {length} in a {size}-byte file"
-            raise ValueError(f"{path}: not a safetensors file ({found}{_looks_like(head)}); {SAFETENSORS_EXPECTED}")
-        raw = handle.read(length)
+def readable(path: str | os.PathLike) -> Path | RemoteFile:
+    """Return what `open_read` reads for `path`: the published object standing for it when it is absent here
+    under a mounted URL root (`publish.remote_file`: its size and ETag checked against its publication record
+    now, the identity check of a file never downloaded whole), else the local path."""
+    return remote_file(path) or Path(path)
+
+
+@contextlib.contextmanager
+def open_read(source: str | os.PathLike | RemoteFile, missing: str | None = None) -> Iterator[tuple[BinaryIO, int]]:
+    """Yield (unbuffered binary handle, size) of a file to read with seek / read / readinto.
+
+    `source` is a path (resolved by `readable`) or what `readable` returned for one, to open it again without
+    checking it again. A published object is read by ranges: one ranged GET per read, never the whole object.
+    `missing`: the text of the FileNotFoundError naming a local file that is not there.
+    """
+    remote = source if isinstance(source, RemoteFile) else readable(source)
+    if isinstance(remote, RemoteFile):
+        with remote.open() as handle:
+            yield handle, remote.size
+        return
+    try:
+        handle = open(remote, "rb", buffering=0)
+    except (FileNotFoundError, IsADirectoryError):
+        if missing is None:
+            raise
+        raise FileNotFoundError(f"{remote}: {missing}") from None
+    with handle:
+        yield handle, os.fstat(handle.fileno()).st_size
+
+
+def _checked_header(path: Path, handle: BinaryIO, size: int) -> tuple[dict[str, Any], int]:
+    """Return (`check_safetensors` header, byte offset where the data section starts) of the file open in `handle`."""
+    handle.seek(0)
+    head = handle.read(_LENGTH_BYTES)
+    length = int.from_bytes(head, "little") if len(head) == _LENGTH_BYTES else -1
+    if not 2 <= length <= min(size - _LENGTH_BYTES, _MAX_HEADER):
+        found = f"{size} bytes" if length < 0 else f"a header length of {length} in a {size}-byte file"
+        raise ValueError(f"{path}: not a safetensors file ({found}{_looks_like(head)}); {SAFETENSORS_EXPECTED}")
+    raw = handle.read(length)
     try:
         header = json.loads(raw)
     except (UnicodeDecodeError, json.JSONDecodeError):
@@ -194,9 +228,15 @@ def tensor_locations(path: str | os.PathLike) -> dict[str, TensorLocation]:
 
 
 def read_layout(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, TensorLocation]]:
-    """Return a safetensors file's checked header and name -> location of each tensor, from one read."""
+    """Return a safetensors file's checked header and name -> location of each tensor (`open_read`, `layout_of`)."""
     path = Path(path)
-    header, start = _checked_header(path)
+    with open_read(path) as (handle, size):
+        return layout_of(path, handle, size)
+
+
+def layout_of(path: Path, handle: BinaryIO, size: int) -> tuple[dict[str, Any], dict[str, TensorLocation]]:
+    """Return `read_layout` of the file `path` open in `handle` (`open_read`): two reads, its length and header."""
+    header, start = _checked_header(path, handle, size)
     locations = {}
     for name, entry in header.items():
         if name == "__metadata__":
@@ -252,9 +292,10 @@ def read_tensor(
 def require_finite_file(path: str | os.PathLike, names: Iterable[str] | None = None, fix: str = "") -> None:
     """Raise `require_finite`'s error for the first floating-point tensor of a safetensors file (of `names`,
     default all) that holds NaN or Inf; read chunk by chunk through one staging buffer."""
-    locations = tensor_locations(path)
+    path = Path(path)
     staging = staging_buffer()
-    with open(path, "rb", buffering=0) as handle:
+    with open_read(path) as (handle, size):
+        locations = layout_of(path, handle, size)[1]
         for name in locations if names is None else names:
             location = locations[name]
             if not location.dtype.is_floating_point or not location.row_bytes:

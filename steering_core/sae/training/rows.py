@@ -8,6 +8,10 @@ yields each buffer's rows in a random order. The piece order comes from a numpy 
 (seed, epoch), each buffer's row order from a torch generator seeded with (seed, epoch, buffer), so the stream is a pure function of (seed, buffer_rows):
 a stream started at sample s skips the whole buffers before s without reading them and yields the
 same rows as an uninterrupted one from s on.
+
+Shards absent here under a mounted URL root stay in the bucket: `open_shard` reads them by ranges (each
+open checks the object's size and ETag against its publication record, then reads the header, the row
+columns and the rows asked for), so a buffer fetches its pieces' rows and never a whole run.
 """
 
 from __future__ import annotations
