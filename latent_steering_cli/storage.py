@@ -44,14 +44,19 @@ def mount_urls(paths: set[str], args: Sequence[str]) -> tuple[list[str], list[Pa
 
 
 def _mounted(url: str) -> Path:
-    """Mount `url` as an output root when it holds published outputs (or nothing yet), else as an input; pull it."""
+    """Return the mirror path of `url`, pulled: under an output root when it holds published outputs (or nothing
+    yet), else under an input root.
+
+    The root mounted is the URL's parent, so a file or folder the command writes there is an output of that root,
+    published with its record beside it (a root itself is never published). A bucket alone is mounted as it is.
+    """
     url = url.rstrip("/")
-    published = read_record(url) is not None or records_under(url)
-    local = mount(url, "output")
-    if not published and not _exists(url):
+    published = read_record(url) is not None or bool(records_under(url))
+    role = "output" if published or not _exists(url) else "input"
+    parent, _, name = url.partition("://")[2].rpartition("/")
+    local = mount(f"{url.partition('://')[0]}://{parent}", role) / name if parent else mount(url, role)
+    if role == "output" and not published:
         return local  # a new output: nothing to pull
-    if not published:
-        local = mount(url, "input")
     pull(local)
     return local
 
