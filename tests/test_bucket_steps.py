@@ -20,7 +20,6 @@ from typer.testing import CliRunner
 from latent_steering_cli import app
 from steering_core.config import RunConfig, load_run_config
 from steering_core.demo import build_demo
-
 from steering_core.storage import objects, publish
 from steering_core.storage.fingerprints import file_digest
 from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, parse_cache_record, rooted
@@ -273,4 +272,43 @@ def test_manifest_and_concept_map_write_to_and_read_from_bucket_urls(local, buck
     assert expected != local_map
     assert _objects(f"{bucket}/data/manifests")["pair_concept_map.json"] == expected
     assert _published(concept_map)["files"]["pair_concept_map.json"]["sha256"] == hashlib.sha256(expected).hexdigest()
+    assert publish.staging_files(bucket) == []
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    """Return relative path -> bytes of every file under a local folder (lock files left out)."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and not p.name.endswith(".lock")}
+
+
+def test_a_dataset_uploaded_by_hand_is_read_from_its_url(local, bucket, tmp_path, monkeypatch):
+    dataset = f"{bucket}/datasets/{local.config.dataset.repo_id}"
+    for relative, data in _files(local.dataset).items():
+        _put(f"{dataset}/{relative}", data)
+    _machine(tmp_path, monkeypatch, "one", bucket)
+    args = local.manifest_args(f"{bucket}/data/manifest.json")
+    args[args.index("--lerobot-root") + 1] = dataset
+    cli(*args)
+    expected = (local.out / "manifest.json").read_bytes().replace(str(local.dataset).encode(), dataset.encode())
+    assert expected != (local.out / "manifest.json").read_bytes()  # it names its dataset
+    assert _objects(f"{bucket}/data")["manifest.json"] == expected
+    assert _objects(dataset) == _files(local.dataset)  # an input: read, never republished (no record beside it)
+
+
+def test_capture_to_a_bucket_and_slice_it_on_another_machine(local, bucket, tmp_path, monkeypatch):
+    run, slices = f"{bucket}/data/residuals/demo", f"{bucket}/data/slices"
+    _machine(tmp_path, monkeypatch, "one", bucket)
+    cli(*local.capture_args(run))
+    captured = _objects(run)
+    assert captured == _files(local.out / "run")  # every shard and JSON file as the local capture wrote it
+    assert sorted(_published(run)["files"]) == sorted(f"demo/{name}" for name in captured)
+
+    mirror, _ = _machine(tmp_path, monkeypatch, "two", bucket)
+    cli(*local.slice_args(run, local.out / "concept_map.json", slices))
+    assert _objects(run) == captured and sorted(_published(run)["files"]) == sorted(f"demo/{n}" for n in captured)
+    assert not list(mirror.rglob("shard-*.safetensors"))  # shards were read from the bucket, not pulled
+    expected = {name: data.replace(str(local.out / "run").encode(), run.encode())
+                for name, data in _files(local.out / "slices").items()}
+    assert expected["layer01/index.json"] != _files(local.out / "slices")["layer01/index.json"]  # names its run
+    assert _objects(slices) == expected
     assert publish.staging_files(bucket) == []
