@@ -312,3 +312,13 @@ def test_capture_to_a_bucket_and_slice_it_on_another_machine(local, bucket, tmp_
     assert expected["layer01/index.json"] != _files(local.out / "slices")["layer01/index.json"]  # names its run
     assert _objects(slices) == expected
     assert publish.staging_files(bucket) == []
+
+
+def test_a_finished_capture_run_again_on_another_machine_keeps_its_shards(local, bucket, tmp_path, monkeypatch):
+    run = f"{bucket}/data/residuals/demo"
+    _machine(tmp_path, monkeypatch, "one", bucket)
+    cli(*local.capture_args(run))
+    captured = _objects(f"{bucket}/data")
+    mirror, _ = _machine(tmp_path, monkeypatch, "two", bucket)
+    cli(*local.capture_args(run))
+    assert _objects(f"{bucket}/data") == captured
