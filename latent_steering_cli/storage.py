@@ -44,19 +44,22 @@ def mount_urls(paths: set[str], args: Sequence[str]) -> tuple[list[str], list[Pa
 
 
 def _mounted(url: str) -> Path:
-    """Return the mirror path of `url`, pulled: under an output root when it holds published outputs (or nothing
-    yet), else under an input root.
+    """Return the mirror path of `url`, pulled: an output when it holds published outputs (or nothing yet), else
+    an input root of its own (objects a user put there).
 
-    The root mounted is the URL's parent, so a file or folder the command writes there is an output of that root,
-    published with its record beside it (a root itself is never published). A bucket alone is mounted as it is.
+    An output is mounted under its parent URL as the root, so the file or folder the command writes is published
+    with its record beside it (a root itself is never published). A bucket alone is mounted as it is.
     """
     url = url.rstrip("/")
     published = read_record(url) is not None or bool(records_under(url))
-    role = "output" if published or not _exists(url) else "input"
-    parent, _, name = url.partition("://")[2].rpartition("/")
-    local = mount(f"{url.partition('://')[0]}://{parent}", role) / name if parent else mount(url, role)
-    if role == "output" and not published:
-        return local  # a new output: nothing to pull
+    if not published and _exists(url):
+        local = mount(url, "input")
+    else:
+        protocol, _, rest = url.partition("://")
+        parent, _, name = rest.rpartition("/")
+        local = mount(f"{protocol}://{parent}", "output") / name if parent else mount(url, "output")
+        if not published:
+            return local  # a new output: nothing to pull
     pull(local)
     return local
 
