@@ -322,3 +322,14 @@ def test_a_finished_capture_run_again_on_another_machine_keeps_its_shards(local,
     mirror, _ = _machine(tmp_path, monkeypatch, "two", bucket)
     cli(*local.capture_args(run))
     assert _objects(f"{bucket}/data") == captured
+
+
+def test_a_file_uploaded_by_hand_is_read_from_its_url(local, bucket, tmp_path, monkeypatch):
+    manifest = f"{bucket}/hand/manifest.json"
+    _put(manifest, (local.out / "manifest.json").read_bytes())
+    _machine(tmp_path, monkeypatch, "one", bucket)
+    cli(*local.concept_map_args(manifest, tmp_path / "concept_map.json"))
+    local_map = (local.out / "concept_map.json").read_bytes()
+    expected = local_map.replace(str(local.out / "manifest.json").encode(), manifest.encode())
+    assert expected != local_map and (tmp_path / "concept_map.json").read_bytes() == expected
+    assert _objects(f"{bucket}/hand") == {"manifest.json": (local.out / "manifest.json").read_bytes()}
