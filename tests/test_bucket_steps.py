@@ -333,3 +333,25 @@ def test_a_file_uploaded_by_hand_is_read_from_its_url(local, bucket, tmp_path, m
     expected = local_map.replace(str(local.out / "manifest.json").encode(), manifest.encode())
     assert expected != local_map and (tmp_path / "concept_map.json").read_bytes() == expected
     assert _objects(f"{bucket}/hand") == {"manifest.json": (local.out / "manifest.json").read_bytes()}
+
+
+def test_an_altered_file_of_a_published_folder_fails_the_command_naming_it(local, bucket, tmp_path, monkeypatch):
+    root, _ = _machine(tmp_path, monkeypatch, "one", bucket)
+    manifests = root / "manifests"  # a folder published whole, as a step publishes its output folder
+    manifests.mkdir(parents=True)
+    (manifests / "pair.json").write_bytes((local.out / "manifest.json").read_bytes())
+    publish.publish(manifests)
+    url = f"{bucket}/data/manifests/pair.json"
+    altered = (local.out / "manifest.json").read_bytes().replace(b'"effect_size": ', b'"effect_size":-')
+    assert len(altered) == (local.out / "manifest.json").stat().st_size
+    _put(url, altered)
+    before = _objects(bucket)
+
+    _machine(tmp_path, monkeypatch, "two", bucket)
+    result = CliRunner().invoke(app, local.concept_map_args(url, f"{bucket}/data/manifests/pair_concept_map.json"))
+    assert result.exit_code == 1, (result.output, result.exception)
+    assert result.output.strip().splitlines() == [
+        f"error: --manifest-path: {url}: sha256 is {hashlib.sha256(altered).hexdigest()}, expected "
+        f"{hashlib.sha256((local.out / 'manifest.json').read_bytes()).hexdigest()} from its publication record; "
+        "the object changed after it was published, re-run the step that wrote it"]
+    assert _objects(bucket) == before
