@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from steering_core.storage.objects import is_url, mount, object_path
-from steering_core.storage.publish import publish, pull, read_record, records_under
+from steering_core.storage.publish import covering_record, publish, pull, records_under
 
 Snapshot = dict[Path, dict[str, tuple[int, int]]]
 
@@ -44,14 +44,14 @@ def mount_urls(paths: set[str], args: Sequence[str]) -> tuple[list[str], list[Pa
 
 
 def _mounted(url: str) -> Path:
-    """Return the mirror path of `url`, pulled: an output when it holds published outputs (or nothing yet), else
-    an input root of its own (objects a user put there).
+    """Return the mirror path of `url`, pulled: an output when it is, holds or lies in published outputs (or is
+    nothing yet), else an input root of its own (objects a user put there).
 
     An output is mounted under its parent URL as the root, so the file or folder the command writes is published
     with its record beside it (a root itself is never published). A bucket alone is mounted as it is.
     """
     url = url.rstrip("/")
-    published = read_record(url) is not None or bool(records_under(url))
+    published = covering_record(url) is not None or bool(records_under(url))  # a file of a published folder too
     if not published and _exists(url):
         local = mount(url, "input")
     else:
