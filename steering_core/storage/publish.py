@@ -218,15 +218,17 @@ def pull(path: str | os.PathLike) -> list[Path]:
     if root.role == "input":
         return _pull_input(root, key)
     records = []
-    if key and (covering := covering_record(_url(root, key))) is not None:
+    if (covering := covering_record(_url(root, key))) is not None:  # never the bucket itself
         records.append(covering)
     else:
         records.extend(records_under(_url(root, key)))
     fetched = []
-    for parent_url, record in records:
-        parent_key = parent_url[len(root.url) + 1:] if parent_url != root.url else ""
+    for parent_url, record in records:  # a covering record may lie above the root (a root inside a published folder)
         for relative, entry in sorted(record["files"].items()):
-            file_key = f"{parent_key}/{relative}" if parent_key else relative
+            file_url = f"{parent_url}/{relative}"
+            if not file_url.startswith(root.url + "/"):
+                continue
+            file_key = file_url[len(root.url) + 1:]
             if key and not (file_key == key or file_key.startswith(key + "/")):
                 continue
             if any(fnmatch.fnmatch(PurePosixPath(relative).name, p) for p in STREAMED):
