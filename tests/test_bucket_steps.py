@@ -188,6 +188,22 @@ def test_a_record_whose_outputs_were_unpublished_runs_the_task_again(bucket, tmp
     assert first_step(str(root), source)[0] == "Cached"
 
 
+
+def test_a_root_mounted_inside_a_published_folder_pulls_its_files(bucket, tmp_path, monkeypatch):
+    root, _ = _machine(tmp_path, monkeypatch, "one", bucket)
+    (root / "slices" / "layer01").mkdir(parents=True)
+    (root / "slices" / "layer01" / "index.json").write_text('{"n": 1}')
+    (root / "slices" / "top.json").write_text("{}")
+    publish.publish(root / "slices")  # one record for the folder, beside it in data/
+
+    _machine(tmp_path, monkeypatch, "two", bucket)
+    objects.unmount_all()
+    inner = objects.mount(f"{bucket}/data/slices")  # e.g. a command given the folder's URL
+    assert sorted(publish.pull(inner / "layer01")) == [inner / "layer01" / "index.json"]
+    assert sorted(publish.pull(inner)) == [inner / "top.json"]
+    assert (inner / "layer01" / "index.json").read_text() == '{"n": 1}' and (inner / "top.json").read_text() == "{}"
+
+
 # ----------------------------------------------------------------------------- CLI commands given URLs
 
 @dataclass(frozen=True)
