@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from unittest.mock import ANY
@@ -330,14 +331,17 @@ def test_capture_to_a_bucket_and_slice_it_on_another_machine(local, bucket, tmp_
     assert publish.staging_files(bucket) == []
 
 
-def test_a_finished_capture_run_again_on_another_machine_keeps_its_shards(local, bucket, tmp_path, monkeypatch):
+@pytest.mark.xfail(strict=True, reason="find_complete_shard counts only shards in this machine's mirror; published "
+                   "shards are streamed, never pulled, so another machine captures every group again")
+def test_a_finished_capture_run_again_on_another_machine_captures_nothing(local, bucket, tmp_path, monkeypatch):
     run = f"{bucket}/data/residuals/demo"
     _machine(tmp_path, monkeypatch, "one", bucket)
     cli(*local.capture_args(run))
     captured = _objects(f"{bucket}/data")
-    mirror, _ = _machine(tmp_path, monkeypatch, "two", bucket)
-    cli(*local.capture_args(run))
+    _machine(tmp_path, monkeypatch, "two", bucket)
+    output = cli(*local.capture_args(run))
     assert _objects(f"{bucket}/data") == captured
+    assert ": 0 shard group(s) written" in output, output
 
 
 def test_a_file_uploaded_by_hand_is_read_from_its_url(local, bucket, tmp_path, monkeypatch):
@@ -371,3 +375,23 @@ def test_an_altered_file_of_a_published_folder_fails_the_command_naming_it(local
         f"{hashlib.sha256((local.out / 'manifest.json').read_bytes()).hexdigest()} from its publication record; "
         "the object changed after it was published, re-run the step that wrote it"]
     assert _objects(bucket) == before
+
+
+def test_a_capture_resumed_on_a_machine_with_its_dataset_elsewhere_keeps_its_shards(local, bucket, tmp_path,
+                                                                                    monkeypatch):
+    run = f"{bucket}/data/residuals/demo"
+    _machine(tmp_path, monkeypatch, "one", bucket)
+    cli(*local.capture_args(run))
+    shards = {name: data for name, data in _objects(run).items() if name.endswith(".safetensors")}
+    assert shards and shards == {n: d for n, d in _files(local.out / "run").items() if n.endswith(".safetensors")}
+
+    _machine(tmp_path, monkeypatch, "two", bucket)
+    copy = tmp_path / "datasets" / local.config.dataset.repo_id  # the same dataset at another path on this machine
+    shutil.copytree(local.dataset, copy)
+    args = local.capture_args(run)
+    args[args.index("--lerobot-root") + 1] = str(copy)
+    cli(*args)
+    after = _objects(run)
+    assert {name: data for name, data in after.items() if name.endswith(".safetensors")} == shards
+    assert sorted(_published(run)["files"]) == sorted(f"demo/{name}" for name in after)
+    assert str(copy) in json.loads(after["run.json"])["sources"]["dataset_root"]  # the run names where it was read
