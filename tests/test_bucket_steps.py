@@ -205,6 +205,25 @@ def test_a_root_mounted_inside_a_published_folder_pulls_its_files(bucket, tmp_pa
     assert (inner / "layer01" / "index.json").read_text() == '{"n": 1}' and (inner / "top.json").read_text() == "{}"
 
 
+
+def test_a_folder_republished_from_a_mirror_without_its_shards_keeps_them(bucket, tmp_path, monkeypatch):
+    root, _ = _machine(tmp_path, monkeypatch, "one", bucket)
+    (root / "run" / "layer01").mkdir(parents=True)
+    shard = bytes(range(256)) * 16
+    (root / "run" / "layer01" / "shard-00000.safetensors").write_bytes(shard)
+    (root / "run" / "run.json").write_text('{"v": 1}')
+    publish.publish(root / "run")
+
+    root, _ = _machine(tmp_path, monkeypatch, "two", bucket)
+    publish.pull(root / "run")
+    assert not (root / "run" / "layer01" / "shard-00000.safetensors").exists()  # streamed, never pulled
+    (root / "run" / "run.json").write_text('{"v": 2}')  # e.g. a capture resumed here rewrites its run.json
+    publish.publish(root / "run")
+    assert _objects(f"{bucket}/data/run") == {"layer01/shard-00000.safetensors": shard, "run.json": b'{"v": 2}'}
+    assert sorted(_published(f"{bucket}/data/run")["files"]) == ["run/layer01/shard-00000.safetensors", "run/run.json"]
+    assert publish.remote_file(root / "run" / "layer01" / "shard-00000.safetensors").size == len(shard)
+
+
 # ----------------------------------------------------------------------------- CLI commands given URLs
 
 @dataclass(frozen=True)
