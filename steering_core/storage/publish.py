@@ -4,7 +4,8 @@
 (`<parent>/.staging/<name>.<host>-<pid>-<id>/`), copies it server-side to its final keys, then writes its
 *publication record* `<parent>/.<name>.published.json` (every file's size, sha256 and ETag). The record is
 the commit point: readers (`pull`, `remote_file`) see an output only through its record, so a half-written
-output is invisible. Republishing first deletes the record, so readers never mix two versions. Staging
+output is invisible. Republishing first deletes the record, so readers never mix two versions; shards absent
+from the mirror (streamed, never pulled: a run resumed on another machine) stay published as they were. Staging
 left by a dead writer is removed by the next publication of the same output (it holds the output's lock).
 
 `pull(path)` brings the published outputs at, under or around `path` into the mirror, checking each file's
@@ -96,9 +97,10 @@ def publish(path: str | os.PathLike) -> dict[str, Any] | None:
             fs.put_file(str(file), staged)
             entries[relative] = {"size": file.stat().st_size, "sha256": sha256_file(file)}
         _, record_path = object_path(_record_url(url))
+        kept = _streamed_elsewhere(url, path.parent, entries)
         with contextlib.suppress(FileNotFoundError):
             fs.rm_file(record_path)  # from here until the new record, the output is invisible
-        stale = _published_files(fs, parent_url, url) - set(entries)
+        stale = _published_files(fs, parent_url, url) - set(entries) - set(kept)
         for relative, entry in entries.items():
             _, staged = object_path(f"{staging}/{relative}")
             _, final = object_path(f"{parent_url}/{relative}")
@@ -107,13 +109,25 @@ def publish(path: str | os.PathLike) -> dict[str, Any] | None:
         for relative in sorted(stale):
             with contextlib.suppress(FileNotFoundError):
                 fs.rm_file(object_path(f"{parent_url}/{relative}")[1])
-        record = {"format": 1, "kind": "folder" if path.is_dir() else "file", "files": entries}
+        record = {"format": 1, "kind": "folder" if path.is_dir() else "file", "files": {**kept, **entries}}
         fs.pipe_file(record_path, json.dumps(record, indent=1, sort_keys=True).encode())
         fs.invalidate_cache()
     finally:
         _remove_prefix(fs, staging)
     logger.info("published %s (%d files)", url, len(entries))
     return record
+
+
+def _streamed_elsewhere(url: str, parent: Path, entries: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Return the entries of the current record of `url` for streamed files absent from this mirror.
+
+    Shards are never pulled, so a folder republished from a machine that did not write them (a run resumed
+    there) lacks them locally: they stay published as they are, not deleted as stale.
+    """
+    previous = read_record(url)
+    return {relative: entry for relative, entry in (previous or {}).get("files", {}).items()
+            if relative not in entries and not (parent / relative).exists()
+            and any(fnmatch.fnmatch(PurePosixPath(relative).name, p) for p in STREAMED)}
 
 
 def _published_files(fs: Any, parent_url: str, url: str) -> set[str]:
