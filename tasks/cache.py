@@ -121,7 +121,8 @@ class ContentKey(CachePolicy):
         self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any
     ) -> str:
         task_fn = task_ctx.task.fn
-        inputs = pull_inputs(inputs) if self.store is not None and objects.url_of(self.store) else inputs
+        if self.store is not None and objects.url_of(self.store):
+            inputs = _pulled_for_key(task_ctx, inputs)
         identity = {
             "task": f"{task_fn.__module__}.{task_fn.__qualname__}",
             "source": hashlib.sha256(inspect.getsource(task_fn).encode()).hexdigest(),
@@ -147,6 +148,20 @@ def content_key(
 ) -> ContentKey:
     """Return a `ContentKey` over the given steering_core modules and per-parameter fingerprints."""
     return ContentKey(modules=modules, fingerprints=fingerprints, derived=dict(derived or {}), ignore=ignore)
+
+
+# Task run id -> the error met pulling its inputs for its cache key. Prefect logs an error raised by a cache
+# policy and runs the task without a key, so the task's own run raises it (see `_through_bucket`).
+_PULL_ERRORS: dict[Any, Exception] = {}
+
+
+def _pulled_for_key(task_ctx: Any, inputs: dict[str, Any]) -> dict[str, Any]:
+    try:
+        return pull_inputs(inputs)
+    except Exception as err:
+        if (task_run := getattr(task_ctx, "task_run", None)) is not None:
+            _PULL_ERRORS[task_run.id] = err
+        raise
 
 
 def _drop_if_outputs_missing(store: Path, key: str) -> None:
@@ -299,7 +314,7 @@ def rooted(task: Task, output_root: str | os.PathLike) -> Task:
     if url is None:
         return task.with_options(result_storage=store, cache_policy=policy)
     bucket_task = task.with_options(result_storage=result_block(url), cache_policy=policy)
-    bucket_task.fn = _through_bucket(task.fn)
+    bucket_task.fn = _through_bucket(task.fn, pulls=not isinstance(policy, ContentKey))
     return bucket_task
 
 
@@ -335,18 +350,21 @@ def _mirror_paths(value: Any) -> list[str]:
     return [path for item in items for path in _mirror_paths(item)]
 
 
-def _through_bucket(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Return `fn` run on mirror paths, pulled first, its outputs published after.
+def _through_bucket(fn: Callable[..., Any], *, pulls: bool) -> Callable[..., Any]:
+    """Return `fn` run on mirror paths (pulled first when no cache key pulled them), its outputs published after.
 
-    Pulled here even when the cache key pulled them already (then only checked against their records): Prefect
-    logs an error raised while computing a key and runs the task without one, so an object changed after its
-    publication would otherwise fail the task as a missing mirror file instead of naming the object.
+    When pulling for the cache key failed (an object changed after its publication), Prefect only logged it and
+    runs the task without a key: the task fails with that error here, naming the object, before reading anything.
     """
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Any:
+        context = TaskRunContext.get()
+        if context is not None and (error := _PULL_ERRORS.pop(context.task_run.id, None)) is not None:
+            raise error
         args, kwargs = objects.localize(args), objects.localize(kwargs)
-        pull_inputs({"args": args, "kwargs": kwargs})
+        if pulls:
+            pull_inputs({"args": args, "kwargs": kwargs})
         summary = fn(*args, **kwargs)
         for path in publish_units(summary):
             if path.exists():  # else written on another machine (a group captured there): published already
