@@ -13,7 +13,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from steering_core.storage.objects import is_url, mount, object_path
+from steering_core.storage.objects import is_url, mount, object_path, split_url
 from steering_core.storage.publish import covering_record, publish, pull, records_under
 
 Snapshot = dict[Path, dict[str, tuple[int, int]]]
@@ -51,6 +51,7 @@ def _mounted(url: str) -> Path:
     with its record beside it (a root itself is never published). A bucket alone is mounted as it is.
     """
     url = url.rstrip("/")
+    split_url(url)  # refused as given (not as the URL of a record beside it)
     published = covering_record(url) is not None or bool(records_under(url))  # a file of a published folder too
     if not published and _exists(url):
         local = mount(url, "input")
