@@ -467,6 +467,20 @@ def _renew(fs: Any, path: str, holder: str, every: float, stop: threading.Event)
             fs.pipe_file(path, json.dumps({"holder": holder, "beat": beat}).encode())
 
 
+def check_writable(url: str) -> str:
+    """Return `url` once a probe object was written and deleted under it from this machine; ValueError in one
+    line naming the URL otherwise (no bucket, no credentials, no endpoint: whatever the cause, runs could not write)."""
+    fs, probe = object_path(f"{url}/.probe-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}")
+    try:
+        fs.pipe_file(probe, b"latent-steering: write probe\n")
+        fs.rm_file(probe)
+    except Exception as err:  # noqa: BLE001  reported in one line
+        reason = " ".join(f"{type(err).__name__}: {err}".split())
+        raise ValueError(f"{url}: not writable from this machine ({reason}); check the URL and the AWS_* / "
+                         "GOOGLE_APPLICATION_CREDENTIALS settings of this environment") from None
+    return url
+
+
 def staging_files(url: str) -> list[str]:
     """Return every object under staging prefixes below the root `url` (for tests and the run's end check)."""
     fs, path = object_path(url)
