@@ -13,7 +13,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from steering_core.storage.objects import is_url, mount, object_path
+from steering_core.storage.objects import is_url, mount, object_path, split_url
 from steering_core.storage.publish import publish, pull, read_record, records_under
 
 Snapshot = dict[Path, dict[str, tuple[int, int]]]
@@ -45,7 +45,8 @@ def mount_urls(paths: set[str], args: Sequence[str]) -> tuple[list[str], list[Pa
 
 def _mounted(url: str) -> Path:
     """Mount `url` as an output root when it holds published outputs (or nothing yet), else as an input; pull it."""
-    url = url.rstrip("/")
+    protocol, path = split_url(url)  # refused in one line before any request
+    url = f"{protocol}://{path}"
     published = read_record(url) is not None or records_under(url)
     local = mount(url, "output")
     if not published and not _exists(url):
