@@ -302,6 +302,7 @@ class RemoteFile:
 
     url: str
     size: int
+    sha256: str | None = None  # from the publication record (None for an input's object, which has none)
 
     def open(self) -> BinaryIO:
         """Return a binary file reading the object with one ranged GET per read (no read-ahead)."""
@@ -374,7 +375,7 @@ def remote_file(path: str | os.PathLike) -> RemoteFile | None:
                              "published, re-run the step that wrote it")
     elif root.role == "output":
         return None  # written but never published: invisible
-    return RemoteFile(url, int(info["size"]))
+    return RemoteFile(url, int(info["size"]), entry["sha256"] if covering is not None else None)
 
 
 # ----------------------------------------------------------------------------- locks without a shared disk
