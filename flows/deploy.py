@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import logging
 import os
-import socket
 import subprocess
 import sys
-import uuid
 from datetime import timedelta
 from pathlib import Path
 
@@ -30,7 +28,7 @@ from prefect.filesystems import RemoteFileSystem
 from prefect.settings import PREFECT_API_URL
 from prefect.workers.process import ProcessWorker
 
-from steering_core.storage import objects
+from steering_core.storage import objects, publish
 
 logger = logging.getLogger(__name__)
 
@@ -128,16 +126,7 @@ def check_storage(url: str) -> str:
     if not objects.is_url(url):
         raise ValueError(f"--storage {url!r}: expected a URL such as s3://bucket/prefix (or gs://, file://)")
     protocol, path = objects.split_url(url)
-    url = f"{protocol}://{path}"
-    fs, probe = objects.object_path(f"{url}/.deploy-probe-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}")
-    try:
-        fs.pipe_file(probe, b"latent-steering deploy: write probe\n")
-        fs.rm_file(probe)
-    except Exception as err:  # whatever the cause (no bucket, no credentials, no endpoint), runs could not write
-        reason = " ".join(f"{type(err).__name__}: {err}".split())
-        raise ValueError(f"{url}: not writable from this machine ({reason}); check the URL and the AWS_* / "
-                         "GOOGLE_APPLICATION_CREDENTIALS settings of this environment") from None
-    return url
+    return publish.check_writable(f"{protocol}://{path}")
 
 
 def save_results_block(basepath: str) -> str:

@@ -36,6 +36,7 @@ def evaluation_targets(config: RunConfig) -> list[tuple[str, int, str]]:
 def evaluate_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
     """Evaluate the steering vectors of `targets` (default every pair, layer and stream), one task each."""
     config = load_run_config(config_path)
+    pulled(config.output_root)  # on a bucket root: what the jobs are planned from (pairs configs, slices, dataset)
     task = rooted(evaluate_tasks.evaluate_pair, config.output_root)
     done = []
     for target in targets or evaluation_targets(config):  # one after another: they share this device
@@ -56,6 +57,7 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]
 
     Returns layer folder name (`layer02`, `expert_layer01`, `pathways`) -> its summary.md.
     """
+    pulled(config.output_root)  # on a bucket root: outputs of steps cached here but computed on other machines
     targets = evaluation_targets(config)
     if capture_mode(config) == "deployment":  # cached ones are not started: a process start costs seconds
         wanted = [target for target in targets if not is_cached(

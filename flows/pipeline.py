@@ -78,8 +78,8 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     holdouts = holdout_splits(config)
     mode = run_capture(config, config_path)  # with evaluate.expert_layers, the decision rows too
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
+    expert_slices = decision_slices(config, holdouts)  # submitted: sliced on this machine while training runs
     trained = run_training(config, config_path)  # the layers whose SAE is trained on these residuals
-    expert_slices = decision_slices(config, holdouts)
     reports = steering_vectors(config, task_texts, holdouts)
     for future in expert_slices:
         future.result()

@@ -36,6 +36,7 @@ def rollout_targets(config: RunConfig) -> list[tuple[str, int, str]]:
 def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
     """Roll out `targets` (default every (pair, layer, side)), one task per chunk, then merge each cell."""
     config = load_run_config(config_path)
+    pulled(config.output_root)  # on a bucket root: what the jobs are planned from (directions, splits, dataset)
     settings, model = config.rollout.settings(), config.capture_settings()
     api_key = read_api_key(settings.api_key_file)
     chunk_task = rooted(rollout_tasks.rollout_chunk, config.output_root)
@@ -60,6 +61,7 @@ def ui_rollouts(layer_path: Path) -> str:
 def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     """Roll out every (pair, layer, side) on the `sim` pool or in-process, then write and publish each layer's
     summary; return layer folder name -> its summary.md."""
+    pulled(config.output_root)  # on a bucket root: outputs of steps cached here but computed on other machines
     targets = rollout_targets(config)
     if capture_mode(config) == "deployment":
         run_deployments(config, config.orchestration.rollout_deployment, config_path, targets,

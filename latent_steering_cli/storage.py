@@ -50,14 +50,13 @@ def _mounted(url: str) -> Path:
     An output is mounted under its parent URL as the root, so the file or folder the command writes is published
     with its record beside it (a root itself is never published). A bucket alone is mounted as it is.
     """
-    url = url.rstrip("/")
-    split_url(url)  # refused as given (not as the URL of a record beside it)
+    protocol, path = split_url(url)  # refused in one line, as given, before any request
+    url = f"{protocol}://{path}"
     published = covering_record(url) is not None or bool(records_under(url))  # a file of a published folder too
     if not published and _exists(url):
         local = mount(url, "input")
     else:
-        protocol, _, rest = url.partition("://")
-        parent, _, name = rest.rpartition("/")
+        parent, _, name = path.rpartition("/")
         local = mount(f"{protocol}://{parent}", "output") / name if parent else mount(url, "output")
         if not published:
             return local  # a new output: nothing to pull

@@ -30,6 +30,8 @@ from steering_core.pi05.checkpoint import (
 )
 from steering_core.sae.vectors import load_steering_sae
 from steering_core.storage.fileio import check_output_dir
+from steering_core.storage.objects import url_of
+from steering_core.storage.publish import check_writable
 
 logger = logging.getLogger(__name__)
 
@@ -186,6 +188,11 @@ def _dataset_problems(config: RunConfig) -> list[str]:
 def _output_problems(config: RunConfig) -> list[str]:
     """Return one problem per culprit (a file where a folder goes, a read-only folder) among the output folders."""
     problems: dict[str, str] = {}
+    if (url := url_of(config.output_root)) is not None:  # a bucket root: this machine must be able to write there
+        try:
+            check_writable(url)
+        except ValueError as err:
+            problems[url] = one_line(err)
     for path, what in _output_dirs(config):
         try:
             check_output_dir(path, what)

@@ -350,8 +350,6 @@ def test_capture_to_a_bucket_and_slice_it_on_another_machine(local, bucket, tmp_
     assert publish.staging_files(bucket) == []
 
 
-@pytest.mark.xfail(strict=True, reason="find_complete_shard counts only shards in this machine's mirror; published "
-                   "shards are streamed, never pulled, so another machine captures every group again")
 def test_a_finished_capture_run_again_on_another_machine_captures_nothing(local, bucket, tmp_path, monkeypatch):
     run = f"{bucket}/data/residuals/demo"
     _machine(tmp_path, monkeypatch, "one", bucket)

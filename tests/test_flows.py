@@ -15,6 +15,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import threading
 import time
 from pathlib import Path
@@ -22,6 +23,7 @@ from uuid import UUID
 
 import pytest
 import torch
+import yaml
 from prefect import flow, task
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (
@@ -40,7 +42,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 from typer.testing import CliRunner
 
-from flows.pipeline import PIPELINE_FLOW
+from flows.pipeline import PIPELINE_FLOW, latent_steering
 from flows.refresh import refresh
 from latent_steering_cli import app
 from steering_core.capture import slicing
@@ -49,7 +51,7 @@ from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
 from steering_core.demo import DEMO_STEPS, PLANTED_DIR, build_demo, format_summary, summarise
-from steering_core.storage import fileio
+from steering_core.storage import fileio, objects, publish
 from steering_core.storage.fileio import read_json, sha256_file
 from steering_core.storage.fingerprints import code_modules, code_version, file_digest
 from steering_core.storage.layout import layer_dir
@@ -506,6 +508,67 @@ def test_outputs_equal_the_cli_steps(first_run, demo_config, cli_steps_run):
         theirs = load_file(out / "steering_eval" / "expert_layer02" / pair.name / "dose_response.safetensors")
         for key in ("actions", "swap_actions", "efficacy", "directions", "z"):
             assert torch.equal(ours[key], theirs[key]), (pair.name, key)
+
+
+@pytest.fixture(scope="module")
+def bucket_run(first_run, demo_dir, s3_endpoint, tmp_path_factory):
+    """The demo's run config again with every root in a bucket: its inputs uploaded there, outputs under
+    `<bucket>/data`, this process's mirror in a folder of its own (rollouts left out: they are closed-loop
+    episodes, not under test here). Return the bucket's URL."""
+    bucket = f"s3://flows-{os.getpid()}-{time.monotonic_ns()}"
+    fs = objects.filesystem("s3")
+    fs.mkdir(bucket[5:])
+    inputs, data = (demo_dir / "inputs").resolve(), (demo_dir / "data").resolve()
+    fs.put(str(inputs), f"{bucket[5:]}/inputs", recursive=True)
+    raw = yaml.safe_load((demo_dir / "run.yaml").read_text().replace(str(inputs), f"{bucket}/inputs")
+                         .replace(str(data), f"{bucket}/data"))
+    raw.pop("rollout")
+    fs.pipe_file(f"{bucket[5:]}/run.yaml", yaml.safe_dump(raw).encode())
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(objects.MIRROR_ENV, str(tmp_path_factory.mktemp("mirror")))
+        try:
+            result = latent_steering(f"{bucket}/run.yaml")
+        finally:
+            objects.unmount_all()
+    assert result["reports"]["1"] == f"{bucket}/data/latent_steering/layer01"  # the outputs named by URL
+    return bucket
+
+
+def test_outputs_on_a_bucket_equal_the_local_run(bucket_run, demo_dir):
+    """Every output the local demo run wrote (but the rollouts) is in the bucket, published, with equal bytes:
+    tensors exactly, text files apart from where they name the roots (a path here, a URL there) and the digests
+    computed over those names. Nothing is left in staging."""
+    fs, local = objects.filesystem("s3"), demo_dir / "data"
+    roots = {str(local.resolve()): "<data>", str((demo_dir / "inputs").resolve()): "<inputs>",
+             f"{bucket_run}/data": "<data>", f"{bucket_run}/inputs": "<inputs>"}
+
+    def text(data: bytes) -> str:
+        found = data.decode("utf-8")
+        for root, name in roots.items():
+            found = found.replace(root, name)
+        return found
+
+    compared = []
+    for path in sorted(p for p in local.rglob("*") if p.is_file()):
+        relative = path.relative_to(local).as_posix()
+        if relative.split("/")[0] in (CACHE_DIR, "refresh", "rollouts") or path.name.endswith(".lock"):
+            continue
+        url = f"{bucket_run}/data/{relative}"
+        assert publish.is_published(url), url
+        ours, theirs = path.read_bytes(), fs.cat_file(url[5:])
+        if path.suffix in (".json", ".md", ".html", ".jsonl"):
+            ours, theirs = without_root_digests(text(ours)), without_root_digests(text(theirs))
+        assert ours == theirs, relative
+        compared.append(relative)
+    assert sum(name.endswith(".safetensors") for name in compared) > 40  # shards, slices, statistics, directions
+    assert publish.staging_files(bucket_run) == []
+
+
+def without_root_digests(text: str) -> str:
+    """Return `text` with its sha256 digests masked: identities of files and settings that name the roots (a
+    concept map names its dataset's folder, an SAE its weights file) differ between a local and a bucket root.
+    The files they stand for are compared themselves."""
+    return re.sub(r'"[0-9a-f]{64}"', '"<digest>"', text)
 
 
 def test_expert_evaluation_key_follows_its_own_pair_only(first_run, demo_config):

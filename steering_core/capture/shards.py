@@ -268,10 +268,23 @@ def find_complete_shard(
     if record.inputs != inputs or record.dtype != spec.storage_dtype or record.width != spec.width:
         logger.info("redoing %s (layer %d): computed from other inputs", path.name, layer)
         return None
-    if not path.exists() or sha256_file(path) != record.sha256:
+    if not _holds(path, record.sha256):
         logger.info("redoing %s (layer %d): file missing or sha256 mismatch", path.name, layer)
         return None
     return record
+
+
+def _holds(path: Path, sha256: str) -> bool:
+    """Return True if the shard `path` holds bytes of this sha256: here, or published in the bucket of a mounted
+    root (its publication record's sha256; the object's size and ETag checked against the record, never fetched)."""
+    if path.exists():
+        return sha256_file(path) == sha256
+    try:
+        remote = remote_file(path)
+    except (ValueError, FileNotFoundError) as err:  # changed or gone since it was published: computed again
+        logger.info("%s", err)
+        return False
+    return remote is not None and remote.sha256 == sha256
 
 
 class ShardReader:

@@ -318,6 +318,7 @@ class RemoteFile:
 
     url: str
     size: int
+    sha256: str | None = None  # from the publication record (None for an input's object, which has none)
 
     def open(self) -> BinaryIO:
         """Return a binary file reading the object with one ranged GET per read (no read-ahead)."""
@@ -390,7 +391,7 @@ def remote_file(path: str | os.PathLike) -> RemoteFile | None:
                              "published, re-run the step that wrote it")
     elif root.role == "output":
         return None  # written but never published: invisible
-    return RemoteFile(url, int(info["size"]))
+    return RemoteFile(url, int(info["size"]), entry["sha256"] if covering is not None else None)
 
 
 # ----------------------------------------------------------------------------- locks without a shared disk
@@ -481,6 +482,20 @@ def _renew(fs: Any, path: str, holder: str, every: float, stop: threading.Event)
         beat += 1
         with contextlib.suppress(Exception):
             fs.pipe_file(path, json.dumps({"holder": holder, "beat": beat}).encode())
+
+
+def check_writable(url: str) -> str:
+    """Return `url` once a probe object was written and deleted under it from this machine; ValueError in one
+    line naming the URL otherwise (no bucket, no credentials, no endpoint: whatever the cause, runs could not write)."""
+    fs, probe = object_path(f"{url}/.probe-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}")
+    try:
+        fs.pipe_file(probe, b"latent-steering: write probe\n")
+        fs.rm_file(probe)
+    except Exception as err:  # noqa: BLE001  reported in one line
+        reason = " ".join(f"{type(err).__name__}: {err}".split())
+        raise ValueError(f"{url}: not writable from this machine ({reason}); check the URL and the AWS_* / "
+                         "GOOGLE_APPLICATION_CREDENTIALS settings of this environment") from None
+    return url
 
 
 def staging_files(url: str) -> list[str]:
