@@ -23,7 +23,7 @@ from steering_core.config import RunConfig, load_run_config
 from steering_core.demo import build_demo
 from steering_core.storage import objects, publish
 from steering_core.storage.fingerprints import file_digest
-from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, parse_cache_record, rooted
+from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, rooted
 
 pytestmark = pytest.mark.slow
 
@@ -100,8 +100,7 @@ def next_step(root: str, source: str) -> tuple[str, object]:
 
 def _cache_records(bucket: str) -> dict[str, dict]:
     """Return cache record key -> the task summary it holds, read from the bucket with plain `json`."""
-    return {key: parse_cache_record(f"{bucket}/data/{CACHE_DIR}/{key}", data)
-            for key, data in _objects(f"{bucket}/data/{CACHE_DIR}").items()}
+    return {key: json.loads(json.loads(data)["result"]) for key, data in _objects(f"{bucket}/data/{CACHE_DIR}").items()}
 
 
 def test_a_task_publishes_its_output_and_keeps_its_record_in_the_bucket(bucket, tmp_path, monkeypatch):
@@ -187,7 +186,6 @@ def test_a_record_whose_outputs_were_unpublished_runs_the_task_again(bucket, tmp
     assert first_step(str(root), source)[0] == "Completed"  # the local mirror copy does not count
     assert "steps/.doubled.txt.published.json" in _objects(f"{bucket}/data")
     assert first_step(str(root), source)[0] == "Cached"
-
 
 
 def test_a_root_mounted_inside_a_published_folder_pulls_its_files(bucket, tmp_path, monkeypatch):
