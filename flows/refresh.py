@@ -25,6 +25,7 @@ from steering_core.refresh import (
     read_sources_record,
     scan_inputs,
 )
+from steering_core.storage.objects import is_url
 from steering_core.storage.publish import pulled
 
 REFRESH_FLOW = "latent-steering-refresh"
@@ -34,7 +35,7 @@ REFRESH_FLOW = "latent-steering-refresh"
 def refresh(config_path: str, rehash: bool = False) -> dict[str, Any]:
     """Run the pipeline if demo files (or the existing dataset, or the config) changed since its last success."""
     logger = get_run_logger()
-    config_path = str(Path(config_path).resolve())
+    config_path = config_path if is_url(config_path) else str(Path(config_path).resolve())
     config = load_run_config(config_path)
     previous = read_sources_record(pulled(config.output_root / SOURCES_RECORD_FILE))
     current = scan_inputs(config, previous=previous, rehash=rehash)

@@ -24,7 +24,7 @@ from steering_core.storage import objects
 
 DEPLOYMENTS = {"pipeline", "gpu", "gpu-train-sae", "gpu-evaluate", "sim-rollout", "scheduled"}
 BASE_ENV = {"PREFECT_LOGGING_EXTRA_LOGGERS": "steering_core", "HF_HUB_OFFLINE": "1",
-            "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "30"}
+            "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "30", "PREFECT_RESULTS_DEFAULT_SERIALIZER": "json"}
 STORAGE_KEYS = {"LATENT_STEERING_STORAGE", "PREFECT_RESULTS_DEFAULT_STORAGE_BLOCK", "PREFECT_RESULTS_PERSIST_BY_DEFAULT"}
 
 

@@ -66,7 +66,9 @@ def filesystem(protocol: str) -> Any:
         if protocol not in _FILESYSTEMS:
             import fsspec  # imported on first use: local runs never pay for it
 
-            _FILESYSTEMS[protocol] = fsspec.filesystem(protocol)
+            # no listings cache: other machines publish all the time, and a stale listing would hide their objects
+            options = {"use_listings_cache": False} if protocol != "file" else {}
+            _FILESYSTEMS[protocol] = fsspec.filesystem(protocol, **options)
         return _FILESYSTEMS[protocol]
 
 
