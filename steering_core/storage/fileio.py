@@ -25,7 +25,7 @@ from typing import Any
 
 from isal.isal_zlib import crc32  # zlib's CRC-32, same values, by carry-less multiply: ~8x zlib's speed
 
-from steering_core.storage.objects import localize, portable, portable_text
+from steering_core.storage.objects import localize, portable
 
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 
@@ -210,7 +210,7 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write UTF-8 `text` atomically (a report: Markdown, HTML); return the path. Mirror paths are written as URLs."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        tmp.write_text(portable_text(text), encoding="utf-8")
+        tmp.write_text(portable(text), encoding="utf-8")
     return path
 
 

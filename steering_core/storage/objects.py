@@ -139,15 +139,8 @@ def object_path(url: str) -> tuple[Any, str]:
 
 
 def portable(value: Any) -> Any:
-    """Return `value` with every text naming a mirror path replaced by its URL (nested in lists, tuples, dicts)."""
+    """Return `value` with every mirror path in its texts replaced by its URL (nested in lists, tuples, dicts)."""
     return _mapped(value, [(str(r.mirror), r.url) for r in roots()])
-
-
-def portable_text(text: str) -> str:
-    """Return `text` with every mirror path in it written as its URL (a report naming files)."""
-    for root in sorted(roots(), key=lambda r: -len(str(r.mirror))):
-        text = text.replace(str(root.mirror), root.url)
-    return text
 
 
 def localize(value: Any) -> Any:
@@ -158,10 +151,9 @@ def localize(value: Any) -> Any:
 def _mapped(value: Any, prefixes: list[tuple[str, str]]) -> Any:
     if not prefixes:
         return value
-    if isinstance(value, str):
+    if isinstance(value, str):  # wherever they stand in the text: `trained (<path>)` too; nested roots first
         for old, new in sorted(prefixes, key=lambda p: -len(p[0])):
-            if value == old or value.startswith(old + "/"):
-                return new + value[len(old):]
+            value = value.replace(old, new)
         return value
     if isinstance(value, Path):
         mapped = _mapped(str(value), prefixes)
