@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from typer.core import TyperGroup
 
 from latent_steering_cli.lazy import LazyCommands, current_options
-from steering_core.storage.objects import is_url
+from steering_core.storage.objects import is_url, portable
 
 # Options holding one string that lists several values (e.g. `--layers "12 14"`); the seed passes them
 # space-separated as separate words, which are joined back into that one value.
@@ -171,5 +171,5 @@ def input_errors(*extra: type[Exception]) -> Iterator[None]:
         raise typer.Exit(1) from None
     except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError,
             *extra) as err:
-        typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
+        typer.secho(f"error: {portable(str(err))}", fg=typer.colors.RED, err=True)  # mirror paths as their URLs
         raise typer.Exit(1) from None

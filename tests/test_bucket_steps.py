@@ -388,7 +388,7 @@ def test_an_altered_file_of_a_published_folder_fails_the_command_naming_it(local
     assert result.output.strip().splitlines() == [
         f"error: --manifest-path: {url}: sha256 is {hashlib.sha256(altered).hexdigest()}, expected "
         f"{hashlib.sha256((local.out / 'manifest.json').read_bytes()).hexdigest()} from its publication record; "
-        "the object changed after it was published, re-run the step that wrote it"]
+        f"the object changed after it was published; {publish.REDO_HINT}"]
     assert _objects(bucket) == before
 
 

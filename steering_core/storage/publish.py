@@ -43,6 +43,8 @@ LOCKS_DIR = ".locks"
 STREAMED = ("shard-*.safetensors",)  # read by ranges from the bucket, never pulled
 INPUT_STATE = ".{name}.etag"  # beside a pulled input file in the mirror: the object's ETag it was pulled at
 LEASE_ENV = "LATENT_STEERING_LOCK_LEASE_S"
+REDO_HINT = ("delete the publication record of the output holding it (`.<name>.published.json` beside that output), "
+         "and the step that wrote it runs again")
 _SKIPPED_LOCAL = (".*.lock", ".*.tmp", ".*.etag")  # lock files, staging files, input states: never published
 
 
@@ -277,7 +279,7 @@ def _download(url: str, local: Path, entry: dict[str, Any]) -> None:
         digest = sha256_file(tmp)
         if digest != entry["sha256"]:
             raise ValueError(f"{url}: sha256 is {digest}, expected {entry['sha256']} from its publication record; "
-                             "the object changed after it was published, re-run the step that wrote it")
+                             f"the object changed after it was published; {REDO_HINT}")
 
 
 def pulled_etag(path: str | os.PathLike) -> str | None:
@@ -378,8 +380,8 @@ def remote_file(path: str | os.PathLike) -> RemoteFile | None:
     except FileNotFoundError:
         if covering is None:
             return None
-        raise FileNotFoundError(f"{url}: listed by its publication record but missing from the bucket; re-run "
-                                "the step that wrote it") from None
+        raise FileNotFoundError(f"{url}: listed by its publication record but missing from the bucket; {REDO_HINT}"
+                                ) from None
     if covering is not None:
         parent_url, record = covering
         entry = record["files"].get(url[len(parent_url) + 1:])
@@ -388,7 +390,7 @@ def remote_file(path: str | os.PathLike) -> RemoteFile | None:
         if info["size"] != entry["size"] or info.get("ETag") != entry.get("etag"):
             raise ValueError(f"{url}: size {info['size']}, ETag {info.get('ETag')} differ from its publication record "
                              f"(size {entry['size']}, ETag {entry.get('etag')}); the object changed after it was "
-                             "published, re-run the step that wrote it")
+                             f"published; {REDO_HINT}")
     elif root.role == "output":
         return None  # written but never published: invisible
     return RemoteFile(url, int(info["size"]), entry["sha256"] if covering is not None else None)
