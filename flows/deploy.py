@@ -38,7 +38,7 @@ CONFIG_ENV = "LATENT_STEERING_CONFIG"        # read by prefect.yaml's `{{ $LATEN
 RESULTS_BLOCK = "latent-steering-results"    # RemoteFileSystem block of Prefect's results on the storage
 RESULTS_FOLDER = ".prefect-cache"            # under the storage URL, as under every output root
 STORAGE_ENV = "LATENT_STEERING_STORAGE"      # the storage URL, in the deployments' job env (for information)
-# prefect.yaml's storage placeholders (`{{ NAME }}`, resolved from the environment of `prefect deploy`): an unset
+# prefect.yaml's storage template fields (`{{ NAME }}`, resolved from the environment of `prefect deploy`): an unset
 # one drops its key from the job env, so deployments made without --storage carry no storage setting at all
 STORAGE_PLACEHOLDERS = (STORAGE_ENV, "LATENT_STEERING_RESULTS_BLOCK", "LATENT_STEERING_PERSIST_RESULTS")
 GPU_POOL, CPU_POOL, SIM_POOL = "gpu", "cpu", "sim"
@@ -145,7 +145,7 @@ def storage_values(url: str, block: str) -> dict[str, str]:
 def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR, storage: dict[str, str] | None = None
                ) -> None:
     """Run `prefect deploy --all` on prefect.yaml with the run config as parameter (a URL as it is, so every worker
-    reads it from the bucket; a path made absolute) and the values of the storage placeholders (`storage_values`,
+    reads it from the bucket; a path made absolute) and the values of the storage template fields (`storage_values`,
     none by default) in its environment."""
     prefect_file = project_dir / PREFECT_FILE
     if not prefect_file.is_file():

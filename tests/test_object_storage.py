@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from steering_core.storage import objects, publish
+from steering_core.storage import bucket_lock, objects, publish
 
 
 def _fs():
@@ -130,12 +130,12 @@ def test_an_input_root_is_pulled_as_it_is_and_refetched_when_changed(bucket):
 
 
 def test_the_bucket_lock_excludes_and_is_taken_over_from_a_dead_holder(bucket, monkeypatch):
-    monkeypatch.setenv(publish.LEASE_ENV, "2")
+    monkeypatch.setenv(bucket_lock.LEASE_ENV, "2")
     mirror = objects.mount(bucket)
     events = []
 
     def hold(name):
-        with publish.bucket_lock(mirror / "out"):
+        with bucket_lock.bucket_lock(mirror / "out"):
             events.append(f"{name} in")
             time.sleep(1.0)
             events.append(f"{name} out")
@@ -150,7 +150,7 @@ def test_the_bucket_lock_excludes_and_is_taken_over_from_a_dead_holder(bucket, m
     # a holder that died: its lock object stays, never renewed
     _fs().pipe_file(f"{bucket[5:]}/.locks/out.lock", json.dumps({"holder": "dead"}).encode())
     started = time.monotonic()
-    with publish.bucket_lock(mirror / "out"):
+    with bucket_lock.bucket_lock(mirror / "out"):
         waited = time.monotonic() - started
     assert 2.0 <= waited < 8
     assert not _fs().exists(f"{bucket[5:]}/.locks/out.lock")

@@ -16,7 +16,7 @@ holds, a run folder's groups by number), a call taking several takes them in tha
 asking for a lock that does not come after every lock it holds gets a RuntimeError instead of a wait.
 
 On an output root in object storage (`steering_core.storage.objects`), each lock also holds the bucket-wide lock
-object of its output (`publish.bucket_lock`), taken after the local one, so machines without a shared disk
+object of its output (`bucket_lock.bucket_lock`), taken after the local one, so machines without a shared disk
 exclude each other too.
 
 A lock ends when its file is closed, at the latest with the process (forked children close their copies),
@@ -35,7 +35,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
-from steering_core.storage.publish import bucket_lock
+from steering_core.storage.bucket_lock import bucket_lock
 
 logger = logging.getLogger(__name__)
 
