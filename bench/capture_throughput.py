@@ -168,11 +168,7 @@ def model_files(folder: Path, arch: Pi05Arch, prefix: str = "checkpoint") -> tup
 def build_inputs(folder: Path, arch: Pi05Arch, frames: int) -> Inputs:
     """Return the LeRobot dataset, checkpoint and tokenizer, generating whatever is not cached yet."""
     from steering_core.data.convert import ConvertSettings, convert_libero
-    from steering_core.synthetic.libero import (
-        DEMO_SUITE_TASKS,
-        SyntheticSettings,
-        write_libero_file,
-    )
+    from steering_core.synthetic.libero import DEMO_SUITE_TASKS, SyntheticSettings, write_libero_file
     task = DEMO_SUITE_TASKS[TASK_INDEX]
     demos = folder / f"libero-{frames}"
     if not (demos / task.file_name).is_file():

@@ -44,12 +44,7 @@ def build_dataset(folder: Path, demos_per_task: int, steps: int) -> tuple[Path, 
     """Return (dataset root, repo id, manifest path) of the drawer pair, generating what is not cached yet."""
     from steering_core.data.contrast import build_manifest, write_manifest
     from steering_core.data.convert import ConvertSettings, convert_libero
-    from steering_core.synthetic.libero import (
-        DRAWER_CLOSE,
-        DRAWER_OPEN,
-        SyntheticSettings,
-        write_demo_suite,
-    )
+    from steering_core.synthetic.libero import DRAWER_CLOSE, DRAWER_OPEN, SyntheticSettings, write_demo_suite
 
     frames = TASKS * demos_per_task * steps
     demos = folder / f"libero-{frames}"

@@ -60,11 +60,7 @@ def build_inputs(folder: Path, base_files: int, demos_per_file: int, steps: int,
     """Return (run config, demo folder): the demo's model side with `base_files` demo files of our sizes."""
     from steering_core.config import load_run_config, write_run_config
     from steering_core.demo import build_demo
-    from steering_core.synthetic.libero import (
-        DEMO_SUITE_TASKS,
-        SyntheticTask,
-        write_libero_file,
-    )
+    from steering_core.synthetic.libero import DEMO_SUITE_TASKS, SyntheticTask, write_libero_file
 
     shutil.rmtree(folder, ignore_errors=True)  # every run starts from the same ten files and no outputs
     config_path = build_demo(folder, demos_per_task=demos_per_file)
@@ -91,11 +87,7 @@ def build_inputs(folder: Path, base_files: int, demos_per_file: int, steps: int,
 
 def add_file(demos: Path, demos_per_file: int, steps: int) -> Path:
     """Write the eleventh demo file (another scene of the first task) into the demo folder; return it."""
-    from steering_core.synthetic.libero import (
-        DEMO_SUITE_TASKS,
-        SyntheticTask,
-        write_libero_file,
-    )
+    from steering_core.synthetic.libero import DEMO_SUITE_TASKS, SyntheticTask, write_libero_file
 
     task = DEMO_SUITE_TASKS[0]
     scene = SyntheticTask(instruction=task.instruction, scene=f"KITCHEN_SCENE{ADDED_SCENE}", motion=task.motion)
@@ -113,7 +105,7 @@ def shard_digests(config_path: Path) -> dict[str, str]:
 def evaluation_stamps(config_path: Path) -> dict[Path, int]:
     """Return dose_response.json -> modification time (ns) of every evaluation the run wrote."""
     from steering_core.config import load_run_config
-    from steering_core.storage.layout import DOSE_RESPONSE_FILE
+    from steering_core.layout import DOSE_RESPONSE_FILE
 
     root = load_run_config(config_path).eval_root
     return {path: path.stat().st_mtime_ns for path in root.glob(f"*/*/{DOSE_RESPONSE_FILE}.json")}

@@ -1,6 +1,6 @@
 """SAE encoding: our streaming concept encode against torch.matmul of the same shapes, and its memory.
 
-Ours is `steering_core.sae.concept_stats.encode_concept`: a concept file read in batches from its memory map, each
+Ours is `steering_core.vectors.concept_stats.encode_concept`: a concept file read in batches from its memory map, each
 batch encoded *and* decoded by the SAE (the reconstruction gives the fraction of variance unexplained)
 while only running sums are kept. Its FLOP count per row is therefore two products, x @ W_enc and
 f @ W_dec; the reference is torch.matmul of exactly those two shapes, timed in the same process. The seed's
@@ -92,8 +92,8 @@ def child_ours(sae_dir: Path, concept: Path, out: Path, batch_size: int, device:
     Interleaving puts both under the same machine load, batch by batch. Returns the median time of a
     full batch of ours (the first, a warm-up, left out) and of the reference, and the peak memory.
     """
-    from steering_core.sae.concept_stats import ConceptSource, encode_concept
     from steering_core.sae.model import load_sae
+    from steering_core.vectors.concept_stats import ConceptSource, encode_concept
 
     sae = load_sae(sae_dir, device=device)
     calls = references(sae, batch_size, device)
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> Result | None:
     ours = run_child("sae_encoding", [*flags, "--child=ours"])
     seed = run_child("sae_encoding", [*flags, "--child=seed"])
 
-    from steering_core.sae.concept_stats import read_concept_stats
+    from steering_core.vectors.concept_stats import read_concept_stats
 
     ours_mean = read_concept_stats(Path(ours["stats"])).latent_mean
     difference = float((ours_mean - torch.load(seed["mean"], weights_only=True).double()).abs().max())
@@ -230,7 +230,7 @@ def main(argv: list[str] | None = None) -> Result | None:
             f"+ decode (steering_core/sae/model.py `Sae.reconstruct`) {ours['reconstruct_seconds'] * 1e3:.3g} ms; "
             f"the whole streamed step {ours['batch_seconds'] * 1e3:.3g} ms (encoded and decoded into two buffers reused by "
             "every batch, so no fresh latents are page-faulted in), the rest being reading the batch and the "
-            "running statistics (steering_core/sae/concept_stats.py `_Sums.add`: column sums, squared norms, latent sums, firing counts as a ones-vector product over the latents' signs, squared error in the reconstruction's memory).",
+            "running statistics (steering_core/vectors/concept_stats.py `_Sums.add`: column sums, squared norms, latent sums, firing counts as a ones-vector product over the latents' signs, squared error in the reconstruction's memory).",
             f"memory at {rows} rows: ours {ours[key]:.0f} MiB vs the seed's {seed[key]:.0f} MiB ({memory}); the seed "
             f"holds {latents_mib:.0f} MiB of latents, and twice that while concatenating them. Same latent means on "
             f"both sides: max |ours - seed| = {difference:.1e}.",

@@ -33,13 +33,7 @@ from transformers.models.gemma.modeling_gemma import (
 
 from steering_core.pi05 import Pi05Arch
 from steering_core.pi05.checkpoint import EXPERT_PREFIX, LM_PREFIX, resolve_model_file
-from steering_core.pi05.model import (
-    MASKED_LOGIT,
-    NORM_EPS,
-    Pi05Prefix,
-    attention_mask,
-    gemma_config,
-)
+from steering_core.pi05.model import MASKED_LOGIT, NORM_EPS, Pi05Prefix, attention_mask, gemma_config
 
 DENOISE_STEPS = 10  # sample_actions' default number of Euler steps
 ACTION_HORIZON = 10  # pi05_libero

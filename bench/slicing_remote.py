@@ -11,7 +11,7 @@ row of the run.
 
 - Speed: seconds to slice from local disk (page cache warm) / seconds to slice from the bucket, same run, same
   map, same process, best of ROUNDS after a warm-up: at least 0.5x on loopback, in every case.
-- Bytes: bytes fetched by ranged reads (`publish.Fetched`) / (the selected rows' bytes + each opened shard's
+- Bytes: bytes fetched by ranged reads (`reads.Fetched`) / (the selected rows' bytes + each opened shard's
   header and row columns): at most 1.2x. The publication records read to check each shard's size and ETag on
   open are small JSON objects, not counted; `requests` counts every request the server saw (checks included).
 - The endpoint's own cost: GETs of the opened shards whole, one request each, timed in the same rounds.
@@ -100,7 +100,7 @@ def regroup(run_dir: Path, out: Path, episodes_per_shard: int) -> Path:
 def bucket_copy(run_dir: Path, mirror: Path) -> Path:
     """Publish a copy of the run under the mounted bucket root file by file, as capture's tasks publish their
     outputs, then delete its shards here; return its folder."""
-    from steering_core.storage import publish
+    from steering_core.remote import publish
 
     copy = mirror / run_dir.name
     shutil.copytree(run_dir, copy)
@@ -118,22 +118,23 @@ def measure(local_run: Path, remote_run: Path, concept_map: Path, out: Path) -> 
     from steering_core.capture.shards import RESIDUALS, read_run_metadata
     from steering_core.capture.slicing import SliceSettings, slice_concepts
     from steering_core.data.concept_map import read_concept_map
-    from steering_core.storage import objects, publish
-    from steering_core.storage.layout import layer_dir
-    from steering_core.storage.tensor_files import tensor_locations
+    from steering_core.layout import layer_dir
+    from steering_core.remote import filesystems, reads
+    from steering_core.storage import mirrors
+    from steering_core.tensor_files import tensor_locations
 
     episodes = {row.episode_index for rows in read_concept_map(concept_map).concepts.values() for row in rows}
     opened = [r.file for r in read_run_metadata(local_run).layer_shards(LAYER) if episodes & set(r.episodes)]
-    keys = [objects.object_path(objects.url_of(remote_run / file)) for file in opened]
+    keys = [filesystems.object_path(mirrors.url_of(remote_run / file)) for file in opened]
     settings = SliceSettings(layers=(LAYER,))
     times: dict[str, list[float]] = {"local": [], "bucket": [], "whole GETs": []}
-    for round_ in range(ROUNDS + 1):  # round 0 warms up
+    for _round in range(ROUNDS + 1):  # round 0 warms up
         for side, run_dir in (("local", local_run), ("bucket", remote_run)):
             shutil.rmtree(out / side, ignore_errors=True)
-            before, requests, start = publish.Fetched.total, Requests.count, time.perf_counter()
+            before, requests, start = reads.Fetched.total, Requests.count, time.perf_counter()
             slice_concepts(run_dir, concept_map, out / side, settings)
             times[side].append(time.perf_counter() - start)
-        fetched, requests = publish.Fetched.total - before, Requests.count - requests
+        fetched, requests = reads.Fetched.total - before, Requests.count - requests
         start = time.perf_counter()
         whole = sum(len(fs.cat_file(key)) for fs, key in keys)
         times["whole GETs"].append(time.perf_counter() - start)
@@ -164,15 +165,16 @@ def main(argv: list[str] | None = None) -> Result:
     }
     runs = {"1-episode shards": local_run,
             f"{GROUPED}-episode shards": regroup(local_run, folder / f"run-w{width}-x{scale}-g{GROUPED}", GROUPED)}
-    from steering_core.storage import objects
+    from steering_core.remote import filesystems
+    from steering_core.storage import mirrors
 
     mirror_base = folder / "s3-mirror"
     shutil.rmtree(mirror_base, ignore_errors=True)
-    os.environ[objects.MIRROR_ENV] = str(mirror_base)
+    os.environ[mirrors.MIRROR_ENV] = str(mirror_base)
     server = start_s3()
     try:
-        objects.filesystem("s3").mkdir(BUCKET)
-        mirror = objects.mount(f"s3://{BUCKET}")
+        filesystems.filesystem("s3").mkdir(BUCKET)
+        mirror = mirrors.mount(f"s3://{BUCKET}")
         measured = {}
         for name, run_dir in runs.items():
             remote_run = bucket_copy(run_dir, mirror)
@@ -208,7 +210,7 @@ def main(argv: list[str] | None = None) -> Result:
             "for the check, the length, the header, the row columns, the rows) more than for their bytes; GETting the "
             "opened shards whole, one request each, shows the endpoint's own bytes/s.",
             "how: every shard is opened through `tensor_files.open_read`; absent from the mirror, it is "
-            "`publish.remote_file` (size and ETag checked against the publication record, then one ranged GET "
+            "`reads.remote_file` (size and ETag checked against the publication record, then one ranged GET "
             "per read, no read-ahead). The first pass reads each opened shard's length, header and row columns "
             "(3 GETs); the second reads the runs of selected rows through the 8 MiB buffer, runs joined across "
             "their smallest gaps while the unselected rows read stay within 10% of the selected ones "

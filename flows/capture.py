@@ -21,7 +21,7 @@ from flows.children import Child, run_children
 from steering_core.capture import CaptureSettings, shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
-from steering_core.storage.publish import pulled
+from steering_core.remote.publish import pulled
 from tasks import capture as capture_tasks
 from tasks.cache import is_cached, rooted
 

@@ -28,7 +28,8 @@ from prefect.filesystems import RemoteFileSystem
 from prefect.settings import PREFECT_API_URL
 from prefect.workers.process import ProcessWorker
 
-from steering_core.storage import objects, publish
+from steering_core.remote import filesystems
+from steering_core.storage import mirrors
 
 logger = logging.getLogger(__name__)
 
@@ -123,10 +124,10 @@ def ensure_crash_automation(timeout_seconds: float = HEARTBEAT_TIMEOUT) -> None:
 def check_storage(url: str) -> str:
     """Return `url` normalised (`<protocol>://<path>`) once a probe object was written and deleted under it from
     this machine; ValueError in one line naming the URL otherwise."""
-    if not objects.is_url(url):
+    if not mirrors.is_url(url):
         raise ValueError(f"--storage {url!r}: expected a URL such as s3://bucket/prefix (or gs://, file://)")
-    protocol, path = objects.split_url(url)
-    return publish.check_writable(f"{protocol}://{path}")
+    protocol, path = mirrors.split_url(url)
+    return filesystems.check_writable(f"{protocol}://{path}")
 
 
 def save_results_block(basepath: str) -> str:
@@ -152,7 +153,7 @@ def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR, 
         raise FileNotFoundError(
             f"{prefect_file}: not found; run `latent-steering deploy` from a checkout of the repository"
         )
-    if not objects.is_url(config_path):
+    if not mirrors.is_url(config_path):
         config_path = Path(config_path).resolve()
         if not config_path.is_file():
             raise FileNotFoundError(f"{config_path}: run config not found; pass --config with an existing YAML file")

@@ -17,9 +17,9 @@ from flows.capture import capture_mode, run_deployments
 from steering_core.config import RunConfig, load_run_config
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
-from steering_core.storage.layout import PATHWAYS_FILE, stream_layer_dir
-from steering_core.storage.objects import localize
-from steering_core.storage.publish import pulled
+from steering_core.layout import PATHWAYS_FILE, stream_layer_dir
+from steering_core.remote.publish import pulled
+from steering_core.storage.mirrors import localize
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
 from tasks.cache import is_cached, rooted

@@ -42,15 +42,10 @@ from flows.rollout import run_rollouts
 from flows.train_sae import feature_pages, run_training
 from steering_core.config import RunConfig, load_run_config, share_run_config
 from steering_core.data.dataset import check_dataset
-from steering_core.refresh import (
-    SOURCES_RECORD_FILE,
-    read_sources_record,
-    scan_inputs,
-    write_sources_record,
-)
-from steering_core.sae.vectors import SIDES
-from steering_core.storage.objects import is_url, localize, portable
-from steering_core.storage.publish import publish, pulled
+from steering_core.pairs import SIDES
+from steering_core.refresh import SOURCES_RECORD_FILE, read_sources_record, scan_inputs, write_sources_record
+from steering_core.remote.publish import publish, pulled
+from steering_core.storage.mirrors import is_url, localize, portable
 from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report

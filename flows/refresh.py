@@ -19,14 +19,9 @@ from prefect.deployments import run_deployment
 
 from flows.pipeline import latent_steering
 from steering_core.config import load_run_config
-from steering_core.refresh import (
-    SOURCES_RECORD_FILE,
-    diff_sources,
-    read_sources_record,
-    scan_inputs,
-)
-from steering_core.storage.objects import is_url
-from steering_core.storage.publish import pulled
+from steering_core.refresh import SOURCES_RECORD_FILE, diff_sources, read_sources_record, scan_inputs
+from steering_core.remote.publish import pulled
+from steering_core.storage.mirrors import is_url
 
 REFRESH_FLOW = "latent-steering-refresh"
 

@@ -15,11 +15,11 @@ from prefect.artifacts import create_markdown_artifact
 
 from flows.capture import capture_mode, run_deployments
 from steering_core.config import RunConfig, load_run_config
+from steering_core.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
+from steering_core.remote.publish import pulled
 from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
 from steering_core.serve.auth import read_api_key
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
-from steering_core.storage.publish import pulled
 from tasks import rollout as rollout_tasks
 from tasks.artifacts import artifact_key, ui_markdown
 from tasks.cache import rooted

@@ -27,7 +27,7 @@ from prefect.tasks import Task
 
 from steering_core.config import RunConfig
 from steering_core.reporting.tables import text_table
-from steering_core.storage.objects import is_url
+from steering_core.storage.mirrors import is_url
 from tasks import capture, data, preflight, report, rollout, sae
 from tasks.cache import OUTPUTS, cache_store, read_record_bytes, record_location
 

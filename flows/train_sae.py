@@ -1,7 +1,7 @@
 """The SAE training flow `latent-steering-train-sae`: SAEs trained on the run's own residuals, on the `gpu` pool.
 
 For every layer with `sae.<layer>.train`, after capture and before the SAE phase: train the SAE on the layer's
-rows with the held-out episodes left out (`steering_core.sae.heldout`), then judge it on those episodes against
+rows with the held-out episodes left out (`steering_core.sae.training.heldout`), then judge it on those episodes against
 the borrowed SAE named beside `train`. With a server, the parent starts one deployment run per layer not cached
 yet; without one, it calls this flow in-process.
 """
@@ -17,11 +17,11 @@ from steering_core.capture import shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from steering_core.data.split import read_split
-from steering_core.sae.feature_run import FeatureJob
-from steering_core.sae.heldout import sae_heldout_episodes
-from steering_core.sae.judge_run import JudgedPair, JudgeJob
-from steering_core.storage.layout import layer_dir
-from steering_core.storage.publish import pulled
+from steering_core.layout import layer_dir
+from steering_core.remote.publish import pulled
+from steering_core.sae.training.heldout import sae_heldout_episodes
+from steering_core.sae_quality.feature_run import FeatureJob
+from steering_core.sae_quality.judge_run import JudgedPair, JudgeJob
 from tasks import sae_train
 from tasks.cache import is_cached, rooted
 

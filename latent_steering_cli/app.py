@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from typer.core import TyperGroup
 
 from latent_steering_cli.lazy import LazyCommands, current_options
-from steering_core.storage.objects import is_url, portable
+from steering_core.storage.mirrors import is_url, portable
 
 # Options holding one string that lists several values (e.g. `--layers "12 14"`); the seed passes them
 # space-separated as separate words, which are joined back into that one value.
@@ -147,7 +147,7 @@ def configure_logging(verbose: bool) -> None:
 
 def option_problems(err: ValidationError) -> str:
     """Return a settings validation error as one sentence naming the command-line option of each bad field."""
-    params = current_options.get()
+    params = current_options.get({})
     problems = []
     for error in err.errors(include_url=False):
         field = str(error["loc"][0]) if error["loc"] else ""

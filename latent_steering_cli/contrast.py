@@ -7,11 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from steering_core.data.concept_map import (
-    build_concept_map,
-    read_rename_map,
-    write_concept_map,
-)
+from steering_core.data.concept_map import build_concept_map, read_rename_map, write_concept_map
 from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
 from steering_core.data.contrast_hdf5 import build_hdf5_manifest
 from steering_core.data.convert import DemoOrder

@@ -24,9 +24,9 @@ from steering_core.evaluate.run import (
     run_config_job,
     slice_decision_run,
 )
+from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.arch import read_arch
-from steering_core.sae.vectors import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
-from steering_core.storage.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
+from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
 
 _DEFAULTS = EvaluateSettings()
 NO_SAE = "none"

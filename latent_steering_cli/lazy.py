@@ -22,7 +22,7 @@ from typer.core import TyperCommand, TyperGroup
 CLI_DIR = Path(__file__).resolve().parent
 _NOT_COMMANDS = {"__init__", "app", "lazy"}
 # parameter name -> its first flag (`image_size` -> `--image-size`) of the command being run, for error messages
-current_options: contextvars.ContextVar[dict[str, str]] = contextvars.ContextVar("current_options", default={})
+current_options: contextvars.ContextVar[dict[str, str]] = contextvars.ContextVar("current_options")
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from steering_core.layout import STEERING_ROOT
 from steering_core.pi05 import PromptFormat
 from steering_core.pi05.arch import read_arch
 from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
@@ -27,7 +28,6 @@ from steering_core.serve.server import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_QUEUE,
 )
-from steering_core.storage.layout import STEERING_ROOT
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT
 TOKENIZER_FILE = "paligemma_tokenizer.model"

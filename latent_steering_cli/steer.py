@@ -7,12 +7,8 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from steering_core.sae.vectors import (
-    PathsRelativeTo,
-    SteeringSettings,
-    compute_steering,
-)
-from steering_core.storage.layout import SUMMARY_MD
+from steering_core.layout import SUMMARY_MD
+from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, compute_steering
 
 _DEFAULTS = SteeringSettings(pairs_config=Path("."))
 NO_SAE = "none"  # --sae value for residual-space directions only

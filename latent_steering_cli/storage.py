@@ -1,7 +1,7 @@
 """URLs given to the path options of any command: mounted as local mirrors, pulled before, published after.
 
 `latent-steering slice --run-dir s3://bucket/data/residuals/demo ...` works like the local command on the
-option's mirror folder (`steering_core.storage.objects`): what is published there is pulled first (shards
+option's mirror folder (`steering_core.storage.mirrors`): what is published there is pulled first (shards
 stay in the bucket and are read by ranges), and each mirror folder or file the command changed is published
 when it succeeds. A prefix that holds no publication record is a user's input (a checkpoint uploaded by
 hand): its objects are pulled as they are.
@@ -13,8 +13,9 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from steering_core.storage.objects import is_url, mount, object_path, split_url
-from steering_core.storage.publish import covering_record, publish, pull, records_under
+from steering_core.remote.filesystems import object_path
+from steering_core.remote.publish import covering_record, publish, pull, records_under
+from steering_core.storage.mirrors import is_url, mount, split_url
 
 Snapshot = dict[Path, dict[str, tuple[int, int]]]
 

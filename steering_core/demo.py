@@ -33,12 +33,11 @@ from steering_core.config import (
 )
 from steering_core.evaluate.plots import layer_label, named
 from steering_core.evaluate.report import alpha_text, cross_fitted_choice, fmt, with_ci
+from steering_core.layout import DOSE_RESPONSE_FILE, PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.reporting.tables import text_table
 from steering_core.rollout.settings import LiberoTask, RolloutPair
 from steering_core.sae.fidelity_table import FIDELITY_JSON, TABLE_HEADER, table_rows
-from steering_core.sae.report import FVU_LIMIT
 from steering_core.storage.fileio import read_json, write_json
-from steering_core.storage.layout import DOSE_RESPONSE_FILE, PATHWAYS_FILE, SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.synthetic.libero import (
     DRAWER_CLOSE,
     DRAWER_OPEN,
@@ -58,6 +57,7 @@ from steering_core.synthetic.planted import (
 )
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import LIBERO_INSTRUCTIONS, write_tokenizer
+from steering_core.vectors.report import FVU_LIMIT
 
 logger = logging.getLogger(__name__)
 

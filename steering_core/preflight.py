@@ -28,10 +28,10 @@ from steering_core.pi05.checkpoint import (
     prefix_tensor_shapes,
     resolve_model_file,
 )
-from steering_core.sae.vectors import load_steering_sae
+from steering_core.remote.filesystems import check_writable
 from steering_core.storage.fileio import check_output_dir
-from steering_core.storage.objects import url_of
-from steering_core.storage.publish import check_writable
+from steering_core.storage.mirrors import url_of
+from steering_core.vectors.directions import load_steering_sae
 
 logger = logging.getLogger(__name__)
 

@@ -20,8 +20,8 @@ from prefect.artifacts import (
     update_progress_artifact,
 )
 
+from steering_core.layout import SUMMARY_JSON, SUMMARY_MD
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import SUMMARY_JSON, SUMMARY_MD
 
 PROGRESS_EVERY_SECONDS = 5.0  # API calls are cheap but not free: update at most this often (and at the end)
 

@@ -1,6 +1,6 @@
 """Cache keys built from input content, and task results kept beside the outputs they describe.
 
-A task's identity (`steering_core.storage.fingerprints`) is the content of its inputs (file hashes, settings
+A task's identity (`steering_core.identity`) is the content of its inputs (file hashes, settings
 fingerprints), its own source, and the source of the `steering_core` modules it calls: equal
 identity, equal outputs. `ContentKey` turns a task's parameters into that identity, so an
 unchanged input gives a `Cached` task run and a changed one recomputes only what depends on it.
@@ -39,9 +39,10 @@ from prefect.utilities.callables import get_call_parameters
 from pydantic import BaseModel
 from safetensors import SafetensorError
 
-from steering_core.storage import objects, publish
+from steering_core.identity import code_version, plain
+from steering_core.remote import filesystems, publish
+from steering_core.storage import mirrors
 from steering_core.storage.fileio import sha256_json
-from steering_core.storage.fingerprints import code_version, plain
 
 logger = logging.getLogger(__name__)
 
@@ -121,7 +122,7 @@ class ContentKey(CachePolicy):
         self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any
     ) -> str:
         task_fn = task_ctx.task.fn
-        if self.store is not None and objects.url_of(self.store):
+        if self.store is not None and mirrors.url_of(self.store):
             inputs = _pulled_for_key(task_ctx, inputs)
         identity = {
             "task": f"{task_fn.__module__}.{task_fn.__qualname__}",
@@ -134,7 +135,7 @@ class ContentKey(CachePolicy):
             },
             "derived": {name: fingerprint(inputs) for name, fingerprint in sorted(self.derived.items())},
         }
-        key = sha256_json(objects.portable(identity))  # equal on every machine mirroring the same bucket
+        key = sha256_json(mirrors.portable(identity))  # equal on every machine mirroring the same bucket
         if self.store is not None:
             _drop_if_outputs_missing(self.store, key)
         return key
@@ -181,7 +182,7 @@ def _drop_if_outputs_missing(store: Path, key: str) -> None:
         _delete_record(location)
         return
     outputs = result.get(OUTPUTS, []) if isinstance(result, dict) else []
-    missing = [p for p in outputs if not (publish.is_published(p) if objects.is_url(p) else Path(p).exists())]
+    missing = [p for p in outputs if not (publish.is_published(p) if mirrors.is_url(p) else Path(p).exists())]
     if missing:
         logger.info("%s: cached outputs are gone (%s); the task will run again", key, ", ".join(missing[:3]))
         _delete_record(location)
@@ -189,15 +190,15 @@ def _drop_if_outputs_missing(store: Path, key: str) -> None:
 
 def record_location(store: Path, key: str) -> Path | str:
     """Return where the cache record `key` lives: a file of `store`, or its object when `store` mirrors a bucket."""
-    url = objects.url_of(store)
+    url = mirrors.url_of(store)
     return store / key if url is None else f"{url}/{key}"
 
 
 def read_record_bytes(location: Path | str) -> bytes | None:
     """Return the bytes of a cache record (a file, or an object URL), or None when there is none."""
-    if not objects.is_url(location):
+    if not mirrors.is_url(location):
         return Path(location).read_bytes() if Path(location).is_file() else None
-    fs, path = objects.object_path(location)
+    fs, path = filesystems.object_path(location)
     try:
         return fs.cat_file(path)
     except FileNotFoundError:
@@ -208,7 +209,7 @@ def _delete_record(location: Path | str) -> None:
     if isinstance(location, Path):
         location.unlink(missing_ok=True)
         return
-    fs, path = objects.object_path(location)
+    fs, path = filesystems.object_path(location)
     with contextlib.suppress(FileNotFoundError):
         fs.rm_file(path)
     fs.invalidate_cache()
@@ -254,7 +255,7 @@ def parse_cache_record(path: Path | str, data: bytes) -> Any:
     if serializer != _JSON_SERIALIZER:
         kind = serializer.get("type") if isinstance(serializer, dict) else serializer
         raise refuse(f"serializer {kind!r} with settings {serializer!r} (only Prefect's plain JSON serializer)")
-    on_bucket = objects.is_url(path)  # kept through our saved block, which names records by key alone
+    on_bucket = mirrors.is_url(path)  # kept through our saved block, which names records by key alone
     names = {str(path), str(path).rsplit("/", 1)[-1]} if on_bucket else {str(path)}
     if (metadata.get("storage_block_id") is not None and not on_bucket) or metadata.get("storage_key") not in names:
         raise refuse(f"storage {metadata.get('storage_block_id')!r}, {metadata.get('storage_key')!r} is not this file")
@@ -302,12 +303,12 @@ def is_cached(task: Task, output_root: str | os.PathLike, *args: Any, **kwargs: 
 def rooted(task: Task, output_root: str | os.PathLike) -> Task:
     """Return `task` with results and cache records under `<output_root>/.prefect-cache`.
 
-    On a bucket root (`steering_core.storage.objects`) the records are objects there (a `RemoteFileSystem`
+    On a bucket root (`steering_core.storage.mirrors`) the records are objects there (a `RemoteFileSystem`
     result storage), the task pulls the published outputs it reads before its cache key is computed, publishes
     the outputs its summary lists, and its summary names outputs by URL, so it is the same on every machine.
     """
     store = cache_store(output_root)
-    url = objects.url_of(store)
+    url = mirrors.url_of(store)
     policy = task.cache_policy
     if isinstance(policy, ContentKey):
         policy = dataclasses.replace(policy, store=store)
@@ -334,7 +335,7 @@ def result_block(url: str) -> str:
 
 def pull_inputs(inputs: dict[str, Any]) -> dict[str, Any]:
     """Return `inputs` with URLs named as mirror paths, after pulling every published output they name."""
-    inputs = objects.localize(inputs)
+    inputs = mirrors.localize(inputs)
     for path in sorted(set(_mirror_paths(inputs))):
         publish.pull(path)
     return inputs
@@ -345,7 +346,7 @@ def _mirror_paths(value: Any) -> list[str]:
     if isinstance(value, BaseModel):
         return _mirror_paths(value.model_dump(mode="json"))
     if isinstance(value, str | Path):
-        return [str(value)] if objects.url_of(value) is not None else []
+        return [str(value)] if mirrors.url_of(value) is not None else []
     items = value.values() if isinstance(value, Mapping) else value if isinstance(value, list | tuple) else ()
     return [path for item in items for path in _mirror_paths(item)]
 
@@ -362,14 +363,14 @@ def _through_bucket(fn: Callable[..., Any], *, pulls: bool) -> Callable[..., Any
         context = TaskRunContext.get()
         if context is not None and (error := _PULL_ERRORS.pop(context.task_run.id, None)) is not None:
             raise error
-        args, kwargs = objects.localize(args), objects.localize(kwargs)
+        args, kwargs = mirrors.localize(args), mirrors.localize(kwargs)
         if pulls:
             pull_inputs({"args": args, "kwargs": kwargs})
         summary = fn(*args, **kwargs)
         for path in publish_units(summary):
             if path.exists():  # else written on another machine (a group captured there): published already
                 publish.publish(path)
-        return objects.portable(summary)
+        return mirrors.portable(summary)
 
     return run
 

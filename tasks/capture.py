@@ -14,10 +14,11 @@ from steering_core.capture.slicing import SliceSettings
 from steering_core.data.concept_map import read_concept_map
 from steering_core.data.convert import SOURCES_FILE, read_sources
 from steering_core.data.dataset import INFO_FILE, read_meta
+from steering_core.identity import plain
+from steering_core.layout import layer_dir
 from steering_core.pi05.checkpoint import resolve_model_file
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json
-from steering_core.storage.fingerprints import file_digest, plain
-from steering_core.storage.layout import layer_dir
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     GPU_RETRIES,

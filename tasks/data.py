@@ -11,8 +11,9 @@ from steering_core.data.contrast import ContrastSettings
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.dataset import dataset_fingerprint
 from steering_core.data.filtering import FilterSettings
-from steering_core.storage.fingerprints import file_digest, tree_listing
-from steering_core.storage.layout import SELECTION_FILE
+from steering_core.identity import tree_listing
+from steering_core.layout import SELECTION_FILE
+from steering_core.storage.digests import file_digest
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     IO_RETRIES,

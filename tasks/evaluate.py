@@ -9,17 +9,18 @@ from typing import Any
 
 from prefect import get_run_logger, task
 
+from steering_core import layout
 from steering_core.capture import CaptureSettings
 from steering_core.data.contrast import read_manifest
 from steering_core.data.split import read_split
 from steering_core.evaluate import report
 from steering_core.evaluate import run as evaluate_run
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.sae import vectors
-from steering_core.sae.vectors import SteeringSettings
-from steering_core.storage import layout
+from steering_core.identity import code_version, plain
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json, sha256_json
-from steering_core.storage.fingerprints import code_version, file_digest, plain
+from steering_core.vectors import directions
+from steering_core.vectors.directions import SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
 from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs
@@ -100,7 +101,7 @@ def evaluate_pair(
     """
     progress = ProgressArtifact(artifact_key("evaluate", job.pair, job.output_dir.parent.name), "policy calls",
                                 f"evaluate {job.pair} at {job.label}")
-    sae = vectors.load_steering_sae(steering_settings) if steering_settings is not None else None
+    sae = directions.load_steering_sae(steering_settings) if steering_settings is not None else None
     folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress,
                                        identity=evaluation_identity(job, model, steering_settings, settings))
     progress.finish()

@@ -7,11 +7,11 @@ from typing import Any
 
 from prefect import task
 
-from steering_core.sae import report, vectors
+from steering_core import layout
 from steering_core.sae.fidelity_table import FIDELITY_JSON
-from steering_core.storage import layout
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json
-from steering_core.storage.fingerprints import file_digest
+from steering_core.vectors import directions, report
 from tasks.cache import OUTPUTS, RESULTS, content_key
 
 
@@ -30,12 +30,12 @@ def pairwise_digest(inputs: dict[str, Any]) -> str:
 @task(
     name="pairwise-stats",
     task_run_name="pairwise stats layer {layer}",
-    cache_policy=content_key("steering_core.sae.vectors", derived={"pairs": pair_folders}),
+    cache_policy=content_key("steering_core.vectors.directions", derived={"pairs": pair_folders}),
     **RESULTS,
 )
 def pairwise_stats(layer: int, layer_path: str, pair_names: list[str]) -> dict:
     """Write cosines and norms between every two pairs' directions of one layer; return the files."""
-    pt_path = vectors.compute_pairwise_stats(Path(layer_path), pair_names)
+    pt_path = directions.compute_pairwise_stats(Path(layer_path), pair_names)
     return {OUTPUTS: [str(pt_path), str(pt_path.with_suffix(".json"))]}
 
 
@@ -48,7 +48,7 @@ def judgement_digest(inputs: dict[str, Any]) -> str | None:
 @task(
     name="write-report",
     task_run_name="report layer {layer}",
-    cache_policy=content_key("steering_core.sae.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest,
+    cache_policy=content_key("steering_core.vectors.report", derived={"pairs": pair_folders, "pairwise": pairwise_digest,
                                                                   "judgement": judgement_digest}),
     **RESULTS,
 )

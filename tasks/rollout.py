@@ -9,12 +9,13 @@ from typing import Any
 
 from prefect import get_run_logger, task
 
+from steering_core import layout
 from steering_core.capture import CaptureSettings
+from steering_core.identity import plain
 from steering_core.rollout import records, report
 from steering_core.rollout.run import RolloutJob, run_chunk
 from steering_core.rollout.settings import RolloutSettings
-from steering_core.storage import layout
-from steering_core.storage.fingerprints import file_digest, plain
+from steering_core.storage.digests import file_digest
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import OUTPUTS, RESULTS, content_key, retry_if
 from tasks.capture import model_inputs

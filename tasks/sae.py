@@ -7,14 +7,14 @@ from typing import Any
 
 from prefect import task
 
-from steering_core.sae import concept_stats, vectors
+from steering_core import layout
+from steering_core.layout import layer_dir
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.registry import resolve_release
-from steering_core.sae.vectors import PairsConfig, PairSpec, SteeringSettings
-from steering_core.storage import layout
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import write_json
-from steering_core.storage.fingerprints import file_digest
-from steering_core.storage.layout import layer_dir
+from steering_core.vectors import concept_stats, directions
+from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import (
     IO_RETRIES,
@@ -66,7 +66,7 @@ def stats_files(path: str) -> dict[str, str]:
 @task(
     name="write-pairs-config",
     task_run_name="pairs config layer {layer}",
-    cache_policy=content_key("steering_core.sae.vectors"),
+    cache_policy=content_key("steering_core.vectors.directions"),
     retries=IO_RETRIES, retry_delay_seconds=IO_RETRY_DELAYS, retry_condition_fn=retry_if(transient_io),
     **RESULTS,
 )
@@ -79,12 +79,12 @@ def write_pairs_config(layer: int, pairs: PairsConfig, path: str) -> dict:
 @task(
     name="encode-concept",
     task_run_name="encode {pair} {side} layer {layer}",
-    cache_policy=content_key("steering_core.sae.concept_stats", slice_path=file_digest, settings=sae_inputs),
+    cache_policy=content_key("steering_core.vectors.concept_stats", slice_path=file_digest, settings=sae_inputs),
     **RESULTS,
 )
 def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str, settings: SteeringSettings) -> dict:
     """Stream one concept's residuals through the layer's SAE; return the statistics file."""
-    sae = vectors.load_steering_sae(settings)
+    sae = directions.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
     source = concept_stats.ConceptSource(label=label, path=Path(slice_path))
     progress = ProgressArtifact(artifact_key("encode", pair, side, layer_dir(layer)), "rows",
@@ -97,15 +97,15 @@ def encode_concept(pair: str, side: str, layer: int, label: str, slice_path: str
 @task(
     name="pair-directions",
     task_run_name="directions {pair.name} layer {layer}",
-    cache_policy=content_key("steering_core.sae.vectors", positive_stats=stats_files, negative_stats=stats_files,
+    cache_policy=content_key("steering_core.vectors.directions", positive_stats=stats_files, negative_stats=stats_files,
                              settings=direction_inputs),
     **RESULTS,
 )
 def pair_directions(pair: PairSpec, layer: int, positive_stats: str, negative_stats: str, settings: SteeringSettings) -> dict:
     """Write one pair's latent and residual directions; return the pair folder's summary file."""
-    sae = vectors.load_steering_sae(settings)
+    sae = directions.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    folder = vectors.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
+    folder = directions.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
                                    include_decoder_bias=settings.include_decoder_bias)
     summary = folder / layout.PAIR_SUMMARY_FILE
     return {OUTPUTS: [str(summary)], "folder": str(folder)}

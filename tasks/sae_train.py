@@ -9,14 +9,14 @@ from typing import Any
 from prefect import get_run_logger, task
 
 from steering_core.capture import CaptureSettings, shards
-from steering_core.sae.feature_run import FeatureJob, write_layer_features
-from steering_core.sae.judge_run import JudgeJob, judge_job
+from steering_core.layout import NEURONPEDIA_DIR, layer_dir
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.training.trainer import train_sae
-from steering_core.sae.vectors import SteeringSettings
-from steering_core.storage.fingerprints import file_digest
-from steering_core.storage.layout import NEURONPEDIA_DIR, layer_dir
+from steering_core.sae_quality.feature_run import FeatureJob, write_layer_features
+from steering_core.sae_quality.judge_run import JudgeJob, judge_job
+from steering_core.storage.digests import file_digest
+from steering_core.vectors.directions import SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
 from tasks.capture import GPU_TAG, model_inputs
@@ -73,7 +73,7 @@ def judged_inputs(inputs: dict[str, Any]) -> Any:
     name="judge-sae",
     task_run_name="judge SAE {job.output_dir.name}",
     tags=[GPU_TAG],
-    cache_policy=content_key("steering_core.sae.judge_run", model=model_inputs,
+    cache_policy=content_key("steering_core.sae_quality.judge_run", model=model_inputs,
                              derived={"content": judged_inputs}, ignore=("borrowed",)),
     retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
@@ -100,7 +100,7 @@ def featured_inputs(inputs: dict[str, Any]) -> Any:
 @task(
     name="sae-features",
     task_run_name="features {job.output_dir.name}",
-    cache_policy=content_key("steering_core.sae.feature_run", derived={"content": featured_inputs}),
+    cache_policy=content_key("steering_core.sae_quality.feature_run", derived={"content": featured_inputs}),
     **RESULTS,
 )
 def feature_page(job: FeatureJob) -> dict:

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from latent_steering_cli import app
 from steering_core.config import RunConfig
-from steering_core.storage.layout import layer_dir
+from steering_core.layout import layer_dir
 
 
 def run_cli_steps(config: RunConfig, out: Path) -> None:
@@ -109,7 +109,7 @@ def train_options(config: RunConfig, layer: int, dataset: Path, out: Path) -> li
     """Return `train-sae`'s options for the layer's training settings and the episodes the flow holds out."""
     from steering_core.data.dataset import read_meta
     from steering_core.data.split import read_split
-    from steering_core.sae.heldout import sae_heldout_episodes
+    from steering_core.sae.training.heldout import sae_heldout_episodes
 
     settings = config.train_settings(layer)
     options = [arg for name, value in settings.model_dump().items()

@@ -12,7 +12,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from steering_core.storage import objects
+from steering_core.remote import filesystems
+from steering_core.storage import mirrors
 
 S3_ENV = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1"}
 
@@ -44,12 +45,12 @@ def s3_endpoint() -> Iterator[str]:
 def bucket(s3_endpoint: str, tmp_path, monkeypatch) -> Iterator[str]:
     """Yield a fresh bucket's URL (`s3://<name>`); this test's mirrors live in its tmp_path."""
     name = f"test-{uuid.uuid4().hex[:12]}"
-    fs = objects.filesystem("s3")
+    fs = filesystems.filesystem("s3")
     fs.mkdir(name)
-    monkeypatch.setenv(objects.MIRROR_ENV, str(tmp_path / "mirror"))
-    objects.unmount_all()
+    monkeypatch.setenv(mirrors.MIRROR_ENV, str(tmp_path / "mirror"))
+    mirrors.unmount_all()
     try:
         yield f"s3://{name}"
     finally:
-        objects.unmount_all()
+        mirrors.unmount_all()
         fs.invalidate_cache()

@@ -18,17 +18,11 @@ import numpy as np
 import torch
 
 from steering_core.data.libero import read_demo
-from steering_core.sae.vectors import SteeringSettings, compute_steering
 from steering_core.serve import codec
 from steering_core.serve.server import PolicyServer, serving_in_thread
-from steering_core.synthetic.libero import (
-    DRAWER_OPEN,
-    MotionSpec,
-    SyntheticSettings,
-    SyntheticTask,
-    write_libero_file,
-)
+from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
 from steering_core.synthetic.sae import write_sae_folder
+from steering_core.vectors.directions import SteeringSettings, compute_steering
 
 CLIENT_SCRIPT = Path(__file__).with_name("openpi_client_script.py")
 OPENPI_CLIENT = ("--with", "openpi-client==0.1.2", "--with", "typing_extensions")  # 0.1.2 omits typing_extensions

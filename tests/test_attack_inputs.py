@@ -16,7 +16,7 @@ import torch
 import yaml
 from helpers_attack import Attack, Case, World, assert_refused
 
-from steering_core.storage.layout import check_name
+from steering_core.layout import check_name
 
 BINARY = bytes(range(128, 256)) * 4  # no UTF-8 text starts with these
 PAIR = "open_vs_close"

@@ -21,8 +21,9 @@ from typer.testing import CliRunner
 from latent_steering_cli import app
 from steering_core.config import RunConfig, load_run_config
 from steering_core.demo import build_demo
-from steering_core.storage import objects, publish
-from steering_core.storage.fingerprints import file_digest
+from steering_core.remote import filesystems, publish, reads
+from steering_core.storage import mirrors
+from steering_core.storage.digests import file_digest
 from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, rooted
 
 pytestmark = pytest.mark.slow
@@ -35,7 +36,7 @@ def prefect_backend(prefect_server):
 
 
 def _fs():
-    return objects.filesystem("s3")
+    return filesystems.filesystem("s3")
 
 
 def _objects(url: str) -> dict[str, bytes]:
@@ -53,16 +54,16 @@ def _put(url: str, data: bytes) -> None:
 
 def _machine(tmp_path: Path, monkeypatch, name: str, bucket: str) -> tuple[Path, Path]:
     """Start "another machine": no roots mounted, an empty mirror; return (data root, input root) mirrors."""
-    objects.unmount_all()
+    mirrors.unmount_all()
     mirror = tmp_path / name
     assert not mirror.exists()
-    monkeypatch.setenv(objects.MIRROR_ENV, str(mirror))
-    return objects.mount(f"{bucket}/data"), objects.mount(f"{bucket}/inputs", role="input")
+    monkeypatch.setenv(mirrors.MIRROR_ENV, str(mirror))
+    return mirrors.mount(f"{bucket}/data"), mirrors.mount(f"{bucket}/inputs", role="input")
 
 
 # ----------------------------------------------------------------------------- tasks through a bucket root
 
-@task(cache_policy=content_key("steering_core.storage.layout", source=file_digest), **RESULTS)
+@task(cache_policy=content_key("steering_core.layout", source=file_digest), **RESULTS)
 def double(source: str, output: str) -> dict:
     """Write the source's text twice into `output`."""
     Path(output).parent.mkdir(parents=True, exist_ok=True)
@@ -196,8 +197,8 @@ def test_a_root_mounted_inside_a_published_folder_pulls_its_files(bucket, tmp_pa
     publish.publish(root / "slices")  # one record for the folder, beside it in data/
 
     _machine(tmp_path, monkeypatch, "two", bucket)
-    objects.unmount_all()
-    inner = objects.mount(f"{bucket}/data/slices")  # e.g. a command given the folder's URL
+    mirrors.unmount_all()
+    inner = mirrors.mount(f"{bucket}/data/slices")  # e.g. a command given the folder's URL
     assert sorted(publish.pull(inner / "layer01")) == [inner / "layer01" / "index.json"]
     assert sorted(publish.pull(inner)) == [inner / "top.json"]
     assert (inner / "layer01" / "index.json").read_text() == '{"n": 1}' and (inner / "top.json").read_text() == "{}"
@@ -219,7 +220,7 @@ def test_a_folder_republished_from_a_mirror_without_its_shards_keeps_them(bucket
     publish.publish(root / "run")
     assert _objects(f"{bucket}/data/run") == {"layer01/shard-00000.safetensors": shard, "run.json": b'{"v": 2}'}
     assert sorted(_published(f"{bucket}/data/run")["files"]) == ["run/layer01/shard-00000.safetensors", "run/run.json"]
-    assert publish.remote_file(root / "run" / "layer01" / "shard-00000.safetensors").size == len(shard)
+    assert reads.remote_file(root / "run" / "layer01" / "shard-00000.safetensors").size == len(shard)
 
 
 # ----------------------------------------------------------------------------- CLI commands given URLs

@@ -16,11 +16,11 @@ from safetensors.torch import load_file, save_file
 
 from steering_core.capture import CaptureSettings
 from steering_core.data.convert import EpisodeSource, SourcesRecord
-from steering_core.sae.vectors import SteeringSettings
 from steering_core.storage.fileio import write_json
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
+from steering_core.vectors.directions import SteeringSettings
 from tasks.capture import capture_episodes
 from tasks.sae import encode_concept
 

@@ -24,7 +24,7 @@ class Payload:
         return (pathlib.Path.touch, (self.marker,))
 
 
-@task(cache_policy=content_key("steering_core.storage.layout"), **RESULTS)
+@task(cache_policy=content_key("steering_core.layout"), **RESULTS)
 def echo(value: int) -> dict:
     return {OUTPUTS: [], "value": value}
 

@@ -14,13 +14,7 @@ from steering_core.capture import CaptureSettings, capture, loop, shards
 from steering_core.capture.frames import worker_start_method
 from steering_core.capture.run_identity import checkpoint_fingerprint
 from steering_core.capture.settings import select_tokens
-from steering_core.pi05 import (
-    PromptFormat,
-    PromptTokenizer,
-    libero_camera_slots,
-    quantile_normalize,
-    read_norm_stats,
-)
+from steering_core.pi05 import PromptFormat, PromptTokenizer, libero_camera_slots, quantile_normalize, read_norm_stats
 from steering_core.pi05.model import Pi05Prefix
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
@@ -121,7 +115,7 @@ def test_token_types_select_their_positions(inputs, full_run, tmp_path, token_ty
     stored, instructions = load_layer(run_dir, 3, token_type), load_layer(full_run, 3)
     tokenizer = PromptTokenizer(inputs[1])
     expected = []
-    for frame, (frames, task) in enumerate(t for t in EPISODES for _ in range(t[0])):
+    for frame, (_frames, task) in enumerate(t for t in EPISODES for _ in range(t[0])):
         prompt = tokenizer.tokenize(task)
         chosen = range(prompt.n_valid) if token_type == "prompt" else [prompt.n_valid - 1]
         expected += [(frame, LANGUAGE_START + i, int(prompt.ids[i])) for i in chosen]

@@ -16,12 +16,7 @@ from reference_formats import FORMATS
 from typer.testing import CliRunner
 
 from latent_steering_cli import app
-from steering_core.data.concept_map import (
-    build_concept_map,
-    read_concept_map,
-    read_rename_map,
-    write_concept_map,
-)
+from steering_core.data.concept_map import build_concept_map, read_concept_map, read_rename_map, write_concept_map
 from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
 
 REFERENCE = FORMATS / "open_vs_close_concept_map.json"

@@ -9,7 +9,7 @@ import pytest
 from steering_core.capture import CaptureSettings
 from steering_core.capture.slicing import SliceSettings
 from steering_core.config import RunConfig, load_run_config, write_run_config
-from steering_core.sae.vectors import PairsConfig, SteeringSettings
+from steering_core.vectors.directions import PairsConfig, SteeringSettings
 
 VALID = """\
 name: drawer_stove

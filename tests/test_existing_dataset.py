@@ -39,9 +39,9 @@ from steering_core.config import (
 )
 from steering_core.data.convert import SOURCES_FILE, ConvertSettings, convert_libero
 from steering_core.data.dataset import read_meta
+from steering_core.layout import layer_dir
 from steering_core.preflight import PreflightError
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import layer_dir
 from steering_core.synthetic.libero import write_libero_file
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder

@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from flows.deploy import CRASH_AUTOMATION, GPU_TAG, PROJECT_TAG, deploy_all
 from latent_steering_cli import app
 from steering_core.demo import build_demo
-from steering_core.storage import objects
+from steering_core.remote import filesystems
 
 DEPLOYMENTS = {"pipeline", "gpu", "gpu-train-sae", "gpu-evaluate", "sim-rollout", "scheduled"}
 BASE_ENV = {"PREFECT_LOGGING_EXTRA_LOGGERS": "steering_core", "HF_HUB_OFFLINE": "1",
@@ -85,7 +85,7 @@ def test_storage_is_saved_as_the_result_block_and_named_in_every_deployment(conf
                        "LATENT_STEERING_STORAGE": url,
                        "PREFECT_RESULTS_DEFAULT_STORAGE_BLOCK": "remote-file-system/latent-steering-results",
                        "PREFECT_RESULTS_PERSIST_BY_DEFAULT": "true"}, name
-    fs = objects.filesystem("s3")
+    fs = filesystems.filesystem("s3")
     assert fs.find(bucket.removeprefix("s3://")) == []  # the write probe is gone
     # the block the flow runs load writes into the bucket, with this machine's credentials from the environment
     Block.load(envs["pipeline"]["PREFECT_RESULTS_DEFAULT_STORAGE_BLOCK"]).write_path("result", b"42")
@@ -125,4 +125,4 @@ def test_an_unreachable_bucket_is_one_line_naming_it(config_path, bucket):
     code, lines = deploy(config_path, "--storage", missing)
     assert code == 1 and len(lines) == 1, lines
     assert lines[0].startswith(f"error: {missing}: not writable from this machine") and "bucket does not exist" in lines[0]
-    assert not objects.filesystem("s3").exists(missing.removeprefix("s3://").split("/")[0])  # the probe made nothing
+    assert not filesystems.filesystem("s3").exists(missing.removeprefix("s3://").split("/")[0])  # the probe made nothing

@@ -51,17 +51,13 @@ from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
 from steering_core.demo import DEMO_STEPS, PLANTED_DIR, build_demo, format_summary, summarise
-from steering_core.storage import fileio, objects, publish
+from steering_core.identity import code_modules, code_version
+from steering_core.layout import layer_dir
+from steering_core.remote import filesystems, publish
+from steering_core.storage import fileio, mirrors
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json, sha256_file
-from steering_core.storage.fingerprints import code_modules, code_version, file_digest
-from steering_core.storage.layout import layer_dir
-from steering_core.synthetic.libero import (
-    DRAWER_OPEN,
-    MotionSpec,
-    SyntheticSettings,
-    SyntheticTask,
-    write_libero_file,
-)
+from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
 from tasks.cache import (
     CACHE_DIR,
     OUTPUTS,
@@ -116,7 +112,7 @@ def latest_pipeline_run() -> UUID:
 
 # ----------------------------------------------------------------------------- cache keys and retries
 
-@task(cache_policy=content_key("steering_core.storage.layout", source=file_digest, ignore=("label",)), **RESULTS)
+@task(cache_policy=content_key("steering_core.layout", source=file_digest, ignore=("label",)), **RESULTS)
 def double(label: str, source: str, output: str, times: int = 2) -> dict:
     """Write `times` copies of a file's text into `output`."""
     Path(output).write_text(Path(source).read_text() * times)
@@ -159,7 +155,7 @@ def test_is_cached_predicts_a_cached_run_without_starting_one(tmp_path):
 def test_code_version_follows_project_imports_only():
     modules = code_modules("steering_core.capture.slicing")
     assert {"steering_core.capture.slicing", "steering_core.capture.shards", "steering_core.data.concept_map", "steering_core.storage.fileio",
-            "steering_core.storage.layout", "steering_core.storage.schema"} <= set(modules)
+            "steering_core.layout", "steering_core.storage.schema"} <= set(modules)
     assert "steering_core.capture.loop" not in modules and not any(m.startswith("torch") for m in modules)
     assert modules["steering_core.storage.fileio"] == sha256_file(Path(fileio.__file__))
     # capture imports the prefix model lazily inside a function: still part of its code version
@@ -516,7 +512,7 @@ def bucket_run(first_run, demo_dir, s3_endpoint, tmp_path_factory):
     `<bucket>/data`, this process's mirror in a folder of its own (rollouts left out: they are closed-loop
     episodes, not under test here). Return the bucket's URL."""
     bucket = f"s3://flows-{os.getpid()}-{time.monotonic_ns()}"
-    fs = objects.filesystem("s3")
+    fs = filesystems.filesystem("s3")
     fs.mkdir(bucket[5:])
     inputs, data = (demo_dir / "inputs").resolve(), (demo_dir / "data").resolve()
     fs.put(str(inputs), f"{bucket[5:]}/inputs", recursive=True)
@@ -525,11 +521,11 @@ def bucket_run(first_run, demo_dir, s3_endpoint, tmp_path_factory):
     raw.pop("rollout")
     fs.pipe_file(f"{bucket[5:]}/run.yaml", yaml.safe_dump(raw).encode())
     with pytest.MonkeyPatch.context() as patch:
-        patch.setenv(objects.MIRROR_ENV, str(tmp_path_factory.mktemp("mirror")))
+        patch.setenv(mirrors.MIRROR_ENV, str(tmp_path_factory.mktemp("mirror")))
         try:
             result = latent_steering(f"{bucket}/run.yaml")
         finally:
-            objects.unmount_all()
+            mirrors.unmount_all()
     assert result["reports"]["1"] == f"{bucket}/data/latent_steering/layer01"  # the outputs named by URL
     return bucket
 
@@ -538,7 +534,7 @@ def test_outputs_on_a_bucket_equal_the_local_run(bucket_run, demo_dir):
     """Every output the local demo run wrote (but the rollouts) is in the bucket, published, with equal bytes:
     tensors exactly, text files apart from where they name the roots (a path here, a URL there) and the digests
     computed over those names. Nothing is left in staging."""
-    fs, local = objects.filesystem("s3"), demo_dir / "data"
+    fs, local = filesystems.filesystem("s3"), demo_dir / "data"
     roots = {str(local.resolve()): "<data>", str((demo_dir / "inputs").resolve()): "<inputs>",
              f"{bucket_run}/data": "<data>", f"{bucket_run}/inputs": "<inputs>"}
 

@@ -1,7 +1,10 @@
-"""The library stands alone: importing any steering_core subpackage loads neither Prefect nor the flows."""
+"""The library stands alone: importing any steering_core subpackage loads neither Prefect nor the flows, and its
+rooms import only the rooms below them."""
 
+import ast
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -12,17 +15,20 @@ SUBPACKAGES = (
     "steering_core.capture",
     "steering_core.sae",
     "steering_core.sae.training.loop",
-    "steering_core.sae.judge_run",
+    "steering_core.sae_quality",
+    "steering_core.sae_quality.judge_run",
+    "steering_core.vectors",
+    "steering_core.remote",
     "steering_core.synthetic",
     "steering_core.evaluate",
     "steering_core.evaluate.run",
     "steering_core.config",
     "steering_core.demo",
     "steering_core.refresh",
-    "steering_core.storage.fingerprints",
+    "steering_core.identity",
     "steering_core.preflight",
     "steering_core.storage",
-    "steering_core.storage.tensor_files",
+    "steering_core.tensor_files",
     "steering_core.reporting",
     "steering_core.serve",
 )
@@ -37,3 +43,42 @@ def test_library_imports_without_prefect_or_flows(name):
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, f"{name} pulled in {result.stdout.strip()} {result.stderr[-500:]}"
+
+
+# steering_core's rooms, lowest first: each imports only rooms before it (type-checking imports aside)
+ROOMS = ["storage", "pairs", "devices", "reporting", "remote", "layout", "identity", "tensor_files", "pi05", "data",
+         "capture", "sae", "vectors", "serve", "evaluate", "rollout", "sae_quality", "synthetic", "config",
+         "refresh", "preflight", "demo"]
+LIBRARY = Path(__file__).resolve().parents[1] / "steering_core"
+
+
+def _runtime_imports(tree: ast.AST) -> list[str]:
+    """Return the steering_core modules a module imports when it runs (not under `if TYPE_CHECKING:`)."""
+    found = []
+    for node in ast.iter_child_nodes(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            continue
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("steering_core"):
+            found.extend(f"{node.module}.{alias.name}" if node.module == "steering_core" else node.module
+                         for alias in node.names)
+        elif isinstance(node, ast.Import):
+            found.extend(alias.name for alias in node.names if alias.name.startswith("steering_core"))
+        else:
+            found.extend(_runtime_imports(node))
+    return found
+
+
+def test_rooms_import_only_rooms_below_them():
+    rooms = {path.stem if path.parent == LIBRARY else path.relative_to(LIBRARY).parts[0]
+             for path in LIBRARY.rglob("*.py") if path.name != "__init__.py" or path.parent != LIBRARY}
+    assert rooms == set(ROOMS), "a new room of steering_core goes into ROOMS, at its place"
+    upward = []
+    for path in sorted(LIBRARY.rglob("*.py")):
+        if path.parent == LIBRARY and path.name == "__init__.py":
+            continue
+        room = path.stem if path.parent == LIBRARY else path.relative_to(LIBRARY).parts[0]
+        for module in _runtime_imports(ast.parse(path.read_text(encoding="utf-8"))):
+            target = module.split(".")[1]
+            if target != room and ROOMS.index(target) > ROOMS.index(room):
+                upward.append(f"{path.relative_to(LIBRARY.parent)} imports {module}")
+    assert not upward, "\n".join(upward)

@@ -30,11 +30,11 @@ from steering_core.data.convert import ConvertSettings, convert_libero
 from steering_core.data.dataset import dataset_fingerprint, read_episode_columns, read_index_columns, read_meta
 from steering_core.data.v2_frames import V2Frames
 from steering_core.data.v21_writer import V21Writer
-from steering_core.sae.vectors import SteeringSettings, compute_steering
 from steering_core.synthetic.libero import SyntheticSettings, write_libero_file
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
+from steering_core.vectors.directions import SteeringSettings, compute_steering
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 

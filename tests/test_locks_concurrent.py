@@ -19,7 +19,7 @@ import yaml
 from helpers_locks import hold_output_lock, python
 
 from steering_core.demo import build_demo
-from steering_core.storage.locks import group_locks, output_lock
+from steering_core.remote.locks import group_locks, output_lock
 from tasks.cache import CACHE_DIR
 
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
@@ -28,7 +28,7 @@ LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the co
 # "release" (read by a third thread) lets `mine` go. Two of these, crossed, wait on each other's outputs.
 CROSSED = """
 import sys, threading
-from steering_core.storage.locks import output_lock
+from steering_core.remote.locks import output_lock
 mine, theirs = sys.argv[1:]
 held, release = threading.Event(), threading.Event()
 def hold():
@@ -49,7 +49,7 @@ holder.join()
 # Takes the shard groups argv[2:] of run folder argv[1] 20 times, logging start and end of each hold.
 GROUPS = """
 import os, sys, time
-from steering_core.storage.locks import group_locks
+from steering_core.remote.locks import group_locks
 run_dir, groups = sys.argv[1], [int(g) for g in sys.argv[2:]]
 for _ in range(20):
     with group_locks(run_dir, groups):
@@ -117,7 +117,7 @@ def test_a_killed_holder_leaves_no_lock_behind(tmp_path):
 
 FORKS = """
 import os, sys, time
-from steering_core.storage.locks import output_lock
+from steering_core.remote.locks import output_lock
 with output_lock(sys.argv[1]):
     child = os.fork()
     if child == 0:

@@ -8,33 +8,34 @@ import time
 
 import pytest
 
-from steering_core.storage import bucket_lock, objects, publish
+from steering_core.remote import filesystems, locks, publish, reads
+from steering_core.storage import mirrors
 
 
 def _fs():
-    return objects.filesystem("s3")
+    return filesystems.filesystem("s3")
 
 
 def test_paths_and_urls_map_both_ways(bucket, tmp_path):
-    mirror = objects.mount(f"{bucket}/runs/")
+    mirror = mirrors.mount(f"{bucket}/runs/")
     assert mirror == tmp_path / "mirror" / "s3" / bucket[5:] / "runs"
-    assert objects.url_of(mirror / "a" / "b.json") == f"{bucket}/runs/a/b.json"
-    assert objects.url_of(tmp_path / "elsewhere") is None
+    assert mirrors.url_of(mirror / "a" / "b.json") == f"{bucket}/runs/a/b.json"
+    assert mirrors.url_of(tmp_path / "elsewhere") is None
     value = {"x": [str(mirror / "a"), "other"], "y": (str(mirror),)}
-    assert objects.portable(value) == {"x": [f"{bucket}/runs/a", "other"], "y": (f"{bucket}/runs",)}
-    assert objects.localize(objects.portable(value)) == value
-    assert objects.mount("file:///tmp/x") == objects.Path("/tmp/x")
+    assert mirrors.portable(value) == {"x": [f"{bucket}/runs/a", "other"], "y": (f"{bucket}/runs",)}
+    assert mirrors.localize(mirrors.portable(value)) == value
+    assert mirrors.mount("file:///tmp/x") == mirrors.Path("/tmp/x")
 
 
 @pytest.mark.parametrize("url", ["ftp://host/x", "s3://", "s3://b/../c", "s3://b//c"])
 def test_bad_urls_are_refused_in_one_line(url):
     with pytest.raises(ValueError, match="s3://|unsupported") as err:
-        objects.split_url(url)
+        mirrors.split_url(url)
     assert "\n" not in str(err.value)
 
 
 def test_a_folder_is_invisible_until_its_record_is_written(bucket):
-    mirror = objects.mount(bucket)
+    mirror = mirrors.mount(bucket)
     out = mirror / "steps" / "layer01"
     (out / "pair").mkdir(parents=True)
     (out / "pair" / "a.json").write_text('{"a": 1}')
@@ -55,14 +56,14 @@ def test_a_folder_is_invisible_until_its_record_is_written(bucket):
 
 
 def test_objects_without_a_record_are_not_pulled(bucket):
-    mirror = objects.mount(bucket)
+    mirror = mirrors.mount(bucket)
     _fs().pipe_file(f"{bucket[5:]}/half/x.json", b"{}")  # a writer died before its record
     assert publish.pull(mirror / "half") == [] and not (mirror / "half").exists()
-    assert publish.remote_file(mirror / "half" / "x.json") is None
+    assert reads.remote_file(mirror / "half" / "x.json") is None
 
 
 def test_an_object_changed_after_publication_is_named(bucket):
-    mirror = objects.mount(bucket)
+    mirror = mirrors.mount(bucket)
     (mirror / "m.json").parent.mkdir(parents=True, exist_ok=True)
     (mirror / "m.json").write_text('{"v": 1}')
     publish.publish(mirror / "m.json")
@@ -75,7 +76,7 @@ def test_an_object_changed_after_publication_is_named(bucket):
 
 
 def test_republishing_replaces_files_and_drops_stale_ones(bucket):
-    mirror = objects.mount(bucket)
+    mirror = mirrors.mount(bucket)
     out = mirror / "f"
     out.mkdir(parents=True)
     (out / "old.txt").write_text("old")
@@ -87,29 +88,29 @@ def test_republishing_replaces_files_and_drops_stale_ones(bucket):
 
 
 def test_ranged_reads_fetch_only_what_is_read(bucket):
-    mirror = objects.mount(bucket)
+    mirror = mirrors.mount(bucket)
     shard = mirror / "run" / "shard-00000.safetensors"
     shard.parent.mkdir(parents=True)
     shard.write_bytes(bytes(range(256)) * 4096)  # 1 MiB
     publish.publish(shard)
     assert publish.pull(mirror) == []  # shards stay in the bucket
     shard.unlink()
-    remote = publish.remote_file(shard)
+    remote = reads.remote_file(shard)
     assert remote.size == 1 << 20
-    before = publish.Fetched.total
+    before = reads.Fetched.total
     with remote.open() as handle:
         handle.seek(1000)
         buffer = bytearray(300)
         assert handle.readinto(buffer) == 300
     assert bytes(buffer) == (bytes(range(256)) * 8)[1000 % 256: 1000 % 256 + 300]
-    assert publish.Fetched.total - before == 300
+    assert reads.Fetched.total - before == 300
     _fs().pipe_file(f"{bucket[5:]}/run/shard-00000.safetensors", b"x" * 10)
     with pytest.raises(ValueError, match=r"shard-00000.safetensors: size 10, ETag .* differ from its publication"):
-        publish.remote_file(shard)
+        reads.remote_file(shard)
 
 
 def test_staging_left_by_a_dead_writer_is_cleaned_by_the_next_publication(bucket):
-    mirror = objects.mount(bucket)
+    mirror = mirrors.mount(bucket)
     _fs().pipe_file(f"{bucket[5:]}/.staging/out.json.deadhost-1-abc/out.json", b"half")
     (mirror / "out.json").parent.mkdir(parents=True, exist_ok=True)
     (mirror / "out.json").write_text("{}")
@@ -120,7 +121,7 @@ def test_staging_left_by_a_dead_writer_is_cleaned_by_the_next_publication(bucket
 
 def test_an_input_root_is_pulled_as_it_is_and_refetched_when_changed(bucket):
     _fs().pipe_file(f"{bucket[5:]}/ckpt/model.safetensors", b"weights")
-    local = objects.mount(f"{bucket}/ckpt", role="input")
+    local = mirrors.mount(f"{bucket}/ckpt", role="input")
     assert [p.name for p in publish.pull(local)] == ["model.safetensors"]
     assert publish.pull(local) == []
     _fs().pipe_file(f"{bucket[5:]}/ckpt/model.safetensors", b"weights2")
@@ -130,12 +131,12 @@ def test_an_input_root_is_pulled_as_it_is_and_refetched_when_changed(bucket):
 
 
 def test_the_bucket_lock_excludes_and_is_taken_over_from_a_dead_holder(bucket, monkeypatch):
-    monkeypatch.setenv(bucket_lock.LEASE_ENV, "2")
-    mirror = objects.mount(bucket)
+    monkeypatch.setenv(locks.LEASE_ENV, "2")
+    mirror = mirrors.mount(bucket)
     events = []
 
     def hold(name):
-        with bucket_lock.bucket_lock(mirror / "out"):
+        with locks.bucket_lock(mirror / "out"):
             events.append(f"{name} in")
             time.sleep(1.0)
             events.append(f"{name} out")
@@ -150,7 +151,7 @@ def test_the_bucket_lock_excludes_and_is_taken_over_from_a_dead_holder(bucket, m
     # a holder that died: its lock object stays, never renewed
     _fs().pipe_file(f"{bucket[5:]}/.locks/out.lock", json.dumps({"holder": "dead"}).encode())
     started = time.monotonic()
-    with bucket_lock.bucket_lock(mirror / "out"):
+    with locks.bucket_lock(mirror / "out"):
         waited = time.monotonic() - started
     assert 2.0 <= waited < 8
     assert not _fs().exists(f"{bucket[5:]}/.locks/out.lock")

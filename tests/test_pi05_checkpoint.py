@@ -23,11 +23,7 @@ from steering_core.pi05.checkpoint import (
     prefix_tensor_shapes,
 )
 from steering_core.storage.fileio import sha256_file
-from steering_core.synthetic.pi05 import (
-    checkpoint_tensor_shapes,
-    tiny_arch,
-    write_pi05_checkpoint,
-)
+from steering_core.synthetic.pi05 import checkpoint_tensor_shapes, tiny_arch, write_pi05_checkpoint
 
 ARCH = tiny_arch()
 

@@ -14,11 +14,7 @@ from steering_core.pi05.norm_stats import (
     quantile_unnormalize,
     read_norm_stats,
 )
-from steering_core.synthetic.pi05 import (
-    random_norm_stats,
-    tiny_arch,
-    write_pi05_checkpoint,
-)
+from steering_core.synthetic.pi05 import random_norm_stats, tiny_arch, write_pi05_checkpoint
 
 
 @pytest.fixture(scope="module")

@@ -5,12 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from steering_core.pi05.preprocess import (
-    libero_camera_slots,
-    resize_with_pad,
-    to_model_range,
-    to_uint8,
-)
+from steering_core.pi05.preprocess import libero_camera_slots, resize_with_pad, to_model_range, to_uint8
 
 
 def test_to_uint8_truncates_like_libero_inputs():

@@ -16,9 +16,10 @@ from steering_core.capture import shards
 from steering_core.capture.slice_copy import _spans
 from steering_core.capture.slicing import SliceSettings, slice_concepts
 from steering_core.data.concept_map import ConceptMap, ConceptRow, write_concept_map
+from steering_core.remote import filesystems, publish, reads
 from steering_core.sae.training.rows import RowSource
-from steering_core.storage import objects, publish
-from steering_core.storage.tensor_files import tensor_locations
+from steering_core.storage import mirrors
+from steering_core.tensor_files import tensor_locations
 
 WIDTH, LAYER, FRAMES, TOKENS, EPISODES = 64, 3, 6, 4, 8  # episodes 0-3 and 4-7 share a shard each
 ROW_BYTES = WIDTH * 4
@@ -59,7 +60,7 @@ CONCEPTS = {"open": [(0, 1, 4), (5, 0, 2)], "close": [(3, 2, 5)]}
 @pytest.fixture
 def run(bucket, tmp_path):
     """A run under a mounted bucket root: (run folder in the mirror, its shard files)."""
-    run_dir = objects.mount(bucket) / "runs" / "r"
+    run_dir = mirrors.mount(bucket) / "runs" / "r"
     build_run(run_dir)
     return run_dir, sorted(run_dir.rglob("shard-*.safetensors"))
 
@@ -85,9 +86,9 @@ def test_slices_from_the_bucket_equal_local_ones_and_fetch_only_the_selected_row
     slice_concepts(run_dir, concept_map, tmp_path / "local", settings)
     headers = sum(tensor_locations(file)[shards.RESIDUALS].offset for file in files)  # length, header, row columns
     leave_in_bucket(run_dir, files)
-    before = publish.Fetched.total
+    before = reads.Fetched.total
     slice_concepts(run_dir, concept_map, tmp_path / "remote", settings)
-    fetched = publish.Fetched.total - before
+    fetched = reads.Fetched.total - before
     assert slice_files(tmp_path / "remote") == slice_files(tmp_path / "local")
     assert not any(file.exists() for file in files)  # never downloaded
     selected = ROW_BYTES * TOKENS * sum(b - a + 1 for segments in CONCEPTS.values() for _, a, b in segments)
@@ -105,8 +106,8 @@ def test_a_shard_changed_in_the_bucket_is_named_in_one_line(run, tmp_path):
     run_dir, files = run
     concept_map = write_map(tmp_path / "map.json", CONCEPTS)
     leave_in_bucket(run_dir, files)
-    url = objects.url_of(files[1])
-    fs, key = objects.object_path(url)
+    url = mirrors.url_of(files[1])
+    fs, key = filesystems.object_path(url)
     data = bytearray(fs.cat_file(key))
     data[-1] ^= 1  # one bit of the last row
     fs.pipe_file(key, bytes(data))
@@ -124,7 +125,7 @@ def test_run_metadata_is_rebuilt_where_the_shards_are_only_in_the_bucket(run):
     metadata.unlink()
     shards.write_run_metadata(run_dir)
     assert metadata.read_bytes() == expected
-    fs, key = objects.object_path(objects.url_of(files[0]))
+    fs, key = filesystems.object_path(mirrors.url_of(files[0]))
     fs.rm_file(key)  # gone from the bucket, still listed by its publication record
     with pytest.raises(ValueError, match=f"its shard {files[0].relative_to(run_dir)} is missing; re-run capture"):
         shards.write_run_metadata(run_dir)
@@ -138,10 +139,10 @@ def test_sae_training_rows_from_the_bucket_equal_local_ones(run):
     first_batches = [next(shuffled) for _ in range(12)]
     headers = sum(tensor_locations(file)[shards.RESIDUALS].offset for file in files)
     leave_in_bucket(run_dir, files, per_file=True)
-    before = publish.Fetched.total
+    before = reads.Fetched.total
     remote = RowSource(run_dir, LAYER, episodes=[0, 3, 5])
     remote_sequential = list(remote.sequential(7))
-    fetched = publish.Fetched.total - before
+    fetched = reads.Fetched.total - before
     assert remote.identity() == local.identity() and remote.rows == 3 * FRAMES * TOKENS
     assert len(remote_sequential) == len(sequential)
     for (rows, columns), (expected_rows, expected_columns) in zip(remote_sequential, sequential):

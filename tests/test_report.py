@@ -9,9 +9,9 @@ import matplotlib.image
 import pytest
 import torch
 
-from steering_core.sae.report import top_latents, write_report
-from steering_core.sae.vectors import SteeringSettings, compute_steering
 from steering_core.synthetic.sae import write_sae_folder
+from steering_core.vectors.directions import SteeringSettings, compute_steering
+from steering_core.vectors.report import top_latents, write_report
 
 D_IN, D_SAE = 12, 40
 

@@ -127,7 +127,7 @@ def test_preflight_names_each_libero_task_it_cannot_find(tmp_path):
 
 
 def test_a_chunk_identity_covers_the_code_it_runs():
-    from steering_core.storage.fingerprints import code_modules
+    from steering_core.identity import code_modules
     from tasks.rollout import CHUNK_CODE
 
     modules = set(code_modules(CHUNK_CODE))

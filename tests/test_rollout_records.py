@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from helpers_rollout import CLOSE, JOINT, OPEN, RUN, make_episode, write_pair_cells
 
+from steering_core.layout import rollout_cell_dir
 from steering_core.rollout.records import RolloutCell, condition_kind, merge_chunks, read_cell, write_cell
-from steering_core.storage.layout import rollout_cell_dir
 
 
 def test_cell_names_and_condition_kinds():

@@ -11,26 +11,10 @@ import torch
 from reference_sae import ReferenceSae
 from safetensors.torch import load_file, save_file
 
-from steering_core.sae.formats import (
-    CFG_FILE,
-    WEIGHTS_FILE,
-    is_legacy_cfg,
-    parse_cfg,
-    upgrade_legacy_cfg,
-)
-from steering_core.sae.model import (
-    Sae,
-    StandardSae,
-    load_sae,
-    register_architecture,
-    sae_class,
-)
+from steering_core.sae.formats import CFG_FILE, WEIGHTS_FILE, is_legacy_cfg, parse_cfg, upgrade_legacy_cfg
+from steering_core.sae.model import Sae, StandardSae, load_sae, register_architecture, sae_class
 from steering_core.sae.registry import hub_cache_dir, resolve_release
-from steering_core.synthetic.sae import (
-    write_release_to_hub_cache,
-    write_sae_folder,
-    write_sae_state_dict,
-)
+from steering_core.synthetic.sae import write_release_to_hub_cache, write_sae_folder, write_sae_state_dict
 
 D_IN, D_SAE, ROWS, K = 16, 64, 40, 8
 ARCHITECTURES = ("standard", "jumprelu", "topk")

@@ -23,13 +23,13 @@ from safetensors.torch import load_file
 from torchvision.io import decode_png
 
 from steering_core.capture.shards import ROW_COLUMNS, open_shard, read_run_metadata
-from steering_core.sae.feature_page import read_pair_latents, sentencepiece_text, write_feature_page
-from steering_core.sae.feature_scan import FeatureScan, frame_contexts, read_feature_scan, scan_features
+from steering_core.layout import layer_dir
 from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae, load_sae
-from steering_core.sae.neuronpedia import read_jsonl_gz, write_neuronpedia
+from steering_core.sae_quality.feature_page import read_pair_latents, sentencepiece_text, write_feature_page
+from steering_core.sae_quality.feature_scan import FeatureScan, frame_contexts, read_feature_scan, scan_features
+from steering_core.sae_quality.neuronpedia import read_jsonl_gz, write_neuronpedia
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import layer_dir
 
 D_IN, D_SAE = 8, 24
 

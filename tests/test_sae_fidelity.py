@@ -14,11 +14,11 @@ from steering_core.evaluate.run import task_prompts
 from steering_core.evaluate.sweep import frame_noise
 from steering_core.pi05 import Pi05Policy, PromptTokenizer
 from steering_core.pi05.steering import Splice, Steering
-from steering_core.sae.action_fidelity import ActionFidelity, action_fidelity, zero_ablation
-from steering_core.sae.fidelity import RowFidelity, row_fidelity
-from steering_core.sae.fidelity_report import TABLE_HEADER, ActionInputs, judge_layer, verdict
 from steering_core.sae.formats import SaeConfig
 from steering_core.sae.model import StandardSae, TopKSae
+from steering_core.sae_quality.action_fidelity import ActionFidelity, action_fidelity, zero_ablation
+from steering_core.sae_quality.fidelity import RowFidelity, row_fidelity
+from steering_core.sae_quality.fidelity_report import TABLE_HEADER, ActionInputs, judge_layer, verdict
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
 

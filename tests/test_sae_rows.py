@@ -12,8 +12,8 @@ import torch
 
 from steering_core.capture import shards
 from steering_core.sae.training.rows import RowSource
-from steering_core.storage.tensor_files import tensor_locations
 from steering_core.synthetic.residual_run import LAYER, write_rows_run
+from steering_core.tensor_files import tensor_locations
 
 WIDTH = 8
 

@@ -42,9 +42,10 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.demo import build_demo
-from steering_core.storage import objects, publish
+from steering_core.layout import layer_dir
+from steering_core.remote import filesystems, publish
+from steering_core.storage import mirrors
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import layer_dir
 
 pytestmark = pytest.mark.slow
 
@@ -130,7 +131,7 @@ def bucket_demo(folder: Path, bucket: str, edit: Callable[[dict], None]) -> str:
     raw = yaml.safe_load(config_path.read_text())
     edit(raw)
     inputs, data = (folder / "demo" / "inputs").resolve(), (folder / "demo" / "data").resolve()
-    fs = objects.filesystem("s3")
+    fs = filesystems.filesystem("s3")
     fs.put(str(inputs), f"{bucket[5:]}/inputs", recursive=True)
     text = yaml.safe_dump(raw).replace(str(inputs), f"{bucket}/inputs").replace(str(data), f"{bucket}/data")
     assert str(folder) not in text, text  # nothing on this machine's disk is named
@@ -141,12 +142,12 @@ def bucket_demo(folder: Path, bucket: str, edit: Callable[[dict], None]) -> str:
 
 def published(path: Path) -> bool:
     """Return True when the mirror path `path` is a published output in the bucket (or lies in one)."""
-    return publish.is_published(objects.url_of(path))
+    return publish.is_published(mirrors.url_of(path))
 
 
 def bucket_files(url: str, pattern: str) -> list[str]:
     """Return the objects under `url` whose path matches the glob `pattern` (relative to `url`)."""
-    fs, path = objects.object_path(url)
+    fs, path = filesystems.object_path(url)
     return sorted(fs.glob(f"{path}/{pattern}"))
 
 
@@ -362,7 +363,7 @@ def assert_equal_to_local_steps(config, local: Path) -> None:
     for run, name in ((config.run_dir, "demo"), (config.decision_run_dir, "demo_decision")):
         shards = [(r.file, r.sha256) for r in read_run_metadata(run).shards]
         assert shards == [(r.file, r.sha256) for r in read_run_metadata(local / "residuals" / name).shards]
-        fs, first = objects.object_path(objects.url_of(run / shards[0][0]))
+        fs, first = filesystems.object_path(mirrors.url_of(run / shards[0][0]))
         assert hashlib.sha256(fs.cat_file(first)).hexdigest() == shards[0][1]  # the object holds those bytes
     for layer in config.layers:
         for pair in config.pairs:
@@ -418,7 +419,7 @@ def dying_machines(env: dict[str, str], processes: Processes, tmp_path: Path) ->
     dies, with the parent, as slicing starts: a pipeline run on a new cpu machine finishes the work, starting no
     capture run (all cached in the bucket). Nothing half-written is visible and no staging object is left."""
     name = f"dying-{os.getpid()}-{time.monotonic_ns()}"
-    objects.filesystem("s3").mkdir(name)
+    filesystems.filesystem("s3").mkdir(name)
     bucket = f"s3://{name}"
 
     def edit(raw: dict) -> None:
@@ -449,7 +450,7 @@ def dying_machines(env: dict[str, str], processes: Processes, tmp_path: Path) ->
     start_machine(processes, "worker-gpu-2", "gpu", tmp_path / "machine-gpu-2")
     with get_client(sync_client=True) as client:  # nothing can change them now but the automation
         before = {r.name: r.state.name for r in capture_runs(client)}
-    fs = objects.filesystem("s3")
+    fs = filesystems.filesystem("s3")
     kept = {path: fs.info(path)["ETag"] for path in bucket_files(f"{bucket}/data/residuals/demo", "**/shard-*.safetensors")}
     assert kept  # the completed capture runs published their shards
 
@@ -500,11 +501,11 @@ def kill_machine(worker: subprocess.Popen) -> None:
 def assert_nothing_half_written(bucket: str) -> None:
     """Every output a record publishes is whole (each file there, with the record's size and ETag), and every
     object under the outputs belongs to a published output, or is a cache record, lock or shared config."""
-    fs = objects.filesystem("s3")
+    fs = filesystems.filesystem("s3")
     listed = set()
     for parent, record in publish.records_under(f"{bucket}/data"):
         for relative, entry in record["files"].items():
-            info = fs.info(objects.object_path(f"{parent}/{relative}")[1])
+            info = fs.info(filesystems.object_path(f"{parent}/{relative}")[1])
             assert (info["size"], info["ETag"]) == (entry["size"], entry["etag"]), (parent, relative)
             listed.add(f"{parent}/{relative}")
     bookkeeping = ("/.prefect-cache/", "/.runs/", "/.locks/")

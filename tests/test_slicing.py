@@ -11,12 +11,7 @@ from helpers_zip import assert_same_torch_records
 from safetensors.torch import load_file, save_file
 
 from steering_core.capture import shards
-from steering_core.capture.slicing import (
-    SliceSettings,
-    safe_file_name,
-    slice_concepts,
-    slice_file_names,
-)
+from steering_core.capture.slicing import SliceSettings, safe_file_name, slice_concepts, slice_file_names
 
 WIDTH = 6
 LAYERS = (2, 5)
@@ -367,7 +362,7 @@ def test_held_out_episodes_never_reach_the_slices(tmp_path, run_dir, concept_map
     expected = brute_force(run_dir, reduced, 2)
     index = json.loads(written[2].read_text())
     assert index["settings"]["holdout_episodes"] == list(held_out)
-    for name, (rows, keys) in expected.items():
+    for name, (rows, _keys) in expected.items():
         copy = load_file(out / "layer02" / index["concepts"][name]["safetensors"])
         assert torch.equal(copy["residuals"], rows)
         assert not set(copy["episode_index"].tolist()) & set(held_out)

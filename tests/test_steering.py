@@ -17,20 +17,11 @@ from safetensors.torch import save_file
 from typer.testing import CliRunner
 
 from latent_steering_cli import app
-from steering_core.sae.concept_stats import (
-    ConceptSource,
-    encode_concept,
-    read_concept_stats,
-)
 from steering_core.sae.formats import WEIGHTS_FILE
 from steering_core.sae.model import load_sae
-from steering_core.sae.vectors import (
-    SteeringSettings,
-    compute_steering,
-    concept_sources,
-    read_pairs_config,
-)
 from steering_core.synthetic.sae import write_sae_folder
+from steering_core.vectors.concept_stats import ConceptSource, encode_concept, read_concept_stats
+from steering_core.vectors.directions import SteeringSettings, compute_steering, concept_sources, read_pairs_config
 
 D_IN, D_SAE = 16, 48
 REFERENCE_PAIRS = FORMATS / "layer12_pairs.json"
@@ -485,7 +476,7 @@ def test_a_second_run_waits_for_the_layer_another_process_writes_then_reuses_its
 
 def test_encoding_a_concept_another_process_is_encoding_waits_then_reuses_it(tmp_path, sae_folder):
     """The flow's per-concept step: the statistics file is locked while computed, then reused."""
-    from steering_core.sae.concept_stats import concept_stats_path
+    from steering_core.vectors.concept_stats import concept_stats_path
 
     path = tmp_path / "on.pt"
     torch.save(concept_tensor(20, seed=3, shift=1.0), path)

@@ -1,4 +1,4 @@
-"""Plain reads of safetensors files (steering_core.storage.tensor_files): safetensors' values, any dtype, chunked, or refused."""
+"""Plain reads of safetensors files (steering_core.tensor_files): safetensors' values, any dtype, chunked, or refused."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from steering_core.storage import tensor_files
-from steering_core.storage.tensor_files import read_rows_into, read_tensor, safetensors_layout, tensor_locations
+from steering_core import tensor_files
+from steering_core.tensor_files import read_rows_into, read_tensor, safetensors_layout, tensor_locations
 
 
 @pytest.fixture

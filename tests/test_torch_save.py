@@ -10,7 +10,7 @@ import pytest
 import torch
 from helpers_zip import assert_same_torch_records
 
-from steering_core.storage.tensor_files import fill_zip_crcs, save_torch, save_torch_without_crcs
+from steering_core.tensor_files import fill_zip_crcs, save_torch, save_torch_without_crcs
 
 
 @pytest.mark.parametrize("payload", [

@@ -23,12 +23,7 @@ import numpy as np
 import torch
 
 from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
-from steering_core.capture.frames import (
-    FRAME_KEYS,
-    batch_plan,
-    frame_loader,
-    frame_source,
-)
+from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
 from steering_core.capture.run_identity import episode_records, run_spec
 from steering_core.capture.selected_rows import selected_residuals
 from steering_core.capture.settings import (
@@ -56,9 +51,9 @@ from steering_core.capture.shards import (
 from steering_core.data.dataset import DatasetMeta, read_meta
 from steering_core.devices import resolve_device
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
+from steering_core.remote.locks import group_locks
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.storage.fileio import check_output_dir, sha256_json
-from steering_core.storage.locks import group_locks
 
 if TYPE_CHECKING:
     from steering_core.pi05.model import Pi05Prefix

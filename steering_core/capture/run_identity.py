@@ -13,21 +13,17 @@ import pyarrow.parquet as pq
 from steering_core.capture.settings import STATE_KEY, CaptureInputs, CaptureSettings
 from steering_core.capture.shards import RunSpec
 from steering_core.data import lerobot_v2
-from steering_core.data.dataset import (
-    DatasetMeta,
-    dataset_fingerprint,
-    read_episode_columns,
-)
+from steering_core.data.dataset import DatasetMeta, dataset_fingerprint, read_episode_columns
 from steering_core.devices import resolve_device, resolve_dtype
 from steering_core.pi05.norm_stats import norm_stats_path
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import sha256_file, sha256_json
-from steering_core.storage.fingerprints import file_digest
 
 
 def checkpoint_fingerprint(model_file: str | os.PathLike) -> str:
     """Return the sha256 of a checkpoint file's whole content (a fine-tune of one weight changes it).
 
-    Read once per file version (`steering_core.storage.fingerprints.file_digest`): about 20 s for 7 GB, then remembered.
+    Read once per file version (`steering_core.identity.file_digest`): about 20 s for 7 GB, then remembered.
     """
     return file_digest(model_file)
 

@@ -10,14 +10,7 @@ from pydantic import Field, field_validator
 
 from steering_core.capture.shards import ACTION_TOKEN_TYPES, StorageDtype, TokenType
 from steering_core.data.dataset import DatasetMeta
-from steering_core.pi05 import (
-    NormStats,
-    Pi05Arch,
-    PromptFormat,
-    PromptTokenizer,
-    TokenizedPrompt,
-    read_norm_stats,
-)
+from steering_core.pi05 import NormStats, Pi05Arch, PromptFormat, PromptTokenizer, TokenizedPrompt, read_norm_stats
 from steering_core.pi05.arch import ExpertArch
 from steering_core.pi05.checkpoint import (
     check_expert_tensors,

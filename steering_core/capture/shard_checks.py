@@ -19,7 +19,7 @@ from typing import Protocol
 
 from steering_core.capture.shards import ShardRecord, checksum_mismatch
 from steering_core.storage.fileio import Crc32, feed_file
-from steering_core.storage.objects import url_of
+from steering_core.storage.mirrors import url_of
 
 
 class Digest(Protocol):

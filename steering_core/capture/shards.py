@@ -34,18 +34,11 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.devices import DTYPE_NAMES, DTYPES, SAFETENSORS_DTYPES
+from steering_core.layout import layer_dir
+from steering_core.remote.reads import RemoteFile, remote_file
 from steering_core.storage.fileio import Crc32, atomic_path, feed_file, sha256_file, sha256_json, write_json
-from steering_core.storage.layout import layer_dir
-from steering_core.storage.publish import RemoteFile, remote_file
 from steering_core.storage.schema import M, StrictModel, read_model
-from steering_core.storage.tensor_files import (
-    TensorLocation,
-    layout_of,
-    open_read,
-    read_rows_into,
-    readable,
-    require_finite,
-)
+from steering_core.tensor_files import TensorLocation, layout_of, open_read, read_rows_into, readable, require_finite
 
 logger = logging.getLogger(__name__)
 
@@ -320,7 +313,7 @@ class ShardReader:
         return out
 
     def residual_location(self) -> TensorLocation:
-        """Return where the residual matrix lies in the file, for `steering_core.storage.tensor_files.read_rows_into`."""
+        """Return where the residual matrix lies in the file, for `steering_core.tensor_files.read_rows_into`."""
         return self._locations[RESIDUALS]
 
 

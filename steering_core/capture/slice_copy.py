@@ -21,7 +21,7 @@ import torch
 from steering_core.capture.shard_checks import Digest
 from steering_core.capture.shards import SHARD_FIX
 from steering_core.capture.slice_files import SliceFile
-from steering_core.storage.tensor_files import TensorLocation, require_finite
+from steering_core.tensor_files import TensorLocation, require_finite
 
 SLACK = 0.1  # unneeded rows an unchecked copy may read to join runs of needed ones, per needed row
 

@@ -18,7 +18,7 @@ import torch
 
 from steering_core.capture.shards import RESIDUALS
 from steering_core.storage.fileio import crc32
-from steering_core.storage.tensor_files import fill_zip_crcs, safetensors_layout, save_torch_without_crcs
+from steering_core.tensor_files import fill_zip_crcs, safetensors_layout, save_torch_without_crcs
 
 _PT_DATA_RECORD = "data/0"  # torch.save's record of a lone tensor's storage (spec 14); used only if its size matches
 

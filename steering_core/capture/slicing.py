@@ -41,13 +41,13 @@ from steering_core.capture.slice_files import SliceFile
 from steering_core.data.concept_map import ConceptMap, ConceptRow, read_concept_map
 from steering_core.data.dataset import INFO_FILE, dataset_fingerprint
 from steering_core.devices import parse_device
+from steering_core.layout import SLICE_INDEX_FILE, layer_dir
+from steering_core.remote.locks import output_lock
+from steering_core.remote.reads import RemoteFile
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, sha256_json, write_json
-from steering_core.storage.layout import SLICE_INDEX_FILE, layer_dir
-from steering_core.storage.locks import output_lock
-from steering_core.storage.publish import RemoteFile
 from steering_core.storage.schema import StrictModel, describe_ranges
-from steering_core.storage.tensor_files import TensorLocation, open_read
+from steering_core.tensor_files import TensorLocation, open_read
 
 logger = logging.getLogger(__name__)
 
@@ -345,7 +345,7 @@ def _select_rows(
     if problems:
         raise ValueError("\n".join(problems))
     if settings.max_samples_per_concept is not None:
-        for concept, selection in selections.items():
+        for selection in selections.values():
             _subsample(selection, settings.max_samples_per_concept, by_frame=settings.reduce == "frame")
     return selections, opened
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pydantic import Field, field_validator, model_validator
 
+from steering_core import layout
 from steering_core.capture import CaptureSettings
 from steering_core.capture.slicing import SliceSettings
 from steering_core.config.sections import (
@@ -30,9 +31,8 @@ from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
 from steering_core.sae.training.settings import TrainSettings
-from steering_core.sae.vectors import PairsConfig, PairSpec, SteeringSettings
-from steering_core.storage import layout
 from steering_core.storage.schema import StrictModel
+from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
 
 PAIRS_CONFIG_FILE = "{layer_dir}_pairs.json"  # the seed's data/latent_steering/layer12_pairs.json
 

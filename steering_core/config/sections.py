@@ -25,14 +25,14 @@ from steering_core.data.contrast import ContrastSettings
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
+from steering_core.layout import check_name
 from steering_core.pi05 import Pi05Arch
+from steering_core.remote.publish import pull
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
 from steering_core.sae.training.settings import TrainSettings
-from steering_core.sae.vectors import SteeringSettings
-from steering_core.storage.layout import check_name
-from steering_core.storage.objects import is_url, mount
-from steering_core.storage.publish import pull
+from steering_core.storage.mirrors import is_url, mount
 from steering_core.storage.schema import StrictModel
+from steering_core.vectors.directions import SteeringSettings
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 # Step settings the run config supplies itself, and where to set them instead.

@@ -13,9 +13,9 @@ from pydantic import ValidationError
 
 from steering_core.config.run import RunConfig
 from steering_core.config.sections import SUPPLIED
+from steering_core.remote.filesystems import object_path, temporary_copy
 from steering_core.storage.fileio import atomic_path, read_text
-from steering_core.storage.objects import is_url, object_path, portable, url_of
-from steering_core.storage.publish import temporary_copy
+from steering_core.storage.mirrors import is_url, portable, url_of
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 

@@ -18,12 +18,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from steering_core.data.contrast import ContrastManifest, read_manifest
-from steering_core.data.dataset import (
-    DatasetMeta,
-    IndexColumns,
-    read_index_columns,
-    read_meta,
-)
+from steering_core.data.dataset import DatasetMeta, IndexColumns, read_index_columns, read_meta
 from steering_core.storage.fileio import read_json, write_json
 from steering_core.storage.schema import StrictModel, read_model
 

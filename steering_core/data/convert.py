@@ -36,14 +36,14 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
+from steering_core import layout
 from steering_core.data.frames_prep import Orientation, ResizeFilter, prepare_frames
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
 from steering_core.data.v21_writer import V21Writer
+from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import Progress, ProgressCallback
-from steering_core.storage import layout
 from steering_core.storage.fileio import atomic_dir, read_json, sha256_file, write_json
-from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel, read_model
 
 if TYPE_CHECKING:

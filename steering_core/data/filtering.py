@@ -17,13 +17,9 @@ from typing import Literal
 
 from pydantic import Field
 
-from steering_core.data.libero import (
-    InstructionSource,
-    read_instruction_with_source,
-    validate_file,
-)
+from steering_core.data.libero import InstructionSource, read_instruction_with_source, validate_file
+from steering_core.layout import SELECTION_FILE
 from steering_core.storage.fileio import atomic_dir, sha256_file, write_json
-from steering_core.storage.layout import SELECTION_FILE
 from steering_core.storage.schema import StrictModel, read_model
 
 logger = logging.getLogger(__name__)

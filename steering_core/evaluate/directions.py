@@ -19,8 +19,8 @@ import torch
 from safetensors import safe_open
 
 from steering_core.sae.model import Sae
-from steering_core.sae.vectors import read_pair_vectors
-from steering_core.storage.tensor_files import check_safetensors, load_torch_file, require_finite
+from steering_core.tensor_files import check_safetensors, load_torch_file, require_finite
+from steering_core.vectors.directions import read_pair_vectors
 
 RESIDUAL = "residual_direction"
 DECISION = "decision_mean_difference"

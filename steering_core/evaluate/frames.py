@@ -12,8 +12,7 @@ import torch
 from steering_core.data.concept_map import ConceptMap
 from steering_core.data.contrast import ContrastManifest
 from steering_core.data.split import HoldoutSplit
-
-SIDES = ("positive", "negative")
+from steering_core.pairs import SIDES
 
 
 @dataclass(frozen=True)

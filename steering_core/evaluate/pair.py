@@ -14,7 +14,7 @@ from steering_core.data.concept_map import ConceptMap
 from steering_core.data.contrast import ContrastManifest
 from steering_core.data.split import HoldoutSplit
 from steering_core.evaluate.directions import check_width, is_null, read_slice_rows
-from steering_core.evaluate.frames import SIDES, EvalFrame, frame_halves, select_frames
+from steering_core.evaluate.frames import EvalFrame, frame_halves, select_frames
 from steering_core.evaluate.metrics import (
     LIBERO_ORIENTATION,
     ROBOT_DIM,
@@ -28,6 +28,7 @@ from steering_core.evaluate.positions import check_positions
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep, toward_other
+from steering_core.pairs import SIDES
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.storage.fileio import atomic_dir
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from steering_core.layout import SLICE_INDEX_FILE
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import SLICE_INDEX_FILE
 
 STEERED_TOKENS = {"lm": "instructions", "expert": "decision"}
 

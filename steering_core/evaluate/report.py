@@ -23,8 +23,7 @@ from steering_core.evaluate.directions import MEAN_DIFFERENCE, RESIDUAL
 from steering_core.evaluate.metrics import ACTION_GROUPS
 from steering_core.evaluate.plots import layer_label, named, plot_efficacy, plot_shift, plot_trajectory
 from steering_core.evaluate.settings import MIN_EPISODES_PER_SIDE
-from steering_core.storage.fileio import read_json, write_json, write_text
-from steering_core.storage.layout import (
+from steering_core.layout import (
     DOSE_RESPONSE_FILE,
     EFFICACY_PLOT,
     PATHWAYS_FILE,
@@ -34,6 +33,7 @@ from steering_core.storage.layout import (
     TRAJECTORY_PLOT,
     stream_layer_dir,
 )
+from steering_core.storage.fileio import read_json, write_json, write_text
 
 __all__ = ["layer_label", "pair_record", "write_layer_summary", "write_pair_outputs", "write_pathways"]
 

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from steering_core import layout
 from steering_core.capture.settings import CaptureSettings
 from steering_core.capture.shards import read_run_metadata
 from steering_core.data.concept_map import read_concept_map
@@ -29,14 +30,13 @@ from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt
 from steering_core.pi05 import PromptFormat, PromptTokenizer
 from steering_core.pi05.steering import LAST_LM_LAYER, Stream
+from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
-from steering_core.sae.pair_order import check_pair_order, manifest_concepts, side_concepts, task_concepts
-from steering_core.sae.vectors import read_pairs_config
-from steering_core.storage import layout
 from steering_core.storage.fileio import read_json
-from steering_core.storage.locks import output_lock
 from steering_core.storage.schema import StrictModel
+from steering_core.vectors.directions import read_pairs_config
+from steering_core.vectors.pair_order import check_pair_order, manifest_concepts, side_concepts, task_concepts
 
 if TYPE_CHECKING:
     from steering_core.config import RunConfig

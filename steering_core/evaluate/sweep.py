@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from steering_core.evaluate.frames import EvalFrame
+from steering_core.pairs import SIDES
 from steering_core.reporting.progress import ProgressCallback
 
 logger = logging.getLogger(__name__)
@@ -108,7 +109,7 @@ def run_sweep(
     zero = alphas.index(0.0)
     horizon, dim = policy.action_horizon, policy.action_dim
     batches = [(side, [i for i, f in enumerate(frames) if f.side == side][start : start + batch_size])
-               for side in ("positive", "negative")
+               for side in SIDES
                for start in range(0, sum(f.side == side for f in frames), batch_size)]
     steered = torch.zeros(len(names), len(alphas), len(frames), noise_seeds, horizon, 7, dtype=torch.float64)
     own = torch.zeros(len(frames), noise_seeds, horizon, 7, dtype=torch.float64)

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
 from steering_core.storage.fileio import read_json
-from steering_core.storage.tensor_files import (
+from steering_core.tensor_files import (
     check_safetensors,
     read_tensor,
     require_finite,
@@ -249,7 +249,7 @@ def read_tensors(
     """Return checkpoint name -> tensor for the names of `expected`, read after `check_tensors`.
 
     `placement(name)` gives each tensor's run-time (device, dtype). Each tensor is allocated there and
-    filled by plain file reads (`steering_core.storage.tensor_files`): no memory map keeps the file's pages resident,
+    filled by plain file reads (`steering_core.tensor_files`): no memory map keeps the file's pages resident,
     and converted tensors pass through one staging buffer of 16 MiB, so peak memory is the converted
     tensors plus that buffer.
     """

@@ -28,20 +28,17 @@ from steering_core.pi05.checkpoint import (
     read_expert_tensors,
     resolve_model_file,
 )
-from steering_core.pi05.expert import (
-    ActionExpert,
-    euler_times,
-    expert_checkpoint_key,
-    expert_parameter_dtype,
-)
+from steering_core.pi05.expert import ActionExpert, euler_times, expert_checkpoint_key, expert_parameter_dtype
 from steering_core.pi05.model import MASKED_LOGIT, Attention, KeyValueRecorder, Pi05Prefix
 from steering_core.pi05.norm_stats import (
     LIBERO_ASSET_ID,
     NormStats,
-    norm_stats_path as default_norm_stats_path,
     quantile_normalize,
     quantile_unnormalize,
     read_norm_stats,
+)
+from steering_core.pi05.norm_stats import (
+    norm_stats_path as default_norm_stats_path,
 )
 from steering_core.pi05.observation import observation_batch
 from steering_core.pi05.steering import (

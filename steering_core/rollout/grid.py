@@ -9,20 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from steering_core.layout import rollout_cell_dir
+from steering_core.pairs import other_side, toward_sign
 from steering_core.rollout.settings import RolloutSettings
-from steering_core.storage.layout import rollout_cell_dir
 
 STEERED, UNSTEERED, SWAP = "steered", "unsteered", "instruction_swap"
 RANDOM_PREFIX, WRONG_PREFIX = "random_", "wrong_concept:"
-
-
-def toward_sign(side: str) -> float:
-    """Return the sign of α that pushes side `side`'s episodes toward the other task (d = positive - negative)."""
-    return 1.0 if side == "negative" else -1.0
-
-
-def other_side(side: str) -> str:
-    return "positive" if side == "negative" else "negative"
 
 
 @dataclass(frozen=True)

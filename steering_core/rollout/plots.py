@@ -9,8 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from steering_core.pairs import SIDES
 from steering_core.reporting.plots import figure, save_png
-from steering_core.rollout.records import JOINT_KEY, SIDES
+from steering_core.rollout.records import JOINT_KEY
 
 ALPHA_LABEL = "α toward the other task (× R, residual_norm units)"
 Thresholds = Mapping[str, Sequence[tuple[str, float]]]  # joint name -> (goal label, qpos threshold)

@@ -27,18 +27,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from steering_core.rollout.grid import toward_sign
+from steering_core.layout import ROLLOUT_FILE, rollout_cell_dir, rollout_video_file
+from steering_core.pairs import SIDES, toward_sign
 from steering_core.rollout.stats import proportion
 from steering_core.rollout.video import DEFAULT_FPS, write_video
 from steering_core.storage.fileio import atomic_path, read_json, write_json
-from steering_core.storage.layout import ROLLOUT_FILE, rollout_cell_dir, rollout_video_file
-from steering_core.storage.tensor_files import load_safetensors, save_safetensors
+from steering_core.tensor_files import load_safetensors, save_safetensors
 
 if TYPE_CHECKING:
     from steering_core.rollout.episode import EpisodeRecord
 
 ROLLOUT_FORMAT_VERSION = 1
-SIDES = ("positive", "negative")
 OUTCOMES = ("instructed", "toward", "neither")
 KINDS = ("steered", "random", "wrong_concept", "instruction_swap", "unsteered")
 _CONDITION = re.compile(r"steered|random_\d+|wrong_concept:.+|instruction_swap|unsteered")

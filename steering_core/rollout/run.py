@@ -10,8 +10,9 @@ from typing import Any
 from pydantic import Field
 
 from steering_core.capture import CaptureSettings
+from steering_core.pairs import other_side
 from steering_core.reporting.progress import ProgressCallback
-from steering_core.rollout.grid import Cell, other_side
+from steering_core.rollout.grid import Cell
 from steering_core.rollout.settings import LiberoTask, RolloutPair, RolloutSettings
 from steering_core.storage.schema import StrictModel
 

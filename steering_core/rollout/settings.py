@@ -9,6 +9,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
+from steering_core.pairs import SIDES, Side
 from steering_core.storage.schema import StrictModel
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
@@ -50,7 +51,7 @@ class RolloutSettings(StrictModel):
     alphas: tuple[float, ...] = DEFAULT_ALPHAS  # α toward the other task (residual_norm units); must hold 0
     episodes: int = Field(10, gt=0)             # episodes per cell (the same initial states for every cell)
     first_init_state: int = Field(0, ge=0)      # episodes use initial states first .. first + episodes - 1
-    sides: tuple[Literal["positive", "negative"], ...] = ("positive", "negative")  # instructions to run under
+    sides: tuple[Side, ...] = SIDES  # instructions to run under
     direction: Literal["residual", "mean_difference"] = "residual"
     random_directions: int = Field(MIN_RANDOM_DIRECTIONS, ge=0)  # norm-matched random controls at each α ≠ 0
     wrong_concept: bool = True                  # another pair's direction at the same α (needs two pairs)

@@ -1,7 +1,9 @@
-"""Phase 3, SAE: SAE formats and registry, encode/decode, per-concept statistics, steering vectors, report.
+"""The SAE itself: its files, named releases, encode/decode, and training one on π0.5's residuals.
 
 Modules: `formats` (cfg.json and weights on disk), `registry` (named releases), `model` (encode/decode),
-`concept_stats` (streaming statistics of one concept), `steering` (pair directions), `report`.
+`fidelity_table` (a judgement's files and table, readable without torch), `training/` (SAELens training,
+held-out episodes). Steering vectors built with an SAE: `steering_core.vectors`; judging SAEs:
+`steering_core.sae_quality`.
 """
 
 from steering_core.sae.model import Sae, load_sae

@@ -31,15 +31,9 @@ from steering_core.sae.formats import (
     read_state_dict_file,
     state_dict_cfg,
 )
-from steering_core.sae.registry import (
-    RELEASES,
-    SaeEntry,
-    find_by_folder,
-    get_entry,
-    resolve_release,
-)
+from steering_core.sae.registry import RELEASES, SaeEntry, find_by_folder, get_entry, resolve_release
 from steering_core.storage.fileio import sha256_file, sha256_json
-from steering_core.storage.tensor_files import require_finite
+from steering_core.tensor_files import require_finite
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The steering vectors a server offers: every residual-space direction under the steer step's output root.
 
-Layout read (steering_core.sae.vectors): `<root>/layerNN/<pair>/directions.json` lists the pair's files;
+Layout read (steering_core.vectors.directions): `<root>/layerNN/<pair>/directions.json` lists the pair's files;
 `residual_direction.safetensors` (the SAE-decoded direction, or the mean difference when no SAE was used) and,
 with an SAE, `mean_difference_direction.safetensors`. Direction kinds served: "residual" and "mean_difference".
 `latent_direction` lives in the SAE's latent space, not the residual stream, so it cannot be added and is not
@@ -23,10 +23,10 @@ from pathlib import Path
 
 import torch
 
-from steering_core.sae.vectors import MEAN_DIFFERENCE_FILE, RESIDUAL_DIRECTION_FILE
+from steering_core.layout import PAIR_SUMMARY_FILE
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import PAIR_SUMMARY_FILE
-from steering_core.storage.tensor_files import load_safetensors, require_finite
+from steering_core.tensor_files import load_safetensors, require_finite
+from steering_core.vectors.directions import MEAN_DIFFERENCE_FILE, RESIDUAL_DIRECTION_FILE
 
 logger = logging.getLogger(__name__)
 

@@ -1,3 +1,3 @@
-"""Files every phase writes and reads: atomic writes and digests (`fileio`), tensor files (`tensor_files`, NaN/Inf in `finite`),
-validated JSON (`schema`), the seed's on-disk layout (`layout`), per-output locks (`locks`) and the
-content fingerprints that make an output's identity (`fingerprints`)."""
+"""Local files every phase writes and reads: atomic writes (`fileio`), file digests (`digests`), NaN/Inf checks
+(`finite`), validated JSON (`schema`), per-output lock files (`locks`) and where a bucket is mirrored on disk
+(`mirrors`). Object storage itself: `steering_core.remote`."""

@@ -25,7 +25,7 @@ from typing import Any
 
 from isal.isal_zlib import crc32  # zlib's CRC-32, same values, by carry-less multiply: ~8x zlib's speed
 
-from steering_core.storage.objects import localize, portable
+from steering_core.storage.mirrors import localize, portable
 
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 

@@ -1,9 +1,9 @@
 """Locks on outputs: two runs sharing an output root never compute the same thing at once.
 
-Every step locks the output it writes (`output_lock`: a dataset folder, a slices layer folder, a steering
+Every step locks the output it writes (`local_output_lock`: a dataset folder, a slices layer folder, a steering
 layer folder, a statistics file, an evaluation folder) through a lock file beside it (`.<name>.lock`, beside
 and not inside, because a finished output folder is swapped in by rename and a lock inside would lock the
-old copy). Capture locks each shard group of a run folder (`group_locks`): one lock file per group
+old copy). Capture locks each shard group of a run folder (`local_group_locks`): one lock file per group
 (`.capture-<group>.lock` in the run folder). The caller then re-checks, under the lock, whether the work is
 already done, so a second run waits and then skips.
 
@@ -15,9 +15,9 @@ either, so none can form: locks are taken in one global order, by output path (a
 holds, a run folder's groups by number), a call taking several takes them in that order, and a thread
 asking for a lock that does not come after every lock it holds gets a RuntimeError instead of a wait.
 
-On an output root in object storage (`steering_core.storage.objects`), each lock also holds the bucket-wide lock
-object of its output (`bucket_lock.bucket_lock`), taken after the local one, so machines without a shared disk
-exclude each other too.
+Steps take these through `steering_core.remote.locks`, whose `output_lock` and `group_locks` add, on an output
+root in object storage, the bucket-wide lock object of the output after the local one, so machines without a
+shared disk exclude each other too.
 
 A lock ends when its file is closed, at the latest with the process (forked children close their copies),
 so a killed step never leaves a stale lock. Group lock files, and an output's lock file when the block
@@ -34,8 +34,6 @@ import os
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-
-from steering_core.storage.bucket_lock import bucket_lock
 
 logger = logging.getLogger(__name__)
 
@@ -67,19 +65,17 @@ def order(output: str | os.PathLike, group: int = -1) -> Order:
 
 
 @contextlib.contextmanager
-def group_locks(run_dir: str | os.PathLike, groups: Iterable[int]) -> Iterator[None]:
+def local_group_locks(run_dir: str | os.PathLike, groups: Iterable[int]) -> Iterator[None]:
     """Hold an exclusive lock on each shard group of `run_dir`, in ascending order; the lock files go on exit."""
     run_dir = Path(run_dir)
     locks = [(order(run_dir, group), run_dir / GROUP_LOCK.format(group=group), f"{run_dir}: shard group {group}")
              for group in set(groups)]
-    with _holding(locks, keep=lambda: False), contextlib.ExitStack() as bucket:
-        for group in sorted(set(groups)):
-            bucket.enter_context(bucket_lock(run_dir / GROUP_LOCK.format(group=group)))
+    with _holding(locks, keep=lambda: False):
         yield
 
 
 @contextlib.contextmanager
-def output_lock(output: str | os.PathLike) -> Iterator[None]:
+def local_output_lock(output: str | os.PathLike) -> Iterator[None]:
     """Hold an exclusive lock on the output file or folder `output` (its lock file sits beside it).
 
     If the block leaves no `output` (a step that failed, e.g. on bad input), the lock file and the folders
@@ -90,7 +86,7 @@ def output_lock(output: str | os.PathLike) -> Iterator[None]:
     made = [p for p in (folder, *folder.parents) if not p.exists()]  # deepest first
     lock = (order(output), folder / OUTPUT_LOCK.format(name=output.name), f"{folder}: output {output.name}")
     try:
-        with _holding([lock], keep=lambda: output.exists() or output.is_symlink()), bucket_lock(output):
+        with _holding([lock], keep=lambda: output.exists() or output.is_symlink()):
             yield
     finally:
         if not output.exists() and not output.is_symlink():

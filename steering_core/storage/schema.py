@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from steering_core.storage.fileio import read_json, sha256_json
-from steering_core.storage.objects import portable
+from steering_core.storage.mirrors import portable
 
 
 class StrictModel(BaseModel):

@@ -27,7 +27,7 @@ from steering_core.pi05.checkpoint import (
 )
 from steering_core.pi05.norm_stats import ASSETS_DIR, LIBERO_ASSET_ID, NORM_STATS_FILE
 from steering_core.storage.fileio import atomic_dir
-from steering_core.storage.tensor_files import safetensors_layout
+from steering_core.tensor_files import safetensors_layout
 
 ACTION_DIM = 32  # pi0.5 pads actions and state to 32
 ACTION_HORIZON = 10  # pi05_libero

@@ -23,8 +23,8 @@ from safetensors.torch import load_file
 from steering_core.pi05.arch import Pi05Arch
 from steering_core.pi05.checkpoint import EMBEDDING_KEY, LM_PREFIX, MODEL_FILE
 from steering_core.pi05.tokenizer import PromptTokenizer
-from steering_core.storage.tensor_files import save_safetensors
 from steering_core.synthetic.libero import MotionSpec, SyntheticTask
+from steering_core.tensor_files import save_safetensors
 
 PLANTED_LAYER = 0
 PLANTED_POSITIVE = "advance"

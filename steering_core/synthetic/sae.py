@@ -12,14 +12,7 @@ from typing import Literal
 import torch
 from safetensors.torch import save_file
 
-from steering_core.sae.formats import (
-    CFG_FILE,
-    DTYPES,
-    HOOK_NAME,
-    SPARSITY_FILE,
-    WEIGHTS_FILE,
-    NormalizeActivations,
-)
+from steering_core.sae.formats import CFG_FILE, DTYPES, HOOK_NAME, SPARSITY_FILE, WEIGHTS_FILE, NormalizeActivations
 from steering_core.sae.registry import HUB_REPO_DIR, RELEASES, get_entry
 from steering_core.storage.fileio import atomic_dir, atomic_path, write_json
 

@@ -21,13 +21,13 @@ from pathlib import Path
 from typing import Any
 
 from steering_core.devices import resolve_device
+from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.sae.formats import CFG_FILE, SPARSITY_FILE, WEIGHTS_FILE
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, sha256_json, write_json
-from steering_core.storage.locks import output_lock
-from steering_core.storage.tensor_files import load_safetensors, load_torch_file, save_safetensors, save_torch
+from steering_core.tensor_files import load_safetensors, load_torch_file, save_safetensors, save_torch
 
 logger = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """Judge an SAE trained on a run's residuals, as the pipeline does it: the held-out rows of its layer, and the policy
-on held-out frames of one pair (`steering_core.sae.fidelity_report`)."""
+on held-out frames of one pair (`steering_core.sae_quality.fidelity_report`)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ from steering_core.evaluate.frames import EvalFrame, load_frames, select_frames
 from steering_core.evaluate.run import load_policy, task_prompts
 from steering_core.pi05 import PromptTokenizer
 from steering_core.reporting.progress import ProgressCallback
-from steering_core.sae.fidelity_report import ActionInputs, judge_layer
-from steering_core.sae.heldout import heldout_split
 from steering_core.sae.model import load_sae
+from steering_core.sae.training.heldout import heldout_split
 from steering_core.sae.training.rows import RowSource
-from steering_core.sae.vectors import SteeringSettings, load_steering_sae
+from steering_core.sae_quality.fidelity_report import ActionInputs, judge_layer
 from steering_core.storage.schema import StrictModel
+from steering_core.vectors.directions import SteeringSettings, load_steering_sae
 
 ROWS_PER_BATCH = 4096
 

@@ -18,23 +18,16 @@ from steering_core.evaluate.frames import EvalFrame
 from steering_core.evaluate.sweep import Prompt
 from steering_core.reporting.plots import figure, save_png
 from steering_core.reporting.progress import ProgressCallback
-from steering_core.sae.action_fidelity import (
+from steering_core.sae.fidelity_table import FIDELITY_JSON, FIDELITY_MD, FIDELITY_PNG, TABLE_HEADER, number, table_rows
+from steering_core.sae.model import Sae
+from steering_core.sae_quality.action_fidelity import (
     ActionFidelity,
     FrameLoader,
     SplicePolicy,
     action_fidelity,
     sae_reconstruction,
 )
-from steering_core.sae.fidelity import DENSE_FRACTION, HISTOGRAM_EDGES, RowBatches, RowFidelity, row_fidelity
-from steering_core.sae.fidelity_table import (
-    FIDELITY_JSON,
-    FIDELITY_MD,
-    FIDELITY_PNG,
-    TABLE_HEADER,
-    number,
-    table_rows,
-)
-from steering_core.sae.model import Sae
+from steering_core.sae_quality.fidelity import DENSE_FRACTION, HISTOGRAM_EDGES, RowBatches, RowFidelity, row_fidelity
 from steering_core.storage.fileio import read_json, write_json, write_text
 
 logger = logging.getLogger(__name__)

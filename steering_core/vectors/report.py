@@ -15,17 +15,11 @@ import numpy as np
 import torch
 from safetensors.torch import load_file
 
+from steering_core.layout import FEATURE_PAGE_FILE, PAIR_SUMMARY_FILE, PAIRWISE_STATS_FILE, SUMMARY_JSON, SUMMARY_MD
 from steering_core.reporting.plots import figure, save_png
 from steering_core.sae.fidelity_table import FIDELITY_JSON, FIDELITY_MD, FIDELITY_PNG, TABLE_HEADER, table_rows
 from steering_core.sae.registry import NEURONPEDIA_FEATURE_URL
 from steering_core.storage.fileio import read_json, write_json, write_text
-from steering_core.storage.layout import (
-    FEATURE_PAGE_FILE,
-    PAIR_SUMMARY_FILE,
-    PAIRWISE_STATS_FILE,
-    SUMMARY_JSON,
-    SUMMARY_MD,
-)
 
 logger = logging.getLogger(__name__)
 

@@ -23,15 +23,14 @@ import json
 import logging
 import os
 import socket
-import tempfile
-import threading
 import uuid
-from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Any, BinaryIO
+from typing import Any
 
+from steering_core.remote.filesystems import object_path
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import atomic_path, sha256_file
-from steering_core.storage.objects import Root, object_path, root_of
+from steering_core.storage.mirrors import Root, root_of
 
 logger = logging.getLogger(__name__)
 
@@ -44,19 +43,8 @@ REDO_HINT = ("delete the publication record of the output holding it (`.<name>.p
 _SKIPPED_LOCAL = (".*.lock", ".*.tmp", ".*.etag")  # lock files, staging files, input states: never published
 
 
-class Fetched:
-    """Bytes fetched by ranged reads in this process (the slicing benchmark reads it)."""
-
-    _lock = threading.Lock()
-    total = 0
-
-    @classmethod
-    def add(cls, count: int) -> None:
-        with cls._lock:
-            cls.total += count
-
-
-def _url(root: Root, key: str) -> str:
+def url_at(root: Root, key: str) -> str:
+    """Return the URL of `key` under `root` (the root itself for ``)."""
     return f"{root.url}/{key}" if key else root.url
 
 
@@ -79,7 +67,7 @@ def publish(path: str | os.PathLike) -> dict[str, Any] | None:
     if found is None or found[1] == "":
         return None
     root, key = found
-    url = _url(root, key)
+    url = url_at(root, key)
     fs, _ = object_path(url)
     parent_url, name = url.rsplit("/", 1)
     files = _local_files(path)
@@ -230,10 +218,10 @@ def pull(path: str | os.PathLike) -> list[Path]:
     if root.role == "input":
         return _pull_input(root, key)
     records = []
-    if (covering := covering_record(_url(root, key))) is not None:  # never the bucket itself
+    if (covering := covering_record(url_at(root, key))) is not None:  # never the bucket itself
         records.append(covering)
     else:
-        records.extend(records_under(_url(root, key)))
+        records.extend(records_under(url_at(root, key)))
     fetched = []
     for parent_url, record in records:  # a covering record may lie above the root (a root inside a published folder)
         for relative, entry in sorted(record["files"].items()):
@@ -262,8 +250,6 @@ def pulled(path: str | os.PathLike) -> Path:
 def _local_matches(local: Path, entry: dict[str, Any]) -> bool:
     if not local.is_file() or local.stat().st_size != entry["size"]:
         return False
-    from steering_core.storage.fingerprints import file_digest  # cached per file version
-
     return file_digest(local) == entry["sha256"]
 
 
@@ -287,7 +273,7 @@ def pulled_etag(path: str | os.PathLike) -> str | None:
 
 def _pull_input(root: Root, key: str) -> list[Path]:
     """Fetch the objects of an input root at or under `key` (no records: size and ETag decide what is new)."""
-    fs, path = object_path(_url(root, key))
+    fs, path = object_path(url_at(root, key))
     try:
         listing = fs.find(path, detail=True) if not fs.isfile(path) else {path: fs.info(path)}
     except FileNotFoundError:
@@ -308,104 +294,6 @@ def _pull_input(root: Root, key: str) -> list[Path]:
     return fetched
 
 
-# ----------------------------------------------------------------------------- ranged reads
-
-@dataclass(frozen=True)
-class RemoteFile:
-    """A published object read by ranges: its URL and size, checked against its record."""
-
-    url: str
-    size: int
-    sha256: str | None = None  # from the publication record (None for an input's object, which has none)
-
-    def open(self) -> BinaryIO:
-        """Return a binary file reading the object with one ranged GET per read (no read-ahead)."""
-        fs, path = object_path(self.url)
-        return _Counted(fs.open(path, "rb", cache_type="none", block_size=1 << 20, size=self.size))
-
-
-class _Counted:
-    """A file object counting the bytes it reads into `Fetched` (seek, tell, read, readinto, close)."""
-
-    def __init__(self, handle: Any) -> None:
-        self._handle = handle
-
-    def read(self, size: int = -1) -> bytes:
-        data = self._handle.read(size)
-        Fetched.add(len(data))
-        return data
-
-    def readinto(self, buffer: Any) -> int:
-        view = memoryview(buffer).cast("B")
-        data = self._handle.read(len(view))
-        view[: len(data)] = data
-        Fetched.add(len(data))
-        return len(data)
-
-    def seek(self, offset: int, whence: int = 0) -> int:
-        return self._handle.seek(offset, whence)
-
-    def tell(self) -> int:
-        return self._handle.tell()
-
-    def close(self) -> None:
-        self._handle.close()
-
-    def __enter__(self) -> _Counted:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-
-def remote_file(path: str | os.PathLike) -> RemoteFile | None:
-    """Return the published object standing for a local path that is absent from the mirror, else None.
-
-    ValueError naming the object when it is missing, or its size or ETag differs from its publication record.
-    """
-    path = Path(os.path.abspath(path))
-    found = root_of(path)
-    if found is None or path.exists():
-        return None
-    root, key = found
-    url = _url(root, key)
-    covering = covering_record(url) if root.role == "output" else None
-    fs, object_key = object_path(url)
-    try:
-        info = fs.info(object_key)
-    except FileNotFoundError:
-        if covering is None:
-            return None
-        raise FileNotFoundError(f"{url}: listed by its publication record but missing from the bucket; {REDO_HINT}"
-                                ) from None
-    if covering is not None:
-        parent_url, record = covering
-        entry = record["files"].get(url[len(parent_url) + 1:])
-        if entry is None:
-            return None
-        if info["size"] != entry["size"] or info.get("ETag") != entry.get("etag"):
-            raise ValueError(f"{url}: size {info['size']}, ETag {info.get('ETag')} differ from its publication record "
-                             f"(size {entry['size']}, ETag {entry.get('etag')}); the object changed after it was "
-                             f"published; {REDO_HINT}")
-    elif root.role == "output":
-        return None  # written but never published: invisible
-    return RemoteFile(url, int(info["size"]), entry["sha256"] if covering is not None else None)
-
-
-def check_writable(url: str) -> str:
-    """Return `url` once a probe object was written and deleted under it from this machine; ValueError in one
-    line naming the URL otherwise (no bucket, no credentials, no endpoint: whatever the cause, runs could not write)."""
-    fs, probe = object_path(f"{url}/.probe-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}")
-    try:
-        fs.pipe_file(probe, b"latent-steering: write probe\n")
-        fs.rm_file(probe)
-    except Exception as err:  # noqa: BLE001  reported in one line
-        reason = " ".join(f"{type(err).__name__}: {err}".split())
-        raise ValueError(f"{url}: not writable from this machine ({reason}); check the URL and the AWS_* / "
-                         "GOOGLE_APPLICATION_CREDENTIALS settings of this environment") from None
-    return url
-
-
 def staging_files(url: str) -> list[str]:
     """Return every object under staging prefixes below the root `url` (for tests and the run's end check)."""
     fs, path = object_path(url)
@@ -413,12 +301,3 @@ def staging_files(url: str) -> list[str]:
         return sorted(p for p in fs.find(path) if f"/{STAGING_DIR}/" in f"/{p}")
     except FileNotFoundError:
         return []
-
-
-def temporary_copy(url: str) -> Path:
-    """Return a local temporary copy of the single object `url` (a run config handed to another machine)."""
-    fs, path = object_path(url)
-    folder = Path(tempfile.mkdtemp(prefix="latent-steering-"))
-    local = folder / PurePosixPath(path).name
-    fs.get_file(path, str(local))
-    return local

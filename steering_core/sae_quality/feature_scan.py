@@ -35,7 +35,7 @@ from steering_core.capture.shards import ROW_COLUMNS
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
 from steering_core.storage.fileio import atomic_path
-from steering_core.storage.tensor_files import load_safetensors, save_safetensors
+from steering_core.tensor_files import load_safetensors, save_safetensors
 
 logger = logging.getLogger(__name__)
 

@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from steering_core.sae.feature_scan import FeatureScan, FrameContext, RowBatch, example_frames, frame_contexts
+from steering_core.layout import PAIR_SUMMARY_FILE, PAIRWISE_STATS_FILE
 from steering_core.sae.model import Sae
-from steering_core.sae.vectors import read_pair_vectors
+from steering_core.sae_quality.feature_scan import FeatureScan, FrameContext, RowBatch, example_frames, frame_contexts
 from steering_core.storage.fileio import read_json, write_text
-from steering_core.storage.layout import PAIR_SUMMARY_FILE, PAIRWISE_STATS_FILE
+from steering_core.vectors.directions import read_pair_vectors
 
 logger = logging.getLogger(__name__)
 

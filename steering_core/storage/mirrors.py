@@ -2,7 +2,7 @@
 
 Every step keeps working on local paths. A URL root given to a run config or the CLI is *mounted*: it gets a
 mirror folder on this machine (`$LATENT_STEERING_MIRROR`, else `~/.cache/latent-steering/roots`, then
-`<protocol>/<bucket>/<prefix>`), and `steering_core.storage.publish` moves outputs between mirror and bucket:
+`<protocol>/<bucket>/<prefix>`), and `steering_core.remote.publish` moves outputs between mirror and bucket:
 a step pulls the published outputs it reads, and publishes what it wrote. Shards are never pulled: readers
 open them from the bucket with ranged reads (`remote_file`).
 
@@ -38,7 +38,6 @@ class Root:
 
 _ROOTS: dict[str, Root] = {}  # url -> root, in this process
 _LOCK = threading.Lock()
-_FILESYSTEMS: dict[str, Any] = {}
 
 
 def is_url(value: Any) -> bool:
@@ -58,18 +57,6 @@ def split_url(url: str) -> tuple[str, str]:
         raise ValueError(f"{url!r}: unsupported storage URL; expected {protocol}://<bucket>[/<prefix>] without empty, "
                          "`.` or `..` parts")
     return protocol, path
-
-
-def filesystem(protocol: str) -> Any:
-    """Return this process's fsspec filesystem for `protocol` (s3fs / gcsfs read their credentials themselves)."""
-    with _LOCK:
-        if protocol not in _FILESYSTEMS:
-            import fsspec  # imported on first use: local runs never pay for it
-
-            # no listings cache: other machines publish all the time, and a stale listing would hide their objects
-            options = {"use_listings_cache": False} if protocol != "file" else {}
-            _FILESYSTEMS[protocol] = fsspec.filesystem(protocol, **options)
-        return _FILESYSTEMS[protocol]
 
 
 def mirror_base() -> Path:
@@ -130,12 +117,6 @@ def url_of(path: str | os.PathLike) -> str | None:
         return None
     root, key = found
     return f"{root.url}/{key}" if key else root.url
-
-
-def object_path(url: str) -> tuple[Any, str]:
-    """Return (filesystem, path as that filesystem names it) of an object URL."""
-    protocol, path = split_url(url)
-    return filesystem(protocol), path
 
 
 def portable(value: Any) -> Any:

@@ -1,4 +1,7 @@
-"""Locks on outputs in object storage, without a shared disk: a lock object made by a conditional create."""
+"""Locks on outputs, across machines: the local lock (`storage.locks`) and, on an output root in object storage,
+a lock object in the bucket made by a conditional create (`bucket_lock`), taken after it.
+
+Steps lock what they write with `output_lock` (one output) and `group_locks` (capture's shard groups)."""
 
 from __future__ import annotations
 
@@ -10,16 +13,35 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from steering_core.storage.objects import object_path, root_of
+from steering_core.remote.filesystems import object_path
+from steering_core.storage.locks import GROUP_LOCK, local_group_locks, local_output_lock
+from steering_core.storage.mirrors import root_of
 
 logger = logging.getLogger(__name__)
 
 LOCKS_DIR = ".locks"
 LEASE_ENV = "LATENT_STEERING_LOCK_LEASE_S"
+
+
+@contextlib.contextmanager
+def output_lock(output: str | os.PathLike) -> Iterator[None]:
+    """Hold the lock on the output file or folder `output`: the local one, then the bucket's (see `local_output_lock`)."""
+    with local_output_lock(output), bucket_lock(output):
+        yield
+
+
+@contextlib.contextmanager
+def group_locks(run_dir: str | os.PathLike, groups: Iterable[int]) -> Iterator[None]:
+    """Hold the lock on each shard group of `run_dir`: the local ones, then the bucket's, in ascending order."""
+    groups = sorted(set(groups))
+    with local_group_locks(run_dir, groups), contextlib.ExitStack() as bucket:
+        for group in groups:
+            bucket.enter_context(bucket_lock(Path(run_dir) / GROUP_LOCK.format(group=group)))
+        yield
 
 
 def lease_seconds() -> float:

@@ -34,21 +34,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 
 from steering_core.devices import resolve_device
-from steering_core.reporting.progress import ProgressCallback
-from steering_core.sae.concept_stats import (
-    FORMAT_VERSION,
-    ConceptReader,
-    ConceptSource,
-    ConceptStats,
-    encode_concept,
-    read_concept_stats,
-)
-from steering_core.sae.formats import HOOK_NAME
-from steering_core.sae.model import Sae, load_sae
-from steering_core.sae.pair_order import check_slices_order
-from steering_core.sae.report import write_report
-from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
-from steering_core.storage.layout import (
+from steering_core.layout import (
     PAIR_SUMMARY_FILE,
     PAIRWISE_STATS_FILE,
     SLICE_INDEX_FILE,
@@ -56,19 +42,26 @@ from steering_core.storage.layout import (
     check_name,
     layer_dir,
 )
-from steering_core.storage.locks import output_lock
+from steering_core.pairs import SIDES
+from steering_core.remote.locks import output_lock
+from steering_core.reporting.progress import ProgressCallback
+from steering_core.sae.formats import HOOK_NAME
+from steering_core.sae.model import Sae, load_sae
+from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
 from steering_core.storage.schema import StrictModel, read_model
-from steering_core.storage.tensor_files import (
-    load_safetensors,
-    non_finite,
-    require_finite,
-    save_safetensors,
-    save_torch,
+from steering_core.tensor_files import load_safetensors, non_finite, require_finite, save_safetensors, save_torch
+from steering_core.vectors.concept_stats import (
+    FORMAT_VERSION,
+    ConceptReader,
+    ConceptSource,
+    ConceptStats,
+    encode_concept,
+    read_concept_stats,
 )
+from steering_core.vectors.pair_order import check_slices_order
+from steering_core.vectors.report import write_report
 
 logger = logging.getLogger(__name__)
-
-SIDES = ("positive", "negative")
 LATENT_MEAN_FILE = "{side}_latent_mean"  # + .pt / .safetensors
 LATENT_DIRECTION_FILE = "latent_direction"
 RESIDUAL_DIRECTION_FILE = "residual_direction"

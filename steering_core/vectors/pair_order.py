@@ -14,10 +14,8 @@ from typing import Any
 
 from steering_core.data.concept_map import ConceptMap, read_concept_map
 from steering_core.data.contrast import ContrastManifest, read_manifest
+from steering_core.layout import SLICE_INDEX_FILE
 from steering_core.storage.fileio import read_json
-from steering_core.storage.layout import SLICE_INDEX_FILE
-
-SIDES = ("positive", "negative")
 
 
 def task_concepts(concept_map: ConceptMap, manifest: ContrastManifest, tasks: tuple[str, ...], where: Path) -> tuple[str, ...]:

@@ -1,4 +1,4 @@
-"""File fingerprints: full content hashes, paid once per file version (path, size, mtime, inode)."""
+"""File digests (`steering_core.storage.digests`) and checkpoint fingerprints: full content hashes, paid once per file version (path, size, mtime, inode)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 from safetensors.torch import save_file
 
 from steering_core.capture.run_identity import checkpoint_fingerprint
-from steering_core.storage import fingerprints
+from steering_core.storage import digests
 from steering_core.storage.fileio import sha256_file
 
 
@@ -30,18 +30,18 @@ def test_checkpoint_fingerprint_sees_a_change_anywhere(tmp_path):
 
 def test_digest_is_computed_once_per_file_version(tmp_path, monkeypatch):
     calls = []
-    real = fingerprints.sha256_file
-    monkeypatch.setattr(fingerprints, "sha256_file", lambda p: calls.append(p) or real(p))
-    monkeypatch.setenv(fingerprints.DIGEST_CACHE_ENV, str(tmp_path / "digests"))
-    monkeypatch.setattr(fingerprints, "STORED_DIGEST_MIN_SIZE", 0)
+    real = digests.sha256_file
+    monkeypatch.setattr(digests, "sha256_file", lambda p: calls.append(p) or real(p))
+    monkeypatch.setenv(digests.DIGEST_CACHE_ENV, str(tmp_path / "digests"))
+    monkeypatch.setattr(digests, "STORED_DIGEST_MIN_SIZE", 0)
     path = tmp_path / "a.bin"
     path.write_bytes(b"x" * 100)
-    first = fingerprints.file_digest(path)
-    assert fingerprints.file_digest(path) == first and len(calls) == 1
+    first = digests.file_digest(path)
+    assert digests.file_digest(path) == first and len(calls) == 1
 
     # a new process remembers it too (the digest is stored beside the key, not only in memory)
-    fingerprints._DIGESTS.clear()
-    assert fingerprints.file_digest(path) == first and len(calls) == 1
+    digests._DIGESTS.clear()
+    assert digests.file_digest(path) == first and len(calls) == 1
 
     # same size and mtime, other content, written to a new inode and renamed into place: recomputed
     stat = path.stat()
@@ -49,4 +49,4 @@ def test_digest_is_computed_once_per_file_version(tmp_path, monkeypatch):
     other.write_bytes(b"y" * 100)
     os.utime(other, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     os.replace(other, path)
-    assert fingerprints.file_digest(path) == sha256_file(path) != first and len(calls) == 2
+    assert digests.file_digest(path) == sha256_file(path) != first and len(calls) == 2

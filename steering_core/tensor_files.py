@@ -33,9 +33,9 @@ import torch
 from safetensors.torch import load_file, save
 
 from steering_core.devices import SAFETENSORS_DTYPES
+from steering_core.remote.reads import RemoteFile, remote_file
 from steering_core.storage.fileio import crc32
 from steering_core.storage.finite import non_finite
-from steering_core.storage.publish import RemoteFile, remote_file
 
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)

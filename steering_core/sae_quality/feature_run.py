@@ -5,17 +5,17 @@ from __future__ import annotations
 
 import os
 from collections.abc import Collection, Iterator
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from steering_core.devices import resolve_device
+from steering_core.layout import FEATURE_PAGE_FILE, NEURONPEDIA_DIR, layer_dir
 from steering_core.reporting.progress import ProgressCallback
-from steering_core.sae.feature_page import sentencepiece_text, write_feature_page
-from steering_core.sae.feature_scan import RowBatch, scan_features
 from steering_core.sae.model import load_sae
-from steering_core.sae.neuronpedia import write_neuronpedia
 from steering_core.sae.training.rows import RowSource
-from steering_core.storage.layout import FEATURE_PAGE_FILE, NEURONPEDIA_DIR, layer_dir
+from steering_core.sae_quality.feature_page import sentencepiece_text, write_feature_page
+from steering_core.sae_quality.feature_scan import RowBatch, scan_features
+from steering_core.sae_quality.neuronpedia import write_neuronpedia
 from steering_core.storage.schema import StrictModel
 
 ROWS_PER_BATCH = 4096
@@ -41,7 +41,7 @@ class FeatureJob(StrictModel):
 def export_stamp() -> str:
     """Return the export's `createdAt`: $SOURCE_DATE_EPOCH (the reproducible-builds convention), else the epoch, so
     equal inputs give equal bytes whichever run wrote them."""
-    return datetime.fromtimestamp(int(os.environ.get("SOURCE_DATE_EPOCH", "0")), timezone.utc).isoformat()
+    return datetime.fromtimestamp(int(os.environ.get("SOURCE_DATE_EPOCH", "0")), UTC).isoformat()
 
 
 def write_layer_features(job: FeatureJob, *, progress: ProgressCallback | None = None) -> tuple[Path, Path]:

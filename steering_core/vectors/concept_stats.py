@@ -22,12 +22,12 @@ from safetensors.torch import load_file, save_file
 
 from steering_core.capture.slicing import safe_file_name
 from steering_core.devices import SAFETENSORS_DTYPES
+from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.sae.model import Sae
+from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import atomic_path, read_json, sha256_json, write_json
-from steering_core.storage.fingerprints import file_digest
-from steering_core.storage.locks import output_lock
-from steering_core.storage.tensor_files import check_safetensors, load_torch_file
+from steering_core.tensor_files import check_safetensors, load_torch_file
 
 logger = logging.getLogger(__name__)
 

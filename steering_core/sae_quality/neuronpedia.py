@@ -24,17 +24,17 @@ import gzip
 import json
 import logging
 from collections.abc import Sequence
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from steering_core.sae.feature_page import RowsOfEpisodes, TokenText, token_strings
-from steering_core.sae.feature_scan import FeatureScan, FrameContext, example_frames, frame_contexts
 from steering_core.sae.model import Sae
+from steering_core.sae_quality.feature_page import RowsOfEpisodes, TokenText, token_strings
+from steering_core.sae_quality.feature_scan import FeatureScan, FrameContext, example_frames, frame_contexts
 from steering_core.storage.fileio import atomic_dir
-from steering_core.storage.objects import portable
+from steering_core.storage.mirrors import portable
 
 logger = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ def write_neuronpedia(
     wanted = example_frames(scan, chosen, count)
     episodes = sorted({e["episode_index"] for latent in chosen for e in scan.examples(latent)[:count]})
     contexts = frame_contexts(rows(episodes), sae, wanted) if wanted else {}
-    stamp = created_at or datetime.now(timezone.utc).isoformat()
+    stamp = created_at or datetime.now(UTC).isoformat()
     source_id = SOURCE_ID.format(layer=layer, source_set=source_set)
     common = {"modelId": model_id, "layer": source_id, "creatorId": creator_id, "createdAt": stamp}
     target = Path(out_dir) / model_id / source_id
