@@ -55,7 +55,7 @@ def _resolve_path(value: Path, info: ValidationInfo) -> Path:
 
 
 def _mounted(role: str) -> Any:
-    """Return a validator mounting a URL (`s3://...`, `gs://...`) as its local mirror folder (`storage.objects`);
+    """Return a validator mounting a URL (`s3://...`, `gs://...`) as its local mirror folder (`storage.mirrors`);
     an input root is pulled into it."""
     def validate(value: Any) -> Any:
         if not is_url(value):

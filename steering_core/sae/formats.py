@@ -22,7 +22,7 @@ from safetensors import safe_open
 from steering_core.devices import DTYPES
 from steering_core.storage.fileio import read_json
 from steering_core.storage.schema import StrictModel
-from steering_core.storage.tensor_files import check_safetensors, load_safetensors, load_torch_file
+from steering_core.tensor_files import check_safetensors, load_safetensors, load_torch_file
 
 logger = logging.getLogger(__name__)
 
