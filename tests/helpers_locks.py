@@ -17,7 +17,7 @@ def python(code: str, *args: str) -> subprocess.Popen:
 
 def hold_output_lock(output) -> subprocess.Popen:
     """Return a process that holds `locks.output_lock(output)` until it reads a line (it holds it on return)."""
-    holder = python("import sys; from steering_core.storage.locks import output_lock\n"
+    holder = python("import sys; from steering_core.remote.locks import output_lock\n"
                     "with output_lock(sys.argv[1]):\n    print('locked', flush=True); sys.stdin.readline()", str(output))
     assert holder.stdout.readline().strip() == "locked"
     return holder

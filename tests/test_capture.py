@@ -438,7 +438,7 @@ def test_a_second_capture_waits_for_groups_another_process_is_capturing(inputs, 
 
     run_dir = tmp_path / "run"
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from steering_core.storage.locks import group_locks\n"
+        [sys.executable, "-c", "import sys; from steering_core.remote.locks import group_locks\n"
          f"with group_locks({str(run_dir)!r}, [1]):\n    print('locked', flush=True); sys.stdin.readline()"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
