@@ -23,7 +23,7 @@ from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from steering_core.remote.publish import pulled
 from tasks import capture as capture_tasks
-from tasks.cache import is_cached, rooted
+from tasks.results import is_cached, rooted
 
 CAPTURE_FLOW = "latent-steering-capture"
 

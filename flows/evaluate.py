@@ -22,7 +22,7 @@ from steering_core.remote.publish import pulled
 from steering_core.storage.mirrors import localize
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
-from tasks.cache import is_cached, rooted
+from tasks.results import is_cached, rooted
 
 EVALUATE_FLOW = "latent-steering-evaluate"
 

@@ -20,7 +20,7 @@
    side) on the `sim` pool or in-process (`flows.rollout.run_rollouts`): closed-loop LIBERO episodes per
    steering dose and control, then each layer's rollout summary.
 
-Every task is cached on the content of its inputs (`tasks.cache`): a re-run on unchanged inputs
+Every task is cached on the content of its inputs (`tasks.cache_keys`): a re-run on unchanged inputs
 reads every result from the cache, and a new demo file recomputes only what depends on it. After a
 successful run the demo sources (or the existing dataset's fingerprint) are recorded for the
 scheduled refresh (`flows.refresh`).
@@ -49,8 +49,8 @@ from steering_core.storage.mirrors import is_url, localize, portable
 from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report
-from tasks.cache import rooted
 from tasks.preflight import preflight
+from tasks.results import rooted
 
 PIPELINE_FLOW = "latent-steering"
 # CPU tasks running at once (PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS overrides): each SAE task

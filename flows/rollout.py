@@ -22,7 +22,7 @@ from steering_core.serve.auth import read_api_key
 from steering_core.storage.fileio import read_json
 from tasks import rollout as rollout_tasks
 from tasks.artifacts import artifact_key, ui_markdown
-from tasks.cache import rooted
+from tasks.results import rooted
 
 ROLLOUT_FLOW = "latent-steering-rollout"
 

@@ -29,7 +29,7 @@ from steering_core.config import RunConfig
 from steering_core.reporting.tables import text_table
 from steering_core.storage.mirrors import is_url
 from tasks import capture, data, preflight, report, rollout, sae
-from tasks.cache import OUTPUTS, cache_store, read_record_bytes, record_location
+from tasks.cache_records import OUTPUTS, cache_store, read_record_bytes, record_location
 
 SETTLE_SECONDS = 30.0
 PAGE = 200  # task runs per API call (the server's default limit)

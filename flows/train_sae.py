@@ -23,7 +23,7 @@ from steering_core.sae.training.heldout import sae_heldout_episodes
 from steering_core.sae_quality.feature_run import FeatureJob
 from steering_core.sae_quality.judge_run import JudgedPair, JudgeJob
 from tasks import sae_train
-from tasks.cache import is_cached, rooted
+from tasks.results import is_cached, rooted
 
 TRAIN_FLOW = "latent-steering-train-sae"
 

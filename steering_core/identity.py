@@ -2,7 +2,7 @@
 
 Equal identity, equal outputs. A step's code version is the hash of the source of the `steering_core`
 modules it calls, followed through their imports (read, never imported); its inputs count by content
-(file hashes, settings by their JSON). `tasks.cache` turns these into Prefect cache keys.
+(file hashes, settings by their JSON). `tasks.cache_keys` turns these into Prefect cache keys.
 """
 
 from __future__ import annotations

@@ -20,14 +20,14 @@ from steering_core.pi05.checkpoint import resolve_model_file
 from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json
 from tasks.artifacts import ProgressArtifact, artifact_key
-from tasks.cache import (
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
+from tasks.results import RESULTS
+from tasks.retries import (
     GPU_RETRIES,
     GPU_RETRY_DELAYS,
     IO_RETRIES,
     IO_RETRY_DELAYS,
-    OUTPUTS,
-    RESULTS,
-    content_key,
     retry_if,
     transient_gpu,
     transient_io,

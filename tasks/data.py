@@ -15,15 +15,10 @@ from steering_core.identity import tree_listing
 from steering_core.layout import SELECTION_FILE
 from steering_core.storage.digests import file_digest
 from tasks.artifacts import ProgressArtifact, artifact_key
-from tasks.cache import (
-    IO_RETRIES,
-    IO_RETRY_DELAYS,
-    OUTPUTS,
-    RESULTS,
-    content_key,
-    retry_if,
-    transient_io,
-)
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
+from tasks.results import RESULTS
+from tasks.retries import IO_RETRIES, IO_RETRY_DELAYS, retry_if, transient_io
 
 
 def selection_digest(folder: str) -> str:

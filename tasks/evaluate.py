@@ -22,8 +22,11 @@ from steering_core.storage.fileio import read_json, sha256_json
 from steering_core.vectors import directions
 from steering_core.vectors.directions import SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
-from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
 from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs
+from tasks.results import RESULTS
+from tasks.retries import GPU_RETRIES, GPU_RETRY_DELAYS, retry_if, transient_gpu
 from tasks.sae import sae_inputs
 
 _PAIR_OUTPUTS = (f"{layout.DOSE_RESPONSE_FILE}.json", f"{layout.DOSE_RESPONSE_FILE}.safetensors",

@@ -12,7 +12,9 @@ from steering_core.sae.fidelity_table import FIDELITY_JSON
 from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json
 from steering_core.vectors import directions, report
-from tasks.cache import OUTPUTS, RESULTS, content_key
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
+from tasks.results import RESULTS
 
 
 def pair_folders(inputs: dict[str, Any]) -> dict[str, dict[str, str]]:

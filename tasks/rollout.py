@@ -17,9 +17,12 @@ from steering_core.rollout.run import RolloutJob, run_chunk
 from steering_core.rollout.settings import RolloutSettings
 from steering_core.storage.digests import file_digest
 from tasks.artifacts import ProgressArtifact, artifact_key
-from tasks.cache import OUTPUTS, RESULTS, content_key, retry_if
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
 from tasks.capture import model_inputs
 from tasks.evaluate import folder_digests
+from tasks.results import RESULTS
+from tasks.retries import retry_if
 
 # The modules a chunk runs (and, transitively, what they import: episodes, LIBERO, predicates, records, the
 # policy clients, the π0.5 policy the evaluation loads)

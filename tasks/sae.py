@@ -16,15 +16,10 @@ from steering_core.storage.fileio import write_json
 from steering_core.vectors import concept_stats, directions
 from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
-from tasks.cache import (
-    IO_RETRIES,
-    IO_RETRY_DELAYS,
-    OUTPUTS,
-    RESULTS,
-    content_key,
-    retry_if,
-    transient_io,
-)
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
+from tasks.results import RESULTS
+from tasks.retries import IO_RETRIES, IO_RETRY_DELAYS, retry_if, transient_io
 
 _SAE_FIELDS = ("layer", "device", "batch_size")  # settings that change concept statistics besides the SAE
 

@@ -18,9 +18,12 @@ from steering_core.sae_quality.judge_run import JudgeJob, judge_job
 from steering_core.storage.digests import file_digest
 from steering_core.vectors.directions import SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
-from tasks.cache import GPU_RETRIES, GPU_RETRY_DELAYS, OUTPUTS, RESULTS, content_key, retry_if, transient_gpu
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS
 from tasks.capture import GPU_TAG, model_inputs
 from tasks.evaluate import folder_digests
+from tasks.results import RESULTS
+from tasks.retries import GPU_RETRIES, GPU_RETRY_DELAYS, retry_if, transient_gpu
 from tasks.sae import sae_inputs
 
 SAE_FILES = ("cfg.json", "sae_weights.safetensors", "sparsity.safetensors", "training.json")

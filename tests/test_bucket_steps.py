@@ -24,7 +24,9 @@ from steering_core.demo import build_demo
 from steering_core.remote import filesystems, publish, reads
 from steering_core.storage import mirrors
 from steering_core.storage.digests import file_digest
-from tasks.cache import CACHE_DIR, OUTPUTS, RESULTS, content_key, rooted
+from tasks.cache_keys import content_key
+from tasks.cache_records import CACHE_DIR, OUTPUTS
+from tasks.results import RESULTS, rooted
 
 pytestmark = pytest.mark.slow
 

@@ -11,7 +11,9 @@ from prefect._internal.result_records import ResultRecord, ResultRecordMetadata
 from prefect.serializers import JSONSerializer, PickleSerializer
 from prefect.tasks import task
 
-from tasks.cache import OUTPUTS, RESULTS, content_key, read_cache_record, rooted
+from tasks.cache_keys import content_key
+from tasks.cache_records import OUTPUTS, read_cache_record
+from tasks.results import RESULTS, rooted
 
 
 class Payload:

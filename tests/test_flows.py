@@ -58,17 +58,10 @@ from steering_core.storage import fileio, mirrors
 from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json, sha256_file
 from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
-from tasks.cache import (
-    CACHE_DIR,
-    OUTPUTS,
-    RESULTS,
-    content_key,
-    is_cached,
-    retry_if,
-    rooted,
-    transient_gpu,
-    transient_io,
-)
+from tasks.cache_keys import content_key
+from tasks.cache_records import CACHE_DIR, OUTPUTS
+from tasks.results import RESULTS, is_cached, rooted
+from tasks.retries import retry_if, transient_gpu, transient_io
 
 pytestmark = pytest.mark.slow
 PREFLIGHT = "check the run's inputs"  # the parent flow's first task, never cached

@@ -20,7 +20,7 @@ from helpers_locks import hold_output_lock, python
 
 from steering_core.demo import build_demo
 from steering_core.remote.locks import group_locks, output_lock
-from tasks.cache import CACHE_DIR
+from tasks.cache_records import CACHE_DIR
 
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
 
