@@ -40,7 +40,8 @@ from bench.common import Result, cache_dir, command, finish, parser, timed
 from steering_core.devices import resolve_device
 from steering_core.evaluate import EvaluateSettings
 from steering_core.evaluate.frames import EvalFrame
-from steering_core.evaluate.sweep import frame_noise, run_sweep, toward_other
+from steering_core.evaluate.sweep import frame_noise, run_sweep
+from steering_core.pairs import toward_sign
 from steering_core.pi05 import Pi05Arch, PromptTokenizer, libero_camera_slots
 from steering_core.synthetic.pi05 import tiny_arch
 
@@ -118,7 +119,7 @@ def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prom
     device = policy.device
     for f, frame in enumerate(frames):
         own, other = prompts[frame.side], prompts["positive" if frame.side == "negative" else "negative"]
-        toward = toward_other(frame.side)
+        toward = toward_sign(frame.side)
         images = [t[f : f + 1].to(device) for t in inputs["images"]]
         masks = [t[f : f + 1].to(device) for t in inputs["image_masks"]]
         for s in range(seeds):

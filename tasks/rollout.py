@@ -34,7 +34,7 @@ SIM_RETRIES, SIM_RETRY_DELAYS = 2, [10, 60]
 def job_inputs(job: RolloutJob) -> dict[str, Any]:
     """Return the job and the content of the steering vectors it reads (none when unsteered)."""
     pair = job.cell.steering_pair
-    vectors = folder_digests(job.vectors_root / layout.layer_dir(job.layer) / pair) if pair else None
+    vectors = folder_digests(job.vectors_root / layout.layer_dir(job.cell.layer) / pair) if pair else None
     return {"job": plain(job.model_dump(mode="json", exclude={"vectors_root", "output_dir"})), "vectors": vectors}
 
 
@@ -51,7 +51,7 @@ def transient_connection(exc: BaseException) -> bool:
 
 @task(
     name="rollout-chunk",
-    task_run_name="rollout {job.cell_pair} layer {job.layer} {job.output_dir.name} chunk {job.chunk}",
+    task_run_name="rollout {job.cell.pair} layer {job.cell.layer} {job.output_dir.name} chunk {job.chunk}",
     cache_policy=content_key(CHUNK_CODE, job=job_inputs, model=model_inputs, settings=settings_inputs,
                              ignore=("api_key",)),
     retries=SIM_RETRIES, retry_delay_seconds=SIM_RETRY_DELAYS, retry_condition_fn=retry_if(transient_connection),
@@ -59,8 +59,8 @@ def transient_connection(exc: BaseException) -> bool:
 )
 def rollout_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, api_key: str | None) -> dict:
     """Run one chunk of a cell in the simulator; return its record files."""
-    progress = ProgressArtifact(artifact_key("rollout", job.cell_pair, job.layer, job.output_dir.name, job.chunk),
-                                "episodes", f"rollout {job.cell_pair} layer {job.layer} {job.output_dir.name}")
+    progress = ProgressArtifact(artifact_key("rollout", job.cell.pair, job.cell.layer, job.output_dir.name, job.chunk),
+                                "episodes", f"rollout {job.cell.pair} layer {job.cell.layer} {job.output_dir.name}")
     folder = run_chunk(job, model, settings, api_key=api_key, progress=progress)
     progress.finish()
     return {OUTPUTS: record_files(folder), "chunk": str(folder)}

@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from steering_core.rollout.cells import Cell
 from steering_core.rollout.episode import EpisodeRecord
-from steering_core.rollout.records import RolloutCell, TaskRef, write_cell
+from steering_core.rollout.records import CellTasks, TaskRef, write_cell
 
 
 def reference_resize_with_pad(image: np.ndarray, size: int) -> np.ndarray:
@@ -146,12 +147,12 @@ def write_pair_cells(layer_path: Path, n: int = 10, pair: str = PAIR, frames: in
     conditions += [("instruction_swap", 0.0), ("unsteered", 0.0)]
     for side, own, other in (("positive", OPEN, CLOSE), ("negative", CLOSE, OPEN)):
         for condition, size in conditions:
-            cell = RolloutCell(pair, 12, side, condition, size if side == "negative" else -size, own, other)
+            cell = Cell.pushed(pair, 12, side, condition, size)
             k = toward_count(condition, size, n)
             prompt = other.instruction if condition == "instruction_swap" else own.instruction
             episodes = [make_episode(prompt, "toward" if i < k else ("instructed" if i % 4 == 3 else "neither"),
                                      steps=20 + 3 * i, init_index=i, seed=i,
                                      drift=(-1 if other is OPEN else 1) * 0.0015 * size * (condition == "steered"),
                                      frames=frames if i == 0 else 0) for i in range(n)]
-            records.append(write_cell(layer_path / pair / cell.name, cell, episodes, seeds=[7] * n, run=RUN))
+            records.append(write_cell(layer_path / pair / cell.name, cell, CellTasks(own, other), episodes, seeds=[7] * n, run=RUN))
     return records

@@ -6,6 +6,8 @@ from pathlib import Path
 import pytest
 
 from steering_core.config import load_run_config
+from steering_core.pairs import other_side
+from steering_core.rollout.cells import Cell
 from steering_core.rollout.grid import cells, chunks
 from steering_core.rollout.plan import config_jobs
 from steering_core.rollout.settings import RolloutSettings
@@ -66,7 +68,7 @@ def test_run_config_section_gives_jobs_per_cell_and_chunk(tmp_path):
     jobs = config_jobs(run, "on_vs_off", 2)
     assert len(jobs) == 2 * (2 + 2 * 4) * 3  # cells x chunks
     assert {job.output_dir.parent for job in jobs} == {tmp_path / "data/rollouts/layer02/on_vs_off"}
-    wrong = {job.condition for job in jobs if job.condition.startswith("wrong")}
+    wrong = {job.cell.condition for job in jobs if job.cell.condition.startswith("wrong")}
     assert wrong == {"wrong_concept:open_vs_close"}  # the next rolled-out pair, cyclically
     assert {job.init_states for job in jobs} == {(0, 1, 2), (3, 4, 5), (6,)}
 
@@ -98,16 +100,19 @@ def test_the_last_layer_is_refused_for_rollouts(tmp_path):
 
 def test_a_chunk_identity_changes_with_every_input_that_changes_its_episodes(tmp_path):
     run = config(tmp_path)
-    job = next(j for j in config_jobs(run, "open_vs_close", 1) if j.condition == "steered")
+    job = next(j for j in config_jobs(run, "open_vs_close", 1) if j.cell.condition == "steered")
     vectors = job.vectors_root / "layer01" / "open_vs_close"
     vectors.mkdir(parents=True)
     (vectors / "residual_direction.safetensors").write_bytes(b"one")
     base = job_inputs(job)
     (vectors / "residual_direction.safetensors").write_bytes(b"two")
     assert job_inputs(job) != base
-    for change in ({"alpha_toward": 4.0}, {"init_states": (9,)}, {"side": "negative" if job.side == "positive" else "positive"}, {"condition": "random_0"}):
+    cell = job.cell
+    for change in ({"cell": Cell(cell.pair, cell.layer, cell.side, cell.condition, 4.0)}, {"init_states": (9,)},
+                   {"cell": Cell(cell.pair, cell.layer, other_side(cell.side), cell.condition, cell.alpha)},
+                   {"cell": Cell(cell.pair, cell.layer, cell.side, "random_0", cell.alpha)}):
         assert job_inputs(job.model_copy(update=change)) != job_inputs(job), change
-    unsteered = next(j for j in config_jobs(run, "open_vs_close", 1) if j.condition == "unsteered")
+    unsteered = next(j for j in config_jobs(run, "open_vs_close", 1) if j.cell.condition == "unsteered")
     assert job_inputs(unsteered)["vectors"] is None
 
 
@@ -132,7 +137,7 @@ def test_a_chunk_identity_covers_the_code_it_runs():
 
     modules = set(code_modules(CHUNK_CODE))
     assert {f"steering_core.rollout.{name}" for name in (
-        "run", "episode", "libero_env", "protocol", "predicates", "assets", "records", "client", "grid")} <= modules
+        "run", "episode", "libero_env", "protocol", "predicates", "assets", "records", "client", "cells")} <= modules
     assert {"steering_core.evaluate.run", "steering_core.pi05.policy", "steering_core.serve.catalog"} <= modules
 
 

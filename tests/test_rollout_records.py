@@ -9,7 +9,8 @@ import pytest
 from helpers_rollout import CLOSE, JOINT, OPEN, RUN, make_episode, write_pair_cells
 
 from steering_core.layout import rollout_cell_dir
-from steering_core.rollout.records import RolloutCell, condition_kind, merge_chunks, read_cell, write_cell
+from steering_core.rollout.cells import Cell, condition_kind
+from steering_core.rollout.records import CellTasks, merge_chunks, read_cell, write_cell
 
 
 def test_cell_names_and_condition_kinds():
@@ -19,16 +20,16 @@ def test_cell_names_and_condition_kinds():
     assert [condition_kind(c) for c in ("steered", "random_3", "wrong_concept:a_vs_b", "instruction_swap",
                                         "unsteered")] == ["steered", "random", "wrong_concept", "instruction_swap",
                                                           "unsteered"]
-    cell = RolloutCell("open_vs_close", 12, "positive", "steered", -2.0, OPEN, CLOSE)
+    cell = Cell("open_vs_close", 12, "positive", "steered", -2.0)
     assert (cell.name, cell.alpha_toward) == ("positive_steered_a-2", 2.0)
 
 
 def test_cell_round_trips(tmp_path):
-    cell = RolloutCell("open_vs_close", 12, "negative", "steered", 2.0, CLOSE, OPEN)
+    cell, tasks = Cell("open_vs_close", 12, "negative", "steered", 2.0), CellTasks(CLOSE, OPEN)
     episodes = [make_episode(CLOSE.instruction, "toward", 12, init_index=3, seed=1, drift=-0.01, frames=3),
                 make_episode(CLOSE.instruction, "neither", 30, init_index=4, seed=2),
                 make_episode(CLOSE.instruction, "instructed", 2, init_index=5, seed=3)]
-    record = write_cell(tmp_path / cell.name, cell, episodes, seeds=[7, 7, 7], run=RUN)
+    record = write_cell(tmp_path / cell.name, cell, tasks, episodes, seeds=[7, 7, 7], run=RUN)
     read, arrays = read_cell(tmp_path / cell.name)
     assert read == json.loads(json.dumps(record))
     assert sorted(p.name for p in (tmp_path / cell.name).iterdir()) == [
@@ -61,14 +62,14 @@ def test_cell_round_trips(tmp_path):
 
 def test_bad_cells_are_refused_with_every_problem(tmp_path):
     with pytest.raises(ValueError, match=r"side 'left' is not one of \['positive', 'negative'\]; condition 'random'"):
-        RolloutCell("p", 1, "left", "random", 1.0, OPEN, CLOSE)
+        Cell("p", 1, "left", "random", 1.0)
     with pytest.raises(ValueError, match="0 for the unsteered and instruction_swap cells"):
-        RolloutCell("p", 1, "positive", "unsteered", 1.0, OPEN, CLOSE)
-    cell = RolloutCell("p", 1, "positive", "steered", 1.0, OPEN, CLOSE)
+        Cell("p", 1, "positive", "unsteered", 1.0)
+    cell, tasks = Cell("p", 1, "positive", "steered", 1.0), CellTasks(OPEN, CLOSE)
     short = make_episode(OPEN.instruction, "won", 5)
     short.actions = short.actions[:4]
     with pytest.raises(ValueError) as err:
-        write_cell(tmp_path / cell.name, cell, [short, make_episode(CLOSE.instruction, "toward", 3)], [7], RUN)
+        write_cell(tmp_path / cell.name, cell, tasks, [short, make_episode(CLOSE.instruction, "toward", 3)], [7], RUN)
     assert str(err.value) == (
         "cell p/positive_steered_a+1: 1 seeds for 2 episodes; episodes saw different prompts "
         f"['{CLOSE.instruction}', '{OPEN.instruction}']; episode 0: actions is (4, 7), expected (5, 7); "
@@ -83,21 +84,21 @@ def test_pair_cells_share_initial_states(tmp_path):
 
 
 def test_chunks_merge_into_the_record_of_all_their_episodes(tmp_path):
-    cell = RolloutCell("open_vs_close", 12, "positive", "random_1", -2.0, OPEN, CLOSE)
+    cell, tasks = Cell("open_vs_close", 12, "positive", "random_1", -2.0), CellTasks(OPEN, CLOSE)
     episodes = [make_episode(OPEN.instruction, outcome, 10 + i, init_index=i, seed=i, frames=2 if i == 0 else 0)
                 for i, outcome in enumerate(("neither", "toward", "instructed"))]
     episodes[1].toward_at_start = True
-    whole = write_cell(tmp_path / "whole" / cell.name, cell, episodes, seeds=[7] * 3, run=RUN)
+    whole = write_cell(tmp_path / "whole" / cell.name, cell, tasks, episodes, seeds=[7] * 3, run=RUN)
     chunks = [tmp_path / cell.name / "chunk_000", tmp_path / cell.name / "chunk_001"]
-    write_cell(chunks[0], cell, episodes[:2], seeds=[7] * 2, run=RUN | {"chunk": 0})
-    write_cell(chunks[1], cell, episodes[2:], seeds=[7], run=RUN | {"chunk": 1})
+    write_cell(chunks[0], cell, tasks, episodes[:2], seeds=[7] * 2, run=RUN | {"chunk": 0})
+    write_cell(chunks[1], cell, tasks, episodes[2:], seeds=[7], run=RUN | {"chunk": 1})
     merged = merge_chunks(tmp_path / cell.name, chunks)
     assert merged == whole  # the chunk index is the chunk's own; the merged record is the cell's
     arrays, reference = read_cell(tmp_path / cell.name)[1], read_cell(tmp_path / "whole" / cell.name)[1]
     assert all(np.array_equal(arrays[k], reference[k], equal_nan=True) for k in reference)
     video = tmp_path / cell.name / merged["episodes"][0]["video"]
     assert video.read_bytes() == (chunks[0] / merged["episodes"][0]["video"]).read_bytes()
-    other = RolloutCell("open_vs_close", 12, "positive", "random_2", -2.0, OPEN, CLOSE)
-    write_cell(tmp_path / "stray", other, episodes[:1], seeds=[7], run=RUN)
+    other = Cell("open_vs_close", 12, "positive", "random_2", -2.0)
+    write_cell(tmp_path / "stray", other, tasks, episodes[:1], seeds=[7], run=RUN)
     with pytest.raises(ValueError, match="holds cell positive_random_2_a-2"):
         merge_chunks(tmp_path / "mixed", [chunks[0], tmp_path / "stray"])

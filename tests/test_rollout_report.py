@@ -7,7 +7,8 @@ import re
 from helpers_rollout import CLOSE, DRAWER_GOALS, OPEN, PAIR, RUN, make_episode, write_pair_cells
 
 from flows.rollout import ui_rollouts
-from steering_core.rollout.records import RolloutCell, write_cell
+from steering_core.rollout.cells import Cell
+from steering_core.rollout.records import CellTasks, write_cell
 from steering_core.rollout.report import side_answer, write_layer_summary, write_pair_report
 from steering_core.storage.fileio import read_json
 
@@ -62,8 +63,8 @@ def test_missing_controls_and_joints_are_said(tmp_path):
     episodes = [make_episode(CLOSE.instruction, "toward", 5, init_index=i, seed=i) for i in range(4)]
     for episode in episodes:
         episode.joints = {}  # a goal on no articulated object (e.g. "put the bowl on the plate")
-    cell = RolloutCell(PAIR, 12, "negative", "steered", 2.0, CLOSE, OPEN)
-    record = write_cell(tmp_path / PAIR / cell.name, cell, episodes, [7] * 4, RUN)
+    cell = Cell(PAIR, 12, "negative", "steered", 2.0)
+    record = write_cell(tmp_path / PAIR / cell.name, cell, CellTasks(CLOSE, OPEN), episodes, [7] * 4, RUN)
     assert write_pair_report(tmp_path / PAIR)["plots"] == {"success": "success_vs_alpha.png"}
     answer = side_answer([record], "negative")
     assert answer["text"] == ("no evidence: steered toward-task success at α = +2 is 4/4 [0.51, 1.00]; no random "

@@ -27,8 +27,8 @@ from steering_core.evaluate.nulls import null_directions
 from steering_core.evaluate.positions import check_positions
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep, toward_other
-from steering_core.pairs import SIDES
+from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep
+from steering_core.pairs import SIDES, toward_sign
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.storage.fileio import atomic_dir
 
@@ -128,7 +128,7 @@ def evaluate_pair(
     names = list(directions)
     metrics = dose_response_metrics(
         actions.steered, actions.swap, scale=scale, contrast=sign * contrast,
-        toward=torch.tensor([toward_other(f.side) for f in frames], dtype=torch.float64),
+        toward=torch.tensor([toward_sign(f.side) for f in frames], dtype=torch.float64),
         halves=torch.tensor(halves), episodes=[f.episode_index for f in frames], zero_index=settings.zero_index,
         samples=settings.bootstrap, seed=settings.seed,
     )

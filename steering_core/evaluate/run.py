@@ -28,6 +28,7 @@ from steering_core.evaluate.pair import PairInputs, evaluate_pair
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt
+from steering_core.pairs import SIDES
 from steering_core.pi05 import PromptFormat, PromptTokenizer
 from steering_core.pi05.steering import LAST_LM_LAYER, Stream
 from steering_core.remote.locks import output_lock
@@ -234,7 +235,7 @@ def load_policy(model: CaptureSettings, device: str, dtype: str | None) -> Any:
 def task_prompts(tokenizer: PromptTokenizer, positive: str, negative: str) -> dict[str, Prompt]:
     """Return each side's prompt (1, T) tensors with the mask of its instruction tokens (where steering adds)."""
     prompts = {}
-    for side, task in (("positive", positive), ("negative", negative)):
+    for side, task in zip(SIDES, (positive, negative), strict=True):
         prompt = tokenizer.tokenize(task)
         prompts[side] = Prompt(*(torch.from_numpy(a)[None] for a in (prompt.ids, prompt.mask, prompt.instruction_mask())))
     return prompts

@@ -11,7 +11,7 @@ from steering_core.storage.schema import StrictModel
 
 # α in units of R, the mean residual norm of the training rows at the steered positions: α = 1 adds a vector as
 # long as a typical residual, whatever the direction's own norm (α_vector = α · R / ‖d‖ multiplies d itself).
-DEFAULT_ALPHAS = (-8.0, -4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0, 8.0)
+DEFAULT_ALPHA_GRID = (-8.0, -4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0, 8.0)
 MIN_RANDOM_DIRECTIONS = 8  # the null band needs enough draws for a mean and a spread
 # Below this many held-out episodes per task the episode bootstrap has too few distinct resamples (C(2n-1, n):
 # 35 at n = 4, 10 at n = 3, 1 at n = 1) for a percentile interval to cover: the summary warns.
@@ -40,7 +40,7 @@ class EvaluateSettings(StrictModel):
 
     holdout_fraction: float = Field(0.2, ge=0, lt=1)  # episodes per task held out of slicing (at least one)
     max_frames: int = Field(32, ge=2, le=10_000)  # evaluation frames per pair, shared by both tasks
-    alphas: AlphaGrid = DEFAULT_ALPHAS       # must hold 0 (the unsteered reference)
+    alphas: AlphaGrid = DEFAULT_ALPHA_GRID       # must hold 0 (the unsteered reference)
     noise_seeds: int = Field(4, gt=0, le=256)  # flow-matching noise draws per frame, the same across α
     # null: directions drawn from the rows' covariance; each is a policy sweep per frame, so thousands would take days
     random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS, le=4096)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from steering_core.evaluate.frames import EvalFrame
-from steering_core.pairs import SIDES
+from steering_core.pairs import SIDES, other_side, toward_sign
 from steering_core.reporting.progress import ProgressCallback
 
 logger = logging.getLogger(__name__)
@@ -122,14 +122,14 @@ def run_sweep(
         batch_frames = [frames[i] for i in members]
         index = torch.tensor(members)
         inputs = {key: [t[index].to(device) for t in tensors] for key, tensors in everything.items()}
-        mine, theirs = prompts[side], prompts["negative" if side == "positive" else "positive"]
+        mine, theirs = prompts[side], prompts[other_side(side)]
         size = len(members)
         tokens, token_mask = mine.tokens.expand(size, -1).to(device), mine.token_mask.expand(size, -1).to(device)
         # where the steering adds: the instruction tokens, or (expert) every action token, which takes no mask
         where = ({"stream": "expert"} if stream == "expert" else
                  {"token_mask": mine.instruction_mask.expand(size, -1).to(device)})
         theirs = Prompt(*(t.to(device) for t in (theirs.tokens, theirs.token_mask, theirs.instruction_mask)))
-        toward = toward_other(side)
+        toward = toward_sign(side)
         for s in range(noise_seeds):
             noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
             for number, chunk in enumerate(chunks):
@@ -153,11 +153,6 @@ def run_sweep(
             other[index, s] = _robot(policy, swapped)
     logger.info("sweep: %d frames x %d seeds x %d entries", len(frames), noise_seeds, 1 + len(nonzero))
     return SweepActions(steered=steered, swap=other - own, own=own)
-
-
-def toward_other(side: str) -> float:
-    """Return the sign of α that pushes a frame of `side` toward the other task: +1 negative, −1 positive."""
-    return 1.0 if side == "negative" else -1.0
 
 
 def _robot(policy: SweepPolicy, actions: torch.Tensor) -> torch.Tensor:

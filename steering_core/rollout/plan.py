@@ -22,10 +22,8 @@ def pair_jobs(pair: str, layer: int, tasks: RolloutPair, settings: RolloutSettin
         if sides is not None and cell.side not in sides:
             continue
         for index, states in enumerate(chunks(settings)):
-            jobs.append(RolloutJob(
-                cell_pair=pair, layer=layer, side=cell.side, condition=cell.condition, alpha_toward=cell.alpha_toward,
-                tasks=tasks, init_states=states, chunk=index, vectors_root=vectors_root,
-                output_dir=output_dir / cell.name))
+            jobs.append(RolloutJob(cell=cell, tasks=tasks, init_states=states, chunk=index, vectors_root=vectors_root,
+                                   output_dir=output_dir / cell.name))
     return jobs
 
 

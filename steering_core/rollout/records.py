@@ -1,13 +1,9 @@
 """One rollout cell's files: `rollouts.json` (identity, per-episode outcomes, success counts) and
 `rollouts.safetensors` (per-episode trajectories), plus an MP4 of each episode that recorded frames.
 
-A cell is one (side, condition, α) of a (pair, layer): `side` names the task whose scene, initial states and
-instruction the episodes start from ("positive" / "negative"); `condition` is "steered" (the pair's direction),
-"random_<k>" (a norm-matched random direction), "wrong_concept:<pair>" (another pair's direction at the same α),
-"instruction_swap" (the other task's instruction, no steering: the ceiling) or "unsteered" (α = 0). `alpha` is
-the signed α applied, in residual_norm units (× R, the evaluation's unit); `alpha_toward` = α on the negative side
-and −α on the positive side is the push toward the other task. An episode's outcome is the first goal reached:
-"instructed" (the side's own task), "toward" (the other task) or "neither" by the step limit.
+The record names its cell (`cells.Cell`) and the two LIBERO tasks: `instructed` (the side's own) and `toward`
+(the other). An episode's outcome is the first goal reached: "instructed", "toward" or "neither" by the step
+limit.
 
 Tensors (E episodes, T the longest episode's steps; shorter episodes padded with NaN): `lengths` (E,) int64 steps,
 `actions` (E, T, 7) float32, `robot_qpos` (E, T + 1, 7) float64, `joints/<name>` (E, T + 1) float64 per joint a
@@ -17,7 +13,6 @@ goal tests. The JSON is written last, so a folder with it is complete.
 from __future__ import annotations
 
 import math
-import re
 import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -27,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from steering_core.layout import ROLLOUT_FILE, rollout_cell_dir, rollout_video_file
-from steering_core.pairs import SIDES, toward_sign
+from steering_core.layout import ROLLOUT_FILE, rollout_video_file
+from steering_core.rollout.cells import Cell
 from steering_core.rollout.stats import proportion
 from steering_core.rollout.video import DEFAULT_FPS, write_video
 from steering_core.storage.fileio import atomic_path, read_json, write_json
@@ -39,14 +34,7 @@ if TYPE_CHECKING:
 
 ROLLOUT_FORMAT_VERSION = 1
 OUTCOMES = ("instructed", "toward", "neither")
-KINDS = ("steered", "random", "wrong_concept", "instruction_swap", "unsteered")
-_CONDITION = re.compile(r"steered|random_\d+|wrong_concept:.+|instruction_swap|unsteered")
 JOINT_KEY = "joints/"  # tensor name prefix of the goal-tested joints
-
-
-def condition_kind(condition: str) -> str:
-    """Return the kind of a condition (one of KINDS): `random_3` -> random, `wrong_concept:a_vs_b` -> wrong_concept."""
-    return condition.partition(":")[0] if ":" in condition else re.sub(r"_\d+$", "", condition)
 
 
 @dataclass(frozen=True)
@@ -59,38 +47,11 @@ class TaskRef:
 
 
 @dataclass(frozen=True)
-class RolloutCell:
-    """What identifies a cell (see the module docstring); `instructed` is the side's task, `toward` the other."""
+class CellTasks:
+    """A cell's two LIBERO tasks: `instructed`, the side's own, and `toward`, the other side's."""
 
-    pair: str
-    layer: int
-    side: str
-    condition: str
-    alpha: float
     instructed: TaskRef
     toward: TaskRef
-
-    def __post_init__(self) -> None:
-        problems = []
-        if self.side not in SIDES:
-            problems.append(f"side {self.side!r} is not one of {list(SIDES)}")
-        if not _CONDITION.fullmatch(self.condition):
-            problems.append(f"condition {self.condition!r} is not steered, random_<k>, wrong_concept:<pair>, "
-                            "instruction_swap or unsteered")
-        if not math.isfinite(self.alpha) or (self.condition in ("unsteered", "instruction_swap") and self.alpha):
-            problems.append(f"alpha {self.alpha!r} must be finite, and 0 for the unsteered and instruction_swap cells")
-        if problems:
-            raise ValueError(f"rollout cell {self.pair} layer {self.layer}: " + "; ".join(problems))
-
-    @property
-    def alpha_toward(self) -> float:
-        """Return α as a push toward the other task: α on the negative side, −α on the positive side."""
-        return self.alpha * toward_sign(self.side) + 0.0  # + 0.0: no -0
-
-    @property
-    def name(self) -> str:
-        """Return the cell's folder name, e.g. `negative_steered_a+2`."""
-        return rollout_cell_dir(self.side, self.condition, self.alpha)
 
 
 def _finite(value: float | None) -> float | None:
@@ -110,7 +71,7 @@ def episode_facts(episode: EpisodeRecord) -> dict[str, Any]:
             "policy_calls": int(episode.policy_calls), "toward_at_start": bool(episode.toward_at_start)}
 
 
-def _check_episodes(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int]) -> None:
+def _check_episodes(cell: Cell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int]) -> None:
     """Raise one ValueError listing every episode whose facts or arrays do not fit together."""
     problems = [] if episodes else ["no episodes"]
     if len(seeds) != len(episodes):
@@ -153,7 +114,7 @@ def cell_arrays(episodes: Sequence[EpisodeRecord]) -> dict[str, np.ndarray]:
     return arrays
 
 
-def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
+def cell_record(cell: Cell, tasks: CellTasks, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
                 run: Mapping[str, Any], videos: Mapping[int, str]) -> dict[str, Any]:
     """Return the JSON of one cell: identity, `run` facts, per-episode facts, outcome counts with Wilson intervals."""
     rows = [{"episode": i, "seed": int(seed), **episode_facts(e), "video": videos.get(i)}
@@ -164,8 +125,8 @@ def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Seq
         "format_version": ROLLOUT_FORMAT_VERSION,
         "cell": cell.name,
         **asdict(cell),
-        "alpha": cell.alpha + 0.0,  # no -0
-        "kind": condition_kind(cell.condition),
+        **asdict(tasks),
+        "kind": cell.kind,
         "alpha_toward": cell.alpha_toward,
         "alpha_units": "residual_norm: × R, the mean residual norm at the steered positions (the evaluation's unit)",
         "prompt": episodes[0].prompt,
@@ -181,7 +142,7 @@ def cell_record(cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Seq
     }
 
 
-def write_cell(folder: str | Path, cell: RolloutCell, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
+def write_cell(folder: str | Path, cell: Cell, tasks: CellTasks, episodes: Sequence[EpisodeRecord], seeds: Sequence[int],
                run: Mapping[str, Any], fps: float = DEFAULT_FPS, recorded: Mapping[int, Path] | None = None
                ) -> dict[str, Any]:
     """Write one cell's files into `folder` (the cell's own folder, named `cell.name`) and return its record.
@@ -204,7 +165,7 @@ def write_cell(folder: str | Path, cell: RolloutCell, episodes: Sequence[Episode
     tensors = {key: torch.from_numpy(value) for key, value in cell_arrays(episodes).items()}
     with atomic_path(folder / f"{ROLLOUT_FILE}.safetensors") as tmp:
         save_safetensors(tensors, tmp, metadata={"format_version": str(ROLLOUT_FORMAT_VERSION)})
-    record = cell_record(cell, episodes, seeds, run, videos)
+    record = cell_record(cell, tasks, episodes, seeds, run, videos)
     write_json(folder / f"{ROLLOUT_FILE}.json", record)
     return record
 
@@ -245,14 +206,14 @@ def stored_episodes(record: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
 def merge_chunks(folder: str | Path, chunk_folders: Sequence[Path], fps: float = DEFAULT_FPS) -> dict[str, Any]:
     """Write the cell of `folder` from its chunks' records (each a cell record of some of its episodes, in order):
     one record over all episodes, the chunks' MP4s copied in under the cell's episode numbers."""
-    episodes, seeds, recorded, cell, run = [], [], {}, None, None
+    episodes, seeds, recorded, cell, tasks, run = [], [], {}, None, None, None
     for chunk in chunk_folders:
         record, arrays = read_cell(chunk)
-        identity = RolloutCell(**{key: record[key] for key in ("pair", "layer", "side", "condition", "alpha")},
-                               instructed=TaskRef(**record["instructed"]), toward=TaskRef(**record["toward"]))
-        if cell is not None and identity != cell:
+        identity = Cell(**{key: record[key] for key in ("pair", "layer", "side", "condition", "alpha")})
+        named = CellTasks(TaskRef(**record["instructed"]), TaskRef(**record["toward"]))
+        if cell is not None and (identity, named) != (cell, tasks):
             raise ValueError(f"{chunk}: holds cell {identity.name} of {identity.pair}, not {cell.name}")
-        cell, run = identity, record["run"]
+        cell, tasks, run = identity, named, record["run"]
         for row in record["episodes"]:
             if row["video"]:
                 recorded[len(episodes) + row["episode"]] = Path(chunk) / row["video"]
@@ -260,5 +221,5 @@ def merge_chunks(folder: str | Path, chunk_folders: Sequence[Path], fps: float =
         seeds += [row["seed"] for row in record["episodes"]]
     if cell is None:
         raise ValueError(f"{folder}: no chunks to merge")
-    return write_cell(folder, cell, episodes, seeds, {k: v for k, v in run.items() if k != "chunk"}, fps=fps,
+    return write_cell(folder, cell, tasks, episodes, seeds, {k: v for k, v in run.items() if k != "chunk"}, fps=fps,
                       recorded=recorded)

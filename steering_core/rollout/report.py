@@ -17,8 +17,9 @@ import numpy as np
 
 from steering_core.layout import JOINTS_PLOT, ROLLOUT_FILE, ROLLOUT_PAIR_TABLE, SUCCESS_PLOT, SUMMARY_JSON, SUMMARY_MD
 from steering_core.pairs import SIDES
+from steering_core.rollout.cells import KINDS
 from steering_core.rollout.plots import Thresholds, plot_joints, plot_success
-from steering_core.rollout.records import KINDS, ROLLOUT_FORMAT_VERSION, read_cell
+from steering_core.rollout.records import ROLLOUT_FORMAT_VERSION, read_cell
 from steering_core.rollout.stats import Proportion, exceeds
 from steering_core.storage.fileio import read_json, write_json, write_text
 

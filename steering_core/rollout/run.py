@@ -12,7 +12,7 @@ from pydantic import Field
 from steering_core.capture import CaptureSettings
 from steering_core.pairs import other_side
 from steering_core.reporting.progress import ProgressCallback
-from steering_core.rollout.grid import Cell
+from steering_core.rollout.cells import Cell
 from steering_core.rollout.settings import LiberoTask, RolloutPair, RolloutSettings
 from steering_core.storage.schema import StrictModel
 
@@ -24,11 +24,7 @@ CHUNK_DIR = "chunk_{chunk:03d}"  # inside a cell's folder: one task run's episod
 class RolloutJob(StrictModel):
     """One task run: a cell's episodes on some initial states, and where its record goes."""
 
-    cell_pair: str
-    layer: int
-    side: str
-    condition: str
-    alpha_toward: float
+    cell: Cell
     tasks: RolloutPair
     init_states: tuple[int, ...] = Field(min_length=1)
     chunk: int = Field(ge=0)
@@ -36,18 +32,14 @@ class RolloutJob(StrictModel):
     output_dir: Path          # the cell's folder
 
     @property
-    def cell(self) -> Cell:
-        return Cell(self.cell_pair, self.layer, self.side, self.condition, self.alpha_toward)
-
-    @property
     def scene_task(self) -> LiberoTask:
         """Return the task whose scene, initial states and success (`done`) the episodes use: the side's own."""
-        return getattr(self.tasks, self.side)
+        return getattr(self.tasks, self.cell.side)
 
     @property
     def toward_task(self) -> LiberoTask:
         """Return the other side's task, whose goal is watched on the same state."""
-        return getattr(self.tasks, other_side(self.side))
+        return getattr(self.tasks, other_side(self.cell.side))
 
 
 def steering_entries(cell: Cell, settings: RolloutSettings) -> list[dict[str, Any]]:
@@ -122,7 +114,7 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     libero_env.prepare_libero(resolve_assets(settings.libero_assets))
     scene_index, scene = libero_task(job.scene_task)
     toward_index, toward = libero_task(job.toward_task)
-    prompt = (toward if job.cell.prompt_side != job.side else scene).language
+    prompt = (toward if job.cell.prompt_side != job.cell.side else scene).language
     env = _scene_env(scene)
     goal = Goal.from_task(toward)
     goal.check(env)
@@ -142,14 +134,12 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     finally:
         if hasattr(policy, "close"):  # a server connection
             policy.close()
-    cell = records.RolloutCell(
-        pair=job.cell_pair, layer=job.layer, side=job.side, condition=job.condition, alpha=job.cell.alpha,
-        instructed=records.TaskRef(job.scene_task.suite, scene_index, scene.language),
-        toward=records.TaskRef(job.toward_task.suite, toward_index, toward.language))
+    tasks = records.CellTasks(records.TaskRef(job.scene_task.suite, scene_index, scene.language),
+                              records.TaskRef(job.toward_task.suite, toward_index, toward.language))
     run = {"policy": settings.policy, "steering": steering_entries(job.cell, settings), "max_steps": max_steps,
            "noise_seed": settings.noise_seed, "chunk": job.chunk, "thresholds": thresholds}
     folder = chunk_dir(job)
-    records.write_cell(folder, cell, done, [settings.seed] * len(done), run)
+    records.write_cell(folder, job.cell, tasks, done, [settings.seed] * len(done), run)
     return folder
 
 

@@ -14,7 +14,7 @@ from steering_core.storage.schema import StrictModel
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
 # α toward the other task, in residual_norm units (the evaluation's): the shift is |α| typical residual norms.
-DEFAULT_ALPHAS = (0.0, 1.0, 2.0, 4.0)
+DEFAULT_ALPHAS_TOWARD = (0.0, 1.0, 2.0, 4.0)
 MIN_RANDOM_DIRECTIONS = 4  # below this the random band is too thin to call a steered rate above it (summary warns)
 
 
@@ -48,7 +48,7 @@ class RolloutPair(StrictModel):
 class RolloutSettings(StrictModel):
     """How each (pair, layer) is rolled out; defaults follow openpi's LIBERO evaluation and the issue's grid."""
 
-    alphas: tuple[float, ...] = DEFAULT_ALPHAS  # α toward the other task (residual_norm units); must hold 0
+    alphas: tuple[float, ...] = DEFAULT_ALPHAS_TOWARD  # α toward the other task (residual_norm units); must hold 0
     episodes: int = Field(10, gt=0)             # episodes per cell (the same initial states for every cell)
     first_init_state: int = Field(0, ge=0)      # episodes use initial states first .. first + episodes - 1
     sides: tuple[Side, ...] = SIDES  # instructions to run under
