@@ -2,7 +2,7 @@
 
 A child run ends Crashed when its process died: its worker reports that, or, when the worker died with it
 (a machine lost), the automation `latent-steering deploy` creates marks it Crashed once its heartbeats stop
-(`flows.deploy.ensure_crash_automation`). The parent starts such a run again, at most
+(`deployments.setup.ensure_crash_automation`). The parent starts such a run again, at most
 `orchestration.resubmits` times; every child's tasks are cached and capture keeps complete shards, so a new
 attempt redoes only what the dead one had not finished. A phase whose runs are not all final after
 `orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted with no worker on

@@ -37,7 +37,7 @@ def prefect_environment(home: Path | None = None) -> None:
 def run_pipeline(config_path: Path, run_config: RunConfig) -> None:
     """Run the `latent-steering` flow in this process; print what each task did; exit 1 if the run failed."""
     from flows.pipeline import latent_steering
-    from flows.summary import format_task_rows, task_rows, task_runs_of
+    from latent_steering_cli.summary import format_task_rows, task_rows, task_runs_of
 
     state = latent_steering(str(config_path), return_state=True)
     typer.echo("")
@@ -125,7 +125,7 @@ def deploy_command(
     """
     with input_errors(RuntimeError):
         load_run_config(config)
-        from flows.deploy import RESULTS_BLOCK, setup
+        from deployments.setup import RESULTS_BLOCK, setup
 
         results = setup(config, gpu_slots=gpu_slots, storage=storage)
     typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-evaluate/gpu-evaluate, "

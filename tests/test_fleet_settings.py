@@ -17,7 +17,7 @@ from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterTag
 from prefect.exceptions import ObjectNotFound
 from typer.testing import CliRunner
 
-from flows.deploy import CRASH_AUTOMATION, GPU_TAG, PROJECT_TAG, deploy_all
+from deployments.setup import CRASH_AUTOMATION, GPU_TAG, PROJECT_TAG, deploy_all
 from latent_steering_cli import app
 from steering_core.demo import build_demo
 from steering_core.remote import filesystems

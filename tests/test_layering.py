@@ -82,3 +82,28 @@ def test_rooms_import_only_rooms_below_them():
             if target != room and ROOMS.index(target) > ROOMS.index(room):
                 upward.append(f"{path.relative_to(LIBRARY.parent)} imports {module}")
     assert not upward, "\n".join(upward)
+
+
+# the project's packages, lowest first: each imports (at any depth, lazily too) only packages before it
+FLOORS = ["steering_core", "tasks", "flows", "deployments", "latent_steering_cli", "bench"]
+
+
+def _imported_packages(tree: ast.AST) -> set[str]:
+    """Return the top-level names of every module `tree` imports anywhere (functions and branches included)."""
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module.split(".")[0])
+        elif isinstance(node, ast.Import):
+            found.update(alias.name.split(".")[0] for alias in node.names)
+    return found
+
+
+def test_packages_import_only_packages_below_them():
+    upward = []
+    for floor in FLOORS:
+        for path in sorted((LIBRARY.parent / floor).rglob("*.py")):
+            above = _imported_packages(ast.parse(path.read_text(encoding="utf-8"))) & set(
+                FLOORS[FLOORS.index(floor) + 1:])
+            upward += [f"{path.relative_to(LIBRARY.parent)} imports {name}" for name in sorted(above)]
+    assert not upward, "\n".join(upward)

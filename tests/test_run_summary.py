@@ -7,7 +7,7 @@ import json
 import socket
 from pathlib import Path
 
-from flows.summary import TaskRow, _pair, format_task_rows, step_names
+from latent_steering_cli.summary import TaskRow, _pair, format_task_rows, step_names
 from tasks.artifacts import ui_report
 
 

@@ -1,0 +1,1 @@
+"""The fleet's setup: `prefect.yaml` (every deployment), and `setup` (pools, limits, automation, result storage)."""
