@@ -1,8 +1,8 @@
-"""The parent flow `latent-steering`: the seed's three phases over every concept pair and layer.
+"""The parent flow `latent-steering`: the recipe's phases over every concept pair and layer, after a preflight.
 
 0. Preflight: every input checked (sources or the existing dataset, checkpoint, tokenizer, SAEs,
    output folders, devices).
-1. Phase 1 (CPU): filter demo files, convert them to one LeRobot dataset (or, with
+1. Data (CPU): filter demo files, convert them to one LeRobot dataset (or, with
    `dataset.existing`, read an existing dataset in place), then a contrast manifest
    and a concept map per pair.
 2. Capture (GPU): the `latent-steering-capture` flow, as deployment runs on the `gpu` pool or
@@ -10,7 +10,7 @@
    each capture run also writes the action expert's `decision` rows (`residuals/<name>_decision`).
    Then, for layers with `sae.<layer>.train`, the `latent-steering-train-sae` flow (GPU) trains their SAE
    on these residuals and judges it against the borrowed one (`flows.train_sae`); those layers steer through it.
-3. Fan-out (CPU) over every (pair, layer): slice residuals by concept (held-out episodes left out),
+3. Steering vectors (CPU), fanned out over every (pair, layer): slice residuals by concept (held-out episodes left out),
    SAE statistics per concept, directions per pair; then per layer the pairwise statistics, the
    report and its artifacts. The decision rows are sliced per (pair, expert layer) the same way.
 4. Evaluation (GPU): the `latent-steering-evaluate` flow, one run per (pair, layer) of the language
