@@ -78,6 +78,7 @@ def run_quick(module, cache: Path, tmp_path: Path) -> Result:
     return result
 
 
+@pytest.mark.slow
 def test_capture_baseline_captures_the_same_rows(cache, tmp_path):
     result = run_quick(capture_throughput, cache, tmp_path)
     assert result.checks["max_abs_difference"] < 1e-4
@@ -86,11 +87,13 @@ def test_capture_baseline_captures_the_same_rows(cache, tmp_path):
                      "real pi0.5, layer 12 (analytic)", "real pi0.5, layers 4,8,12 (analytic)"]
 
 
+@pytest.mark.slow
 def test_concept_map_baseline_finds_the_same_ranges(cache, tmp_path):
     result = run_quick(concept_map_speed, cache, tmp_path)
     assert result.checks == {"same_mapping": True, "frames": 160}
 
 
+@pytest.mark.slow
 def test_slicing_benchmark_reports_every_size(cache, tmp_path):
     result = run_quick(slicing_memory, cache, tmp_path)
     assert [row["case"] for row in result.table] == ["1x run, fixed pair", "1x run, every row sliced",
@@ -99,12 +102,14 @@ def test_slicing_benchmark_reports_every_size(cache, tmp_path):
     assert result.checks["peak_rss_spread"] >= 1.0
 
 
+@pytest.mark.slow
 def test_sae_baseline_gets_the_same_latent_means(cache, tmp_path):
     result = run_quick(sae_encoding, cache, tmp_path)
     assert result.checks["latent_mean_max_abs_difference"] < 1e-5
     assert result.checks["seed_peak_mib"] > 0 and result.checks["ours_peak_mib"] > 0
 
 
+@pytest.mark.slow
 def test_sae_training_benchmark_times_the_step_the_bound_and_the_loader(cache, tmp_path):
     result = run_quick(sae_training, cache, tmp_path)
     assert [row["method"].split(":")[0].split(",")[0] for row in result.table] == [
@@ -113,6 +118,7 @@ def test_sae_training_benchmark_times_the_step_the_bound_and_the_loader(cache, t
     assert result.checks["loader_over_ours"] == result.table[2]["rows/s"] / result.table[0]["rows/s"]
 
 
+@pytest.mark.slow
 def test_real_size_section_runs_at_tiny_size(cache, tmp_path):
     result = run_quick(real_size, cache, tmp_path)
     measures = [row["measure"] for row in result.table]
@@ -124,6 +130,7 @@ def test_real_size_section_runs_at_tiny_size(cache, tmp_path):
     assert "Opt-in" in real_size.__doc__ and "real_size" in run_all.OPT_IN and "real_size" not in run_all.BENCHMARKS
 
 
+@pytest.mark.slow
 def test_evaluation_sweep_gives_the_naive_loops_actions(cache, tmp_path):
     result = run_quick(evaluate_cost, cache, tmp_path)
     assert result.checks["max_abs_difference"] < 1e-4
@@ -148,6 +155,7 @@ def test_evaluation_flop_model_known_answers():
     assert evaluate_cost.h100_seconds(flops["ours"]) == pytest.approx(flops["ours"] / (0.4 * 989e12))
 
 
+@pytest.mark.slow
 def test_policy_sweep_equals_separate_calls(cache, tmp_path):
     result = run_quick(policy_sweep, cache, tmp_path)
     assert result.checks["max_abs_difference"] < 1e-5 < result.checks["alpha_spread"]
@@ -169,6 +177,7 @@ def test_policy_sweep_flop_model():
     assert policy_sweep.sweep_flops(real, 8, 16, None) == pytest.approx(one_call + 7 * expert_loop)
 
 
+@pytest.mark.slow
 def test_cli_startup_measures_light_commands_without_heavy_libraries(cache, tmp_path):
     result = run_quick(cli_startup, cache, tmp_path)
     heavy = result.checks["heavy"]
@@ -177,6 +186,7 @@ def test_cli_startup_measures_light_commands_without_heavy_libraries(cache, tmp_
     assert [row["command"] for row in result.table][-1] == "python -c pass (baseline)"
     assert (cache / "cli-startup-filtered" / "selection.json").is_file()  # filter did its work
 
+@pytest.mark.slow
 def test_served_actions_equal_direct_infer(cache, tmp_path):
     result = run_quick(serve_latency, cache, tmp_path)
     assert result.checks["served_equals_direct"] is True
@@ -186,6 +196,7 @@ def test_served_actions_equal_direct_infer(cache, tmp_path):
     assert all(row["calls"] == serve_latency.QUICK["rounds"] for row in result.table[:5])
 
 
+@pytest.mark.slow
 def test_rollout_loops_execute_the_same_actions(cache, tmp_path):
     result = run_quick(rollout_throughput, cache, tmp_path)
     checks = result.checks
@@ -251,6 +262,7 @@ def test_report_renders_summary_and_sections():
     assert "[--device cuda]" not in text  # but its usage line stays out
 
 
+@pytest.mark.slow
 def test_refresh_captures_only_the_added_file(refresh_run):
     process, output = refresh_run
     log, _ = process.communicate(timeout=600)

@@ -63,7 +63,6 @@ from tasks.cache_records import CACHE_DIR, OUTPUTS
 from tasks.results import RESULTS, is_cached, rooted
 from tasks.retries import retry_if, transient_gpu, transient_io
 
-pytestmark = pytest.mark.slow
 PREFLIGHT = "check the run's inputs"  # the parent flow's first task, never cached
 
 
@@ -244,6 +243,7 @@ def second_run(first_run, demo_config):
     return latest_pipeline_run(), shards_before, result.output
 
 
+@pytest.mark.slow
 def test_first_run_writes_the_seed_layout(first_run, demo_config):
     config = load_run_config(demo_config)
     tasks = task_runs_under(first_run[0])
@@ -307,6 +307,7 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
         assert read_json(config.pairs_config_path(layer))["pairs"][0]["name"] == "open_vs_close"
 
 
+@pytest.mark.slow
 def test_the_demo_trains_layer_1s_sae_judges_it_on_held_out_episodes_and_steers_through_it(first_run, demo_config):
     from steering_core.sae.model import load_sae
 
@@ -340,6 +341,7 @@ def test_the_demo_trains_layer_1s_sae_judges_it_on_held_out_episodes_and_steers_
     assert f"layer 1, against the borrowed one (held-out episodes): {judged['verdict']}" in first_run[1]
 
 
+@pytest.mark.slow
 def test_demo_prints_summary_and_locations(first_run, demo_config):
     config = load_run_config(demo_config)
     output = first_run[1]
@@ -368,6 +370,7 @@ def test_demo_prints_summary_and_locations(first_run, demo_config):
     assert f"report: {config.eval_root / 'pathways.md'}" in output
 
 
+@pytest.mark.slow
 def test_closing_table_names_every_task_run_with_its_state(first_run, demo_config):
     output, root = first_run[1], load_run_config(demo_config).output_root
     tasks = task_runs_under(first_run[0])
@@ -387,6 +390,7 @@ def test_closing_table_names_every_task_run_with_its_state(first_run, demo_confi
                for line in lines)
 
 
+@pytest.mark.slow
 def test_demo_rolls_the_steered_policy_out_in_the_simulator(first_run, demo_config):
     config = load_run_config(demo_config)
     tasks = task_runs_under(first_run[0])
@@ -405,6 +409,7 @@ def test_demo_rolls_the_steered_policy_out_in_the_simulator(first_run, demo_conf
     assert f"report: {layer_path / 'summary.md'}" in output
 
 
+@pytest.mark.slow
 def test_demo_finds_the_planted_concept(first_run):
     check = first_run[1].split("The planted-concept check", 1)[1]
     row = next(line for line in check.splitlines() if line.startswith("planted "))
@@ -413,6 +418,7 @@ def test_demo_finds_the_planted_concept(first_run):
     assert "better than random directions" in check
 
 
+@pytest.mark.slow
 def test_injected_fault_is_retried_and_recorded(first_run):
     tasks = task_runs_under(first_run[0])
     retried = [t for t in tasks.values() if t.run_count > 1]
@@ -424,6 +430,7 @@ def test_injected_fault_is_retried_and_recorded(first_run):
     assert retried[0].state.name == "Completed"
 
 
+@pytest.mark.slow
 def test_artifacts_are_published(first_run):
     progress = ["capture-demo-episodes-0-7", "convert-libero-demo-lerobot", "slice-on-vs-off-layer02",
                 "encode-open-vs-close-negative-layer01",
@@ -449,6 +456,7 @@ def test_artifacts_are_published(first_run):
     assert "open_vs_close vs on_vs_off" in by_key["demo-pairwise-cosines-layer02"].data
 
 
+@pytest.mark.slow
 def test_outputs_equal_the_cli_steps(first_run, demo_config, cli_steps_run):
     """The seed's steps run one by one through the CLI on the same demo inputs (built in another folder, shared
     with test_reproducible): every output must be equal."""
@@ -523,6 +531,7 @@ def bucket_run(first_run, demo_dir, s3_endpoint, tmp_path_factory):
     return bucket
 
 
+@pytest.mark.slow
 def test_outputs_on_a_bucket_equal_the_local_run(bucket_run, demo_dir):
     """Every output the local demo run wrote (but the rollouts) is in the bucket, published, with equal bytes:
     tensors exactly, text files apart from where they name the roots (a path here, a URL there) and the digests
@@ -560,6 +569,7 @@ def without_root_digests(text: str) -> str:
     return re.sub(r'"[0-9a-f]{64}"', '"<digest>"', text)
 
 
+@pytest.mark.slow
 def test_expert_evaluation_key_follows_its_own_pair_only(first_run, demo_config):
     """Changing one pair's decision residuals changes that pair's evaluation key, and no other's."""
     from safetensors.torch import save_file
@@ -588,6 +598,7 @@ def test_expert_evaluation_key_follows_its_own_pair_only(first_run, demo_config)
     assert keys() == before
 
 
+@pytest.mark.slow
 def test_cli_refuses_a_decision_run_it_cannot_steer_with(first_run, demo_config, tmp_path):
     """One error line naming --decision-run (or the flag), before anything is sliced or evaluated."""
     import shutil
@@ -625,6 +636,7 @@ def test_cli_refuses_a_decision_run_it_cannot_steer_with(first_run, demo_config,
     assert not out.exists() and {p: p.stat().st_mtime_ns for p in slices.rglob("*")} == stamp
 
 
+@pytest.mark.slow
 def test_capture_cli_with_run_config_agrees_with_the_pipeline(first_run, demo_config):
     """`capture --config` resolves the same settings as the flow: every shard the flow wrote counts as complete."""
     result = invoke("capture", "--config", str(demo_config))
@@ -633,6 +645,7 @@ def test_capture_cli_with_run_config_agrees_with_the_pipeline(first_run, demo_co
     assert refused.exit_code == 2 and "--layers cannot be combined with --config" in refused.output
 
 
+@pytest.mark.slow
 def test_second_run_on_unchanged_inputs_is_all_cached(second_run, demo_config):
     run_id, _, output = second_run
     tasks = task_runs_under(run_id)
@@ -650,6 +663,7 @@ def unchanged_refresh(second_run, demo_config):
     return state
 
 
+@pytest.mark.slow
 def test_refresh_without_changes_ends_at_once(unchanged_refresh):
     assert unchanged_refresh.result() == {"ran": False, "changes": "0 added, 0 changed, 0 removed"}
     with get_client(sync_client=True) as client:
@@ -671,6 +685,7 @@ def added_demo_refresh(unchanged_refresh, second_run, demo_config):
     return state, shards_before, episodes_before
 
 
+@pytest.mark.slow
 def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_config):
     state, shards_before, episodes_before = added_demo_refresh
     config = load_run_config(demo_config)
