@@ -513,7 +513,7 @@ def test_sigterm_answers_the_request_in_flight_and_exits_cleanly(catalog, observ
 
 
 
-def test_readme_serve_commands_use_existing_flags():
+def test_serving_guide_commands_use_existing_flags():
     import re
 
     import typer
@@ -521,8 +521,8 @@ def test_readme_serve_commands_use_existing_flags():
     import latent_steering_cli.serve  # noqa: F401  (commands are imported lazily; this registers `serve`)
     from latent_steering_cli import app
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
-    section = readme.split("## Steered rollouts in LIBERO", 1)[1].split("\n## ", 1)[0]
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "serving.md").read_text(encoding="utf-8")
+    section = guide.split("## Steered rollouts in LIBERO", 1)[1].split("\n## ", 1)[0]
     commands = re.findall(r"latent-steering serve (.*?)\n(?:until )?curl", section, re.S)  # real and demo
     serve = typer.main.get_command(app).commands["serve"]
     known = {opt for param in serve.params for opt in param.opts}

@@ -1,4 +1,5 @@
-"""The README's Python example runs as written, on a tiny checkpoint, tokenizer and SAE in its place."""
+"""The guides' Python examples run as written (docs/python_api.md, docs/serving.md), on a tiny checkpoint,
+tokenizer and SAE in their place."""
 
 import re
 from pathlib import Path
@@ -9,22 +10,24 @@ from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+GUIDES = (DOCS / "python_api.md", DOCS / "serving.md")
 
 
-def python_blocks() -> list[str]:
-    return re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.S)
+def python_blocks() -> list[tuple[Path, str]]:
+    return [(guide, block) for guide in GUIDES
+            for block in re.findall(r"```python\n(.*?)```", guide.read_text(encoding="utf-8"), flags=re.S)]
 
 
 def run_example(marker: str, substitutions: dict[str, str], arch, tmp_path, monkeypatch) -> dict:
-    """Run the README's Python block that mentions `marker`, its real sizes replaced; return its variables."""
-    (block,) = [b for b in python_blocks() if marker in b]
+    """Run the guides' Python block that mentions `marker`, its real sizes replaced; return its variables."""
+    ((guide, block),) = [(g, b) for g, b in python_blocks() if marker in b]
     for text, tiny in substitutions.items():
-        assert text in block, f"README example changed: {text!r} no longer in it; update this test"
+        assert text in block, f"{guide.name}'s example changed: {text!r} no longer in it; update this test"
         block = block.replace(text, tiny)
     monkeypatch.chdir(tmp_path)
     scope = {"ARCH": arch}
-    exec(compile(block, str(README), "exec"), scope)
+    exec(compile(block, str(guide), "exec"), scope)
     return scope
 
 
@@ -34,7 +37,7 @@ def test_python_api_example_runs(tmp_path, monkeypatch):
     tokenizer = write_tokenizer(tmp_path / "paligemma_tokenizer.model")
     sae_dir = write_sae_folder(tmp_path / "sae", d_in=arch.width, d_sae=96, hook_layer=2)
     language_start = 3 * arch.tokens_per_image
-    # The real sizes in the text, each replaced by its tiny counterpart; every one must still be in the README.
+    # The real sizes in the text, each replaced by its tiny counterpart; every one must still be in the guide.
     substitutions = {
         '"pi05_libero_pytorch", max_layer=12)': f'{str(checkpoint)!r}, arch=ARCH, max_layer=2)',
         '"paligemma_tokenizer.model"': repr(str(tokenizer)),
