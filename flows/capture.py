@@ -13,17 +13,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-from prefect import flow, get_run_logger, runtime
+from prefect import flow, get_run_logger
 
-from flows.children import Child, run_children
+from flows.children import Child, orchestration_mode, run_children, uncached
 from steering_core.capture import CaptureSettings, shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
 from steering_core.remote.publish import pulled
 from tasks import capture as capture_tasks
-from tasks.results import is_cached, rooted
+from tasks.results import TaskSet
 
 CAPTURE_FLOW = "latent-steering-capture"
 
@@ -53,67 +52,50 @@ def capture_targets(config: RunConfig) -> list[tuple[Path, CaptureSettings, bool
     return targets
 
 
-def capture_mode(config: RunConfig) -> str:
-    """Return `deployment` or `local`: `auto` means deployments when this flow run came from a deployment."""
-    mode = config.orchestration.capture
-    if mode == "auto":
-        return "deployment" if runtime.deployment.id else "local"
-    return mode
-
-
 @flow(name=CAPTURE_FLOW)
 def capture_flow(config_path: str, episodes: list[int] | None = None, write_metadata: bool = True) -> dict:
     """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run (and per
     residual run: the decision rows too, with `evaluate.expert_layers`)."""
     config = load_run_config(config_path)
-    targets = capture_targets(config)
-    capture_task = rooted(capture_tasks.capture_episodes, config.output_root)
+    targets, tasks = capture_targets(config), TaskSet(config.output_root, capture_tasks)
     plan = capture_plan(config, episodes)
     get_run_logger().info("capturing %d episode(s) in %d run(s) into %s", sum(map(len, plan)), len(plan),
                           ", ".join(str(run_dir) for run_dir, _, _ in targets))
     frames = 0
     for members in plan:  # one after another: they share this worker's device
         for run_dir, settings, expert in targets:
-            result = capture_task(run_label(members, expert), str(config.dataset_root), config.repo_id,
+            result = tasks.capture_episodes(run_label(members, expert), str(config.dataset_root), config.repo_id,
                                   str(run_dir), settings, members)
             frames += result["frames"]
     if write_metadata:
         for run_dir, _, _ in targets:
-            rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
+            tasks.write_run_metadata(str(run_dir))
     return {"runs": len(plan), "frames": frames}
 
 
 def capture_on_workers(config: RunConfig, config_path: str) -> None:
     """Start one capture deployment run per capture run not cached yet, wait for all, then write the run metadata."""
-    plan = capture_plan(config)
-    wanted = [members for members in plan if not capture_cached(config, members)]
-    if len(wanted) < len(plan):
-        get_run_logger().info("%d of %d capture run(s) cached: not started", len(plan) - len(wanted), len(plan))
+    tasks = TaskSet(config.output_root, capture_tasks)
+    wanted = uncached(capture_plan(config), lambda members: capture_cached(config, tasks, members), "capture")
     run_children(config.orchestration.capture_deployment,
                  [Child(f"capture {run_label(members)}",
                         {"config_path": config_path, "episodes": members, "write_metadata": False})
                   for members in wanted], "capture", config.orchestration)
     for run_dir, _, _ in capture_targets(config):
-        rooted(capture_tasks.write_run_metadata, config.output_root)(str(run_dir))
+        tasks.write_run_metadata(str(run_dir))
 
 
-def capture_cached(config: RunConfig, members: list[int]) -> bool:
+def capture_cached(config: RunConfig, tasks: TaskSet, members: list[int]) -> bool:
     """Return True when every capture task of this capture run (and its decision rows) would be `Cached`."""
-    return all(is_cached(capture_tasks.capture_episodes, config.output_root, run_label(members, expert),
-                         str(config.dataset_root), config.repo_id, str(run_dir), settings, members)
+    return all(tasks.is_cached("capture_episodes", run_label(members, expert), str(config.dataset_root),
+                               config.repo_id, str(run_dir), settings, members)
                for run_dir, settings, expert in capture_targets(config))
 
 
-def run_deployments(config: RunConfig, deployment: str, config_path: str | Path, targets: Sequence[Sequence[Any]],
-                    run_names: Sequence[str], what: str) -> None:
-    """Start one run of `deployment` per target (its `targets` parameter) and wait for all (`flows.children`)."""
-    run_children(deployment, [Child(name, {"config_path": str(config_path), "targets": [list(target)]})
-                              for target, name in zip(targets, run_names, strict=True)], what, config.orchestration)
-
-
 def run_capture(config: RunConfig, config_path: str | Path) -> str:
-    """Capture the whole dataset on the `gpu` pool or in-process (see `capture_mode`); return the mode used."""
-    mode = capture_mode(config)
+    """Capture the whole dataset on the `gpu` pool or in-process (`flows.children.orchestration_mode`); return the
+    mode used. Its child runs take episodes, not targets, and write no run metadata: the parent writes it after."""
+    mode = orchestration_mode(config)
     if mode == "deployment":
         capture_on_workers(config, str(config_path))
     else:

@@ -1,4 +1,8 @@
-"""The parent's child deployment runs: start one per target, wait, start crashed ones again, fail in one line.
+"""The parent's phases on workers: one child deployment run per target, or all in this process.
+
+`run_phase` decides once for every phase that can run on workers (capture, SAE training, evaluation, rollouts):
+with `orchestration.mode` `deployment` (or `auto` in a flow run started from a deployment) it starts one child
+run per target not cached yet, otherwise it calls the phase's flow in this process.
 
 A child run ends Crashed when its process died: its worker reports that, or, when the worker died with it
 (a machine lost), the automation `latent-steering deploy` creates marks it Crashed once its heartbeats stop
@@ -13,18 +17,49 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
-from prefect import get_run_logger
+from prefect import get_run_logger, runtime
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.objects import FlowRun, WorkerStatus
 from prefect.deployments import run_deployment
 from prefect.states import Cancelled
 
+from steering_core.config import RunConfig
 from steering_core.config.sections import OrchestrationSection
 
 REPORT_SECONDS = 60.0  # how often a waiting parent logs what it waits for
+
+
+def orchestration_mode(config: RunConfig) -> str:
+    """Return `deployment` or `local`: `auto` means deployments when this flow run came from a deployment."""
+    mode = config.orchestration.mode
+    if mode == "auto":
+        return "deployment" if runtime.deployment.id else "local"
+    return mode
+
+
+def uncached(targets: Sequence[Any], cached: Callable[[Any], bool], what: str) -> list[Any]:
+    """Return the targets whose child run would not be all `Cached` (not started: a process start costs seconds)."""
+    wanted = [target for target in targets if not cached(target)]
+    if len(wanted) < len(targets):
+        get_run_logger().info("%d of %d %s run(s) cached: not started", len(targets) - len(wanted), len(targets), what)
+    return wanted
+
+
+def run_phase(config: RunConfig, config_path: str | Path, what: str, *, deployment: str,
+              phase_flow: Callable[[str, list[Any]], Any], targets: Sequence[Sequence[Any]],
+              name_of: Callable[[Sequence[Any]], str], cached: Callable[[Any], bool] | None = None) -> None:
+    """Run the phase's `targets`: in this process as one run of `phase_flow(config_path, targets)`, or as one
+    run of `deployment` per target (its `targets` parameter) left by `cached`, waiting for all (`run_children`)."""
+    if orchestration_mode(config) == "local":
+        phase_flow(str(config_path), list(targets))
+        return
+    wanted = list(targets) if cached is None else uncached(targets, cached, what)
+    run_children(deployment, [Child(name_of(target), {"config_path": str(config_path), "targets": [list(target)]})
+                              for target in wanted], what, config.orchestration)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow, get_run_logger
+from prefect import flow
 from prefect.artifacts import create_markdown_artifact
 
-from flows.capture import capture_mode, run_deployments
+from flows.children import run_phase
 from steering_core.config import RunConfig, load_run_config
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
@@ -22,7 +22,7 @@ from steering_core.remote.publish import pulled
 from steering_core.storage.mirrors import localize
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
-from tasks.results import is_cached, rooted
+from tasks.results import TaskSet
 
 EVALUATE_FLOW = "latent-steering-evaluate"
 
@@ -37,10 +37,10 @@ def evaluate_flow(config_path: str, targets: list[tuple[str, int, str]] | None =
     """Evaluate the steering vectors of `targets` (default every pair, layer and stream), one task each."""
     config = load_run_config(config_path)
     pulled(config.output_root)  # on a bucket root: what the jobs are planned from (pairs configs, slices, dataset)
-    task = rooted(evaluate_tasks.evaluate_pair, config.output_root)
+    tasks = TaskSet(config.output_root, evaluate_tasks)
     done = []
     for target in targets or evaluation_targets(config):  # one after another: they share this device
-        done.append(task(*evaluation_arguments(config, *target))["folder"])
+        done.append(tasks.evaluate_pair(*evaluation_arguments(config, *target))["folder"])
     return {"folders": done}
 
 
@@ -58,31 +58,22 @@ def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]
     Returns layer folder name (`layer02`, `expert_layer01`, `pathways`) -> its summary.md.
     """
     pulled(config.output_root)  # on a bucket root: outputs of steps cached here but computed on other machines
-    targets = evaluation_targets(config)
-    if capture_mode(config) == "deployment":  # cached ones are not started: a process start costs seconds
-        wanted = [target for target in targets if not is_cached(
-            evaluate_tasks.evaluate_pair, config.output_root, *evaluation_arguments(config, *target))]
-        if len(wanted) < len(targets):
-            get_run_logger().info("%d of %d evaluation run(s) cached: not started", len(targets) - len(wanted),
-                                  len(targets))
-        run_deployments(config, config.orchestration.evaluate_deployment, config_path, wanted,
-                        [f"evaluate {name} {stream_layer_dir(layer, stream)}" for name, layer, stream in wanted],
-                        "evaluation")
-    else:
-        evaluate_flow(str(config_path), targets)
+    tasks = TaskSet(config.output_root, evaluate_tasks)
+    run_phase(config, config_path, "evaluation", deployment=config.orchestration.evaluate_deployment,
+              phase_flow=evaluate_flow, targets=evaluation_targets(config),
+              name_of=lambda target: f"evaluate {target[0]} {stream_layer_dir(*target[1:])}",
+              cached=lambda target: tasks.is_cached("evaluate_pair", *evaluation_arguments(config, *target)))
     summaries = {}
     names = [pair.name for pair in config.pairs]
     for layer, stream in config.eval_layers():
         layer_path, folder = config.eval_layer_path(layer, stream), stream_layer_dir(layer, stream)
-        result = rooted(evaluate_tasks.evaluation_summary, config.output_root)(
-            layer_label(layer, stream), str(layer_path), names)
+        result = tasks.evaluation_summary(layer_label(layer, stream), str(layer_path), names)
         summaries[folder] = result["summary"]
         create_markdown_artifact(evaluate_tasks.ui_summary(layer_path),
                                  key=artifact_key(config.name, "evaluation", folder),
                                  description=f"Steering evaluation, {folder} ({layer_path})")
     if config.expert_layers:
-        result = rooted(evaluate_tasks.evaluation_pathways, config.output_root)(
-            str(config.eval_root), config.eval_layers(), names)
+        result = tasks.evaluation_pathways(str(config.eval_root), config.eval_layers(), names)
         summaries[PATHWAYS_FILE] = result["pathways"]
         create_markdown_artifact(pulled(localize(result["pathways"])).read_text(encoding="utf-8"),
                                  key=artifact_key(config.name, "evaluation", PATHWAYS_FILE),

@@ -36,7 +36,8 @@ from prefect.futures import PrefectFuture
 from prefect.settings import get_current_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from flows.capture import capture_mode, run_capture
+from flows.capture import run_capture
+from flows.children import orchestration_mode
 from flows.evaluate import run_evaluation
 from flows.rollout import run_rollouts
 from flows.train_sae import feature_pages, run_training
@@ -50,7 +51,7 @@ from tasks import capture as capture_tasks
 from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report
 from tasks.preflight import preflight
-from tasks.results import rooted
+from tasks.results import TaskSet
 
 PIPELINE_FLOW = "latent-steering"
 # CPU tasks running at once (PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS overrides): each SAE task
@@ -64,18 +65,19 @@ def latent_steering(config_path: str) -> dict[str, Any]:
     logger = get_run_logger()
     config_path = config_path if is_url(config_path) else str(Path(config_path).resolve())
     config = load_run_config(config_path)
-    preflight(config_path, capture_device=capture_mode(config) == "local")  # minutes before the GPU hours
+    preflight(config_path, capture_device=orchestration_mode(config) == "local")  # minutes before the GPU hours
     config_path = share_run_config(config) or config_path  # on a bucket root, workers elsewhere read it there
     record_path = config.output_root / SOURCES_RECORD_FILE
     sources = scan_inputs(config, previous=read_sources_record(pulled(record_path)))
 
-    task_texts = prepare_data(config)
-    holdouts = holdout_splits(config)
+    tasks = TaskSet(config.output_root, data, capture_tasks, sae, report)
+    task_texts = prepare_data(config, tasks)
+    holdouts = holdout_splits(config, tasks)
     mode = run_capture(config, config_path)  # with evaluate.expert_layers, the decision rows too
     logger.info("capture ran %s", "on the gpu work pool" if mode == "deployment" else "in this process")
-    expert_slices = decision_slices(config, holdouts)  # submitted: sliced on this machine while training runs
+    expert_slices = decision_slices(config, tasks, holdouts)  # submitted: sliced on this machine while training runs
     trained = run_training(config, config_path)  # the layers whose SAE is trained on these residuals
-    reports = steering_vectors(config, task_texts, holdouts)
+    reports = steering_vectors(config, tasks, task_texts, holdouts)
     for future in expert_slices:
         future.result()
 
@@ -92,13 +94,12 @@ def latent_steering(config_path: str) -> dict[str, Any]:
             "evaluations": evaluations, "rollouts": rollouts})  # on a bucket root: URLs
 
 
-def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
+def prepare_data(config: RunConfig, tasks: TaskSet) -> dict[str, tuple[str, str]]:
     """Run phase 1; return pair -> (positive, negative) task texts as the dataset spells them."""
-    root, dataset_root, repo_id = config.output_root, str(config.dataset_root), config.repo_id
+    dataset_root, repo_id = str(config.dataset_root), config.repo_id
     if config.sources is not None:
-        rooted(data.filter_demos, root)([str(f) for f in config.sources.folders], str(config.filtered_dir),
-                                        config.filter_settings())
-        rooted(data.convert_dataset, root)(str(config.filtered_dir), dataset_root, config.convert_settings())
+        tasks.filter_demos([str(f) for f in config.sources.folders], str(config.filtered_dir), config.filter_settings())
+        tasks.convert_dataset(str(config.filtered_dir), dataset_root, config.convert_settings())
     else:  # read in place: checked here, never written
         meta = check_dataset(dataset_root)
         get_run_logger().info("reading the existing LeRobot %s dataset %s in place (%d episodes)",
@@ -106,10 +107,10 @@ def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
     manifests: dict[str, PrefectFuture] = {}
     maps: dict[str, PrefectFuture] = {}
     for pair in config.pairs:
-        manifests[pair.name] = rooted(data.build_manifest, root).submit(
+        manifests[pair.name] = tasks.build_manifest.submit(
             pair.name, dataset_root, pair.positive, pair.negative, pair.manifest, repo_id,
             str(config.manifest_path(pair)))
-        maps[pair.name] = rooted(data.map_concepts, root).submit(
+        maps[pair.name] = tasks.map_concepts.submit(
             pair.name, str(config.manifest_path(pair)), dataset_root, repo_id, pair.rename,
             str(config.concept_map_path(pair)), wait_for=[manifests[pair.name]])
     for future in maps.values():
@@ -117,19 +118,17 @@ def prepare_data(config: RunConfig) -> dict[str, tuple[str, str]]:
     return {name: tuple(future.result()["tasks"]) for name, future in manifests.items()}
 
 
-def holdout_splits(config: RunConfig) -> dict[str, tuple[int, ...]]:
+def holdout_splits(config: RunConfig, tasks: TaskSet) -> dict[str, tuple[int, ...]]:
     """Write each pair's held-out split (manifests/<pair>_split.json); return pair -> held-out episodes."""
-    split_task = rooted(data.split_episodes, config.output_root)
-    return {pair.name: tuple(split_task(pair.name, str(config.manifest_path(pair)), config.holdout_fraction,
+    return {pair.name: tuple(tasks.split_episodes(pair.name, str(config.manifest_path(pair)), config.holdout_fraction,
                                         str(config.split_path(pair)))["holdout_episodes"])
             for pair in config.pairs}
 
 
-def decision_slices(config: RunConfig, holdouts: dict[str, tuple[int, ...]]) -> list[PrefectFuture]:
+def decision_slices(config: RunConfig, tasks: TaskSet, holdouts: dict[str, tuple[int, ...]]) -> list[PrefectFuture]:
     """Submit the slicing of the `decision` rows per (pair, expert layer), held-out episodes left out."""
-    slice_task = rooted(capture_tasks.slice_layer, config.output_root)
     return [
-        slice_task.with_options(task_run_name=f"slice {pair.name} expert layer {layer}").submit(
+        tasks.slice_layer.with_options(task_run_name=f"slice {pair.name} expert layer {layer}").submit(
             pair.name, layer, str(config.decision_run_dir), str(config.concept_map_path(pair)),
             str(config.decision_slices_dir(pair)), config.slice_settings(layer, holdouts[pair.name], "expert"))
         for layer in config.expert_layers for pair in config.pairs
@@ -137,12 +136,12 @@ def decision_slices(config: RunConfig, holdouts: dict[str, tuple[int, ...]]) -> 
 
 
 def steering_vectors(
-    config: RunConfig, task_texts: dict[str, tuple[str, str]], holdouts: dict[str, tuple[int, ...]]
+    config: RunConfig, tasks: TaskSet, task_texts: dict[str, tuple[str, str]], holdouts: dict[str, tuple[int, ...]]
 ) -> dict[int, str]:
     """Run the SAE phase over every (pair, layer), held-out episodes left out; return layer -> its output folder."""
-    root, run_dir = config.output_root, str(config.run_dir)
+    run_dir = str(config.run_dir)
     slices = {
-        (pair.name, layer): rooted(capture_tasks.slice_layer, root).submit(
+        (pair.name, layer): tasks.slice_layer.submit(
             pair.name, layer, run_dir, str(config.concept_map_path(pair)), str(config.slices_dir(pair)),
             config.slice_settings(layer, holdouts[pair.name]))
         for layer in config.layers for pair in config.pairs
@@ -153,16 +152,16 @@ def steering_vectors(
         concepts = {pair.name: localize(slices[pair.name, layer].result()["concepts"]) for pair in config.pairs}
         pairs_config = config.pairs_config(layer, task_texts, concepts)
         path = config.pairs_config_path(layer)
-        rooted(sae.write_pairs_config, root)(layer, pairs_config, str(path))
+        tasks.write_pairs_config(layer, pairs_config, str(path))
         settings = config.steering_settings(layer)
         for spec in pairs_config.pairs:
             specs[spec.name, layer] = spec
             for side in SIDES:
                 label, concept_path = getattr(spec, f"{side}_label"), getattr(spec, f"{side}_path")
-                stats[spec.name, layer, side] = rooted(sae.encode_concept, root).submit(
+                stats[spec.name, layer, side] = tasks.encode_concept.submit(
                     spec.name, side, layer, label, str(path.parent / concept_path), settings)
     directions = {
-        key: rooted(sae.pair_directions, root).submit(
+        key: tasks.pair_directions.submit(
             spec, key[1], stats[(*key, "positive")].result()["stats"], stats[(*key, "negative")].result()["stats"],
             config.steering_settings(key[1]))
         for key, spec in specs.items()
@@ -172,8 +171,8 @@ def steering_vectors(
         layer_path, names = str(config.layer_path(layer)), [pair.name for pair in config.pairs]
         for name in names:
             directions[name, layer].result()
-        rooted(report.pairwise_stats, root)(layer, layer_path, names)
+        tasks.pairwise_stats(layer, layer_path, names)
         trained = str(config.sae_layer_path(layer)) if layer in config.trained_layers else None
-        rooted(report.write_report, root)(layer, layer_path, names, config.steering.top_k, trained)
+        tasks.write_report(layer, layer_path, names, config.steering.top_k, trained)
         reports[layer] = layer_path
     return reports

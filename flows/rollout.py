@@ -13,7 +13,7 @@ from pathlib import Path
 from prefect import flow
 from prefect.artifacts import create_markdown_artifact
 
-from flows.capture import capture_mode, run_deployments
+from flows.children import run_phase
 from steering_core.config import RunConfig, load_run_config
 from steering_core.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.remote.publish import pulled
@@ -22,7 +22,7 @@ from steering_core.serve.auth import read_api_key
 from steering_core.storage.fileio import read_json
 from tasks import rollout as rollout_tasks
 from tasks.artifacts import artifact_key, ui_markdown
-from tasks.results import rooted
+from tasks.results import TaskSet
 
 ROLLOUT_FLOW = "latent-steering-rollout"
 
@@ -39,14 +39,13 @@ def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = 
     pulled(config.output_root)  # on a bucket root: what the jobs are planned from (directions, splits, dataset)
     settings, model = config.rollout.settings(), config.capture_settings()
     api_key = read_api_key(settings.api_key_file)
-    chunk_task = rooted(rollout_tasks.rollout_chunk, config.output_root)
-    cell_task = rooted(rollout_tasks.rollout_cell, config.output_root)
+    tasks = TaskSet(config.output_root, rollout_tasks)
     cells = []
     for name, layer, side in targets or rollout_targets(config):  # one after another: one simulator per worker
         for cell_dir, jobs in by_cell(config_jobs(config, name, layer, (side,))).items():
-            chunks = [chunk_task(job, model, settings, api_key)["chunk"] for job in jobs]
+            chunks = [tasks.rollout_chunk(job, model, settings, api_key)["chunk"] for job in jobs]
             label = f"{name} layer {layer} {cell_dir.name}"
-            cells.append(cell_task(str(cell_dir), chunks, label)["rollouts"])
+            cells.append(tasks.rollout_cell(str(cell_dir), chunks, label)["rollouts"])
     return {"cells": cells}
 
 
@@ -63,17 +62,15 @@ def run_rollouts(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     summary; return layer folder name -> its summary.md."""
     pulled(config.output_root)  # on a bucket root: outputs of steps cached here but computed on other machines
     targets = rollout_targets(config)
-    if capture_mode(config) == "deployment":
-        run_deployments(config, config.orchestration.rollout_deployment, config_path, targets,
-                        [f"rollout {name} {layer_dir(layer)} {side}" for name, layer, side in targets], "rollout")
-    else:
-        rollout_flow(str(config_path), targets)
+    run_phase(config, config_path, "rollout", deployment=config.orchestration.rollout_deployment,
+              phase_flow=rollout_flow, targets=targets,
+              name_of=lambda target: f"rollout {target[0]} {layer_dir(target[1])} {target[2]}")
+    tasks = TaskSet(config.output_root, rollout_tasks)
     summaries = {}
     for layer in sorted({layer for _, layer, _ in targets}):
         layer_path = config.rollout_layer_path(layer)
         cells = {name: [str(c) for c in folders] for name, folders in layer_cells(config, layer).items()}
-        result = rooted(rollout_tasks.rollout_summary, config.output_root)(
-            layer, str(layer_path), cells, config.rollout.note)
+        result = tasks.rollout_summary(layer, str(layer_path), cells, config.rollout.note)
         summaries[layer_dir(layer)] = result["summary"]
         create_markdown_artifact(ui_rollouts(layer_path), key=artifact_key(config.name, "rollouts", layer_dir(layer)),
                                  description=f"Closed-loop rollouts, {layer_dir(layer)} ({layer_path})")

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from prefect import flow, get_run_logger
+from prefect import flow
 
-from flows.capture import capture_mode, run_deployments
+from flows.children import run_phase
 from steering_core.capture import shards
 from steering_core.config import RunConfig, load_run_config
 from steering_core.data.dataset import read_meta
@@ -23,7 +23,7 @@ from steering_core.sae.training.heldout import sae_heldout_episodes
 from steering_core.sae_quality.feature_run import FeatureJob
 from steering_core.sae_quality.judge_run import JudgedPair, JudgeJob
 from tasks import sae_train
-from tasks.results import is_cached, rooted
+from tasks.results import TaskSet
 
 TRAIN_FLOW = "latent-steering-train-sae"
 
@@ -63,11 +63,10 @@ def judge_arguments(config: RunConfig, layer: int) -> tuple:
 def train_sae_flow(config_path: str, targets: list[list[int]] | None = None) -> dict:
     """Train (and judge) the SAE of every `targets` layer (default every trained layer), one after another."""
     config = load_run_config(config_path)
-    folders = {}
+    tasks, folders = TaskSet(config.output_root, sae_train), {}
     for (layer,) in targets or [[layer] for layer in config.trained_layers]:
-        folders[layer_dir(layer)] = rooted(sae_train.train_layer_sae, config.output_root)(
-            *train_arguments(config, layer))["sae"]
-        rooted(sae_train.judge_trained_sae, config.output_root)(*judge_arguments(config, layer))
+        folders[layer_dir(layer)] = tasks.train_layer_sae(*train_arguments(config, layer))["sae"]
+        tasks.judge_trained_sae(*judge_arguments(config, layer))
     return {"saes": folders}
 
 
@@ -76,17 +75,12 @@ def run_training(config: RunConfig, config_path: str | Path) -> dict[str, str]:
     layers = config.trained_layers
     if not layers:
         return {}
-    if capture_mode(config) == "deployment":  # cached ones are not started: a process start costs seconds
-        wanted = [layer for layer in layers if not (
-            is_cached(sae_train.train_layer_sae, config.output_root, *train_arguments(config, layer))
-            and is_cached(sae_train.judge_trained_sae, config.output_root, *judge_arguments(config, layer)))]
-        if len(wanted) < len(layers):
-            get_run_logger().info("%d of %d SAE training run(s) cached: not started", len(layers) - len(wanted),
-                                  len(layers))
-        run_deployments(config, config.orchestration.train_deployment, config_path, [[layer] for layer in wanted],
-                        [f"train SAE {layer_dir(layer)}" for layer in wanted], "SAE training")
-    else:
-        train_sae_flow(str(config_path), [[layer] for layer in layers])
+    tasks = TaskSet(config.output_root, sae_train)
+    run_phase(config, config_path, "SAE training", deployment=config.orchestration.train_deployment,
+              phase_flow=train_sae_flow, targets=[[layer] for layer in layers],
+              name_of=lambda target: f"train SAE {layer_dir(target[0])}",
+              cached=lambda target: (tasks.is_cached("train_layer_sae", *train_arguments(config, *target))
+                                     and tasks.is_cached("judge_trained_sae", *judge_arguments(config, *target))))
     return {layer_dir(layer): str(config.trained_sae_dir(layer)) for layer in layers}
 
 
@@ -102,6 +96,6 @@ def feature_job(config: RunConfig, layer: int) -> FeatureJob:
 
 def feature_pages(config: RunConfig) -> dict[str, str]:
     """Write every trained layer's feature page and Neuronpedia export (CPU); return layer folder name -> page."""
-    task = rooted(sae_train.feature_page, config.output_root)
-    futures = {layer_dir(layer): task.submit(feature_job(config, layer)) for layer in config.trained_layers}
+    feature_page = TaskSet(config.output_root, sae_train).feature_page
+    futures = {layer_dir(layer): feature_page.submit(feature_job(config, layer)) for layer in config.trained_layers}
     return {name: future.result()["page"] for name, future in futures.items()}

@@ -62,7 +62,7 @@ def run_command(
     with input_errors():
         run_config = load_run_config(config)
         prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
-        check_run(run_config, capture_device=run_config.orchestration.capture != "deployment")  # before Prefect starts
+        check_run(run_config, capture_device=run_config.orchestration.mode != "deployment")  # before Prefect starts
     run_pipeline(config, run_config)
     _echo_outcome(run_config, random_sae=False)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from types import SimpleNamespace
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 from prefect.tasks import Task
@@ -51,3 +51,38 @@ def rooted(task: Task, output_root: str | os.PathLike) -> Task:
     bucket_task = task.with_options(result_storage=result_block(url), cache_policy=policy)
     bucket_task.fn = through_bucket(task.fn, pulls=not isinstance(policy, ContentKey))
     return bucket_task
+
+
+class TaskSet:
+    """The tasks of some task modules, each `rooted` under one output root, by name: `TaskSet(root, data).filter_demos`.
+
+    A flow makes one when it starts, so where its tasks keep results (and, on a bucket root, the pulling before
+    and the publishing after each) is decided once, not at every call.
+    """
+
+    def __init__(self, output_root: str | os.PathLike, *modules: ModuleType) -> None:
+        self.output_root = output_root
+        self._tasks: dict[str, Task] = {}
+        for module in modules:
+            for name, value in vars(module).items():
+                if isinstance(value, Task) and value.fn.__module__ == module.__name__:
+                    if name in self._tasks:
+                        raise ValueError(f"task {name!r} is defined in two of {[m.__name__ for m in modules]}")
+                    self._tasks[name] = value
+        self._rooted: dict[str, Task] = {}
+
+    def __getattr__(self, name: str) -> Task:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        if name not in self._rooted:
+            self._rooted[name] = rooted(self._task(name), self.output_root)
+        return self._rooted[name]
+
+    def is_cached(self, name: str, *args: Any, **kwargs: Any) -> bool:
+        """Return True when task `name` called with these arguments would be `Cached` (see `is_cached`)."""
+        return is_cached(self._task(name), self.output_root, *args, **kwargs)
+
+    def _task(self, name: str) -> Task:
+        if name not in self._tasks:
+            raise AttributeError(f"no task {name!r} in this TaskSet (it has {sorted(self._tasks)})")
+        return self._tasks[name]

@@ -60,7 +60,7 @@ from steering_core.storage.fileio import read_json, sha256_file
 from steering_core.synthetic.libero import DRAWER_OPEN, MotionSpec, SyntheticSettings, SyntheticTask, write_libero_file
 from tasks.cache_keys import content_key
 from tasks.cache_records import CACHE_DIR, OUTPUTS
-from tasks.results import RESULTS, is_cached, rooted
+from tasks.results import RESULTS, TaskSet, is_cached, rooted
 from tasks.retries import retry_if, transient_gpu, transient_io
 
 PREFLIGHT = "check the run's inputs"  # the parent flow's first task, never cached
@@ -142,6 +142,23 @@ def test_is_cached_predicts_a_cached_run_without_starting_one(tmp_path):
     assert not is_cached(double, tmp_path, *args, times=3)
     Path(args[2]).unlink()
     assert not is_cached(double, tmp_path, *args)  # its output is gone: it would run again
+
+
+def test_a_task_set_roots_each_task_of_its_modules_once(tmp_path):
+    import sys
+
+    module = sys.modules[__name__]
+    tasks = TaskSet(tmp_path, module)
+    source = tmp_path / "in.txt"
+    source.write_text("x")
+    assert tasks.double("a", str(source), f"{tmp_path}/out.txt", return_state=True).name == "Completed"
+    assert len(list((tmp_path / CACHE_DIR).iterdir())) == 1  # its record under the set's root, as `rooted` puts it
+    assert tasks.double is tasks.double and tasks.is_cached("double", "b", str(source), f"{tmp_path}/out.txt")
+    assert not TaskSet(tmp_path / "elsewhere", module).is_cached("double", "b", str(source), f"{tmp_path}/out.txt")
+    with pytest.raises(AttributeError, match=r"no task 'halve' in this TaskSet \(it has \['double'\]\)"):
+        tasks.halve  # noqa: B018
+    with pytest.raises(ValueError, match="task 'double' is defined in two of"):
+        TaskSet(tmp_path, module, module)
 
 
 def test_code_version_follows_project_imports_only():

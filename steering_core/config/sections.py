@@ -11,6 +11,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     AfterValidator,
+    AliasChoices,
     BeforeValidator,
     Field,
     ValidationInfo,
@@ -223,7 +224,10 @@ class SaeSection(StrictModel):
 class OrchestrationSection(StrictModel):
     """How the Prefect flows run the steps (no effect on any output)."""
 
-    capture: Literal["auto", "deployment", "local"] = "auto"  # capture, evaluate, rollouts: auto = deployments
+    # where the phases that can run on workers run (capture, SAE training, evaluation, rollouts): `deployment`,
+    # `local` (in the parent's process) or `auto` (deployments when the parent runs from one); `capture:` is its
+    # former name, still read
+    mode: Literal["auto", "deployment", "local"] = Field("auto", validation_alias=AliasChoices("mode", "capture"))
     capture_deployment: str = "latent-steering-capture/gpu"  # when run from one
     evaluate_deployment: str = "latent-steering-evaluate/gpu-evaluate"
     train_deployment: str = "latent-steering-train-sae/gpu-train-sae"
