@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.options import device_option
 from steering_core.capture import CaptureResult, CaptureSettings, capture
 from steering_core.capture.shards import StorageDtype, TokenType
 from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
@@ -81,7 +82,7 @@ def capture_command(
     skip_norm_stats: bool = typer.Option(
         False, "--skip-norm-stats", help="Never read norm stats (the libero format needs none)."
     ),
-    device: str | None = typer.Option(None, "--device", help="cuda, cuda:1 or cpu (default: CUDA when available)."),
+    device: str | None = device_option(None),
     dtype: str | None = typer.Option(
         None, "--dtype", help="Compute dtype (default: openpi's bfloat16 policy on CUDA, float32 on CPU)."
     ),

@@ -8,6 +8,7 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from latent_steering_cli.capture import layer_list
+from latent_steering_cli.options import device_option
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
@@ -94,7 +95,7 @@ def evaluate_command(
     random_directions: int | None = typer.Option(None, "--random-directions", min=8, help=f"Random directions of the null (default {_DEFAULTS.random_directions})."),
     top_k: int | None = typer.Option(None, "--top-k", min=1, help=f"SAE latents of the top-k direction (default {_DEFAULTS.top_k})."),
     batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Frames per policy call."),
-    device: str | None = typer.Option(None, "--device", help="auto (CUDA when available), cuda, cuda:1 or cpu."),
+    device: str | None = device_option(None),
     dtype: str | None = typer.Option(None, "--dtype", help="Compute dtype (default bfloat16 on CUDA, float32 on CPU)."),
 ) -> None:
     """Dose-response of each pair's steering vectors on held-out frames: efficacy vs α, against random directions.

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.options import device_option
 from steering_core.layout import STEERING_ROOT
 from steering_core.pi05 import PromptFormat
 from steering_core.pi05.arch import read_arch
@@ -56,7 +57,7 @@ def serve_command(
     ),
     host: str = typer.Option("127.0.0.1", "--host", help="Interface to listen on (0.0.0.0: every interface)."),
     port: int = typer.Option(8000, "--port", min=0, max=65535, help="Port (openpi's default 8000; 0: a free port)."),
-    device: str | None = typer.Option(None, "--device", help="cuda, cuda:1 or cpu (default: CUDA when available)."),
+    device: str | None = device_option(None),
     dtype: str | None = typer.Option(
         None, "--dtype", help="Compute dtype (default: openpi's bfloat16 policy on CUDA, float32 on CPU)."
     ),

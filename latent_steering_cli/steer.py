@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.options import device_option
 from steering_core.layout import SUMMARY_MD
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, compute_steering
 
@@ -19,7 +20,7 @@ def steer_command(
     pairs_config: Path = typer.Option(..., "--pairs-config", help="Pairs JSON, e.g. data/latent_steering/layer12_pairs.json."),
     output_root: Path = typer.Option(_DEFAULTS.output_root, "--output-root", help="Outputs go to <output-root>/layerNN/."),
     layer: int = typer.Option(_DEFAULTS.layer, "--layer", min=0, help="Decoder layer the concept residuals come from."),
-    device: str = typer.Option(_DEFAULTS.device, "--device", help="auto (CUDA when available), cuda, cuda:1 or cpu."),
+    device: str = device_option(_DEFAULTS.device),
     batch_size: int = typer.Option(_DEFAULTS.batch_size, "--batch-size", min=1, help="Rows encoded per SAE batch."),
     sae: str = typer.Option(
         _DEFAULTS.sae, "--sae",

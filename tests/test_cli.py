@@ -97,3 +97,18 @@ def test_log_lines_name_the_prefect_run_and_libraries_stay_quiet():
     finally:
         for name, level in saved.items():
             logging.getLogger(name).setLevel(level)
+
+
+def test_train_sae_takes_every_training_setting_as_an_option_of_the_models_default_and_help(tmp_path):
+    from steering_core.sae.training.settings import TrainSettings
+
+    options = {param.name: param for param in load_command("train-sae").params}
+    for name, field in TrainSettings.model_fields.items():
+        assert options[name].opts == ["--" + name.replace("_", "-")], name
+        assert options[name].default == field.default and options[name].help == field.description, name
+    result = CliRunner().invoke(app, ["train-sae", "--run-dir", str(tmp_path), "--layer", "1", "--output-dir",
+                                      str(tmp_path / "sae"), "--d-sae", "8", "--k", "9"])
+    assert result.exit_code == 1 and "k is 9, expected at most d_sae (8)" in result.output, result.output
+    result = CliRunner().invoke(app, ["train-sae", "--run-dir", str(tmp_path), "--layer", "1", "--output-dir",
+                                      str(tmp_path / "sae"), "--lr", "2"])
+    assert result.exit_code == 1 and "--lr" in result.output, result.output
