@@ -18,11 +18,12 @@ from prefect import flow, get_run_logger
 
 from flows.children import Child, orchestration_mode, run_children, uncached
 from steering_core.capture import CaptureSettings, shards
-from steering_core.config import RunConfig, load_run_config
+from steering_core.config import RunConfig
 from steering_core.data.dataset import read_meta
 from steering_core.remote.publish import pulled
 from tasks import capture as capture_tasks
 from tasks.results import TaskSet
+from tasks.run_configs import run_config
 
 CAPTURE_FLOW = "latent-steering-capture"
 
@@ -56,7 +57,7 @@ def capture_targets(config: RunConfig) -> list[tuple[Path, CaptureSettings, bool
 def capture_flow(config_path: str, episodes: list[int] | None = None, write_metadata: bool = True) -> dict:
     """Capture residuals of the run config's dataset (or of `episodes`), one task per capture run (and per
     residual run: the decision rows too, with `evaluate.expert_layers`)."""
-    config = load_run_config(config_path)
+    config = run_config(config_path)
     targets, tasks = capture_targets(config), TaskSet(config.output_root, capture_tasks)
     plan = capture_plan(config, episodes)
     get_run_logger().info("capturing %d episode(s) in %d run(s) into %s", sum(map(len, plan)), len(plan),

@@ -14,7 +14,7 @@ from prefect import flow
 from prefect.artifacts import create_markdown_artifact
 
 from flows.children import run_phase
-from steering_core.config import RunConfig, load_run_config
+from steering_core.config import RunConfig
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.run import run_config_job
 from steering_core.layout import PATHWAYS_FILE, stream_layer_dir
@@ -23,6 +23,7 @@ from steering_core.storage.mirrors import localize
 from tasks import evaluate as evaluate_tasks
 from tasks.artifacts import artifact_key
 from tasks.results import TaskSet
+from tasks.run_configs import run_config
 
 EVALUATE_FLOW = "latent-steering-evaluate"
 
@@ -35,7 +36,7 @@ def evaluation_targets(config: RunConfig) -> list[tuple[str, int, str]]:
 @flow(name=EVALUATE_FLOW)
 def evaluate_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
     """Evaluate the steering vectors of `targets` (default every pair, layer and stream), one task each."""
-    config = load_run_config(config_path)
+    config = run_config(config_path)
     pulled(config.output_root)  # on a bucket root: what the jobs are planned from (pairs configs, slices, dataset)
     tasks = TaskSet(config.output_root, evaluate_tasks)
     done = []

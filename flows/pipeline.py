@@ -41,7 +41,7 @@ from flows.children import orchestration_mode
 from flows.evaluate import run_evaluation
 from flows.rollout import run_rollouts
 from flows.train_sae import feature_pages, run_training
-from steering_core.config import RunConfig, load_run_config, share_run_config
+from steering_core.config import RunConfig, share_run_config
 from steering_core.data.dataset import check_dataset
 from steering_core.pairs import SIDES
 from steering_core.refresh import SOURCES_RECORD_FILE, read_sources_record, scan_inputs, write_sources_record
@@ -52,6 +52,7 @@ from tasks import data, report, sae
 from tasks.artifacts import publish_layer_report
 from tasks.preflight import preflight
 from tasks.results import TaskSet
+from tasks.run_configs import run_config, sharing
 
 PIPELINE_FLOW = "latent-steering"
 # CPU tasks running at once (PREFECT_TASKS_RUNNER_THREAD_POOL_MAX_WORKERS overrides): each SAE task
@@ -62,11 +63,18 @@ CPU_TASKS = get_current_settings().tasks.runner.thread_pool_max_workers or 4
 @flow(name=PIPELINE_FLOW, task_runner=ThreadPoolTaskRunner(max_workers=CPU_TASKS))
 def latent_steering(config_path: str) -> dict[str, Any]:
     """Run the whole pipeline described by a run config (YAML); return where its outputs are."""
-    logger = get_run_logger()
     config_path = config_path if is_url(config_path) else str(Path(config_path).resolve())
-    config = load_run_config(config_path)
-    preflight(config_path, capture_device=orchestration_mode(config) == "local")  # minutes before the GPU hours
-    config_path = share_run_config(config) or config_path  # on a bucket root, workers elsewhere read it there
+    config = run_config(config_path)  # parsed once: what the CLI shared, else read here
+    with sharing(config, config_path):  # the in-process flows and tasks of this run read this parse
+        preflight(config_path, capture_device=orchestration_mode(config) == "local")  # minutes before the GPU hours
+        shared_path = share_run_config(config) or config_path  # on a bucket root, workers elsewhere read it there
+        with sharing(config, shared_path):
+            return run_phases(config, shared_path)
+
+
+def run_phases(config: RunConfig, config_path: str) -> dict[str, Any]:
+    """Run every phase of a checked run config (`config_path` names it for child runs); return the outputs."""
+    logger = get_run_logger()
     record_path = config.output_root / SOURCES_RECORD_FILE
     sources = scan_inputs(config, previous=read_sources_record(pulled(record_path)))
 

@@ -18,10 +18,10 @@ from prefect import flow, get_run_logger, runtime
 from prefect.deployments import run_deployment
 
 from flows.pipeline import latent_steering
-from steering_core.config import load_run_config
 from steering_core.refresh import SOURCES_RECORD_FILE, diff_sources, read_sources_record, scan_inputs
 from steering_core.remote.publish import pulled
 from steering_core.storage.mirrors import is_url
+from tasks.run_configs import run_config
 
 REFRESH_FLOW = "latent-steering-refresh"
 
@@ -31,7 +31,7 @@ def refresh(config_path: str, rehash: bool = False) -> dict[str, Any]:
     """Run the pipeline if demo files (or the existing dataset, or the config) changed since its last success."""
     logger = get_run_logger()
     config_path = config_path if is_url(config_path) else str(Path(config_path).resolve())
-    config = load_run_config(config_path)
+    config = run_config(config_path)
     previous = read_sources_record(pulled(config.output_root / SOURCES_RECORD_FILE))
     current = scan_inputs(config, previous=previous, rehash=rehash)
     changes = diff_sources(previous, current, config_fingerprint=config.fingerprint())

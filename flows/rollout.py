@@ -14,7 +14,7 @@ from prefect import flow
 from prefect.artifacts import create_markdown_artifact
 
 from flows.children import run_phase
-from steering_core.config import RunConfig, load_run_config
+from steering_core.config import RunConfig
 from steering_core.layout import SUMMARY_JSON, SUMMARY_MD, layer_dir
 from steering_core.remote.publish import pulled
 from steering_core.rollout.plan import by_cell, config_jobs, layer_cells
@@ -23,6 +23,7 @@ from steering_core.storage.fileio import read_json
 from tasks import rollout as rollout_tasks
 from tasks.artifacts import artifact_key, ui_markdown
 from tasks.results import TaskSet
+from tasks.run_configs import run_config
 
 ROLLOUT_FLOW = "latent-steering-rollout"
 
@@ -35,7 +36,7 @@ def rollout_targets(config: RunConfig) -> list[tuple[str, int, str]]:
 @flow(name=ROLLOUT_FLOW)
 def rollout_flow(config_path: str, targets: list[tuple[str, int, str]] | None = None) -> dict:
     """Roll out `targets` (default every (pair, layer, side)), one task per chunk, then merge each cell."""
-    config = load_run_config(config_path)
+    config = run_config(config_path)
     pulled(config.output_root)  # on a bucket root: what the jobs are planned from (directions, splits, dataset)
     settings, model = config.rollout.settings(), config.capture_settings()
     api_key = read_api_key(settings.api_key_file)

@@ -14,7 +14,7 @@ from prefect import flow
 
 from flows.children import run_phase
 from steering_core.capture import shards
-from steering_core.config import RunConfig, load_run_config
+from steering_core.config import RunConfig
 from steering_core.data.dataset import read_meta
 from steering_core.data.split import read_split
 from steering_core.layout import layer_dir
@@ -24,6 +24,7 @@ from steering_core.sae_quality.feature_run import FeatureJob
 from steering_core.sae_quality.judge_run import JudgedPair, JudgeJob
 from tasks import sae_train
 from tasks.results import TaskSet
+from tasks.run_configs import run_config
 
 TRAIN_FLOW = "latent-steering-train-sae"
 
@@ -62,7 +63,7 @@ def judge_arguments(config: RunConfig, layer: int) -> tuple:
 @flow(name=TRAIN_FLOW)
 def train_sae_flow(config_path: str, targets: list[list[int]] | None = None) -> dict:
     """Train (and judge) the SAE of every `targets` layer (default every trained layer), one after another."""
-    config = load_run_config(config_path)
+    config = run_config(config_path)
     tasks, folders = TaskSet(config.output_root, sae_train), {}
     for (layer,) in targets or [[layer] for layer in config.trained_layers]:
         folders[layer_dir(layer)] = tasks.train_layer_sae(*train_arguments(config, layer))["sae"]

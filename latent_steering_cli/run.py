@@ -38,8 +38,10 @@ def run_pipeline(config_path: Path, run_config: RunConfig) -> None:
     """Run the `latent-steering` flow in this process; print what each task did; exit 1 if the run failed."""
     from flows.pipeline import latent_steering
     from latent_steering_cli.summary import format_task_rows, task_rows, task_runs_of
+    from tasks.run_configs import sharing
 
-    state = latent_steering(str(config_path), return_state=True)
+    with sharing(run_config, config_path):  # the flow reads this parse, not the file again
+        state = latent_steering(str(config_path), return_state=True)
     typer.echo("")
     typer.echo(format_task_rows(task_rows(task_runs_of(state.state_details.flow_run_id), run_config),
                                 run_config.output_root))

@@ -333,3 +333,27 @@ def test_a_trained_layer_steers_through_its_trained_sae_and_is_judged_against_th
     assert alone.steering_settings(1).sae == str(trained) and alone.steering_settings(1, borrowed=True).sae is None
     with pytest.raises(ValueError, match="sae.4 has no `train` section"):
         config.train_settings(4)
+
+
+def test_a_shared_run_config_is_the_one_parse_of_its_run(tmp_path, monkeypatch):
+    import contextvars
+    import threading
+
+    from tasks.run_configs import run_config, sharing
+
+    path = write_yaml(tmp_path, VALID)
+    parsed = load_run_config(path)
+    monkeypatch.chdir(tmp_path)
+    with sharing(parsed, path, "s3://bucket/run.yaml"):
+        assert run_config(path) is parsed and run_config("run.yaml") is parsed  # by the file, however named
+        assert run_config("s3://bucket/run.yaml") is parsed
+        seen = []
+        context = contextvars.copy_context()  # what Prefect's task threads run in
+        worker = threading.Thread(target=context.run, args=(lambda: seen.append(run_config(path)),))
+        worker.start()
+        worker.join()
+        assert seen == [parsed] and seen[0] is parsed
+        other = write_yaml(tmp_path, VALID.replace("drawer_stove", "another"), "other.yaml")
+        assert run_config(other).name == "another"  # another file is read
+    fresh = run_config(path)
+    assert fresh is not parsed and fresh == parsed  # outside the run: read again
