@@ -16,6 +16,7 @@ import errno
 import json
 import os
 import re
+import sys
 import threading
 import time
 from pathlib import Path
@@ -144,14 +145,17 @@ def test_is_cached_predicts_a_cached_run_without_starting_one(tmp_path):
     assert not is_cached(double, tmp_path, *args)  # its output is gone: it would run again
 
 
-def test_a_task_set_roots_each_task_of_its_modules_once(tmp_path):
-    import sys
+@flow
+def double_in_a_task_set(root: str, source: str) -> str:
+    return TaskSet(root, sys.modules[__name__]).double("a", source, f"{root}/out.txt", return_state=True).name
 
+
+def test_a_task_set_roots_each_task_of_its_modules_once(tmp_path):
     module = sys.modules[__name__]
     tasks = TaskSet(tmp_path, module)
     source = tmp_path / "in.txt"
     source.write_text("x")
-    assert tasks.double("a", str(source), f"{tmp_path}/out.txt", return_state=True).name == "Completed"
+    assert double_in_a_task_set(str(tmp_path), str(source)) == "Completed"
     assert len(list((tmp_path / CACHE_DIR).iterdir())) == 1  # its record under the set's root, as `rooted` puts it
     assert tasks.double is tasks.double and tasks.is_cached("double", "b", str(source), f"{tmp_path}/out.txt")
     assert not TaskSet(tmp_path / "elsewhere", module).is_cached("double", "b", str(source), f"{tmp_path}/out.txt")
