@@ -237,6 +237,7 @@ def test_converting_twice_gives_equal_data(raw, tmp_path):
     assert_same_bytes(tmp_path / "one", tmp_path / "elsewhere" / "two", "data/chunk-000/file-000.parquet")
 
 
+@pytest.mark.slow
 def test_converts_in_two_processes_write_equal_bytes(raw, tmp_path):
     """Two `convert` processes with different string hashing (set orders differ) write the same bytes, every file:
     lerobot writes meta/stats.json's features in a set's order, which convert sorts."""

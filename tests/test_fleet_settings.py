@@ -22,6 +22,8 @@ from latent_steering_cli import app
 from steering_core.demo import build_demo
 from steering_core.remote import filesystems
 
+pytestmark = pytest.mark.slow  # `prefect deploy` against a real server
+
 DEPLOYMENTS = {"pipeline", "gpu", "gpu-train-sae", "gpu-evaluate", "sim-rollout", "scheduled"}
 BASE_ENV = {"PREFECT_LOGGING_EXTRA_LOGGERS": "steering_core", "HF_HUB_OFFLINE": "1",
             "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "30", "PREFECT_RESULTS_DEFAULT_SERIALIZER": "json"}

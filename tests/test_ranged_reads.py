@@ -157,6 +157,7 @@ def test_sae_training_rows_from_the_bucket_equal_local_ones(run):
     assert not any(file.exists() for file in files)
 
 
+@pytest.mark.slow
 def test_the_remote_slicing_benchmark_runs_at_quick_size(tmp_path):
     """bench.slicing_remote in its own process (it starts its own S3 endpoint): equal slices, bytes bounded."""
     root = Path(__file__).resolve().parent.parent

@@ -22,6 +22,8 @@ from steering_core.serve.server import serving_in_thread
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
 
+pytestmark = pytest.mark.slow  # a closed-loop run of the demo's grid in the simulator
+
 ARCH = tiny_arch()
 PAIR = "open_vs_close"
 # libero_goal: both tasks in one scene, so the module builds one env; 2 episodes in chunks of 1 (merged per cell)

@@ -50,6 +50,7 @@ def set_joint(env, name, value):
     env.env.sim.forward()
 
 
+@pytest.mark.slow
 def test_run_episode_matches_openpis_loop_rendering_every_step(env, init_state):
     naive = ScriptedPolicy(env, calls=3, seed=1)
     env.actions.clear()
@@ -99,6 +100,7 @@ def test_run_episode_matches_openpis_loop_rendering_every_step(env, init_state):
     assert scripted.events == [("start", INSTRUCTION, 4), ("end", False)]
 
 
+@pytest.mark.slow
 def test_instructed_success_ends_the_episode_at_the_env_done(env, init_state):
     def open_drawer(call):
         if call == 1:
@@ -118,6 +120,7 @@ def test_instructed_success_ends_the_episode_at_the_env_done(env, init_state):
     assert scripted.events[-1] == ("end", True)
 
 
+@pytest.mark.slow
 def test_watched_goal_ends_the_episode(env, init_state):
     def turn_knob(call):
         if call == 1:
@@ -155,6 +158,7 @@ def test_goal_naming_absent_objects_is_refused_before_any_step(env, init_state):
         other_scene.check(env)
 
 
+@pytest.mark.slow
 def test_short_chunk_is_an_error(env, init_state):
     class Short(ScriptedPolicy):
         def infer(self, observation):
@@ -271,12 +275,14 @@ class ScriptedGoal:
     ([True], ("neither", 8, None, True)),                               # held all along: nothing was done
     ([False, False, True], ("toward", 2, 2, False)),                    # the usual case
 ])
+@pytest.mark.slow
 def test_a_toward_goal_holding_at_the_start_counts_only_once_undone_and_redone(env, init_state, answers, expected):
     record = run_episode(env, ScriptedPolicy(env, calls=4, seed=5), prompt="turn on the stove", init_state=init_state,
                          init_index=0, max_steps=8, toward_goal=ScriptedGoal(answers), wait_steps=1)
     assert (record.outcome, record.steps, record.toward_step, record.toward_at_start) == expected
 
 
+@pytest.mark.slow
 def test_an_episode_does_not_depend_on_the_episodes_before_it(env, init_state):
     """A process keeps its env for the next chunk: each episode's seed and hard reset make that invisible."""
     def episode(on_env, seed):

@@ -109,6 +109,7 @@ print(json.dumps(growth))
 """
 
 
+@pytest.mark.slow
 def test_streaming_peak_memory_stays_flat_from_1x_to_50x_rows(tmp_path):
     """The stream's own peak (above the memory after imports, 0.5 GB of unrelated libraries) is flat."""
     width, base_rows = 64, 12_288

@@ -125,6 +125,7 @@ RESUMED = TrainSettings(architecture="batchtopk", d_sae=48, k=3, lr=2e-3, batch_
                         device="cpu")  # firing counts reset every 60 steps: a resume must keep their phase
 
 
+@pytest.mark.slow
 def test_a_run_killed_after_a_checkpoint_resumes_to_the_bytes_of_an_uninterrupted_one(tmp_path, caplog):
     _, rows = planted_rows(3000, seed=1)
     write_rows_run(tmp_path / "run", rows[:, :16], episodes=3)
