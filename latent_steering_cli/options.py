@@ -16,8 +16,7 @@ import typer
 from pydantic import BaseModel
 
 from latent_steering_cli.app import input_errors
-
-DEVICE_HELP = "auto (CUDA when available), cuda, cuda:1 or cpu."
+from steering_core.devices import DEVICE_HELP
 
 
 def device_option(default: str | None = "auto", help: str = DEVICE_HELP) -> Any:
@@ -30,9 +29,11 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def settings_options(model: type[BaseModel], parameter: str = "settings") -> Callable[[Callable], Callable]:
+def settings_options(model: type[BaseModel], parameter: str = "settings",
+                     parse: dict[str, Callable[[Any], Any]] | None = None) -> Callable[[Callable], Callable]:
     """Decorate a command whose parameter `parameter` is a `model`: it takes one option per field of `model` instead
-    (after its own parameters) and receives them as one `model`, validated (a bad value is an `error:` line)."""
+    (after its own parameters) and receives them as one `model`, validated (a bad value is an `error:` line).
+    `parse` maps a field to what turns its option's value into the field's (e.g. `none` -> None)."""
     hints = typing.get_type_hints(model)
     fields = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=hints[name],
                                 default=typer.Option(... if field.is_required() else field.default, flag(name),
@@ -46,7 +47,7 @@ def settings_options(model: type[BaseModel], parameter: str = "settings") -> Cal
 
         @functools.wraps(command)
         def run(**options: Any) -> Any:
-            values = {name: options.pop(name) for name in model.model_fields}
+            values = {name: (parse or {}).get(name, lambda value: value)(options.pop(name)) for name in model.model_fields}
             with input_errors():
                 settings = model(**values)
             return command(**options, **{parameter: settings})

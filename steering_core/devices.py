@@ -15,6 +15,7 @@ DTYPES: dict[str, torch.dtype] = {
 SAFETENSORS_DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F64": torch.float64, "F16": torch.float16,
                                               "BF16": torch.bfloat16}
 DTYPE_NAMES: dict[torch.dtype, str] = {dtype: name for name, dtype in DTYPES.items()}
+DEVICE_HELP = "auto (CUDA when available), cuda, cuda:1 or cpu."  # what a device setting accepts
 
 
 def parse_device(device: str | torch.device) -> torch.device:

@@ -112,3 +112,41 @@ def test_train_sae_takes_every_training_setting_as_an_option_of_the_models_defau
     result = CliRunner().invoke(app, ["train-sae", "--run-dir", str(tmp_path), "--layer", "1", "--output-dir",
                                       str(tmp_path / "sae"), "--lr", "2"])
     assert result.exit_code == 1 and "--lr" in result.output, result.output
+
+
+# the settings model each command builds from its options (where one option sets one field of the same name)
+COMMAND_SETTINGS = {
+    "filter": "steering_core.data.filtering:FilterSettings", "convert": "steering_core.data.convert:ConvertSettings",
+    "make-demos": "steering_core.synthetic.libero:SyntheticSettings",
+    "manifest": "steering_core.data.contrast:ContrastSettings", "split": "steering_core.evaluate.settings:EvaluateSettings",
+    "capture": "steering_core.capture.settings:CaptureSettings", "slice": "steering_core.capture.slicing:SliceSettings",
+    "train-sae": "steering_core.sae.training.settings:TrainSettings",
+    "steer": "steering_core.vectors.directions:SteeringSettings",
+    "evaluate": "steering_core.evaluate.settings:EvaluateSettings", "rollout": "steering_core.rollout.settings:RolloutSettings",
+}
+# options whose default differs from the model's on purpose
+OWN_DEFAULTS = {("make-demos", "num_steps"): "short demos for a quick look; the library's default is nearer real ones"}
+
+
+def _comparable(value):
+    if isinstance(value, str) and value.replace(",", " ").replace(" ", "").isdigit():
+        return tuple(int(part) for part in value.replace(",", " ").split())  # a list option given as text: "12 14"
+    if isinstance(value, list | tuple):
+        return tuple(_comparable(item) for item in value)
+    return str(value) if isinstance(value, Path) else getattr(value, "value", value)
+
+
+def test_an_option_that_sets_a_setting_defaults_to_the_models_default():
+    """Hand-written options are checked against the settings model they fill: same name, same default (None: the
+    run config's or the model's applies)."""
+    wrong = []
+    for command, where in COMMAND_SETTINGS.items():
+        module, name = where.split(":")
+        model = getattr(importlib.import_module(module), name)
+        for param in load_command(command).params:
+            field = model.model_fields.get(param.name)
+            if field is None or param.default is None or field.is_required() or (command, param.name) in OWN_DEFAULTS:
+                continue
+            if _comparable(param.default) != _comparable(field.default):
+                wrong.append(f"{command} {param.opts[0]}: {param.default!r}, {name}.{param.name}: {field.default!r}")
+    assert not wrong, "\n".join(wrong)

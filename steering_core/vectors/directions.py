@@ -33,7 +33,7 @@ from typing import Any, Literal
 import torch
 from pydantic import Field, field_validator, model_validator
 
-from steering_core.devices import resolve_device
+from steering_core.devices import DEVICE_HELP, resolve_device
 from steering_core.layout import (
     PAIR_SUMMARY_FILE,
     PAIRWISE_STATS_FILE,
@@ -105,18 +105,24 @@ PathsRelativeTo = Literal["auto", "cwd", "config"]
 class SteeringSettings(StrictModel):
     """Everything `compute_steering` needs; defaults are the seed's."""
 
-    pairs_config: Path
-    output_root: Path = Path("data") / STEERING_ROOT
-    layer: int = 12
-    sae: str | None = "gemma-2b-it-res-jb"  # folder, state-dict file or release; None: residual space only
-    sae_id: str | None = None  # default blocks.{layer}.hook_resid_post
-    sae_dir: Path | None = None  # folder holding release folders, searched before the HF cache
-    sae_cfg_from: str | None = None  # for a state-dict SAE: folder or release whose cfg.json applies
-    device: str = "auto"  # cuda when available, else cpu
-    batch_size: int = Field(512, gt=0)
-    include_decoder_bias: bool = False  # seed compatibility: residual_direction = decode(delta), with b_dec
-    top_k: int = Field(20, gt=0)  # latents listed per direction in the report
-    paths_relative_to: PathsRelativeTo = "auto"  # base of relative concept paths (see PathsRelativeTo)
+    pairs_config: Path = Field(description="Pairs JSON, e.g. data/latent_steering/layer12_pairs.json.")
+    output_root: Path = Field(Path("data") / STEERING_ROOT, description="Outputs go to <output-root>/layerNN/.")
+    layer: int = Field(12, ge=0, description="Decoder layer the concept residuals come from.")
+    sae: str | None = Field("gemma-2b-it-res-jb", description=(
+        "SAELens folder, .pt/.safetensors state dict, or release name; 'none': residual-space directions only."))
+    sae_id: str | None = Field(None, description="SAE within the release (default blocks.<layer>.hook_resid_post).")
+    sae_dir: Path | None = Field(
+        None, description="Folder holding downloaded release folders, searched before the Hugging Face cache.")
+    sae_cfg_from: str | None = Field(
+        None, description="For a state-dict SAE: folder or release whose cfg.json applies (as the seed did).")
+    device: str = Field("auto", description=DEVICE_HELP)
+    batch_size: int = Field(512, gt=0, description="Rows encoded per SAE batch.")
+    include_decoder_bias: bool = Field(False, description=(
+        "Seed compatibility: residual_direction = decode(delta) = delta @ W_dec + b_dec (default: without b_dec)."))
+    top_k: int = Field(20, gt=0, description="Latents listed per direction in the report.")
+    paths_relative_to: PathsRelativeTo = Field("auto", description=(
+        "Base of relative concept paths: auto (the current directory when the file exists there, as the seed's "
+        "pairs files expect, else the pairs file's folder, as the pipeline writes them), cwd or config."))
 
 
 def read_pairs_config(path: str | os.PathLike) -> PairsConfig:

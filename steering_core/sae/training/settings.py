@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
+from steering_core.devices import DEVICE_HELP
 from steering_core.storage.schema import StrictModel
 
 Architecture = Literal["topk", "batchtopk", "jumprelu", "standard"]
@@ -37,7 +38,7 @@ class TrainSettings(StrictModel):
     checkpoints: int = Field(4, ge=0, description="Checkpoints during training; a rerun resumes from the latest.")
     dead_feature_window: int = Field(1000, ge=1, description="Steps without firing before a latent counts as dead.")
     feature_sampling_window: int = Field(2000, ge=1, description="Steps over which firing frequency is counted.")
-    device: str = Field("auto", description="auto (CUDA when available), cuda, cuda:1 or cpu.")  # devices.resolve_device
+    device: str = Field("auto", description=DEVICE_HELP)  # devices.resolve_device
 
     @model_validator(mode="after")
     def _check_sizes(self) -> TrainSettings:
