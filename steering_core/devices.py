@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 # Floating-point dtypes by the names configs and CLI flags use.
@@ -26,8 +28,24 @@ def parse_device(device: str | torch.device) -> torch.device:
         raise ValueError(f"device {device!r} is not a torch device; expected cpu, cuda, cuda:N or auto") from error
 
 
+@functools.cache
+def fix_cpu_threads() -> None:
+    """Keep this process's CPU thread count fixed, once: the same inputs then give the same float32 bits however
+    busy the machine is.
+
+    oneMKL's default (MKL_DYNAMIC=TRUE) lets it run a gemm on fewer threads than asked when the machine is busy,
+    which splits the sums differently: a capture worker on a loaded machine wrote other decision rows than the same
+    capture on an idle one. `torch.set_num_threads` turns that off (at the count torch already chose).
+    """
+    torch.set_num_threads(torch.get_num_threads())
+
+
 def resolve_device(device: str | torch.device | None) -> torch.device:
-    """Return `device`; None or "auto" picks CUDA when available, else CPU. CUDA without a GPU is an error."""
+    """Return `device`; None or "auto" picks CUDA when available, else CPU. CUDA without a GPU is an error.
+
+    Every step that computes resolves its device first, so this also fixes the CPU threads (`fix_cpu_threads`).
+    """
+    fix_cpu_threads()
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     resolved = parse_device(device)
