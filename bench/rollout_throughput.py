@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench.common import Result, cache_dir, command, finish, median, parser
+from bench.common import Result, cache_dir, command, finish, median, parser, torch_threads
 
 # ----------------------------------------------------------------------------- settings
 
@@ -73,12 +73,12 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"
 @contextlib.contextmanager
 def one_thread_environment() -> Iterator[None]:
     """Run the block with OpenMP, MKL, OpenBLAS and llvmpipe set to one thread (read when a process or GL context
-    starts: the workers and this process's env), and torch on one thread; restore the variables after."""
+    starts: the workers and this process's env), and torch on one thread; restore both after."""
     saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
     os.environ.update(dict.fromkeys(THREAD_VARIABLES, "1"))
-    torch.set_num_threads(1)  # as each worker; two intra-op threads thrash on a shared 2-core machine
     try:
-        yield
+        with torch_threads(1):  # as each worker; two intra-op threads thrash on a shared 2-core machine
+            yield
     finally:
         for name, value in saved.items():
             if value is None:

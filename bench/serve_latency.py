@@ -16,6 +16,8 @@ machine.
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -24,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench.common import Result, cache_dir, command, finish, median, parser, synchronize
+from bench.common import Result, cache_dir, command, finish, median, parser, synchronize, torch_threads
 from steering_core.devices import resolve_device
 
 # ----------------------------------------------------------------------------- settings
@@ -185,8 +187,13 @@ def main(argv: list[str] | None = None) -> Result:
     """Run the benchmark; return its result."""
     args = parser(__doc__.splitlines()[0]).parse_args(argv)
     device = resolve_device(args.device)
-    if device.type == "cpu":
-        torch.set_num_threads(1)  # two intra-op threads thrash on a shared 2-core machine; see the notes
+    # on CPU one intra-op thread: two thrash on a shared 2-core machine (see the notes)
+    with torch_threads(1) if device.type == "cpu" else contextlib.nullcontext():
+        return measure(args, device)
+
+
+def measure(args: argparse.Namespace, device: torch.device) -> Result:
+    """Time the round trips, the protocol and steering's cost; return the result."""
     folder = cache_dir(args) / "serve"
     rounds, mid_rounds = (QUICK["rounds"], QUICK["mid_rounds"]) if args.quick else (ROUNDS, MID_ROUNDS)
     from steering_core.synthetic.pi05 import tiny_arch

@@ -15,6 +15,18 @@ os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 os.environ.setdefault("LATENT_STEERING_DIGEST_CACHE", tempfile.mkdtemp(prefix="latent-steering-digests-"))
 
 
+@pytest.fixture(autouse=True)
+def torch_threads_put_back():
+    """Fail a test that leaves torch on another intra-op thread count: the float32 bits of what runs after it in this
+    process depend on the count (a benchmark that left one thread once made the session's CLI steps write other
+    decision rows than a worker's)."""
+    import torch
+
+    before = torch.get_num_threads()
+    yield
+    assert torch.get_num_threads() == before, f"the test left torch on {torch.get_num_threads()} threads, not {before}"
+
+
 @pytest.fixture(scope="session")
 def prefect_server():
     """One Prefect test server for the whole session, started when the first test that needs it runs.
