@@ -33,9 +33,9 @@ def fix_cpu_threads() -> None:
     """Keep this process's CPU thread count fixed, once: the same inputs then give the same float32 bits however
     busy the machine is.
 
-    oneMKL's default (MKL_DYNAMIC=TRUE) lets it run a gemm on fewer threads than asked when the machine is busy,
-    which splits the sums differently: a capture worker on a loaded machine wrote other decision rows than the same
-    capture on an idle one. `torch.set_num_threads` turns that off (at the count torch already chose).
+    oneMKL's default (MKL_DYNAMIC=TRUE) lets it run a gemm on fewer threads than asked, and the thread count
+    changes how sums split, so the last bits of float32 results. `torch.set_num_threads` turns that off (at the
+    count torch already chose). The count itself still differs between machines of other core counts.
     """
     torch.set_num_threads(torch.get_num_threads())
 
