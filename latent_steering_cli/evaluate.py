@@ -116,9 +116,9 @@ Plan = tuple[list[tuple[EvaluateJob, SteeringSettings | None]], CaptureSettings,
 
 
 def _setting_overrides(flags: dict) -> dict:
-    """Return the evaluation settings the flags give (the rest keep the run config's or the defaults)."""
-    names = ("max_frames", "noise_seeds", "random_directions", "top_k", "batch_size", "device", "dtype")
-    overrides = {name: flags[name] for name in names if flags[name] is not None}
+    """Return the evaluation settings the flags give: each given option named as an EvaluateSettings field (the rest
+    keep the run config's or the defaults)."""
+    overrides = {name: flags[name] for name in EvaluateSettings.model_fields if flags.get(name) is not None}
     return overrides | ({"alphas": _parse_floats(flags["alphas"])} if flags["alphas"] else {})
 
 
