@@ -27,7 +27,12 @@ RESULTS: dict[str, Any] = {"persist_result": True, "result_serializer": "json"}
 def is_cached(task: Task, output_root: str | os.PathLike, *args: Any, **kwargs: Any) -> bool:
     """Return True when `rooted(task, output_root)(*args, **kwargs)` would be `Cached`: its record is there and
     every output it lists exists (checked without starting a run, e.g. before launching a child run for it)."""
-    policy = rooted(task, output_root).cache_policy
+    return _would_be_cached(rooted(task, output_root), task, output_root, args, kwargs)
+
+
+def _would_be_cached(rooted_task: Task, task: Task, output_root: str | os.PathLike, args: tuple, kwargs: dict) -> bool:
+    """`is_cached` given the task already rooted under `output_root`."""
+    policy = rooted_task.cache_policy
     if not isinstance(policy, ContentKey):
         return False
     key = policy.compute_key(SimpleNamespace(task=task), get_call_parameters(task.fn, args, kwargs), {})
@@ -80,7 +85,7 @@ class TaskSet:
 
     def is_cached(self, name: str, *args: Any, **kwargs: Any) -> bool:
         """Return True when task `name` called with these arguments would be `Cached` (see `is_cached`)."""
-        return is_cached(self._task(name), self.output_root, *args, **kwargs)
+        return _would_be_cached(getattr(self, name), self._task(name), self.output_root, args, kwargs)  # rooted once
 
     def _task(self, name: str) -> Task:
         if name not in self._tasks:
