@@ -46,9 +46,7 @@ def selected_residuals(
     """
     wanted = model.check_layers(layers)
     model.check_inputs(images, image_masks, tokens, token_mask)
-    tokens = tokens.to(model.device, torch.long)
-    token_mask = token_mask.to(model.device)
-    image_masks = [mask.to(model.device) for mask in image_masks]
+    images, image_masks, tokens, token_mask = model.on_device(images, image_masks, tokens, token_mask)
     frame_of_row, positions = frame_of_row.to(model.device, torch.long), positions.to(model.device, torch.long)
     with torch.no_grad():
         hidden, pad, columns = model.embed_prefix(images, image_masks, tokens, token_mask)

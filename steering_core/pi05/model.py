@@ -253,6 +253,19 @@ class Pi05Prefix(nn.Module):
         """Return language tokens (batch, T, width): embedding rows times sqrt(width), applied once (spec 3.3)."""
         return self.embed_tokens(tokens) * math.sqrt(self.arch.width)
 
+    def on_device(
+        self,
+        images: Sequence[torch.Tensor],
+        image_masks: Sequence[torch.Tensor],
+        tokens: torch.Tensor,
+        token_mask: torch.Tensor,
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor, torch.Tensor]:
+        """Return the inputs moved to the model's device (tokens as int64): a caller's tensors may be on any
+        device, and every entry point moves them here, once, before anything is computed from them."""
+        device = self.device
+        return ([image.to(device) for image in images], [mask.to(device) for mask in image_masks],
+                tokens.to(device, torch.long), token_mask.to(device))
+
     def embed_prefix(
         self,
         images: Sequence[torch.Tensor],
@@ -268,7 +281,7 @@ class Pi05Prefix(nn.Module):
 
         Valid tokens never attend to invalid ones and position ids count only valid tokens, so dropping a
         camera masked for the whole batch and the language columns after the longest prompt changes no
-        valid token's residual (spec 3.4).
+        valid token's residual (spec 3.4). The inputs are on the model's device (`on_device`).
         """
         batch, n_tokens = tokens.shape
         per_image = self.arch.tokens_per_image
@@ -281,7 +294,7 @@ class Pi05Prefix(nn.Module):
         parts, pads, columns = [], [], []
         if slots:
             # one SigLIP pass over every computed camera: (n_slots * B, 3, H, W) -> (n_slots, B, tokens, width)
-            stacked = torch.cat([images[slot].to(self.device) for slot in slots])
+            stacked = torch.cat([images[slot] for slot in slots])
             image_tokens = self.embed_images(stacked).unflatten(0, (len(slots), batch))
             for slot, slot_tokens in zip(slots, image_tokens, strict=True):
                 parts.append(slot_tokens)
@@ -377,9 +390,7 @@ class Pi05Prefix(nn.Module):
         """
         wanted = self.check_layers(layers)
         self.check_inputs(images, image_masks, tokens, token_mask)
-        tokens = tokens.to(self.device, torch.long)
-        token_mask = token_mask.to(self.device)
-        image_masks = [mask.to(self.device) for mask in image_masks]
+        images, image_masks, tokens, token_mask = self.on_device(images, image_masks, tokens, token_mask)
         batch, n_tokens = tokens.shape
         total = self.arch.prefix_length(len(images), n_tokens)
         with torch.no_grad():

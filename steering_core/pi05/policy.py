@@ -252,8 +252,9 @@ class Pi05Policy(nn.Module):
             splice.check(self.arch, batch, n_tokens)
         dt, times = euler_times(num_steps, self.device)
         noise = self._noise(noise, batch, generator)
-        tokens, token_mask = tokens.to(self.device, torch.long), token_mask.to(self.device)
-        image_masks = [mask.to(self.device) for mask in image_masks]
+        images, image_masks, tokens, token_mask = self.prefix.on_device(images, image_masks, tokens, token_mask)
+        entries = [[item.to(self.device) for item in entry] for entry in entries]
+        splice = None if splice is None else splice.to(self.device)
         n = len(entries)
 
         hidden, pad, columns = self.prefix.embed_prefix(images, image_masks, tokens, token_mask)
@@ -270,7 +271,7 @@ class Pi05Policy(nn.Module):
         rotary = self.prefix.rotary_emb(hidden.new_empty(0, dtype=self.expert.compute_dtype), positions)
         allowed = torch.cat([pad, pad.new_ones(batch, horizon)], dim=1).repeat(n, 1)
         mask = torch.where(allowed, 0.0, MASKED_LOGIT).to(torch.float32)[:, None, None, :]
-        steer = stack_entries([expert_additions(entry, self.expert.compute_dtype, self.device) for entry in entries],
+        steer = stack_entries([expert_additions(entry, self.expert.compute_dtype) for entry in entries],
                               batch)
         actions = noise.repeat(n, 1, 1)
         for t in times:

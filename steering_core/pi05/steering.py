@@ -8,7 +8,7 @@ layer outputs are steered at every action token in every denoising step.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import torch
@@ -60,9 +60,15 @@ class Steering:
         if problems:
             raise ValueError("Steering: " + "; ".join(problems))
 
-    def delta(self, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    def to(self, device: torch.device) -> Steering:
+        """Return this steering with its vector and masks on `device` (the model's entry points call it)."""
+        moved = {name: getattr(self, name).to(device) for name in ("vector", "token_mask", "prefix_mask")
+                 if getattr(self, name) is not None}
+        return replace(self, **moved)
+
+    def delta(self, dtype: torch.dtype) -> torch.Tensor:
         """Return alpha * vector (W,) computed in float32, then cast to the stream's dtype."""
-        return (self.alpha * self.vector.to(device=device, dtype=torch.float32)).to(dtype)
+        return (self.alpha * self.vector.float()).to(dtype)
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,6 +97,10 @@ class Splice:
         if problems:
             raise ValueError("Splice: " + "; ".join(problems))
 
+    def to(self, device: torch.device) -> Splice:
+        """Return this splice with its mask on `device` (the model's entry points call it)."""
+        return self if self.token_mask is None else replace(self, token_mask=self.token_mask.to(device))
+
     def check(self, arch: Pi05Arch, batch: int, n_tokens: int) -> None:
         """Raise one ValueError if the layer is not a language-model layer below the last, or the mask misfits."""
         problems = []
@@ -108,7 +118,7 @@ class Splice:
     ) -> Callable[[torch.Tensor], torch.Tensor]:
         """Return the map of the layer's output (n * B, S, width) over the computed prefix `columns` (S,): the
         selected rows replaced, the rest unchanged; n copies of the batch (a sweep's entries) are each spliced."""
-        prompt = token_mask if self.token_mask is None else self.token_mask.to(token_mask.device)
+        prompt = token_mask if self.token_mask is None else self.token_mask
         where = torch.cat([prompt.new_zeros(prompt.shape[0], n_image_columns), prompt], dim=1)[:, columns]  # (B, S)
 
         def splice(hidden: torch.Tensor) -> torch.Tensor:
@@ -183,29 +193,29 @@ def lm_additions(
     """Return {lm layer: (B, S, width) tensor to add to that layer's output} over the computed prefix columns.
 
     columns: (S,) index of each computed column in the full prefix (`Pi05Prefix.embed_prefix`); positions
-    that were not computed (a skipped camera, trimmed padding) are invalid and need no steering.
+    that were not computed (a skipped camera, trimmed padding) are invalid and need no steering. Every
+    tensor is on the model's device (`Steering.to`).
     """
     additions: dict[int, torch.Tensor] = {}
-    device = columns.device
     for item in steerings:
         if item.stream != "lm":
             continue
         if item.prefix_mask is not None:
-            where = item.prefix_mask.to(device)
+            where = item.prefix_mask
         else:
             prompt = token_mask if item.token_mask is None else item.token_mask
-            where = torch.cat([prompt.new_zeros(prompt.shape[0], n_image_columns), prompt.to(device)], dim=1)
-        delta = where[:, columns, None].to(dtype) * item.delta(dtype, device)
+            where = torch.cat([prompt.new_zeros(prompt.shape[0], n_image_columns), prompt], dim=1)
+        delta = where[:, columns, None].to(dtype) * item.delta(dtype)
         additions[item.layer] = additions[item.layer] + delta if item.layer in additions else delta
     return additions
 
 
-def expert_additions(steerings: Sequence[Steering], dtype: torch.dtype, device: torch.device) -> dict[int, torch.Tensor]:
+def expert_additions(steerings: Sequence[Steering], dtype: torch.dtype) -> dict[int, torch.Tensor]:
     """Return {expert layer: (1, 1, width) tensor added to that layer's output at every action token}."""
     additions: dict[int, torch.Tensor] = {}
     for item in steerings:
         if item.stream == "expert":
-            delta = item.delta(dtype, device)[None, None]
+            delta = item.delta(dtype)[None, None]
             additions[item.layer] = additions[item.layer] + delta if item.layer in additions else delta
     return additions
 
