@@ -48,10 +48,11 @@ class _Sums:
         self.active = 0         # Σ over rows of the non-zero latents
         self.fired = torch.zeros(d_sae, dtype=torch.int64)
 
-    def add(self, sae: Sae, rows: torch.Tensor) -> None:
-        """Add the squared error, active latents and firing counts of the SAE on rows (b, d_in)."""
+    def add(self, sae: Sae, rows: torch.Tensor, rows64: torch.Tensor) -> None:
+        """Add the squared error, active latents and firing counts of the SAE on rows (b, d_in) on any device;
+        `rows64` is the same rows in float64 on the CPU."""
         reconstruction, latents = sae.reconstruct(rows)
-        self.squared_error += float((rows.double() - reconstruction.double().cpu()).square().sum())
+        self.squared_error += float((rows64 - reconstruction.double().cpu()).square().sum())
         nonzero = latents != 0
         self.active += int(nonzero.sum())
         self.fired += nonzero.sum(dim=0).cpu()
@@ -107,7 +108,7 @@ def row_fidelity(saes: Mapping[str, Sae], batches: RowBatches, *, where: str = "
         total_sq += float(centred.square().sum())
         count += len(rows)
         for name, sae in saes.items():
-            sums[name].add(sae, rows)
+            sums[name].add(sae, rows, rows64)
     if count == 0:
         raise ValueError(f"{where}: no rows; hold out episodes that the run captured")
     # Σ‖x − x̄‖² = Σ‖x − s‖² − n‖x̄ − s‖² for any shift s
