@@ -1,11 +1,12 @@
-"""Wilson intervals: hand-solved values (the quadratic's roots by numpy), n = 0, bad counts, and coverage."""
+"""Wilson intervals (hand-solved values, n = 0, bad counts, coverage) and the exact McNemar test of paired cells."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import binomtest
 
-from steering_core.rollout.stats import WILSON_Z, exceeds, proportion, wilson_interval
+from steering_core.rollout.stats import WILSON_Z, mcnemar, proportion, wilson_interval
 
 
 def roots(k: int, n: int) -> tuple[float, float]:
@@ -36,10 +37,30 @@ def test_no_episodes_is_the_whole_interval_and_bad_counts_are_refused():
             wilson_interval(k, n)
 
 
-def test_exceeds_needs_intervals_apart():
-    assert exceeds(proportion(9, 10), proportion(0, 10))
-    assert not exceeds(proportion(6, 10), proportion(3, 10))  # overlapping: no evidence
-    assert not exceeds(proportion(0, 0), proportion(0, 10))
+def test_mcnemar_counts_only_discordant_episodes_hand_computed():
+    # a wins episodes 0 and 1, b wins episode 4, both win 2: 3 discordant, P(X >= 2 | 3, 1/2) = (3 + 1) / 8
+    test = mcnemar([1, 1, 1, 0, 0], [0, 0, 1, 0, 1])
+    assert (test.n, test.both, test.only_a, test.only_b) == (5, 1, 2, 1)
+    assert test.p_greater == 0.5 and test.p_two_sided == 1.0  # 2 * min(1/2, 7/8), at most 1
+    nine_one = mcnemar([1] * 9 + [0], [0] * 9 + [1])
+    assert nine_one.p_greater == 11 / 1024 and nine_one.p_two_sided == 22 / 1024  # (C(10,9) + C(10,10)) / 2^10
+    same = mcnemar([1, 0, 1], [1, 0, 1])
+    assert (same.only_a, same.only_b, same.p_greater, same.p_two_sided) == (0, 0, 1.0, 1.0)  # no evidence either way
+
+
+@pytest.mark.parametrize(("only_a", "only_b"), [(7, 0), (12, 3), (3, 12), (20, 20), (0, 5)])
+def test_mcnemar_equals_scipys_exact_binomial_test(only_a, only_b):
+    a = [True] * only_a + [False] * only_b + [True] * 4
+    b = [False] * only_a + [True] * only_b + [True] * 4
+    test = mcnemar(a, b)
+    assert test.p_greater == pytest.approx(binomtest(only_a, only_a + only_b, 0.5, alternative="greater").pvalue,
+                                           rel=1e-12)
+    assert test.p_two_sided == pytest.approx(binomtest(only_a, only_a + only_b, 0.5).pvalue, rel=1e-12)
+
+
+def test_mcnemar_refuses_unpaired_lengths():
+    with pytest.raises(ValueError, match="3 and 2 episodes"):
+        mcnemar([1, 0, 1], [1, 0])
 
 
 @pytest.mark.parametrize("n", [10, 20, 50])

@@ -20,16 +20,20 @@ from steering_core.pairs import SIDES
 from steering_core.rollout.cells import KINDS
 from steering_core.rollout.plots import Thresholds, plot_joints, plot_success
 from steering_core.rollout.records import ROLLOUT_FORMAT_VERSION, read_cell
-from steering_core.rollout.stats import Proportion, exceeds
+from steering_core.rollout.stats import Paired, Proportion, mcnemar, proportion
 from steering_core.storage.fileio import read_json, write_json, write_text
 
 OUTCOME_COLUMNS = ("toward", "instructed", "neither")
+EVIDENCE_P = 0.05  # one-sided exact McNemar p below which a paired difference counts as evidence
 ANSWER_TEXT = (
-    "Per pair and side: the steered direction's best α toward the other task (its highest toward-task success, "
-    "the smallest α on ties) against the random band's upper edge at that α (the random direction with the most "
-    "toward-task successes) and against α = 0. `yes` only when the steered Wilson 95% interval lies wholly above "
-    "both; overlapping intervals are `no evidence` (the best α is chosen on these same episodes, so only a clear "
-    "gap counts). The instruction swap (the other task's instruction, no steering) is the ceiling.")
+    "Per pair and side, cross-fitted: the steered direction's best α toward the other task (its highest toward-task "
+    "success, the smallest α on ties) is chosen on one half of the initial states and read on the other, both ways, "
+    "so no episode scores the α it chose. Cells share initial states and seeds, so every comparison is paired: "
+    f"`yes` only when the exact McNemar test (one-sided, p < {EVIDENCE_P:g}) finds the cross-fitted steered cell "
+    "above α = 0 and above every random direction read the same way; otherwise `no evidence`. Wilson 95% intervals "
+    "are shown beside; the instruction swap (the other task's instruction, no steering) is the ceiling.")
+
+Outcomes = dict[tuple[int, int], bool]  # (initial state, seed) -> reached the other task's goal
 
 
 def read_pair_cells(pair_path: Path, cell_dirs: Sequence[Path] | None = None
@@ -50,12 +54,20 @@ def success(record: dict[str, Any], outcome: str = "toward") -> Proportion:
     return Proportion(**record["success"][outcome])
 
 
-def cell_row(record: dict[str, Any]) -> dict[str, Any]:
-    """Return the pair table's row of one cell."""
+def cell_row(record: dict[str, Any], unsteered: Outcomes | None = None) -> dict[str, Any]:
+    """Return the pair table's row of one cell; `unsteered`: its side's α = 0 episodes, to test it against."""
+    vs_unsteered = None if unsteered is None or record["kind"] == "unsteered" else paired(outcomes(record), unsteered)
     return {key: record[key] for key in ("side", "condition", "alpha", "alpha_toward", "cell")} | {
         "n": success(record).n, **{outcome: record["success"][outcome] for outcome in OUTCOME_COLUMNS},
         **{key: record[key] for key in ("mean_steps", "mean_jerk", "joint_limit_hits")},
-        "first_outcome": record["episodes"][0]["outcome"]}
+        "first_outcome": record["episodes"][0]["outcome"],
+        "vs_unsteered": vs_unsteered.to_json() if vs_unsteered else None}
+
+
+def cell_rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Return the pair table's rows, each cell tested against its side's α = 0 cell on the paired episodes."""
+    zero = {r["side"]: outcomes(r) for r in _at(records, "unsteered")}
+    return [cell_row(r, zero.get(r["side"])) for r in records]
 
 
 def _at(records: Sequence[dict[str, Any]], kind: str, alpha_toward: float | None = None) -> list[dict[str, Any]]:
@@ -77,9 +89,49 @@ def side_answer(records: Sequence[dict[str, Any]], side: str) -> dict[str, Any]:
     return row
 
 
+def outcomes(record: Mapping[str, Any], outcome: str = "toward") -> Outcomes:
+    """Return each episode of a cell record, keyed by its (initial state, seed), to whether it ended in `outcome`."""
+    return {(row["init_index"], row["seed"]): row["outcome"] == outcome for row in record["episodes"]}
+
+
+def paired(a: Outcomes, b: Outcomes) -> Paired:
+    """Return the exact McNemar test of `a` above `b` on the episodes both ran."""
+    keys = sorted(a.keys() & b.keys())
+    return mcnemar([a[key] for key in keys], [b[key] for key in keys])
+
+
+def crossfit(steered: Mapping[float, Outcomes]) -> tuple[tuple[float, float], list[list[tuple[int, int]]]]:
+    """Return the α chosen on each half of the episodes, and the halves (sorted episodes, alternately).
+
+    Half h's α is the one with the most successes on half h (the smallest α on ties); it is read on half 1 − h.
+    """
+    keys = sorted(set.intersection(*(set(cell) for cell in steered.values())))
+    halves = [keys[0::2], keys[1::2]]
+    chosen = tuple(max(sorted(steered), key=lambda alpha: (sum(steered[alpha][k] for k in half), -alpha))
+                   for half in halves)
+    return chosen, halves
+
+
+def read_crossfit(cells: Mapping[float, Outcomes], chosen: tuple[float, float],
+                  halves: list[list[tuple[int, int]]]) -> Outcomes | None:
+    """Return the episodes of half 1 − h read at the α chosen on half h, both ways; None when a cell is missing."""
+    if any(alpha not in cells for alpha in chosen):
+        return None
+    return {key: cells[chosen[h]][key] for h in (0, 1) for key in halves[1 - h] if key in cells[chosen[h]]}
+
+
+def _by_condition(cells: Sequence[dict[str, Any]]) -> dict[str, dict[float, Outcomes]]:
+    """Return condition -> α toward -> the cell's outcomes."""
+    grouped: dict[str, dict[float, Outcomes]] = {}
+    for record in cells:
+        grouped.setdefault(record["condition"], {})[record["alpha_toward"]] = outcomes(record)
+    return grouped
+
+
 def _side_answer(cells: Sequence[dict[str, Any]], side: str) -> dict[str, Any]:
-    """Return one side's comparison: the steered best α, the random edge, α = 0, wrong concepts, the ceiling and
-    `answer` ("yes" / "no evidence") with `text` saying why (see ANSWER_TEXT)."""
+    """Return one side's comparison: the steered best α (on all episodes, as plotted), the cross-fitted steered
+    success and its McNemar tests against α = 0 and every control, the ceiling, and `answer` ("yes" /
+    "no evidence") with `text` saying why (see ANSWER_TEXT)."""
     steered = [r for r in _at(cells, "steered") if r["alpha_toward"] > 0]
     swap, zero = _at(cells, "instruction_swap"), _at(cells, "unsteered")
     row: dict[str, Any] = {"side": side, "ceiling": success(swap[0]).to_json() if swap else None}
@@ -89,24 +141,40 @@ def _side_answer(cells: Sequence[dict[str, Any]], side: str) -> dict[str, Any]:
     alpha = best["alpha_toward"]
     randoms = _at(cells, "random", alpha)
     edge = max(randoms, key=lambda r: success(r).k / success(r).n) if randoms else None
-    found = success(best)
-    row |= {"alpha_toward": alpha, "alpha": best["alpha"], "steered": found.to_json(),
+    row |= {"alpha_toward": alpha, "alpha": best["alpha"], "steered": success(best).to_json(),
             "random_edge": success(edge).to_json() if edge else None, "random_count": len(randoms),
             "unsteered": success(zero[0]).to_json() if zero else None,
             "wrong_concept": {r["condition"].partition(":")[2]: success(r).to_json()
                               for r in _at(cells, "wrong_concept", alpha)}}
-    controls = [(f"the random band's upper edge of {len(randoms)} directions", row["random_edge"],
-                 "no random controls at this α to compare"), ("α = 0", row["unsteered"], "no α = 0 cell to compare")]
-    missing = [absent for _, entry, absent in controls if entry is None]
-    gaps = [(name, Proportion(**entry)) for name, entry, _ in controls if entry is not None]
-    overlapping = [f"{name} ({other.text()})" for name, other in gaps if not exceeds(found, other)]
+    conditions = _by_condition(cells)
+    chosen, halves = crossfit({r["alpha_toward"]: outcomes(r) for r in steered})
+    found = read_crossfit(conditions["steered"], chosen, halves)
+    tests = {"α = 0": paired(found, outcomes(zero[0]))} if zero else {}
+    for condition, by_alpha in conditions.items():
+        control = read_crossfit(by_alpha, chosen, halves) if condition.startswith(("random", "wrong")) else None
+        if control is not None:
+            tests[condition] = paired(found, control)
+    steered_rate = proportion(sum(found.values()), len(found))
+    row["crossfit"] = {"alphas_toward": list(chosen), "steered": steered_rate.to_json(),
+                       "mcnemar": {name: test.to_json() for name, test in tests.items()}}
+    random_tests = {name: test for name, test in tests.items() if name.startswith("random")}
+    missing = ([] if random_tests else ["no random controls at the chosen α to compare"]) + (
+        [] if zero else ["no α = 0 cell to compare"])
+    failing = [f"α = 0 (p = {test.p_greater:.3g}, {test.only_a} vs {test.only_b} discordant episodes)"
+               for test in [tests.get("α = 0")] if test is not None and test.p_greater >= EVIDENCE_P]
+    beaten = [test for test in random_tests.values() if test.p_greater >= EVIDENCE_P]
+    if beaten:
+        failing.append(f"{len(beaten)} of {len(random_tests)} random directions (largest p = "
+                       f"{max(test.p_greater for test in beaten):.3g})")
     ceiling = f"; ceiling (instruction swap) {Proportion(**row['ceiling']).text()}" if swap else ""
-    head = f"steered toward-task success at α = {alpha:+g} is {found.text()}"
-    if not missing and not overlapping:
-        text = f"yes: {head}, above " + " and ".join(f"{n} ({o.text()})" for n, o in gaps) + ceiling
+    head = (f"cross-fitted steered toward-task success (α chosen on each half of the initial states: {chosen[0]:+g} and "
+            f"{chosen[1]:+g}, each read on the other half) is {steered_rate.text()}")
+    if not missing and not failing:
+        worst = max(random_tests.values(), key=lambda test: test.p_greater)
+        text = (f"yes: {head}, above α = 0 (exact McNemar p = {tests['α = 0'].p_greater:.3g}) and each of "
+                f"{len(random_tests)} random directions (p ≤ {worst.p_greater:.3g}) on the paired episodes{ceiling}")
         return row | {"answer": "yes", "text": text}
-    why = missing + ([f"its interval overlaps {' and '.join(overlapping)}"]
-                                                            if overlapping else [])
+    why = missing + ([f"not above {' and '.join(failing)} at p < {EVIDENCE_P:g}"] if failing else [])
     return row | {"answer": "no evidence", "text": f"no evidence: {head}; " + "; ".join(why) + ceiling}
 
 
@@ -136,7 +204,7 @@ def write_pair_report(pair_path: Path, thresholds: Thresholds | None = None,
         "episodes_per_cell": max(success(r).n for r in records),
         "tasks": tasks,
         "answers": [side_answer(records, side) for side in tasks],
-        "cells": [cell_row(r) for r in records],
+        "cells": cell_rows(records),
         "plots": plots,
         "videos": {r["cell"]: f"{r['cell']}/{r['episodes'][0]['video']}" for r in records if r["episodes"][0]["video"]},
     }
@@ -153,6 +221,10 @@ def _proportion(entry: dict[str, Any] | None) -> str:
     return "–" if entry is None else Proportion(**entry).text()
 
 
+def _p_value(test: dict[str, Any] | None) -> str:
+    return "–" if test is None else f"{test['p_greater']:.3g}"
+
+
 def pair_markdown(summary: dict[str, Any]) -> str:
     """Return cells.md: the pair's tasks, one row per cell, the plots."""
     lines = [f"# Rollouts of {summary['pair']}, layer {summary['layer']}", ""]
@@ -160,12 +232,14 @@ def pair_markdown(summary: dict[str, Any]) -> str:
               for side, task in summary["tasks"].items()]
     lines += ["", "Success: k/n episodes [Wilson 95%]; the first goal reached ends an episode. α in × R; α toward: "
                   "the push toward the other task. Jerk: RMS third difference of the arm joints (rad/step³).", "",
-              "| side | condition | α | α toward | n | toward | instructed | neither | mean steps | mean jerk | "
-              "joint-limit hits |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "p vs α = 0: the exact McNemar test (one-sided) of the cell's toward-task successes above its side's α = 0 "
+              "cell on the same episodes.", "",
+              "| side | condition | α | α toward | n | toward | p vs α = 0 | instructed | neither | mean steps | "
+              "mean jerk | joint-limit hits |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in summary["cells"]:
         lines.append(f"| {row['side']} | {row['condition']} | {row['alpha']:+g} | {row['alpha_toward']:+g} | "
-                     f"{row['n']} | "
-                     + " | ".join(_proportion(row[o]) for o in OUTCOME_COLUMNS)
+                     f"{row['n']} | {_proportion(row['toward'])} | {_p_value(row['vs_unsteered'])} | "
+                     + " | ".join(_proportion(row[o]) for o in OUTCOME_COLUMNS[1:])
                      + f" | {_number(row['mean_steps'])} | {_number(row['mean_jerk'])} | {row['joint_limit_hits']} |")
     lines += [""] + [f"![{name}]({path})\n" for name, path in summary["plots"].items()]
     return "\n".join(lines) + "\n"
@@ -201,15 +275,20 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     lines += [f"**{summary['note']}**", ""] if summary["note"] else []
     lines += [ANSWER_TEXT + " α in × R (the evaluation's unit), toward the other task.", "",
               "| pair | side | best α toward | steered: toward | random edge | α = 0 | wrong concept | "
-              "instruction swap (ceiling) | answer |", "|---|---|---|---|---|---|---|---|---|"]
+              "instruction swap (ceiling) | cross-fitted steered | p vs α = 0 | p vs random (largest) | answer |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for pair in summary["pairs"]:
         for row in pair["answers"]:
             wrong = ", ".join(f"{name} {_proportion(p)}" for name, p in row.get("wrong_concept", {}).items()) or "–"
             alpha = f"{row['alpha_toward']:+g}" if "alpha_toward" in row else "–"
+            fitted = row.get("crossfit", {})
+            tests = fitted.get("mcnemar", {})
+            randoms = [test for name, test in tests.items() if name.startswith("random")]
             lines.append(f"| [{pair['pair']}]({pair['pair']}/{ROLLOUT_PAIR_TABLE}.md) | {row['side']} | {alpha} | "
                          f"{_proportion(row.get('steered'))} | {_proportion(row.get('random_edge'))} | "
                          f"{_proportion(row.get('unsteered'))} | {wrong} | {_proportion(row['ceiling'])} | "
-                         f"{row['answer']} |")
+                         f"{_proportion(fitted.get('steered'))} | {_p_value(tests.get('α = 0'))} | "
+                         f"{_p_value(max(randoms, key=lambda t: t['p_greater'], default=None))} | {row['answer']} |")
     for pair in summary["pairs"]:
         name = pair["pair"]
         lines += ["", f"## {name}", ""]

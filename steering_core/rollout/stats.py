@@ -1,4 +1,5 @@
-"""Success counts as proportions with Wilson 95% score intervals (the interval recent VLA steering work reports).
+"""Success counts as proportions with Wilson 95% score intervals (the interval recent VLA steering work reports),
+and the exact McNemar test of two cells on the same episodes.
 
 Wilson's interval solves (p̂ − p)² = z² p(1 − p) / n for p: unlike p̂ ± z·√(p̂(1 − p̂)/n) it stays inside [0, 1]
 and does not collapse to a point at 0/n or n/n, which 10-episode cells often give.
@@ -7,6 +8,7 @@ and does not collapse to a point at 0/n or n/n, which 10-episode cells often giv
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 WILSON_Z = 1.959963984540054  # the standard normal's 97.5% quantile: a two-sided 95% interval
@@ -54,6 +56,39 @@ def proportion(k: int, n: int) -> Proportion:
     return Proportion(int(k), int(n), k / n if n else None, low, high)
 
 
-def exceeds(a: Proportion, b: Proportion) -> bool:
-    """Return True when `a`'s interval lies wholly above `b`'s (no overlap): evidence that a's rate is higher."""
-    return a.n > 0 and b.n > 0 and a.low > b.high
+@dataclass(frozen=True)
+class Paired:
+    """Two cells' successes on the same `n` episodes (same initial state and seed): `both` succeeded, `only_a`
+    (a succeeded, b failed), `only_b`, and the exact McNemar p-values of the discordant episodes."""
+
+    n: int
+    both: int
+    only_a: int
+    only_b: int
+    p_greater: float  # one-sided: P(X >= only_a), X ~ Binomial(only_a + only_b, 1/2): evidence a beats b
+    p_two_sided: float
+
+    def to_json(self) -> dict:
+        """Return the JSON-ready dict."""
+        return asdict(self)
+
+
+def _binomial_tail(k: int, n: int) -> float:
+    """Return P(X >= k) for X ~ Binomial(n, 1/2), exactly (integer counts, one division)."""
+    return sum(math.comb(n, i) for i in range(k, n + 1)) / 2**n
+
+
+def mcnemar(a: Sequence[bool], b: Sequence[bool]) -> Paired:
+    """Return the exact McNemar test of paired outcomes `a` and `b` (episode i of each is the same episode).
+
+    Only discordant episodes carry evidence: under "a and b succeed alike" each is a's win with probability
+    1/2, so the one-sided p is the binomial tail of a's wins; the two-sided p doubles the smaller tail (at most 1).
+    """
+    if len(a) != len(b):
+        raise ValueError(f"paired outcomes: {len(a)} and {len(b)} episodes, expected the same episodes in both")
+    only_a = sum(bool(x) and not bool(y) for x, y in zip(a, b))
+    only_b = sum(bool(y) and not bool(x) for x, y in zip(a, b))
+    discordant = only_a + only_b
+    greater, less = _binomial_tail(only_a, discordant), _binomial_tail(only_b, discordant)
+    return Paired(n=len(a), both=sum(bool(x) and bool(y) for x, y in zip(a, b)), only_a=only_a, only_b=only_b,
+                  p_greater=greater, p_two_sided=min(1.0, 2 * min(greater, less)))
