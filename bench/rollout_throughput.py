@@ -13,7 +13,8 @@ against a baseline timed in the same run:
 2. Render-at-replan against render-every-step, for one whole episode (seed, reset, initial state, 10 wait
    steps, then policy steps): `run_episode` against openpi's LIBERO loop (examples/libero/main.py, as
    tests/helpers_rollout.openpi_loop writes it out) on an env rendering every step, with the same policy
-   and image preprocessing; both must execute the same actions.
+   and image preprocessing; both must execute the same actions. Beside it, the cost of the one recorded
+   episode per cell (`record_frames`: rendered every step for a video at the control rate).
 3. The policy called in-process (`LocalPolicy`) against through the policy server (`RemotePolicy` to a
    `PolicyServer` in a thread of this process on 127.0.0.1, same model): per call on one real observation
    (alternated), and for the whole episode of 2 (which must execute the same actions).
@@ -183,12 +184,13 @@ def openpi_episode(env: Any, policy: Any, init_state: np.ndarray, max_steps: int
     return np.array(actions, dtype=np.float32)
 
 
-def our_episode(env: Any, policy: Any, init_state: np.ndarray, max_steps: int) -> Any:
-    """Return `run_episode`'s record of the benchmark episode (cameras rendered for the policy only)."""
+def our_episode(env: Any, policy: Any, init_state: np.ndarray, max_steps: int, record_frames: bool = False) -> Any:
+    """Return `run_episode`'s record of the benchmark episode (cameras rendered for the policy only, or at every
+    step for a recorded episode's video)."""
     from steering_core.rollout.episode import run_episode
 
     return run_episode(env, policy, prompt=INSTRUCTION, init_state=init_state, init_index=INIT_INDEX,
-                       max_steps=max_steps, toward_goal=None)
+                       max_steps=max_steps, toward_goal=None, record_frames=record_frames)
 
 
 def timed_call(fn: Any, *args: Any) -> tuple[Any, float]:
@@ -287,8 +289,8 @@ def measure(args: argparse.Namespace) -> Result:
     observation = first_observation(env, init_state)
     local.infer(observation)  # warm-up
     calls: dict[str, list[float]] = {"local": [], "remote": []}
-    episodes: dict[str, list[float]] = {"ours": [], "every step": [], "ours, remote": []}
-    same_call = same_loop = same_remote = True
+    episodes: dict[str, list[float]] = {"ours": [], "every step": [], "ours, remote": [], "recorded": []}
+    same_call = same_loop = same_remote = same_recorded = True
     steps = calls_per_episode = 0
     with serving_in_thread(PolicyServer(served, catalog, host="127.0.0.1", port=0)) as server, \
             RemotePolicy(f"127.0.0.1:{server.port}", connect_timeout=30) as remote:
@@ -308,6 +310,10 @@ def measure(args: argparse.Namespace) -> Result:
             episodes["ours, remote"].append(seconds)
             same_loop &= np.array_equal(record.actions, actions)
             same_remote &= np.array_equal(record.actions, served_record.actions)
+            recorded, seconds = timed_call(our_episode, env, local, init_state, settings["episode_steps"], True)
+            episodes["recorded"].append(seconds)
+            same_recorded &= np.array_equal(record.actions, recorded.actions)
+            same_recorded &= len(recorded.frames) == recorded.steps + 1
             steps, calls_per_episode = record.steps, record.policy_calls
     env.close()
 
@@ -330,6 +336,9 @@ def measure(args: argparse.Namespace) -> Result:
         {"measure": "2. episode s: render at replan (run_episode) vs every step (openpi loop)",
          "ours": fastest["ours"], "baseline": fastest["every step"], "ratio": fastest["ours"] / fastest["every step"],
          "conditions": f"{steps_label}, reset included; best of {settings['rounds']}"},
+        {"measure": "2. episode s: recorded (every step rendered, one video frame per step) vs render at replan",
+         "ours": fastest["recorded"], "baseline": fastest["ours"], "ratio": fastest["recorded"] / fastest["ours"],
+         "conditions": f"{steps_label}; the first episode of each cell is recorded; best of {settings['rounds']}"},
         {"measure": "3. policy call ms: in process (LocalPolicy) vs server (RemotePolicy)", "ours": med["local"],
          "baseline": med["remote"], "ratio": med["remote"] / med["local"],
          "conditions": f"median of {settings['calls']} alternated calls"},
@@ -360,7 +369,7 @@ def measure(args: argparse.Namespace) -> Result:
         "(MuJoCo on EGL, Mesa software rendering on this machine); run_episode renders "
         f"{calls_per_episode} times in an episode of {steps} policy + 10 wait steps, openpi's loop every step",
         f"same actions executed: run_episode vs openpi's loop {same_loop}, in-process vs served episode "
-        f"{same_remote}, local vs remote calls {same_call}",
+        f"{same_remote}, recorded vs not {same_recorded}, local vs remote calls {same_call}",
         f"scaling 2 workers / 1: {ratio:.2f}x (target >= {SCALING_TARGET}x: {'met' if met else 'missed'}); each "
         "worker runs torch, OpenMP, MKL and llvmpipe on one thread; throughput counts resets and wait steps",
         f"the server shares this process (and its GIL) with the episode loop, on 127.0.0.1; medians of calls "
@@ -378,6 +387,7 @@ def measure(args: argparse.Namespace) -> Result:
         table=table,
         notes=notes,
         checks={"same_actions_openpi_loop": bool(same_loop), "same_actions_served": bool(same_remote),
+                "same_actions_recorded": bool(same_recorded),
                 "same_call_actions": bool(same_call), "episode_steps": steps, "policy_calls": calls_per_episode,
                 "worker_steps": [run["steps"] for run in runs], "other_cores_busy": others},
     ), args)

@@ -75,10 +75,11 @@ class ScriptedPolicy:
         self.events.append(("end", success))
 
 
-def openpi_loop(env, policy, *, prompt, init_state, max_steps, seed=7, wait=10, replan=5):
+def openpi_loop(env, policy, *, prompt, init_state, max_steps, seed=7, wait=10, replan=5, frames=None):
     """Run openpi's examples/libero/main.py episode loop on an env rendering every step; return (done, steps).
 
-    The env is seeded and reset first, as `run_episode` does per episode.
+    The env is seeded and reset first, as `run_episode` does per episode. `frames`, a list, receives the policy's
+    view of the agentview camera after the wait steps and after every step.
     """
     env.seed(seed)
     env.reset()
@@ -89,6 +90,8 @@ def openpi_loop(env, policy, *, prompt, init_state, max_steps, seed=7, wait=10, 
         if t < wait:
             obs, _, done, _ = env.step([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])
             t += 1
+            if t == wait and frames is not None:
+                frames.append(reference_resize_with_pad(np.rot90(obs["agentview_image"], 2), 224))
             continue
         if not plan:
             element = {
@@ -101,6 +104,8 @@ def openpi_loop(env, policy, *, prompt, init_state, max_steps, seed=7, wait=10, 
             }
             plan.extend(policy.infer(element)[:replan])
         obs, _, done, _ = env.step(plan.popleft().tolist())
+        if frames is not None:
+            frames.append(reference_resize_with_pad(np.rot90(obs["agentview_image"], 2), 224))
         if done:
             return True, t - wait + 1
         t += 1

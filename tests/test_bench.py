@@ -200,9 +200,10 @@ def test_rollout_loops_execute_the_same_actions(cache, tmp_path):
     result = run_quick(rollout_throughput, cache, tmp_path)
     checks = result.checks
     assert checks["same_actions_openpi_loop"] and checks["same_actions_served"] and checks["same_call_actions"]
+    assert checks["same_actions_recorded"]  # a recorded episode renders every step and acts the same
     assert (checks["episode_steps"], checks["policy_calls"]) == (rollout_throughput.QUICK["episode_steps"], 2)
     assert checks["worker_steps"] == [20, 40]  # 1 then 2 workers, one episode each of 10 wait + 10 policy steps
-    assert [row["measure"][:2] for row in result.table] == ["1.", "1.", "2.", "3.", "3.", "4.", "4."]
+    assert [row["measure"][:2] for row in result.table] == ["1.", "1.", "2.", "2.", "3.", "3.", "4.", "4."]
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

@@ -52,9 +52,9 @@ def set_joint(env, name, value):
 
 @pytest.mark.slow
 def test_run_episode_matches_openpis_loop_rendering_every_step(env, init_state):
-    naive = ScriptedPolicy(env, calls=3, seed=1)
+    naive, naive_frames = ScriptedPolicy(env, calls=3, seed=1), []
     env.actions.clear()
-    done, steps = openpi_loop(env, naive, prompt=INSTRUCTION, init_state=init_state, max_steps=12)
+    done, steps = openpi_loop(env, naive, prompt=INSTRUCTION, init_state=init_state, max_steps=12, frames=naive_frames)
     naive_actions = list(env.actions)
     assert (done, steps) == (False, 12)
 
@@ -93,8 +93,10 @@ def test_run_episode_matches_openpis_loop_rendering_every_step(env, init_state):
     assert record.policy_calls == 3 and record.prompt == INSTRUCTION and record.init_index == 3
     expected = np.concatenate([chunk[:5] for chunk in scripted.chunks])[:12]
     assert record.actions.dtype == np.float32 and np.array_equal(record.actions, expected)
-    assert len(record.frames) == 3
-    assert all(np.array_equal(a, e["observation/image"]) for a, e in zip(record.frames, scripted.elements))
+    assert len(record.frames) == 13  # after the wait steps, then every step: the video plays at the control rate
+    assert all(np.array_equal(mine, theirs) for mine, theirs in zip(record.frames, naive_frames, strict=True))
+    assert all(np.array_equal(record.frames[5 * i], e["observation/image"]) for i, e in enumerate(scripted.elements))
+    assert len({frame.tobytes() for frame in record.frames}) > 3  # the robot moves between replans too
     assert list(record.joints) == [DRAWER, KNOB] and all(v.shape == (13,) for v in record.joints.values())
     assert record.robot_qpos.shape == (13, 7) and np.isfinite(record.jerk) and record.jerk > 0
     assert scripted.events == [("start", INSTRUCTION, 4), ("end", False)]

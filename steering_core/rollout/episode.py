@@ -11,7 +11,15 @@ import numpy as np
 
 from steering_core.rollout.libero_env import DeferredCameras
 from steering_core.rollout.predicates import Goal, goal_joints, read_joints
-from steering_core.rollout.protocol import DUMMY_ACTION, REPLAN_STEPS, SEED, WAIT_STEPS, policy_observation
+from steering_core.rollout.protocol import (
+    DUMMY_ACTION,
+    REPLAN_STEPS,
+    RESIZE,
+    SEED,
+    WAIT_STEPS,
+    policy_observation,
+    preprocess_image,
+)
 
 ACTION_DIM = 7
 LIMIT_MARGIN = 0.01  # rad: an arm joint this close to its model range limit counts as a hit
@@ -45,7 +53,8 @@ class EpisodeRecord:
     policy_calls: int
     jerk: float  # RMS third difference of robot_qpos (rad / step^3); NaN with fewer than 4 rows
     joint_limit_hits: int  # steps with an arm joint within LIMIT_MARGIN of its range limit
-    frames: list[np.ndarray] = field(default_factory=list)  # policy agentview images (224, 224, 3) at replans
+    # a recorded episode's agentview as the policy sees it (224, 224, 3), after the wait steps and after every step
+    frames: list[np.ndarray] = field(default_factory=list)
     toward_at_start: bool = False  # the watched goal already held after the wait steps (it must break, then hold)
 
 
@@ -98,7 +107,8 @@ def run_episode(
     env's `done`) and `toward_goal` are checked; the first that holds ends the episode, else `max_steps` does. A
     toward goal that already holds after the wait steps (the other task's start is this one's goal: a drawer the
     instruction closes starts open) counts only once it has stopped holding and holds again: doing nothing is not
-    reaching it. Cameras render only for the observations the policy sees.
+    reaching it. Cameras render only for the observations the policy sees, and at every step of an episode whose
+    frames are recorded (`record_frames`: its video plays at the control rate).
     """
     if toward_goal is not None:
         toward_goal.check(env)  # before any step: a scene without the goal's objects is a configuration error
@@ -122,19 +132,23 @@ def run_episode(
     joint_rows = [read_joints(env, joints)]
     qpos_rows = [env.env.sim.data.qpos[arm_addresses].copy()]
     actions, frames = [], []
+    images = cameras.take(obs) if record_frames else None  # a recorded episode renders every step
+    if record_frames:
+        frames.append(preprocess_image(images[0], RESIZE))
     plan: collections.deque = collections.deque()
     policy_calls, steps, success_step, toward_step = 0, 0, None, None
     while steps < max_steps:
         if not plan:
-            element = policy_observation(cameras.take(obs), obs, prompt)
+            element = policy_observation(images if record_frames else cameras.take(obs), obs, prompt)
             plan.extend(_chunk(policy.infer(element), replan_steps))
             policy_calls += 1
-            if record_frames:
-                frames.append(element["observation/image"])
         action = plan.popleft()
-        if not plan and steps + 1 < max_steps:
-            cameras.arm()  # the next step's observation feeds the next policy call
+        if record_frames or (not plan and steps + 1 < max_steps):
+            cameras.arm()  # the next step's observation feeds the next policy call (or the video)
         obs, _, done, _ = env.step(action.tolist())
+        if record_frames:
+            images = cameras.take(obs)
+            frames.append(preprocess_image(images[0], RESIZE))
         steps += 1
         actions.append(action)
         joint_rows.append(read_joints(env, joints))

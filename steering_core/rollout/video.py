@@ -14,8 +14,8 @@ import numpy as np
 
 from steering_core.storage.fileio import atomic_path
 
-# frames come at the policy's replan steps (every 5th step of LIBERO's 20 Hz control, so 4 Hz): 8 fps is 2x real time
-DEFAULT_FPS = 8
+# a recorded episode has a frame per step of LIBERO's 20 Hz control: 20 fps plays it in real time
+DEFAULT_FPS = 20
 _CODECS = ("libx264", "mpeg4")
 
 
