@@ -132,6 +132,14 @@ def seed_flops(arch: Pi05Arch, passes: int) -> float:
     return passes * (prefix + DENOISE_STEPS * expert_step_flops(arch, tokens))
 
 
+def sample_flops(arch: Pi05Arch, prompt_tokens: int) -> float:
+    """Return per-row FLOPs of our `sample_actions`: two cameras, trimmed language, every layer, 10 expert steps."""
+    from bench.seed_pi05 import DENOISE_STEPS
+
+    tokens = LIBERO_CAMERAS * arch.tokens_per_image + prompt_tokens
+    return ours_flops(arch, arch.depth - 1, prompt_tokens) + DENOISE_STEPS * expert_step_flops(arch, tokens)
+
+
 def h100_frames_per_second(flops_per_frame: float) -> float:
     """Return frames/s at MFU of the H100's dense bf16 peak for a per-frame FLOP count."""
     return MFU * H100_BF16_DENSE_TFLOPS * 1e12 / flops_per_frame

@@ -25,6 +25,7 @@ BENCHMARKS = (
     "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
     "cli_startup",
     "serve_latency",
+    "serve_throughput",
     "evaluate_cost",
     "rollout_throughput",
     "sae_training",

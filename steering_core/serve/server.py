@@ -308,11 +308,13 @@ class PolicyServer:
 
     async def _batches(self) -> None:
         """Run the waiting requests, one policy call at a time: each call takes the oldest waiting requests (up to
-        `max_batch` rows, at least one request), once `batch_wait_ms` has passed since the oldest arrived or the
-        rows are full."""
+        `max_batch` rows, at least one request), once `batch_wait_ms` has passed since the oldest arrived, the rows
+        are full, or every open connection has a request waiting (a connection sends its next one only after its
+        reply, so no other could join: a lone client never waits)."""
         while True:
             await self._arrived.wait()
-            while self._waiting and sum(p.rows for p in self._waiting) < self.max_batch:
+            while (self._waiting and sum(p.rows for p in self._waiting) < self.max_batch
+                   and len(self._waiting) < len(self._connections)):
                 left = self._waiting[0].queued + self.batch_wait_ms / 1000 - time.monotonic()
                 if left <= 0:
                     break
