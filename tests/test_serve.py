@@ -331,6 +331,55 @@ def test_ten_concurrent_clients_twenty_requests_each(catalog, observations, tmp_
     assert policy.calls == 200 and policy.max_concurrent == 1  # one inference at a time
 
 
+class BatchingFakePolicy(FakePolicy):
+    """FakePolicy answering several requests per call (`infer_batch`), recording each call's requests; a prompt
+    "explode" passes the request checks but fails the policy, in a batch or alone."""
+
+    def __init__(self) -> None:
+        super().__init__(delay_s=0.01)
+        self.batches: list[int] = []
+
+    def infer(self, observation: dict, steering) -> dict:
+        if observation["prompt"] == "explode":
+            raise RuntimeError("the policy failed on this observation")
+        return super().infer(observation, steering)
+
+    def infer_batch(self, observations: list[dict], steering: list) -> list[dict]:
+        self.batches.append(len(observations))
+        if any(observation["prompt"] == "explode" for observation in observations):
+            raise RuntimeError("the policy failed on one observation of the batch")
+        return [super(BatchingFakePolicy, self).infer(o, s) for o, s in zip(observations, steering, strict=True)]
+
+
+def test_eight_batched_clients_a_failing_request_fails_alone(catalog, observations, tmp_path):
+    """Requests of eight clients share calls; a malformed request is refused before any call, and one that fails
+    inside a shared call fails alone: the call is run again request by request, every other reply exact."""
+    def request(client: int, i: int) -> dict:
+        obs = observations[(client + i) % len(observations)]
+        if (client, i) == (3, 2):
+            return obs | {"prompt": "explode"}
+        if (client, i) == (5, 1):
+            return obs | {"observation/state": np.array([np.nan])}
+        return obs | {"steering": {"pair": "open_vs_close", "layer": 1 + i % 2, "alpha": client + i / 10}}
+
+    clients = [[{"obs": request(c, i)} for i in range(6)] for c in range(8)]
+    policy = BatchingFakePolicy()
+    with running(PolicyServer(policy, catalog)) as server:
+        results = run_openpi_client(tmp_path, server.port, clients)
+    for c, client in enumerate(results):
+        for i, result in enumerate(client["results"]):
+            if (c, i) == (3, 2):
+                assert "inference failed (the server keeps serving): RuntimeError: the policy failed on this " \
+                       "observation" in result["error"]
+            elif (c, i) == (5, 1):
+                assert "bad request: observation/state: the state is not finite" in result["error"]
+            else:
+                obs = observations[(c + i) % len(observations)]
+                want = expected(catalog, obs, ("open_vs_close", 1 + i % 2, c + i / 10))
+                assert result["reply"]["actions"].tobytes() == want.tobytes(), (c, i)
+    assert max(policy.batches) > 1 and policy.max_concurrent == 1  # calls were shared, one at a time
+
+
 # ---------------------------------------------------------------- episodes and api key (openpi's current client)
 
 def start(experiment: str, episode_id: int, task: str = "open the top drawer of the cabinet") -> dict:
