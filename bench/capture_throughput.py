@@ -49,7 +49,7 @@ ARCH = Pi05Arch(
 )
 FRAMES = 8  # one synthetic LIBERO demo of 8 steps (256 x 256 cameras, as physical-intelligence/libero)
 BATCH_SIZE = 4  # the seed used 128 on a GPU; equal for both sides is what matters
-NUM_WORKERS = 2  # capture's default DataLoader workers; the seed's loader gets the same
+NUM_WORKERS = 2  # DataLoader workers on both sides (capture passes it; its own default depends on the cores)
 LAYER_SETS = ((12,), (4, 8, 12))  # the seed's single SAE layer, then several layers at once
 ROUNDS = 2  # alternating ours/seed rounds, best kept
 TARGET = 2.5  # ours / seed frames/s, layer 12

@@ -30,6 +30,7 @@ BENCHMARKS = (
     "rollout_throughput",
     "sae_training",
     "slicing_remote",
+    "capture_input",
 )
 OPT_IN = ("real_size", "policy_real_size")  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"

@@ -23,6 +23,7 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
     sys.path.insert(0, str(REPO_ROOT))
 
 from bench import (  # noqa: E402
+    capture_input,
     capture_throughput,
     cli_startup,
     concept_map_speed,
@@ -85,6 +86,30 @@ def test_capture_baseline_captures_the_same_rows(cache, tmp_path, refresh_run):
     cases = [row["case"] for row in result.table]
     assert cases == ["measured cpu, layer 2", "measured cpu, layers 1,2 (seed: 2 x its measured pass)",
                      "real pi0.5, layer 12 (analytic)", "real pi0.5, layers 4,8,12 (analytic)"]
+
+
+@pytest.mark.slow
+def test_capture_input_measures_every_loader_against_the_model(cache, tmp_path):
+    result = run_quick(capture_input, cache, tmp_path)
+    cases = [row["case"].split(" (")[0] for row in result.table]
+    assert cases == ["old: decode + resize in 1 worker", "decode, 1 worker", "decode, 2 workers",
+                     "decode + slots on cpu, default", "projected: 16-core machine, default 8 workers", "model"]
+    rates = {case: row["frames/s"] for case, row in zip(cases, result.table)}
+    efficiency = rates["decode, 2 workers"] / (2 * rates["decode, 1 worker"])
+    assert result.checks["efficiency"] == pytest.approx(efficiency)
+    assert rates["projected: 16-core machine, default 8 workers"] == pytest.approx(rates["decode, 1 worker"] * 8 * efficiency)
+    assert result.ratio == pytest.approx(rates["projected: 16-core machine, default 8 workers"] / rates["model"])
+
+
+def test_capture_input_reads_the_model_rate_of_a_gpu_check(tmp_path):
+    check = tmp_path / "gpu_check.json"
+    check.write_text(json.dumps({"capture": {"frames_per_s": {"layer 12": 238.0, "layers 4,8,12": 201.5}}}))
+    assert capture_input.gpu_check_fps(check) == 238.0  # the fastest the model takes frames
+    check.write_text(json.dumps({"capture": {"frames_per_s": 240}}))
+    assert capture_input.gpu_check_fps(check) == 240.0
+    check.write_text(json.dumps({"serve": {}}))
+    with pytest.raises(ValueError, match="gpu_check.json: no `capture.frames_per_s`"):
+        capture_input.gpu_check_fps(check)
 
 
 @pytest.mark.slow
