@@ -196,7 +196,7 @@ def measure(args: argparse.Namespace) -> Result:
     notes.append(f"every client's reply equals its request answered alone, within float32 rounding: {same}")
     return finish(Result(
         name="serve_throughput",
-        title="15. Policy server under concurrent clients (dynamic batching), and the study it serves",
+        title="16. Policy server under concurrent clients (dynamic batching), and the study it serves",
         command=command("serve_throughput", args),
         measured=f"{rates['tiny', top, 'on']:.1f} calls/s batched",
         baseline=f"{rates['tiny', top, 'off']:.1f} calls/s one request per call",
