@@ -56,7 +56,7 @@ from bench.common import (
     timed,
 )
 from bench.real_size import checkpoint_folder
-from steering_core.devices import resolve_device
+from steering_core.devices import resolve_device, resolve_dtype
 from steering_core.pi05 import Pi05Arch, Pi05Policy, Steering
 from steering_core.pi05.steering import Splice
 from steering_core.synthetic.pi05 import tiny_arch
@@ -156,8 +156,6 @@ class Context:
     @property
     def dtype(self) -> torch.dtype:
         """Return the policy's compute dtype on this device (as `from_checkpoint` picks it)."""
-        from steering_core.devices import resolve_dtype
-
         return resolve_dtype(None, self.device)
 
     def write_checkpoint(self) -> None:
@@ -249,7 +247,7 @@ def instruction_mask(batch: int) -> torch.Tensor:
     return mask
 
 
-def unit_vector(width: int, seed: int) -> torch.Tensor:
+def random_vector(width: int, seed: int) -> torch.Tensor:
     """Return a random (width,) float32 CPU vector of norm VECTOR_NORM."""
     vector = torch.randn(width, generator=torch.Generator().manual_seed(seed))
     return vector / vector.norm() * VECTOR_NORM
@@ -327,16 +325,15 @@ def policy_latency(policy: Pi05Policy, batches: tuple[int, ...], repeats: int, l
     device = policy.device
     arch = policy.arch
     wall: dict[int, float] = {}
+    calls: dict[int, Callable[[], torch.Tensor]] = {}
     for batch in batches:
-        inputs = frames(arch, batch, device)
-        start = noise(policy, batch)
-        wall[batch] = median(repeat_timed(lambda: policy.sample_actions(*inputs, noise=start, num_steps=STEPS),
-                                          device, warmup=1, repeats=repeats))
+        inputs, start = frames(arch, batch, device), noise(policy, batch)
+        calls[batch] = lambda inputs=inputs, start=start: policy.sample_actions(*inputs, noise=start, num_steps=STEPS)
+        wall[batch] = median(repeat_timed(calls[batch], device, warmup=1, repeats=repeats))
         section.measure(f"sample_actions ms, batch {batch} ({label})", wall[batch] * 1e3,
                         f"batch {batches[0]} x {batch}: {wall[batches[0]] * batch * 1e3:.4g} ms",
                         wall[batch] / (wall[batches[0]] * batch))
-    kernel = kernel_seconds(lambda: policy.sample_actions(*frames(arch, 1, device), noise=noise(policy, 1),
-                                                          num_steps=STEPS), device)
+    kernel = kernel_seconds(calls[batches[0]], device)
     if kernel is None:
         section.measure(f"GPU kernel ms, batch 1 ({label})", "n/a (CPU)", f"wall {wall[batches[0]] * 1e3:.4g} ms")
     else:
@@ -378,7 +375,7 @@ def sweep(ctx: Context) -> Section:
     policy, _ = ctx.policy()
     inputs = frames(policy.arch, 1, ctx.device)
     start = noise(policy, 1)
-    vector = unit_vector(policy.arch.width, 1)
+    vector = random_vector(policy.arch.width, 1)
     entries = [Steering(ctx.sizes.layer, vector, alpha) for alpha in SWEEP_ALPHAS]
 
     def swept() -> torch.Tensor:
@@ -417,9 +414,9 @@ def precision_outputs(policy: Pi05Policy, sae_dir: Path, batch: int) -> dict[str
     rows = decision_rows(policy, *inputs, start, [expert_layer], STEPS)[expert_layer]
     return {
         "unsteered actions": actions(),
-        "LM-steered actions": actions(steering=Steering(layer, unit_vector(arch.width, 1), LM_ALPHA,
+        "LM-steered actions": actions(steering=Steering(layer, random_vector(arch.width, 1), LM_ALPHA,
                                                         prefix_mask=every_position)),
-        "expert-steered actions": actions(steering=Steering(expert_layer, unit_vector(policy.expert_arch.width, 2),
+        "expert-steered actions": actions(steering=Steering(expert_layer, random_vector(policy.expert_arch.width, 2),
                                                             1.0, stream="expert")),
         "SAE-spliced actions": actions(splice=Splice(layer, lambda x: sae.reconstruct(x)[0], token_mask=mask)),
         "decision rows": rows.float().cpu(),
