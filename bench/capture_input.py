@@ -8,8 +8,8 @@ the device-side slots with capture's default workers, and, as the baseline of th
 resized in the workers. Each loader is timed in steady state: its start-up (forkserver, imports) and the batches
 its workers queued meanwhile are left out; the loaders take turns over a few rounds and each keeps its best.
 
-The model's frames/s is --model-fps, or the `capture.frames_per_s` of a GPU check JSON (--gpu-check, written by
-bench.gpu_check; a mapping of figures counts its largest), or else measured here: `selected_residuals` at
+The model's frames/s is --model-fps, or capture's fastest batch in a GPU check JSON (--gpu-check, written by
+bench.gpu_check: `checks.figures.capture_frames_per_s`), or else measured here: `selected_residuals` at
 layer 12 of bench.capture_throughput's mid-size model. The headline is a 16-core GPU machine's loader, derived
 from this machine: the 1-worker decode rate x the workers capture's default starts on 16 cores
 (`frame_workers`) x the scaling efficiency measured from 1 to 2 workers (rate(2) / (2 x rate(1))), applied
@@ -21,7 +21,6 @@ once; the slots are then a GPU kernel on the main process, which the default lea
 from __future__ import annotations
 
 import functools
-import json
 import os
 import time
 from collections.abc import Iterable
@@ -122,14 +121,13 @@ def loader_rates(inputs: Inputs, image_size: int, batch_size: int, device: torch
 
 
 def gpu_check_fps(path: Path) -> float:
-    """Return the model's frames/s in a GPU check JSON: `capture.frames_per_s`, a number or a mapping (largest)."""
-    try:
-        figure = json.loads(path.read_text(encoding="utf-8"))["capture"]["frames_per_s"]
-    except (KeyError, TypeError):
-        raise ValueError(f"{path}: no `capture.frames_per_s`; expected the JSON bench.gpu_check writes") from None
+    """Return the model's frames/s in a GPU check JSON: capture's fastest batch (`checks.figures`)."""
+    from bench.gpu_check import read_figures
+
+    figure = read_figures(path, "capture_frames_per_s")["capture_frames_per_s"]
     values = list(figure.values()) if isinstance(figure, dict) else [figure]
     if not values or not all(isinstance(v, int | float) and v > 0 for v in values):
-        raise ValueError(f"{path}: `capture.frames_per_s` is {figure!r}, expected positive frames/s (or a mapping of them)")
+        raise ValueError(f"{path}: capture_frames_per_s is {figure!r}, expected positive frames/s per batch size")
     return float(max(values))
 
 

@@ -33,6 +33,7 @@ import contextlib
 import dataclasses
 import gc
 import importlib.util
+import json
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -136,6 +137,7 @@ class Section:
     measures: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     comparisons: list[Comparison] = dataclasses.field(default_factory=list)
     notes: list[str] = dataclasses.field(default_factory=list)
+    figures: dict[str, Any] = dataclasses.field(default_factory=dict)  # what other benchmarks read (`checks.figures`)
 
     def measure(self, measure: str, value: Any, against: str = "", ratio: float | str = "") -> None:
         self.measures.append({"measure": measure, "value": value, "against": against, "ratio": ratio})
@@ -267,6 +269,7 @@ def peak(ctx: Context) -> Section:
     section = Section()
     n = ctx.sizes.matmul
     section.measure(f"{str(ctx.dtype).removeprefix('torch.')} matmul {n}^3 TFLOP/s", ctx.peak_flops() / 1e12)
+    section.figures["peak_tflops"] = ctx.peak_flops() / 1e12
     return section
 
 
@@ -301,6 +304,7 @@ def capture(ctx: Context) -> Section:
         ours_s = median(repeat_timed(ours, device, warmup=1, repeats=ctx.sizes.repeats))
         seed_s = median(repeat_timed(seed, device, warmup=1, repeats=ctx.sizes.repeats))
         ours_fps, seed_fps = batch / ours_s, batch / seed_s
+        section.figures.setdefault("capture_frames_per_s", {})[str(batch)] = ours_fps
         section.measure(f"ours frames/s, layer {layer}, batch {batch}", ours_fps,
                         f"seed {seed_fps:.3g} frames/s", ours_fps / seed_fps)
         section.measure(f"ours TFLOP/s (MFU), batch {batch}", ours_fps * ours_flops / 1e12,
@@ -330,6 +334,7 @@ def policy_latency(policy: Pi05Policy, batches: tuple[int, ...], repeats: int, l
         inputs, start = frames(arch, batch, device), noise(policy, batch)
         calls[batch] = lambda inputs=inputs, start=start: policy.sample_actions(*inputs, noise=start, num_steps=STEPS)
         wall[batch] = median(repeat_timed(calls[batch], device, warmup=1, repeats=repeats))
+        section.figures.setdefault("sample_actions_ms", {})[str(batch)] = wall[batch] * 1e3
         section.measure(f"sample_actions ms, batch {batch} ({label})", wall[batch] * 1e3,
                         f"batch {batches[0]} x {batch}: {wall[batches[0]] * batch * 1e3:.4g} ms",
                         wall[batch] / (wall[batches[0]] * batch))
@@ -634,6 +639,7 @@ def run(args: argparse.Namespace) -> Result:
         ctx.write_checkpoint()
     table: list[dict[str, Any]] = []
     sections: dict[str, Any] = {}
+    figures: dict[str, Any] = {}
     notes: list[str] = []
     comparisons: list[Comparison] = []
     for index, name in enumerate(selected):
@@ -654,6 +660,7 @@ def run(args: argparse.Namespace) -> Result:
                           "comparisons": [c.to_json() for c in section.comparisons]}
         comparisons += section.comparisons
         notes += section.notes
+        figures |= section.figures
     passed = sum(c.passed for c in comparisons)
     failed = [c.case + f" ({c.metric})" for c in comparisons if not c.passed]
     info = machine()
@@ -670,8 +677,18 @@ def run(args: argparse.Namespace) -> Result:
         table=table,
         notes=[f"device {ctx.device}, policy dtype {str(ctx.dtype).removeprefix('torch.')}", *notes,
                *(f"FAILED: {case}" for case in failed)],
-        checks={"passed": not failed, "failed": failed, "sections": sections, "machine": info},
+        checks={"passed": not failed, "failed": failed, "sections": sections, "figures": figures, "machine": info},
     )
+
+
+def read_figures(path: Path, *names: str) -> dict[str, Any]:
+    """Return the named figures (`checks.figures`) of a GPU check JSON; one ValueError names any that is missing."""
+    try:
+        figures = json.loads(path.read_text(encoding="utf-8"))["checks"]["figures"]
+        return {name: figures[name] for name in names}
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{path}: no figures {list(names)} under checks.figures ({type(err).__name__}: {err}); "
+                         "expected the JSON `python -m bench.gpu_check` writes") from None
 
 
 def main(argv: list[str] | None = None) -> Result:

@@ -21,7 +21,6 @@ modelled time of a closed-loop study on one GPU machine.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import threading
 import time
@@ -119,14 +118,11 @@ def gpu_inputs(path: Path | None) -> dict[str, Any]:
     """Return the model's GPU inputs: the H200 defaults, or the peak and batch-1 latency of a GPU check JSON."""
     if path is None:
         return dict(H200)
-    report = json.loads(path.read_text(encoding="utf-8"))
-    try:
-        peak = float(report["peak"]["tflops"])
-        batch1 = float(next(row["ms"] for row in report["sample_actions"]["batches"] if row["batch"] == 1))
-    except (KeyError, StopIteration, TypeError, ValueError) as err:
-        raise SystemExit(f"{path}: expected a bench.gpu_check JSON with peak.tflops and sample_actions.batches "
-                         f"[{{batch, ms}}] ({type(err).__name__}: {err})") from None
-    return {"peak_tflops": peak, "batch1_ms": batch1, "source": f"{path} ({report.get('device', 'GPU')})"}
+    from bench.gpu_check import read_figures
+
+    figures = read_figures(path, "peak_tflops", "sample_actions_ms")
+    return {"peak_tflops": float(figures["peak_tflops"]), "batch1_ms": float(figures["sample_actions_ms"]["1"]),
+            "source": f"GPU check {path}"}
 
 
 def grid_model(gpu: dict[str, Any]) -> list[dict[str, Any]]:

@@ -101,14 +101,16 @@ def test_capture_input_measures_every_loader_against_the_model(cache, tmp_path):
     assert result.ratio == pytest.approx(rates["projected: 16-core machine, default 8 workers"] / rates["model"])
 
 
-def test_capture_input_reads_the_model_rate_of_a_gpu_check(tmp_path):
+def test_capture_input_and_the_study_model_read_a_gpu_checks_figures(tmp_path):
     check = tmp_path / "gpu_check.json"
-    check.write_text(json.dumps({"capture": {"frames_per_s": {"layer 12": 238.0, "layers 4,8,12": 201.5}}}))
-    assert capture_input.gpu_check_fps(check) == 238.0  # the fastest the model takes frames
-    check.write_text(json.dumps({"capture": {"frames_per_s": 240}}))
-    assert capture_input.gpu_check_fps(check) == 240.0
-    check.write_text(json.dumps({"serve": {}}))
-    with pytest.raises(ValueError, match="gpu_check.json: no `capture.frames_per_s`"):
+    figures = {"peak_tflops": 790.0, "capture_frames_per_s": {"32": 240.0, "128": 236.0},
+               "sample_actions_ms": {"1": 38.0, "4": 41.0}}
+    check.write_text(json.dumps({"checks": {"figures": figures}}))
+    assert capture_input.gpu_check_fps(check) == 240.0  # the fastest batch
+    model = serve_throughput.gpu_inputs(check)
+    assert (model["peak_tflops"], model["batch1_ms"]) == (790.0, 38.0)
+    check.write_text(json.dumps({"checks": {"figures": {"peak_tflops": 790.0}}}))
+    with pytest.raises(ValueError, match=r"gpu_check.json: no figures \['capture_frames_per_s'\] under checks.figures"):
         capture_input.gpu_check_fps(check)
 
 

@@ -19,7 +19,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repository root, not an installed package
     sys.path.insert(0, str(REPO_ROOT))
 
-from bench import gpu_check  # noqa: E402
+from bench import capture_input, gpu_check, serve_throughput  # noqa: E402
 from bench.common import Result  # noqa: E402
 
 SECTIONS = ["peak", "capture", "latency", "sweep", "server", "precision", "sae"]
@@ -61,6 +61,10 @@ def test_quick_check_runs_every_section_and_every_comparison_passes(tmp_path):
                        "GPU kernel ms, batch 1 (as from_checkpoint builds it)"]
     assert sections["latency"]["measures"][-1]["value"] == "n/a (CPU)"
     assert [row["measure"].split(" SAE")[0] for row in sections["sae"]["measures"][:2]] == ["standard", "topk"]
+    figures = payload["checks"]["figures"]  # what the capture-input and server benchmarks read
+    assert set(figures["sample_actions_ms"]) == {"1", "4"} and figures["peak_tflops"] > 0
+    assert capture_input.gpu_check_fps(output) == max(figures["capture_frames_per_s"].values())
+    assert serve_throughput.gpu_inputs(output)["batch1_ms"] == figures["sample_actions_ms"]["1"]
 
 
 @pytest.mark.slow
