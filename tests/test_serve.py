@@ -449,6 +449,21 @@ def test_episode_control_messages_are_acknowledged_recorded_logged_and_written(c
     assert any("episode_end from 127.0.0.1:" in m and "without episode_start" in m for m in caplog.messages)
 
 
+def test_the_episodes_file_rotates_at_its_bound(tmp_path, monkeypatch):
+    from steering_core.serve import episodes
+
+    monkeypatch.setattr(episodes, "MAX_EPISODES_FILE_BYTES", 2000)
+    path = tmp_path / "episodes.jsonl"
+    log = EpisodeLog(path)
+    for index in range(40):
+        log.add(episodes.Episode("127.0.0.1:1", "exp", "a task", index, 0.0, 3, True, 1.0, "episode_end"))
+    rotated = tmp_path / "episodes.jsonl.1"
+    assert path.stat().st_size <= 2000 and rotated.stat().st_size <= 2000  # disk use under twice the bound
+    ids = [json.loads(line)["episode_id"] for f in (rotated, path) for line in f.read_text().splitlines()]
+    assert ids == list(range(40 - len(ids), 40)) and len(ids) > 10  # the newest episodes, in order
+    assert len(log.records) == 40
+
+
 def test_api_key_refuses_the_upgrade_with_401_and_leaves_healthz_open(catalog, observations, tmp_path, caplog):
     key = "k3y-0f-th1s-server"
     with running(PolicyServer(FakePolicy(), catalog, api_key=key)) as server:
