@@ -49,6 +49,7 @@ from steering_core.capture.shards import (
     write_shard,
 )
 from steering_core.data.dataset import DatasetMeta, read_meta
+from steering_core.data.image_cells import check_image_cells
 from steering_core.devices import resolve_device
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
 from steering_core.remote.locks import group_locks
@@ -124,6 +125,7 @@ def capture(
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
     if max_frames is not None:
         groups = _first_groups(groups, {e.episode_index: e.length for e in meta.episodes}, max_frames)
+    check_image_cells(meta, [e for members in groups.values() for e in members])  # before the run folder exists
     spec = run_spec(meta, repo_id, inputs, settings)
     check_run_spec(run_dir, spec)
 

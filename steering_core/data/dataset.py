@@ -12,10 +12,11 @@ from __future__ import annotations
 import difflib
 import logging
 import os
+import string
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,9 @@ _EPISODE_COLUMNS = (
 )
 _FRAME_DTYPES = ("image", "video")  # features stored as encoded frames, never read here
 _CLOSEST_TASKS = 5
+# info.json's path templates and the fields lerobot formats into them (v3.0 files and chunks, v2.x episodes)
+PATH_TEMPLATES = ("data_path", "video_path")
+TEMPLATE_FIELDS = frozenset({"chunk_index", "file_index", "episode_chunk", "episode_index", "video_key"})
 
 
 @dataclass(frozen=True)
@@ -166,7 +170,28 @@ def read_info(root: str | os.PathLike) -> dict[str, Any]:
     missing = [key for key in required if key not in info]
     if missing:
         raise ValueError(f"{info_path}: missing field(s) {missing}; the dataset is incomplete, re-create it")
+    templates = {key: info[key] for key in PATH_TEMPLATES if key in info and (key == "data_path" or info[key])}
+    problems = [problem for key, template in templates.items() if (problem := _template_problem(key, template))]
+    if problems:
+        raise ValueError(f"{info_path}: " + "; ".join(problems))
     return info
+
+
+def _template_problem(key: str, template: Any) -> str | None:
+    """Return the problem of a path template that could name a file outside the dataset, else None: it must be a
+    relative path without `..`, formatting only lerobot's fields (no attribute or index access)."""
+    if not isinstance(template, str):
+        return f"`{key}` is {type(template).__name__}, expected a path template string"
+    try:
+        fields = [field for _, field, _, _ in string.Formatter().parse(template) if field is not None]
+    except ValueError as err:
+        return f"`{key}` {template!r} is not a format string ({err})"
+    unknown = sorted({field for field in fields if field not in TEMPLATE_FIELDS})
+    if unknown:
+        return f"`{key}` {template!r} formats fields {unknown}; expected only {sorted(TEMPLATE_FIELDS)}"
+    if template.startswith("/") or ".." in PurePosixPath(template).parts or "\\" in template:
+        return f"`{key}` {template!r} names a path outside the dataset; expected a relative path inside its folder"
+    return None
 
 
 def read_tasks(root: str | os.PathLike) -> dict[int, str]:

@@ -65,6 +65,11 @@ DEMO_SCHEMA: dict[str, tuple[str, tuple[int | None, ...]]] = {
     "dones": ("flag", ()),
 }
 _KIND_TEXT = {"image": "uint8", "float": "float", "flag": "uint8"}
+# Bounds on declared shapes, checked before any data is read: a small file may declare a huge dataset. LIBERO's
+# demos run at most a few hundred steps at 128-256 px; its flattened MuJoCo state has about a hundred values.
+MAX_DEMO_STEPS = 100_000
+MAX_IMAGE_SIDE = 4096
+MAX_STATE_WIDTH = 10_000
 
 InstructionSource = Literal["problem_info", "bddl", "filename"]
 _BDDL_LANGUAGE = re.compile(r"\(:language\s+([^()]*?)\s*\)", re.DOTALL)
@@ -223,6 +228,9 @@ def _open_hdf5(path: Path) -> Iterator[h5py.File]:
 def _open_validated(path: Path) -> Iterator[tuple[h5py.File, LiberoFileInfo]]:
     with _open_hdf5(path) as handle:
         problems: list[str] = []
+        link = _link_problem(handle, DATA_GROUP, DATA_GROUP)
+        if link:
+            raise ValueError(_report(path, [link]))
         if DATA_GROUP not in handle or not isinstance(handle[DATA_GROUP], h5py.Group):
             raise ValueError(_report(path, [f"no `{DATA_GROUP}` group (found top-level keys {sorted(handle)})"]))
         data = handle[DATA_GROUP]
@@ -233,7 +241,8 @@ def _open_validated(path: Path) -> Iterator[tuple[h5py.File, LiberoFileInfo]]:
             problems.append(f"`data` has no demo_<k> groups (found {_preview(sorted(data))})")
         lengths: dict[str, int] = {}
         for key in demo_keys:
-            length, demo_problems = _check_demo(data[key], key)
+            link = _link_problem(data, key, f"data/{key}")
+            length, demo_problems = (0, [link]) if link else _check_demo(data[key], key)
             problems += demo_problems
             lengths[key] = length
         if problems:
@@ -249,6 +258,10 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
     first_dims: dict[str, int] = {}
     for name, (kind, trailing) in DEMO_SCHEMA.items():
         where = f"data/{key}/{name}"
+        link = _link_problem(group, name, where)
+        if link:
+            problems.append(link)
+            continue
         item = group.get(name)
         if item is None:
             problems.append(f"{where} is missing")
@@ -260,6 +273,10 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
         shape_ok = len(shape) == 1 + len(trailing) and all(
             (want is None and got > 0) or got == want for got, want in zip(shape[1:], trailing)
         )
+        too_large = _shape_bound_problem(kind, shape, where)
+        if too_large:
+            problems.append(too_large)
+            continue
         if not shape_ok or not _dtype_ok(kind, dtype):
             problems.append(f"{where} is {shape} {dtype}, expected {_shape_text(trailing)} {_KIND_TEXT[kind]}")
         elif kind == "float":  # states, actions and the like: small next to the images, read whole
@@ -279,6 +296,33 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
         found = int(np.asarray(num_samples))
         problems.append(f"data/{key} attribute num_samples is {found}, expected {steps} (the datasets' T)")
     return steps, problems
+
+
+def _link_problem(parent: h5py.Group, name: str, where: str) -> str | None:
+    """Return the problem of `name` (or a group on its path) being a soft or external link (a loop, or a file
+    elsewhere), else None: a LIBERO demo file holds its own data."""
+    parts = name.split("/")
+    for depth in range(1, len(parts) + 1):
+        step = "/".join(parts[:depth])
+        try:
+            link = parent.get(step, getlink=True)
+        except (KeyError, RuntimeError, OSError) as err:  # h5py's errors resolving a broken path
+            return f"{where}: cannot be resolved ({err}), expected the data itself"
+        if isinstance(link, h5py.SoftLink):
+            return f"{where} goes through a soft link to {link.path!r}, expected the data itself"
+        if isinstance(link, h5py.ExternalLink):
+            return f"{where} goes through an external link to {link.filename}:{link.path}, expected the data itself"
+        if link is None:
+            return None
+    return None
+
+
+def _shape_bound_problem(kind: str, shape: tuple[int, ...], where: str) -> str | None:
+    """Return the problem of a declared shape beyond the bounds (steps, image side, state width), else None."""
+    bounds = [("steps", MAX_DEMO_STEPS)] + {"image": [("height", MAX_IMAGE_SIDE), ("width", MAX_IMAGE_SIDE)],
+                                           "float": [("width", MAX_STATE_WIDTH)]}.get(kind, [])
+    over = [f"{name} {size} > {bound}" for (name, bound), size in zip(bounds, shape) if size > bound]
+    return f"{where} declares shape {shape}: {', '.join(over)}; not a LIBERO demo" if over else None
 
 
 def _finite_problems(item: h5py.Dataset, key: str, name: str) -> list[str]:

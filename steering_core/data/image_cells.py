@@ -1,0 +1,50 @@
+"""Image cells of a LeRobot data parquet must carry their PNG bytes.
+
+lerobot decodes an image feature with HF datasets' `Image`, which opens the file a cell's `path` names when its
+`bytes` are empty: a dataset could make a run read any file on the machine. lerobot itself always embeds the bytes
+(`finalize`), so a cell without them is refused before any frame is read. Reads parquet statistics (the null count
+of `<key>.bytes` per row group) where the writer kept them, else that column alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from steering_core.data.dataset import DatasetMeta
+
+
+def check_image_cells(meta: DatasetMeta, episodes: Sequence[int]) -> None:
+    """Raise one ValueError naming the data file and feature whose image cells hold no bytes (for `episodes`)."""
+    keys = [key for key, feature in meta.info["features"].items() if feature.get("dtype") == "image"]
+    if not keys:
+        return
+    for path in sorted({meta.root / meta.episode(int(e)).data_file for e in episodes}):
+        for key in keys:
+            missing = _cells_without_bytes(path, key)
+            if missing:
+                cells = pq.read_table(path, columns=[key]).column(0).combine_chunks()
+                empty = cells.filter(pc.is_null(cells.field("bytes"))).field("path").drop_null()
+                named = f", e.g. path {empty[0].as_py()!r}" if len(empty) else ""
+                raise ValueError(f"{path}: {missing} cell(s) of image feature {key!r} hold no PNG bytes{named}; "
+                                 "a LeRobot dataset embeds its images (lerobot's finalize() does), and files a "
+                                 "dataset names are never opened: re-create the dataset")
+
+
+def _cells_without_bytes(path: Path, key: str) -> int:
+    """Return how many cells of image feature `key` in one data file have null bytes."""
+    metadata = pq.ParquetFile(path).metadata
+    leaf = f"{key}.bytes"
+    columns = [i for i in range(metadata.num_columns) if metadata.schema.column(i).path == leaf]
+    if not columns:
+        raise ValueError(f"{path}: image feature {key!r} has no `bytes` field; expected struct<bytes, path> cells")
+    counts = []
+    for group in range(metadata.num_row_groups):
+        stats = metadata.row_group(group).column(columns[0]).statistics
+        if stats is None or not stats.has_null_count:
+            return int(pc.sum(pc.is_null(pq.read_table(path, columns=[leaf]).column(0))).as_py() or 0)
+        counts.append(stats.null_count)
+    return int(sum(counts))
