@@ -44,6 +44,9 @@ JOINTS_PLOT = "joint_trajectories.png"
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.+-]")
 
 
+MAX_NAME_BYTES = 200  # a name part, before the suffixes a step adds (.json, .tmp-<id>, .published.json)
+
+
 def check_name(name: str, what: str, *, nested: bool = False) -> str:
     """Return `name` when it can name a file or folder under an output root; ValueError naming `what` otherwise.
 
@@ -52,6 +55,10 @@ def check_name(name: str, what: str, *, nested: bool = False) -> str:
     """
     parts = name.split("/") if nested else [name]
     bad = [part for part in parts if part in ("", ".", "..") or any(c in part for c in "/\\\0") or part[:1] == "~"]
+    long = [part for part in parts if len(part.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES]
+    if long:
+        raise ValueError(f"{what} {name[:60]!r}...: a part of {len(long[0].encode('utf-8', 'surrogatepass'))} bytes; "
+                         f"expected at most {MAX_NAME_BYTES} (a file system takes 255, suffixes are added)")
     if bad or not name.strip():
         shape = "`/`-separated names" if nested else "one file or folder name"
         raise ValueError(f"{what} {name!r} is not a name a path can be built from: expected {shape} without "

@@ -49,14 +49,14 @@ def config_case(tmp_path: Path, text: str | bytes, *names: str) -> Case:
 
 
 def config_value(name: str, key: str, value: object, shown: str | None = None) -> Attack:
-    """A run config whose `key` (dotted; list positions as digits) is set to `value`; its error names `shown`
-    (default the key)."""
+    """A run config whose `key` (dotted; list positions as digits; a missing section is added) is set to `value`;
+    its error names `shown` (default the key)."""
     def attack(world: World, tmp_path: Path) -> Case:
         def edit(data: dict) -> None:
             *parents, last = key.split(".")
             node = data
             for part in parents:
-                node = node[int(part)] if isinstance(node, list) else node[part]
+                node = node[int(part)] if isinstance(node, list) else node.setdefault(part, {})
             node[int(last) if isinstance(node, list) else last] = value
         return config_case(tmp_path, config_text(world, tmp_path, edit), shown or key.replace(".0.", "[0]."))
     return named(name, attack)
@@ -95,6 +95,20 @@ CONFIG_ATTACKS = [
     config_value("sae_train_heldout_fraction", "sae.1.train.heldout_fraction", 1.5),
     config_value("image_size_huge", "dataset.image_size", 20000),
     config_value("image_size_over_limit", "dataset.image_size", 513),
+    config_value("run_name_300_characters", "name", "r" * 300, "at most 100 characters"),
+    config_value("pair_name_300_characters", "pairs.0.name", "p" * 300, "at most 100 characters"),
+    config_value("evaluate_permutations", "evaluate.permutations", 10**9, "less than or equal to 10000"),
+    config_value("evaluate_num_steps", "evaluate.num_steps", 10**9, "less than or equal to 1000"),
+    config_value("evaluate_entries_per_call", "evaluate.entries_per_call", 10**9, "less than or equal to 1024"),
+    config_value("evaluate_alphas_100k", "evaluate.alphas", [0.0, *range(1, 100_001)], "100001 values"),
+    config_value("rollout_max_steps", "rollout.max_steps", 10**9, "less than or equal to 10000"),
+    config_value("rollout_alphas_100k", "rollout.alphas", [0.0, *range(1, 100_001)], "100001 values"),
+    config_value("rollout_episodes", "rollout.episodes", 10**9, "less than or equal to 1000"),
+    config_value("sae_train_buffer_rows", "sae.1.train.buffer_rows", 10**12, "less than or equal to 2097152"),
+    config_value("sae_train_d_sae", "sae.1.train.d_sae", 10**9, "less than or equal to 1048576"),
+    config_value("shards_per_capture_run", "orchestration.shards_per_capture_run", 10**12,
+                 "less than or equal to 100000"),
+    config_value("capture_num_steps", "capture.num_steps", 10**9, "less than or equal to 1000"),
     config_twice("twice_name", "name: demo", "name: other", "name"),
     config_twice("twice_repo_id", "  repo_id: libero_demo_lerobot", "  repo_id: other", "repo_id"),
     config_twice("twice_layers", "layers:\n- 1\n- 2", "layers: [1]", "layers"),

@@ -37,11 +37,11 @@ class CaptureSettings(StrictModel):
     token_type: TokenType = "instructions"
     # decision / adarms only: the full sampler runs per frame from noise drawn by a generator seeded
     # with (noise_seed, the frame's global index), so re-capturing gives the same rows
-    num_steps: int = Field(10, ge=1)  # Euler denoising steps (openpi's default)
+    num_steps: int = Field(10, ge=1, le=1000)  # Euler denoising steps (openpi's default)
     noise_seed: int = Field(0, ge=0, lt=2**31)
-    action_horizon: int = Field(10, ge=1)  # action tokens per chunk (pi05_libero: 10)
+    action_horizon: int = Field(10, ge=1, le=1000)  # action tokens per chunk (pi05_libero: 10)
     prompt_format: PromptFormat = PromptFormat.LIBERO  # pi05_libero's; other pi0.5 checkpoints: discrete_state
-    max_token_len: int = Field(MAX_TOKEN_LEN, ge=1)
+    max_token_len: int = Field(MAX_TOKEN_LEN, ge=1, le=8192)
     norm_stats_path: Path | None = None  # discrete_state only; default <checkpoint>/assets/<asset id>/norm_stats.json
     norm_stats_asset_id: str = LIBERO_ASSET_ID
     skip_norm_stats: bool = False  # the seed's flag: never read norm stats (the libero format needs none)
@@ -52,9 +52,9 @@ class CaptureSettings(StrictModel):
     device: str | None = None  # default CUDA when available, else CPU
     dtype: str | None = None  # compute dtype; default openpi's bfloat16 policy on CUDA, float32 on CPU
     storage_dtype: StorageDtype = "float32"
-    episodes_per_shard: int = Field(1, ge=1)  # 1: adding demos never rewrites a shard
+    episodes_per_shard: int = Field(1, ge=1, le=100_000)  # 1: adding demos never rewrites a shard
     # DataLoader processes decoding frames; None: one per usable core less one, at most 8 (capture.frames.frame_workers)
-    num_workers: int | None = Field(None, ge=0)
+    num_workers: int | None = Field(None, ge=0, le=256)
     video_backend: str | None = None  # lerobot's decoder for video datasets (None: lerobot's default)
 
     @field_validator("layers")

@@ -13,6 +13,7 @@ from steering_core import layout
 from steering_core.capture import CaptureSettings
 from steering_core.capture.slicing import SliceSettings
 from steering_core.config.sections import (
+    MAX_NAME_CHARS,
     SAFE_NAME,
     CaptureSection,
     DatasetSection,
@@ -40,7 +41,7 @@ PAIRS_CONFIG_FILE = "{layer_dir}_pairs.json"  # the seed's data/latent_steering/
 class RunConfig(StrictModel):
     """A whole pipeline run: sources -> dataset -> manifests -> capture -> slices -> steering vectors."""
 
-    name: str = Field("run", pattern=SAFE_NAME.pattern)  # residuals/<name>/
+    name: str = Field("run", pattern=SAFE_NAME.pattern, max_length=MAX_NAME_CHARS)  # residuals/<name>/
     output_root: OutputPath = Field(Path("data"), validate_default=True)
     sources: SourcesSection | None = None  # hdf5 demos to filter and convert; None with `dataset.existing`
     dataset: DatasetSection

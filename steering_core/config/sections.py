@@ -36,6 +36,7 @@ from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import SteeringSettings
 
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+MAX_NAME_CHARS = 100  # a name becomes a path component with suffixes added (the file system allows 255 bytes)
 # Step settings the run config supplies itself, and where to set them instead.
 SUPPLIED = {
     "capture": {"checkpoint_path": "model.checkpoint", "tokenizer_path": "model.tokenizer",
@@ -149,13 +150,13 @@ class SourcesSection(StrictModel):
 
     folders: tuple[ConfigPath, ...] = Field(min_length=1)
     select: FilterSettings = FilterSettings()  # no tasks and no globs: the task texts of the pairs
-    suite: str = Field("demos", pattern=SAFE_NAME.pattern)  # libero_filtered/<suite>/
+    suite: str = Field("demos", pattern=SAFE_NAME.pattern, max_length=MAX_NAME_CHARS)  # libero_filtered/<suite>/
 
 
 class PairSection(StrictModel):
     """One concept pair: two task texts of the dataset, contrasted by a manifest."""
 
-    name: str = Field(pattern=SAFE_NAME.pattern)  # folder and file names: manifests/<name>.json
+    name: str = Field(pattern=SAFE_NAME.pattern, max_length=MAX_NAME_CHARS)  # folder and file names: manifests/<name>.json
     positive: str = Field(min_length=1)            # task text of the positive concept (task A)
     negative: str = Field(min_length=1)            # task text of the negative concept (task B)
     rename: dict[str, str] = {}                    # task text -> concept name, as in the seed
@@ -233,10 +234,10 @@ class OrchestrationSection(StrictModel):
     train_deployment: str = "latent-steering-train-sae/gpu-train-sae"
     rollout_deployment: str = "latent-steering-rollout/sim-rollout"
     pipeline_deployment: str = "latent-steering/pipeline"     # what a scheduled refresh starts
-    shards_per_capture_run: int = Field(8, ge=1)  # episode groups per GPU flow run (one model load each)
-    poll_seconds: float = Field(5.0, gt=0)        # how often the parent checks its capture runs
+    shards_per_capture_run: int = Field(8, ge=1, le=100_000)  # episode groups per GPU flow run (one model load each)
+    poll_seconds: float = Field(5.0, gt=0, le=3600)  # how often the parent checks its capture runs
     worker_wait_seconds: float = Field(600.0, gt=0)  # child runs still unstarted, no worker of their pool: fail
-    resubmits: int = Field(2, ge=0)  # times a crashed child run (its process or machine died) is started again
+    resubmits: int = Field(2, ge=0, le=100)  # times a crashed child run (its process or machine died) is started again
     deadline_seconds: float = Field(86400.0, gt=0)  # a phase's child runs not all finished by then: cancel, fail
 
 

@@ -18,8 +18,14 @@ MIN_RANDOM_DIRECTIONS = 8  # the null band needs enough draws for a mean and a s
 MIN_EPISODES_PER_SIDE = 5
 
 
+MAX_ALPHAS = 256  # α values of a grid
+
+
 def _grid_with_zero(alphas: tuple[float, ...]) -> tuple[float, ...]:
     """Return the grid sorted and without repeats; refuse one without 0 or with nothing else."""
+    if len(alphas) > MAX_ALPHAS:
+        raise ValueError(f"alphas: {len(alphas)} values; expected at most {MAX_ALPHAS} (each is a policy entry per "
+                         "frame, seed and direction)")
     if not all(math.isfinite(a) for a in alphas):
         raise ValueError(f"alphas {list(alphas)} must be finite numbers")
     if 0.0 not in alphas:
@@ -44,13 +50,13 @@ class EvaluateSettings(StrictModel):
     noise_seeds: int = Field(4, gt=0, le=256)  # flow-matching noise draws per frame, the same across α
     # null: directions drawn from the rows' covariance; each is a policy sweep per frame, so thousands would take days
     random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS, le=4096)
-    permutations: int = Field(8, ge=0)         # null: mean differences with episode labels shuffled between tasks
-    top_k: int = Field(20, gt=0)               # SAE latents kept for the top-k direction
-    num_steps: int = Field(10, gt=0)           # denoising steps of sample_actions
+    permutations: int = Field(8, ge=0, le=10_000)  # null: mean differences with episode labels shuffled between tasks
+    top_k: int = Field(20, gt=0, le=4096)    # SAE latents kept for the top-k direction
+    num_steps: int = Field(10, gt=0, le=1000)  # denoising steps of sample_actions
     bootstrap: int = Field(1000, gt=0, le=1_000_000)  # resamples of the episodes (frames nested) for 95% intervals
     seed: int = 0                              # random directions, noise and bootstrap
     batch_size: int = Field(8, gt=0, le=1024)  # frames per policy sweep call (capture's bound)
-    entries_per_call: int = Field(40, gt=0)    # steered (direction, α) entries per sweep call (bounds GPU memory)
+    entries_per_call: int = Field(40, gt=0, le=1024)  # steered (direction, α) entries per sweep call (bounds GPU memory)
     device: str = "auto"
     dtype: str | None = None                   # None: bfloat16 on CUDA, float32 on CPU (as openpi)
     note: str | None = None                    # printed at the top of the summary (e.g. "tiny random model")

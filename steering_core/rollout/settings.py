@@ -15,6 +15,7 @@ from steering_core.storage.schema import StrictModel
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
 # α toward the other task, in residual_norm units (the evaluation's): the shift is |α| typical residual norms.
 DEFAULT_ALPHAS_TOWARD = (0.0, 1.0, 2.0, 4.0)
+MAX_ALPHAS = 64  # α values of a grid: each adds a cell per side and condition
 MIN_RANDOM_DIRECTIONS = 4  # below this the random band is too thin to call a steered rate above it (summary warns)
 
 
@@ -49,15 +50,15 @@ class RolloutSettings(StrictModel):
     """How each (pair, layer) is rolled out; defaults follow openpi's LIBERO evaluation and the issue's grid."""
 
     alphas: tuple[float, ...] = DEFAULT_ALPHAS_TOWARD  # α toward the other task (residual_norm units); must hold 0
-    episodes: int = Field(10, gt=0)             # episodes per cell (the same initial states for every cell)
-    first_init_state: int = Field(0, ge=0)      # episodes use initial states first .. first + episodes - 1
+    episodes: int = Field(10, gt=0, le=1000)    # episodes per cell (the same initial states for every cell)
+    first_init_state: int = Field(0, ge=0, le=10_000)  # episodes use initial states first .. first + episodes - 1
     sides: tuple[Side, ...] = SIDES  # instructions to run under
     direction: Literal["residual", "mean_difference"] = "residual"
-    random_directions: int = Field(MIN_RANDOM_DIRECTIONS, ge=0)  # norm-matched random controls at each α ≠ 0
+    random_directions: int = Field(MIN_RANDOM_DIRECTIONS, ge=0, le=256)  # norm-matched random controls at each α ≠ 0
     wrong_concept: bool = True                  # another pair's direction at the same α (needs two pairs)
     instruction_swap: bool = True               # the other task's instruction, unsteered: the ceiling
-    chunk_episodes: int = Field(5, gt=0)        # episodes per task run (the fan-out's unit)
-    max_steps: int | None = Field(None, gt=0)   # None: openpi's per suite
+    chunk_episodes: int = Field(5, gt=0, le=1000)  # episodes per task run (the fan-out's unit)
+    max_steps: int | None = Field(None, gt=0, le=10_000)  # None: openpi's per suite
     seed: int = 7                               # the environment seed (openpi's)
     noise_seed: int | None = 0                  # the in-process policy's initial noise (None: fresh per call, as
                                                 # openpi; a server draws its own: `serve --noise-seed`)
@@ -75,6 +76,9 @@ class RolloutSettings(StrictModel):
         if not all(math.isfinite(a) and a >= 0 for a in alphas):
             raise ValueError(f"alphas {list(alphas)} must be finite and >= 0: each is a push toward the other task "
                              "(the mirror side gets the opposite sign)")
+        if len(alphas) > MAX_ALPHAS:
+            raise ValueError(f"alphas: {len(alphas)} values; expected at most {MAX_ALPHAS} (each is a cell per "
+                             "condition and side, every one a set of episodes)")
         grid = tuple(sorted(set(alphas)))
         if grid[:1] != (0.0,) or len(grid) < 2:
             raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")

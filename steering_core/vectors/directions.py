@@ -116,10 +116,10 @@ class SteeringSettings(StrictModel):
     sae_cfg_from: str | None = Field(
         None, description="For a state-dict SAE: folder or release whose cfg.json applies (as the seed did).")
     device: str = Field("auto", description=DEVICE_HELP)
-    batch_size: int = Field(512, gt=0, description="Rows encoded per SAE batch.")
+    batch_size: int = Field(512, gt=0, le=2**20, description="Rows encoded per SAE batch.")
     include_decoder_bias: bool = Field(False, description=(
         "Seed compatibility: residual_direction = decode(delta) = delta @ W_dec + b_dec (default: without b_dec)."))
-    top_k: int = Field(20, gt=0, description="Latents listed per direction in the report.")
+    top_k: int = Field(20, gt=0, le=4096, description="Latents listed per direction in the report.")
     paths_relative_to: PathsRelativeTo = Field("auto", description=(
         "Base of relative concept paths: auto (the current directory when the file exists there, as the seed's "
         "pairs files expect, else the pairs file's folder, as the pipeline writes them), cwd or config."))

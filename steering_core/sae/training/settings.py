@@ -19,25 +19,25 @@ class TrainSettings(StrictModel):
     """One SAE training run; real sizes by default (Gemma-2B width rows, 16384 latents as the borrowed SAE)."""
 
     architecture: Architecture = Field("topk", description="SAELens architecture.")
-    d_sae: int = Field(16384, ge=1, description="Latent count.")
-    k: int = Field(64, ge=1, description="Active latents per row (topk; batchtopk: per row on average over a batch).")
+    d_sae: int = Field(16384, ge=1, le=2**20, description="Latent count (at most 2^20, the widest public SAEs).")
+    k: int = Field(64, ge=1, le=4096, description="Active latents per row (topk; batchtopk: per row on average over a batch).")
     sparsity_coefficient: float = Field(  # SAELens's defaults are 1.0 for both
         1.0, gt=0, description="L0 (jumprelu) or L1 (standard) loss coefficient.")
     lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate.")
-    batch_size: int = Field(4096, ge=1, description="Rows per training step.")
-    training_rows: int = Field(2_000_000, ge=1,
+    batch_size: int = Field(4096, ge=1, le=2**16, description="Rows per training step.")
+    training_rows: int = Field(2_000_000, ge=1, le=10**10,
                                description="Rows seen in all (the run's rows repeat in new orders when fewer).")
     # SAELens's: inputs scaled to mean norm sqrt(d_in) during training, the factor folded into the saved weights
     normalize: Normalization = Field("expected_average_only_in",
                                      description="Input normalisation, folded into the weights at the end.")
-    norm_estimate_batches: int = Field(16, ge=1, description="Batches that estimate the normalisation factor.")
-    # 262144 x 2048 float32 rows are 2 GiB
-    buffer_rows: int = Field(262_144, ge=1,
+    norm_estimate_batches: int = Field(16, ge=1, le=10_000, description="Batches that estimate the normalisation factor.")
+    # 262144 x 2048 float32 rows are 2 GiB; the bound, 2^21 rows, 16 GiB
+    buffer_rows: int = Field(262_144, ge=1, le=2**21,
                              description="Rows held in the shuffle buffer (bounds memory whatever the run's size).")
     seed: int = Field(0, ge=0, lt=2**31, description="Initialisation and shuffling seed.")
-    checkpoints: int = Field(4, ge=0, description="Checkpoints during training; a rerun resumes from the latest.")
-    dead_feature_window: int = Field(1000, ge=1, description="Steps without firing before a latent counts as dead.")
-    feature_sampling_window: int = Field(2000, ge=1, description="Steps over which firing frequency is counted.")
+    checkpoints: int = Field(4, ge=0, le=1000, description="Checkpoints during training; a rerun resumes from the latest.")
+    dead_feature_window: int = Field(1000, ge=1, le=10**7, description="Steps without firing before a latent counts as dead.")
+    feature_sampling_window: int = Field(2000, ge=1, le=10**7, description="Steps over which firing frequency is counted.")
     device: str = Field("auto", description=DEVICE_HELP)  # devices.resolve_device
 
     @model_validator(mode="after")
