@@ -93,7 +93,7 @@ def _chunk(actions, replan_steps: int) -> np.ndarray:
 
 class Episode:
     """One episode stepped from outside: `start` it, give it a plan whenever `needs_plan` (the policy's chunk for its
-    `observation()`), `step` it until that returns True, then take its `record()`. `run_episode` drives one;
+    `observation()`), `step` it until it has `ended`, then take its `record()`. `run_episode` drives one;
     `run_lockstep` drives several, one env each, batching the policy calls of those that need a plan."""
 
     def __init__(self, env, policy: RolloutPolicy, *, prompt: str, init_state: np.ndarray, init_index: int,
@@ -159,8 +159,8 @@ class Episode:
         self.plan.extend(_chunk(actions, self.replan_steps))
         self.policy_calls += 1
 
-    def step(self) -> bool:
-        """Execute the next planned action and check both goals; return True when the episode has ended."""
+    def step(self) -> None:
+        """Execute the next planned action and check both goals."""
         env = self.env
         action = self.plan.popleft()
         if self.record_frames or (not self.plan and self.steps + 1 < self.max_steps):
@@ -178,7 +178,6 @@ class Episode:
             holds = self.toward_goal.holds(env)
             self.toward_step = self.steps if holds and self.toward_armed else None
             self.toward_armed = self.toward_armed or not holds
-        return self.ended
 
     def record(self) -> EpisodeRecord:
         """Return the ended episode's record and tell the policy it ended."""
@@ -267,6 +266,8 @@ def run_lockstep(envs: list, policy: RolloutPolicy, episodes: list[dict],
             for episode, actions in zip(planning, chunks, strict=True):
                 episode.give_plan(actions)
         for slot, occupant in enumerate(slots):
-            if occupant is not None and occupant[1].step():
-                finish(slot)
+            if occupant is not None:
+                occupant[1].step()
+                if occupant[1].ended:
+                    finish(slot)
     return [records[index] for index in range(len(episodes))]
