@@ -24,10 +24,14 @@ from steering_core.serve.auth import API_KEY_ENV, read_api_key
 from steering_core.serve.episodes import EpisodeLog
 from steering_core.serve.request import DEFAULT_MAX_ALPHA
 from steering_core.serve.server import (
+    DEFAULT_BATCH_WAIT_MS,
     DEFAULT_INFERENCE_TIMEOUT_S,
+    DEFAULT_MAX_BATCH,
     DEFAULT_MAX_CONNECTIONS,
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_QUEUE,
+    MAX_BATCH,
+    MAX_BATCH_WAIT_MS,
 )
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT
@@ -92,6 +96,14 @@ def serve_command(
         DEFAULT_MAX_QUEUE, "--max-queue", min=1, help="Frames a connection may send ahead of the request being "
         "answered before the server stops reading from it."
     ),
+    max_batch: int = typer.Option(
+        DEFAULT_MAX_BATCH, "--max-batch", min=1, max=MAX_BATCH, help="Rows per policy call: requests arriving "
+        "together (and a request's own leading batch dimension) share one call; 1 serves one request per call."
+    ),
+    batch_wait_ms: float = typer.Option(
+        DEFAULT_BATCH_WAIT_MS, "--batch-wait-ms", min=0.0, max=MAX_BATCH_WAIT_MS, help="How long the oldest waiting "
+        "request waits for others to share its policy call (0: take only those already waiting)."
+    ),
     api_key_file: Path | None = typer.Option(
         None, "--api-key-file", help=f"File holding an api key clients must send (Authorization: Api-Key <key>, as "
         f"openpi's client does; others get HTTP 401). Default: ${API_KEY_ENV} if set, else no key."
@@ -132,7 +144,8 @@ def serve_command(
         server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,
                               max_message_bytes=int(max_message_mb * 2**20), max_alpha=max_alpha, api_key=api_key,
                               episode_log=episode_log, inference_timeout_s=inference_timeout_s,
-                              max_connections=max_connections, max_queue=max_queue)
+                              max_connections=max_connections, max_queue=max_queue, max_batch=max_batch,
+                              batch_wait_ms=batch_wait_ms)
     server.run()
 
 

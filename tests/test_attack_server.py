@@ -166,7 +166,20 @@ CASES = {
     "image_int8": (with_(observation_image=image(8, 8).astype(np.int8)), "observation/image: expected a uint8"),
     "image_2d": (with_(observation_image=np.zeros((8, 8), np.uint8)), "observation/image: expected a uint8"),
     "image_4_channels": (with_(observation_image=np.zeros((8, 8, 4), np.uint8)), "observation/image: expected"),
-    "image_batched": (with_(observation_image=np.zeros((1, 8, 8, 3), np.uint8)), "observation/image: expected"),
+    "image_batched_alone": (with_(observation_image=np.zeros((1, 8, 8, 3), np.uint8)),
+                            "observation/wrist_image: expected a uint8 (B, H, W, 3) array with B = 1"),
+    "batch_over_max_batch": (with_(observation_image=np.zeros((17, 8, 8, 3), np.uint8)),
+                             "observation/image: a batch of 17 frames; this server takes 1 to 16 per request"),
+    "batch_of_zero": (with_(observation_image=np.zeros((0, 8, 8, 3), np.uint8)),
+                      "observation/image: a batch of 0 frames"),
+    "batch_prompt_count": (with_(observation_image=np.zeros((2, 8, 8, 3), np.uint8),
+                                 observation_wrist_image=np.zeros((2, 8, 8, 3), np.uint8),
+                                 observation_state=np.zeros((2, 8)), prompt=["one"]),
+                           "prompt: expected 2 str (a list or array)"),
+    "batch_state_rows": (with_(observation_image=np.zeros((2, 8, 8, 3), np.uint8),
+                               observation_wrist_image=np.zeros((2, 8, 8, 3), np.uint8),
+                               observation_state=np.zeros((3, 8)), prompt=["a", "b"]),
+                         "observation/state: expected a real-valued (B, D) array with D >= 1 and B = 2"),
     "image_as_nested_lists": (with_(observation_image=[[[0, 0, 0]]]), "observation/image: expected a uint8"),
     "image_as_bytes": (with_(observation_image=b"\x00" * 192), "observation/image: expected a uint8"),
     "image_none": (with_(observation_image=None), "observation/image: expected a uint8"),
@@ -319,7 +332,7 @@ def test_inference_timeout_answers_and_keeps_inference_serialised(catalog, good,
         assert_serves(first, good)
         assert_serves(second, good)
     assert policy.max_concurrent == 1
-    assert any("an inference that timed out ended after" in m for m in caplog.messages)
+    assert any("a policy call that timed out ended after" in m for m in caplog.messages)
 
 
 def test_a_stuck_inference_does_not_keep_the_server_from_stopping(catalog, good):

@@ -153,3 +153,32 @@ def test_local_policy_steers_and_alpha_zero_is_the_plain_policy(tmp_path):
     steered_policy.episode_start("task", 0)
     steered_policy.episode_end(False)
     assert (steered_policy.episodes_started, steered_policy.episodes_ended) == (1, 1)
+
+
+def test_batched_calls_answer_each_observation_as_alone_in_process_and_through_the_server(tmp_path):
+    """K environments share one policy call per replan: `infer_batch` in process, and as one batched request to a
+    served policy; each row equals its observation alone, within float32 rounding (the rows' batch positions)."""
+    from helpers_serve import assert_actions_match, running, write_vectors
+
+    from steering_core.serve import PolicyServer, VectorCatalog
+
+    arch = tiny_arch()
+    checkpoint = write_pi05_checkpoint(tmp_path / "ckpt", arch, seed=3)
+    tokenizer = write_tokenizer(tmp_path / "tokenizer.model")
+    policy = Pi05Policy.from_checkpoint(checkpoint, arch, device="cpu", tokenizer_path=tokenizer)
+    served = SteeredPi05Policy(policy, noise_seed=7)
+    catalog = VectorCatalog.scan(write_vectors(tmp_path / "vectors", arch.width))
+    observations = libero_observations(tmp_path / "demo", frames=3, image_size=32)
+    steered = LocalPolicy(served, [AppliedSteering(catalog.get("open_vs_close", 1), 4.0)])
+    with fixed_threads():
+        alone = [steered.infer(obs) for obs in observations]
+        together = steered.infer_batch(observations)
+        with running(PolicyServer(served, catalog)) as server, \
+                RemotePolicy(f"127.0.0.1:{server.port}", [STEER[0] | {"alpha": 4.0}], connect_timeout=30) as remote:
+            remote_rows = remote.infer_batch(observations)
+    assert len(together) == len(remote_rows) == 3
+    for mine, theirs, there in zip(together, alone, remote_rows, strict=True):
+        assert mine.shape == (10, 7)
+        assert_actions_match(mine, theirs)
+        assert_actions_match(there, theirs)
+    assert np.abs(alone[0] - LocalPolicy(served).infer(observations[0])).max() > 1e-4  # steering applies

@@ -247,12 +247,15 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
     assert replies[5]["steering"][0]["norm"] == pytest.approx(vector.norm)
     assert replies[5]["steering"][0]["vector_alpha"] == pytest.approx(4.0 * vector.mean_residual_norm / vector.norm)
     assert replies[5]["steering"][1]["vector_alpha"] == -2.5
-    assert set(replies[0]["server_timing"]) == {"infer_ms", "queue_ms"}  # prev_total_ms from the 2nd request on
-    assert set(replies[1]["server_timing"]) == {"infer_ms", "queue_ms", "prev_total_ms"}
+    # prev_total_ms from the 2nd request on
+    assert set(replies[0]["server_timing"]) == {"infer_ms", "queue_ms", "batch_rows", "batch_requests"}
+    assert (replies[0]["server_timing"]["batch_rows"], replies[0]["server_timing"]["batch_requests"]) == (1, 1)
+    assert set(replies[1]["server_timing"]) == {"infer_ms", "queue_ms", "batch_rows", "batch_requests", "prev_total_ms"}
     assert replies[0]["policy_timing"] == {"infer_ms": 0.0}
     metadata = client["metadata"]
     assert metadata["policy"] == "fake" and metadata["steering"]["vectors"] == catalog.describe()
-    assert "serialised" in metadata["server"]["inference"] and metadata["server"]["api_key_required"] is False
+    assert "one call at a time" in metadata["server"]["inference"] and metadata["server"]["api_key_required"] is False
+    assert (metadata["server"]["max_batch"], metadata["server"]["batch_wait_ms"]) == (16, 5.0)
     assert "zlib.crc32(b'<pair>/<layer>/random_<k>')" in metadata["steering"]["random_controls"]
 
 

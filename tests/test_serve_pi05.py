@@ -8,6 +8,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 import urllib.request
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from steering_core.pi05.policy import Pi05Policy
 from steering_core.pi05.steering import Steering
 from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog
 from steering_core.serve.codec import pack, unpack
+from steering_core.serve.request import parse_steering
 from steering_core.storage.fileio import write_json
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
@@ -97,6 +99,78 @@ def test_openpi_client_gets_pi05_infer_bit_for_bit(model, observations, tmp_path
     metadata = client["metadata"]
     assert metadata["model"] == "pi05" and metadata["noise_seed"] == SEED
     assert metadata["steering"]["vectors"] == catalog.describe()
+
+
+GATE_TIMEOUT_S = 300  # generous: only a broken server leaves requests unsent this long
+
+
+class HeldFirstCall:
+    """The served policy with its first call held until every other of `total` requests waits in the server, so
+    the next call takes them all whatever the machine's speed; records each call's requests."""
+
+    def __init__(self, served: SteeredPi05Policy, total: int) -> None:
+        self.served, self.total, self.server = served, total, None
+        self.calls: list[int] = []
+
+    @property
+    def metadata(self):
+        return self.served.metadata
+
+    def _hold(self, requests: int) -> None:
+        if not self.calls:
+            deadline = time.monotonic() + GATE_TIMEOUT_S
+            while len(self.server._waiting) + requests < self.total and time.monotonic() < deadline:
+                time.sleep(0.01)
+        self.calls.append(requests)
+
+    def infer(self, observation, steering):
+        self._hold(1)
+        return self.served.infer(observation, steering)
+
+    def infer_batch(self, observations, steering):
+        self._hold(len(observations))
+        return self.served.infer_batch(observations, steering)
+
+
+def test_concurrent_clients_share_a_call_and_each_row_equals_its_request_alone(model, observations, tmp_path):
+    """Eight openpi clients at once, with mixed steering (pairs, layers, α units, a random control, none) and one
+    request carrying two frames: two policy calls answer them all, each row as its request alone."""
+    _, _, vectors, policy = model
+    catalog = VectorCatalog.scan(vectors)
+    open_close = {"pair": "open_vs_close", "layer": 1, "alpha": 6.0}
+    entries = [None, open_close, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0},
+               [open_close, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}],
+               open_close | {"direction": "random_1"}, open_close | {"direction": "mean_difference"},
+               {"pair": "on_vs_off", "layer": 1, "alpha": 0.5, "alpha_units": "vector"}]
+    single = [observations[i % 3] | ({"steering": entry} if entry else {}) for i, entry in enumerate(entries)]
+    batched = {key: np.stack([observations[1][key], observations[2][key]]) for key in observations[0]
+               if key != "prompt"} | {"prompt": [observations[1]["prompt"], "put the bowl on the plate"],
+                                      "steering": open_close}
+    requests = [*single, batched]
+    served = SteeredPi05Policy(policy, noise_seed=SEED)
+    held = HeldFirstCall(served, total=len(requests))
+    with running(PolicyServer(held, catalog, max_batch=16, inference_timeout_s=2 * GATE_TIMEOUT_S)) as server:
+        held.server = server
+        clients = run_openpi_client(tmp_path, server.port, [[{"obs": request}] for request in requests])
+    replies = [client["results"][0]["reply"] for client in clients]
+    # the first call takes what arrived within the batching window, the next (if any) all the others
+    assert len(held.calls) <= 2 and sum(held.calls) == len(requests) and max(held.calls) >= len(requests) / 2
+    assert sorted({reply["server_timing"]["batch_requests"] for reply in replies}) == sorted(set(held.calls))
+
+    def alone(observation):
+        entry = observation.get("steering")
+        steering = parse_steering(entry, catalog) if entry is not None else ()
+        return served.infer({k: v for k, v in observation.items() if k != "steering"}, steering)["actions"]
+
+    for reply, request in zip(replies[:-1], single, strict=True):
+        assert_actions_match(reply["actions"], alone(request))
+    rows = [{key: value[i] for key, value in batched.items() if key != "steering"} for i in range(2)]
+    assert replies[-1]["actions"].shape == (2, 10, 7)
+    for row, actions in zip(rows, replies[-1]["actions"], strict=True):
+        assert_actions_match(actions, alone(row | {"steering": open_close}))
+    plain = alone(single[0])
+    assert np.abs(alone(single[3]) - plain).max() > 1e-2  # the steering moves the same frame's actions (a leak of
+    # another row's steering into the plain request would move it as much)
 
 
 def test_vectors_that_do_not_fit_the_model_are_refused(model, tmp_path):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +25,18 @@ class ObservationBatch:
     prompts: list[str]
     states: np.ndarray  # (B, D) float64
     batched: bool  # the observation had a leading batch dim
+
+    @classmethod
+    def concat(cls, batches: Sequence[ObservationBatch]) -> ObservationBatch:
+        """Return the rows of `batches` in order, as one batch (several requests answered by one policy call)."""
+        if len({batch.states.shape[1] for batch in batches}) > 1:
+            raise ValueError(f"observation: states of widths {sorted({b.states.shape[1] for b in batches})} cannot "
+                             "share a batch; expected one state width")
+        slots = range(len(batches[0].images))
+        return cls([torch.cat([batch.images[s] for batch in batches]) for s in slots],
+                   [torch.cat([batch.image_masks[s] for batch in batches]) for s in slots],
+                   [prompt for batch in batches for prompt in batch.prompts],
+                   np.concatenate([batch.states for batch in batches]), True)
 
 
 def _frames(name: str, value: Any, problems: list[str]) -> np.ndarray | None:

@@ -40,7 +40,7 @@ from steering_core.pi05.norm_stats import (
 from steering_core.pi05.norm_stats import (
     norm_stats_path as default_norm_stats_path,
 )
-from steering_core.pi05.observation import observation_batch
+from steering_core.pi05.observation import ObservationBatch, observation_batch
 from steering_core.pi05.steering import (
     Splice,
     Steering,
@@ -380,14 +380,25 @@ class Pi05Policy(nn.Module):
         """
         start = time.perf_counter()
         batch = observation_batch(observation, self.arch.image_size)
-        tokens, token_mask = self.tokenize(batch.prompts, batch.states)
         if noise is not None:
             noise = torch.as_tensor(noise, dtype=torch.float32)
             noise = noise if batch.batched else noise[None]
-        actions = self.sample_actions(batch.images, batch.image_masks, tokens, token_mask, noise=noise,
-                                      num_steps=num_steps, steering=steering)
-        robot = self.robot_actions(actions)
+        robot = self.infer_rows(batch, steering, noise, num_steps)
         return {
             "actions": robot if batch.batched else robot[0],
             "policy_timing": {"infer_ms": (time.perf_counter() - start) * 1000.0},
         }
+
+    def infer_rows(
+        self,
+        batch: ObservationBatch,
+        steering: SteeringArg = None,
+        noise: torch.Tensor | None = None,
+        num_steps: int = DEFAULT_STEPS,
+    ) -> np.ndarray:
+        """Return (B, H, 7) float32 robot actions of checked observation rows (`observation_batch`, or several
+        requests' rows joined by `ObservationBatch.concat`); noise (B, H, A) or None."""
+        tokens, token_mask = self.tokenize(batch.prompts, batch.states)
+        actions = self.sample_actions(batch.images, batch.image_masks, tokens, token_mask, noise=noise,
+                                      num_steps=num_steps, steering=steering)
+        return self.robot_actions(actions)

@@ -21,7 +21,7 @@ from websockets.sync.client import ClientConnection, connect
 
 from steering_core.serve import codec
 from steering_core.serve.policy import SteeredPi05Policy
-from steering_core.serve.request import STEERING_KEY, AppliedSteering
+from steering_core.serve.request import PROMPT_KEY, STEERING_KEY, AppliedSteering
 
 logger = logging.getLogger(__name__)
 
@@ -44,6 +44,12 @@ class LocalPolicy:
     def infer(self, observation: dict[str, Any]) -> np.ndarray:
         """Return the (H, 7) actions of one openpi LIBERO observation."""
         return np.asarray(self.policy.infer(observation, self.steering)["actions"])
+
+    def infer_batch(self, observations: Sequence[dict[str, Any]]) -> list[np.ndarray]:
+        """Return the (H, 7) actions of each observation, from one policy call over all of them (each row as if
+        alone, up to float32 rounding)."""
+        results = self.policy.infer_batch(observations, [self.steering] * len(observations))
+        return [np.asarray(result["actions"]) for result in results]
 
     def episode_start(self, task: str, episode_id: int) -> None:
         self.episodes_started += 1
@@ -97,9 +103,18 @@ class RemotePolicy:
         return self._receive()
 
     def infer(self, observation: dict[str, Any]) -> np.ndarray:
-        """Return the (H, 7) actions the server computes for one observation with this policy's steering."""
+        """Return the (H, 7) actions the server computes for one observation with this policy's steering ((B, H, 7)
+        for a batched one)."""
         message = {**observation, STEERING_KEY: self.steering} if self.steering else dict(observation)
         return np.asarray(self._call(message)["actions"])
+
+    def infer_batch(self, observations: Sequence[dict[str, Any]]) -> list[np.ndarray]:
+        """Return the (H, 7) actions of each observation, from one request carrying them along a leading batch
+        dimension (the server answers (B, H, 7))."""
+        stacked = {key: np.stack([np.asarray(o[key]) for o in observations]) for key in observations[0]
+                   if key != PROMPT_KEY}
+        stacked[PROMPT_KEY] = [str(o[PROMPT_KEY]) for o in observations]
+        return list(self.infer(stacked))
 
     def episode_start(self, task: str, episode_id: int) -> None:
         self._call({CONTROL_KEY: "episode_start", "__experiment__": self.experiment, "__task__": task,

@@ -6,17 +6,23 @@ residual stream at the prompt's instruction tokens (where the steer step measure
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any, Protocol
 
+import numpy as np
 import torch
 
 from steering_core.serve.catalog import SteeringVector, VectorCatalog
-from steering_core.serve.request import PROMPT_KEY, AppliedSteering
+from steering_core.serve.request import AppliedSteering
 
 
 class ServedPolicy(Protocol):
-    """What the server needs of a policy. `infer` may run in a worker thread, never two calls at once."""
+    """What the server needs of a policy. `infer` may run in a worker thread, never two calls at once.
+
+    A policy may also answer several requests in one call with `infer_batch(observations, steerings)` (a list of
+    results, one per observation); the server batches requests for such a policy and calls `infer` otherwise.
+    """
 
     @property
     def metadata(self) -> dict[str, Any]:
@@ -62,19 +68,48 @@ class SteeredPi05Policy:
         generator = torch.Generator().manual_seed(self.noise_seed)
         return torch.randn(self.policy.action_horizon, self.policy.action_dim, generator=generator)
 
-    def steerings(self, prompt: str, steering: Sequence[AppliedSteering]) -> list:
-        """Return the `Steering`s adding each vector times its `vector_alpha` at the instruction tokens of `prompt`."""
+    def steerings(self, prompts: Sequence[str], rows: Sequence[slice],
+                  steering: Sequence[Sequence[AppliedSteering]]) -> list:
+        """Return the `Steering`s of a batch of requests: request r's vectors, each times its `vector_alpha`, added at
+        the instruction tokens of its own rows `rows[r]` of `prompts` (the other rows' masks are all False)."""
         from steering_core.pi05.steering import Steering
 
-        if not steering:
+        if not any(steering):
             return []
-        mask = self.policy.instruction_mask(prompt)
-        return [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
-                         token_mask=mask) for s in steering]
+        masks = torch.cat([self.policy.instruction_mask(prompt) for prompt in prompts])
+        steerings = []
+        for where, entries in zip(rows, steering, strict=True):
+            mine = torch.zeros_like(masks)
+            mine[where] = masks[where]
+            steerings += [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
+                                   token_mask=mine) for s in entries]
+        return steerings
 
     def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:
-        steerings = self.steerings(observation[PROMPT_KEY], steering)
-        return self.policy.infer(observation, steering=steerings or None, noise=self.noise())
+        return self.infer_batch([observation], [steering])[0]
+
+    def infer_batch(self, observations: Sequence[dict[str, Any]],
+                    steering: Sequence[Sequence[AppliedSteering]]) -> list[dict[str, Any]]:
+        """Return one result per observation (one frame, or frames along a leading batch dim), each steered by its
+        own entries, from one policy call over all their rows.
+
+        Each row keeps its prompt, its steering (masked to its own instruction tokens) and its noise, so its actions
+        are those of its request alone, up to float32 rounding (the batch's prompt padding and kernel blocking).
+        """
+        from steering_core.pi05.observation import ObservationBatch, observation_batch
+
+        start = time.perf_counter()
+        batches = [observation_batch(observation, self.policy.arch.image_size) for observation in observations]
+        sizes = [len(batch.prompts) for batch in batches]
+        ends = np.cumsum(sizes).tolist()
+        rows = [slice(end - size, end) for size, end in zip(sizes, ends)]
+        joined = ObservationBatch.concat(batches)
+        noise = self.noise()
+        robot = self.policy.infer_rows(joined, self.steerings(joined.prompts, rows, steering) or None,
+                                       None if noise is None else noise.expand(ends[-1], -1, -1))
+        timing = {"infer_ms": (time.perf_counter() - start) * 1000.0, "batch_rows": ends[-1]}
+        return [{"actions": robot[where] if batch.batched else robot[where][0], "policy_timing": dict(timing)}
+                for batch, where in zip(batches, rows)]
 
     def _on_device(self, vector: SteeringVector) -> torch.Tensor:
         key = (vector.pair, vector.layer, vector.direction)

@@ -69,34 +69,60 @@ class AppliedSteering:
                 "mean_residual_norm": v.mean_residual_norm}
 
 
-def check_observation(observation: Any) -> None:
-    """Raise RequestError unless `observation` is what openpi's LIBERO client sends (one frame, unbatched).
+def check_observation(observation: Any, max_rows: int = 1) -> int:
+    """Return the number of frames of `observation`, or raise RequestError unless it is what openpi's LIBERO
+    client sends: one frame, or up to `max_rows` frames along a leading batch dimension (openpi PR #941).
 
-    Expected: the two images uint8 (H, W, 3) with neither side more than MAX_IMAGE_ASPECT times the other, the
-    state a finite real-valued (D,) array with D >= 1, the prompt a str of at most MAX_PROMPT_CHARS characters.
+    Expected: the two images uint8 (H, W, 3) (batched: (B, H, W, 3)) with neither side more than MAX_IMAGE_ASPECT
+    times the other, the state a finite real-valued (D,) array with D >= 1 ((B, D)), the prompt a str of at most
+    MAX_PROMPT_CHARS characters (B of them, as a list or array of str).
     """
     if not isinstance(observation, dict):
         raise RequestError(None, f"the message must be an observation dict, got {type(observation).__name__}")
+    image = _required(observation, IMAGE_KEY)
+    batched = isinstance(image, np.ndarray) and image.ndim == 4
+    rows = image.shape[0] if batched else 1
+    if batched and not 1 <= rows <= max_rows:
+        raise RequestError(IMAGE_KEY, f"a batch of {rows} frames; this server takes 1 to {max_rows} per request "
+                                      "(serve --max-batch)")
+    lead = (rows,) if batched else ()
     for key in IMAGE_KEYS:
         image = _required(observation, key)
-        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[-1] != 3:
-            raise RequestError(key, f"expected a uint8 (H, W, 3) array, got {_describe(image)}")
-        height, width = image.shape[:2]
+        shape = image.shape if isinstance(image, np.ndarray) else ()
+        if (not isinstance(image, np.ndarray) or image.dtype != np.uint8 or shape[:-3] != lead or image.ndim != len(lead) + 3
+                or shape[-1] != 3):
+            raise RequestError(key, f"expected a uint8 {'(B, ' if batched else '('}H, W, 3) array"
+                                    f"{f' with B = {rows}' if batched else ''}, got {_describe(image)}")
+        height, width = shape[-3:-1]
         if min(height, width) == 0 or max(height, width) > MAX_IMAGE_ASPECT * min(height, width):
             raise RequestError(key, f"image of {height}x{width} pixels; expected both sides at least 1 and neither "
                                     f"more than {MAX_IMAGE_ASPECT} times the other")
     state = _required(observation, STATE_KEY)
-    if not isinstance(state, np.ndarray) or state.dtype.kind not in "fiu" or state.ndim != 1 or state.size == 0:
-        raise RequestError(STATE_KEY, f"expected a real-valued (D,) array with D >= 1, got {_describe(state)}")
+    if (not isinstance(state, np.ndarray) or state.dtype.kind not in "fiu" or state.ndim != len(lead) + 1
+            or state.shape[:-1] != lead or state.shape[-1] == 0):
+        raise RequestError(STATE_KEY, f"expected a real-valued {'(B, D)' if batched else '(D,)'} array with D >= 1"
+                                      f"{f' and B = {rows}' if batched else ''}, got {_describe(state)}")
     if not np.isfinite(state).all():
-        bad = np.flatnonzero(~np.isfinite(state))
-        raise RequestError(STATE_KEY, f"the state is not finite: {state[bad[0]]} at index {bad[0]} "
+        flat = state.reshape(-1)
+        bad = np.flatnonzero(~np.isfinite(flat))
+        raise RequestError(STATE_KEY, f"the state is not finite: {flat[bad[0]]} at flat index {bad[0]} "
                                       f"({bad.size} of {state.size} values are NaN or infinite)")
     prompt = _required(observation, PROMPT_KEY)
-    if not isinstance(prompt, str):
-        raise RequestError(PROMPT_KEY, f"expected a str, got {_describe(prompt)}")
-    if len(prompt) > MAX_PROMPT_CHARS:
-        raise RequestError(PROMPT_KEY, f"{len(prompt)} characters; expected at most {MAX_PROMPT_CHARS}")
+    prompts = _prompts(prompt, rows) if batched else [prompt]
+    if not all(isinstance(text, str) for text in prompts):
+        raise RequestError(PROMPT_KEY, f"expected {f'{rows} str (a list or array)' if batched else 'a str'}, got "
+                                       f"{_describe(prompt)}")
+    longest = max(len(text) for text in prompts)
+    if longest > MAX_PROMPT_CHARS:
+        raise RequestError(PROMPT_KEY, f"{longest} characters; expected at most {MAX_PROMPT_CHARS}")
+    return rows
+
+
+def _prompts(value: Any, rows: int) -> list[Any]:
+    """Return the prompts of a batched observation (a list or 1-D array of `rows` str), or [value] to be refused."""
+    if isinstance(value, np.ndarray) and value.ndim == 1 and value.dtype.kind == "U":
+        value = value.tolist()
+    return list(value) if isinstance(value, list) and len(value) == rows else [value]
 
 
 @dataclass(frozen=True)

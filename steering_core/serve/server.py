@@ -7,8 +7,10 @@ Control messages (`__ctrl__` episode_start / episode_end, openpi's current clien
 (steering_core.serve.episodes). With an api key, an upgrade without `Authorization: Api-Key <key>` gets HTTP 401.
 `GET /healthz` answers 200 "OK\\n" on the same port, key or not; any other plain HTTP request gets 426 (at `/`)
 or 404, and a malformed one a one-line warning in the log. One model serves every connection: requests run in
-order per connection and one at a time overall (an asyncio lock), in a worker thread so the event loop keeps
-answering pings; a request without actions within the inference timeout is answered with an error.
+order per connection, and requests of all connections that arrive within `batch_wait_ms` of the oldest waiting
+one share one policy call of up to `max_batch` rows (dynamic batching; a request may itself carry a leading batch
+dimension), each row with its own prompt, steering and noise. One call runs at a time, in a worker thread so the
+event loop keeps answering pings; a request without actions within the inference timeout is answered with an error.
 Bounds per server: `max_connections` connections (more are closed with 1013, try again later), each reading
 at most `max_queue` frames ahead of the request being answered, each frame at most TRANSPORT_LIMIT_FACTOR x
 `max_message_bytes` (websockets closes a connection sending more with 1009).
@@ -20,13 +22,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import http
 import logging
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -63,11 +65,29 @@ DEFAULT_INFERENCE_TIMEOUT_S = 120.0
 # max_connections x (max_queue + 1) x TRANSPORT_LIMIT_FACTOR x max_message_bytes (1.5 GiB with the defaults)
 DEFAULT_MAX_CONNECTIONS = 16
 DEFAULT_MAX_QUEUE = 2  # an openpi client sends one observation and waits for its actions
+# dynamic batching: a policy call costs about the same for 1 and 16 rows on a GPU (bound by launches), so requests
+# arriving while one waits share a call; the window is short against a LIBERO client's 50 ms control step
+DEFAULT_MAX_BATCH = DEFAULT_MAX_CONNECTIONS  # rows per policy call: one frame from every connection
+DEFAULT_BATCH_WAIT_MS = 5.0
+MAX_BATCH_WAIT_MS = 1000.0  # a longer window only delays every request
+MAX_BATCH = 256  # rows of one call: pi0.5's activations at 256 rows fill a GPU's memory several times over
 MAX_REPLY_CHARS = 1000  # an error reply is one line, cut to this length
 
 
 class InferenceFailed(RuntimeError):
     """The policy gave no usable actions for a well-formed request (timeout, non-finite actions)."""
+
+
+@dataclass(eq=False)
+class _Pending:
+    """A checked request waiting for (or in) a policy call; `reply` gets (result, server timing) or an error."""
+
+    observation: dict[str, Any]
+    steering: tuple[AppliedSteering, ...]
+    rows: int
+    queued: float
+    reply: asyncio.Future
+    started: float | None = None
 
 
 class _OneLineHandshakeErrors(logging.Filter):
@@ -97,7 +117,8 @@ class PolicyServer:
     language-model layer when the policy's metadata gives its depth (`steerable.lm.layers`, as Pi05Policy's does).
     With `api_key`, only upgrades carrying it are accepted. Finished episodes go to `episode_log` (default: one
     kept in memory only); `episodes` lists the last EPISODES_KEPT. `inference_timeout_s`, `max_connections` and
-    `max_queue` bound a request's wait and the server's memory (module docstring).
+    `max_queue` bound a request's wait and the server's memory; `max_batch` (rows) and `batch_wait_ms` shape the
+    policy calls (module docstring); `max_batch` 1 serves one request per call.
     """
 
     def __init__(
@@ -115,6 +136,8 @@ class PolicyServer:
         inference_timeout_s: float = DEFAULT_INFERENCE_TIMEOUT_S,
         max_connections: int = DEFAULT_MAX_CONNECTIONS,
         max_queue: int = DEFAULT_MAX_QUEUE,
+        max_batch: int = DEFAULT_MAX_BATCH,
+        batch_wait_ms: float = DEFAULT_BATCH_WAIT_MS,
     ) -> None:
         self.policy = policy
         self.catalog = catalog or VectorCatalog()
@@ -123,6 +146,11 @@ class PolicyServer:
         self.host, self.port = host, port
         self.max_message_bytes = max_message_bytes
         self.inference_timeout_s, self.max_connections, self.max_queue = inference_timeout_s, max_connections, max_queue
+        if isinstance(max_batch, bool) or not isinstance(max_batch, int) or not 1 <= max_batch <= MAX_BATCH:
+            raise ValueError(f"max_batch {max_batch!r}: expected an integer from 1 to {MAX_BATCH} (rows per call)")
+        if not 0 <= batch_wait_ms <= MAX_BATCH_WAIT_MS:
+            raise ValueError(f"batch_wait_ms {batch_wait_ms!r}: expected 0 to {MAX_BATCH_WAIT_MS:g} ms")
+        self.max_batch, self.batch_wait_ms = max_batch, float(batch_wait_ms)
         self.api_key = api_key
         self.episode_log = episode_log or EpisodeLog()
         self.metadata = self._metadata()
@@ -131,7 +159,8 @@ class PolicyServer:
         self._stop: asyncio.Event | None = None
         self._connections: set[ServerConnection] = set()
         self._busy: set[ServerConnection] = set()
-        self._inference: asyncio.Lock | None = None
+        self._waiting: list[_Pending] = []  # requests not yet in a policy call, oldest first
+        self._arrived: asyncio.Event | None = None
 
     def run(self) -> None:
         """Serve until SIGINT or SIGTERM (blocking; call from the main thread)."""
@@ -139,7 +168,8 @@ class PolicyServer:
 
     async def serve(self, *, ready: Callable[[], None] | None = None, install_signal_handlers: bool = False) -> None:
         """Serve until `request_stop`; call `ready()` once listening."""
-        self._loop, self._stop, self._inference = asyncio.get_running_loop(), asyncio.Event(), asyncio.Lock()
+        self._loop, self._stop, self._arrived = asyncio.get_running_loop(), asyncio.Event(), asyncio.Event()
+        batcher = asyncio.create_task(self._batches())
         if install_signal_handlers:
             for signum in (signal.SIGINT, signal.SIGTERM):
                 self._loop.add_signal_handler(signum, self._stop.set)
@@ -155,6 +185,9 @@ class PolicyServer:
                 ready()
             await self._stop.wait()
             await self._shutdown(server)
+        batcher.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await batcher
 
     @property
     def episodes(self) -> list[dict[str, Any]]:
@@ -234,8 +267,8 @@ class PolicyServer:
             request = self._unpack(message)
             if isinstance(request, dict) and CTRL_KEY in request:
                 return codec.pack(episodes.control(request)), True
-            observation, steering = self._read(request)
-            result, timing = await self._infer(observation, steering)
+            observation, steering, rows = self._read(request)
+            result, timing = await self._infer(observation, steering, rows)
             _check_actions(result, steering)
             episodes.inferred()
             result[STEERING_KEY] = [s.describe() for s in steering]
@@ -255,28 +288,94 @@ class PolicyServer:
             logger.exception("inference failed")
             return _one_line(f"inference failed (the server keeps serving): {type(err).__name__}: {err}"), False
 
-    async def _infer(self, observation: dict[str, Any], steering: tuple[AppliedSteering, ...]) -> tuple[dict, dict]:
-        """Return the policy's result and the server timing; raise InferenceFailed past the inference timeout.
-
-        The model lock is released when the worker thread returns, not at the timeout, so a stuck inference
-        holds the model (later requests time out too) and two inferences never run at once. The thread is a daemon
-        of its own, so a stuck inference does not keep the server from stopping.
-        """
-        timeout, queued = self.inference_timeout_s, time.monotonic()
+    async def _infer(self, observation: dict[str, Any], steering: tuple[AppliedSteering, ...],
+                     rows: int) -> tuple[dict, dict]:
+        """Return the policy's result and the server timing (queue and inference time, the call's rows and
+        requests); raise InferenceFailed when no actions come within the inference timeout of its arrival."""
+        pending = _Pending(observation, steering, rows, time.monotonic(), self._loop.create_future())
+        self._waiting.append(pending)
+        self._arrived.set()
+        timeout = self.inference_timeout_s
         try:
-            await asyncio.wait_for(self._inference.acquire(), timeout)
+            return await asyncio.wait_for(asyncio.shield(pending.reply), timeout)
         except TimeoutError:
-            raise InferenceFailed(f"timed out after {timeout:g} s waiting for the model, which another request "
-                                  "holds (serve --inference-timeout-s)") from None
+            pending.reply.cancel()  # its call, if one runs, drops the result
+            if pending.started is None:
+                self._waiting.remove(pending)
+                raise InferenceFailed(f"timed out after {timeout:g} s waiting for the model, which other requests "
+                                      "hold (serve --inference-timeout-s)") from None
+            raise InferenceFailed(f"timed out: no actions within {timeout:g} s (serve --inference-timeout-s)") from None
+
+    async def _batches(self) -> None:
+        """Run the waiting requests, one policy call at a time: each call takes the oldest waiting requests (up to
+        `max_batch` rows, at least one request), once `batch_wait_ms` has passed since the oldest arrived or the
+        rows are full."""
+        while True:
+            await self._arrived.wait()
+            while self._waiting and sum(p.rows for p in self._waiting) < self.max_batch:
+                left = self._waiting[0].queued + self.batch_wait_ms / 1000 - time.monotonic()
+                if left <= 0:
+                    break
+                self._arrived.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._arrived.wait(), left)
+            batch, rows = [], 0
+            while self._waiting and (not batch or rows + self._waiting[0].rows <= self.max_batch):
+                batch.append(self._waiting.pop(0))
+                rows += batch[-1].rows
+            if not self._waiting:
+                self._arrived.clear()
+            if batch:
+                await self._call(batch)
+
+    async def _call(self, batch: list[_Pending]) -> None:
+        """Run one policy call for `batch` in a daemon thread and settle each request's reply.
+
+        A call still running at a request's inference timeout keeps the model until its thread returns (later
+        requests time out too), so two calls never run at once. A daemon thread of its own keeps a stuck call from
+        stopping the server.
+        """
         started = time.monotonic()
-        task = _in_daemon_thread(self._loop, self.policy.infer, observation, steering)
-        task.add_done_callback(lambda _: self._inference.release())
-        done, _ = await asyncio.wait({task}, timeout=timeout - (started - queued))
-        if not done:
-            task.add_done_callback(functools.partial(_late_inference, started))
-            raise InferenceFailed(f"timed out: no actions within {timeout:g} s (serve --inference-timeout-s)")
-        finished = time.monotonic()
-        return dict(task.result()), {"infer_ms": (finished - started) * 1000, "queue_ms": (started - queued) * 1000}
+        for pending in batch:
+            pending.started = started
+        try:
+            results = await _in_daemon_thread(self._loop, self._run_policy, [p.observation for p in batch],
+                                              [p.steering for p in batch])
+        except Exception as err:  # handed to every request of the call
+            results = [err] * len(batch)
+        finished, rows = time.monotonic(), sum(p.rows for p in batch)
+        late = [p for p in batch if p.reply.done()]  # answered with the timeout meanwhile
+        if late:
+            logger.warning("a policy call that timed out ended after %.1f s; the results of %d request(s) were "
+                           "dropped", finished - started, len(late))
+        for pending, result in zip(batch, results, strict=True):
+            if pending in late:
+                continue
+            if isinstance(result, BaseException):
+                pending.reply.set_exception(result)
+            else:
+                pending.reply.set_result((dict(result), {
+                    "infer_ms": (finished - started) * 1000, "queue_ms": (started - pending.queued) * 1000,
+                    "batch_rows": rows, "batch_requests": len(batch)}))
+
+    def _run_policy(self, observations: list[dict[str, Any]],
+                    steering: list[tuple[AppliedSteering, ...]]) -> list[dict[str, Any] | Exception]:
+        """Return a result (or the error) per request: one `infer_batch` call when the policy has it and there are
+        several, else one `infer` each. A batch that fails is run again one request at a time, so one bad request
+        fails alone."""
+        batched = getattr(self.policy, "infer_batch", None)
+        if batched is not None and len(observations) > 1:
+            try:
+                return list(batched(observations, steering))
+            except Exception:  # found again, request by request, below
+                logger.warning("a batch of %d requests failed; running them one at a time", len(observations))
+        results: list[dict[str, Any] | Exception] = []
+        for observation, entries in zip(observations, steering, strict=True):
+            try:
+                results.append(self.policy.infer(observation, entries))
+            except Exception as err:  # handed to its own request
+                results.append(err)
+        return results
 
     def _unpack(self, message: str | bytes) -> Any:
         if isinstance(message, str):
@@ -286,11 +385,12 @@ class PolicyServer:
                                           f"{self.max_message_bytes} bytes (--max-message-mb)")
         return codec.unpack(message)
 
-    def _read(self, observation: Any) -> tuple[dict[str, Any], tuple[AppliedSteering, ...]]:
-        check_observation(observation)
+    def _read(self, observation: Any) -> tuple[dict[str, Any], tuple[AppliedSteering, ...], int]:
+        rows = check_observation(observation, self.max_batch)
         if STEERING_KEY in observation:
-            return observation, parse_steering(observation.pop(STEERING_KEY), self.catalog, limits=self.limits)
-        return observation, self.default_steering
+            steering = parse_steering(observation.pop(STEERING_KEY), self.catalog, limits=self.limits)
+            return observation, steering, rows
+        return observation, self.default_steering, rows
 
     def _metadata(self) -> dict[str, Any]:
         return {
@@ -309,7 +409,13 @@ class PolicyServer:
                 "vectors": self.catalog.describe(),
             },
             "server": {
-                "inference": "serialised: one model, one request at a time across all connections",
+                "inference": (f"batched: requests arriving within {self.batch_wait_ms:g} ms of the oldest waiting "
+                              f"one share one policy call of up to {self.max_batch} rows, each row with its own "
+                              "prompt, steering and noise; one call at a time"),
+                "max_batch": self.max_batch,
+                "batch_wait_ms": self.batch_wait_ms,
+                "batched_requests": "a request may carry a leading batch dimension (images (B, H, W, 3), state "
+                                    "(B, D), B prompts), answered with actions (B, H, 7)",
                 "errors": "a text frame of one line naming the key; the connection stays open",
                 "max_message_bytes": self.max_message_bytes,
                 "inference_timeout_s": self.inference_timeout_s,
@@ -355,13 +461,6 @@ def _in_daemon_thread(loop: asyncio.AbstractEventLoop, fn: Callable, *args: Any)
 
     threading.Thread(target=main, name="policy-inference", daemon=True).start()
     return future
-
-
-def _late_inference(started: float, task: asyncio.Future) -> None:
-    """Log how a timed-out inference ended (its result was dropped)."""
-    error = None if task.cancelled() else task.exception()
-    logger.warning("an inference that timed out ended after %.1f s%s; its result was dropped",
-                   time.monotonic() - started, f" with {type(error).__name__}: {error}" if error else "")
 
 
 def _one_line(text: str) -> str:
