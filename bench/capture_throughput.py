@@ -49,7 +49,7 @@ ARCH = Pi05Arch(
 )
 FRAMES = 8  # one synthetic LIBERO demo of 8 steps (256 x 256 cameras, as physical-intelligence/libero)
 BATCH_SIZE = 4  # the seed used 128 on a GPU; equal for both sides is what matters
-NUM_WORKERS = 2  # capture's default DataLoader workers; the seed's loader gets the same
+NUM_WORKERS = 2  # DataLoader workers on both sides (capture passes it; its own default depends on the cores)
 LAYER_SETS = ((12,), (4, 8, 12))  # the seed's single SAE layer, then several layers at once
 ROUNDS = 2  # alternating ours/seed rounds, best kept
 TARGET = 2.5  # ours / seed frames/s, layer 12
@@ -130,6 +130,14 @@ def seed_flops(arch: Pi05Arch, passes: int) -> float:
     tokens = CAMERA_SLOTS * arch.tokens_per_image + LANGUAGE_SLOTS
     prefix = siglip_flops(arch, CAMERA_SLOTS) + arch.depth * decoder_layer_flops(arch, tokens, tokens)
     return passes * (prefix + DENOISE_STEPS * expert_step_flops(arch, tokens))
+
+
+def sample_flops(arch: Pi05Arch, prompt_tokens: int) -> float:
+    """Return per-row FLOPs of our `sample_actions`: two cameras, trimmed language, every layer, 10 expert steps."""
+    from bench.seed_pi05 import DENOISE_STEPS
+
+    tokens = LIBERO_CAMERAS * arch.tokens_per_image + prompt_tokens
+    return ours_flops(arch, arch.depth - 1, prompt_tokens) + DENOISE_STEPS * expert_step_flops(arch, tokens)
 
 
 def h100_frames_per_second(flops_per_frame: float) -> float:

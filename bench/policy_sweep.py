@@ -69,17 +69,17 @@ def sweep_flops(arch: Pi05Arch, alphas: int, prompt_tokens: int, layer: int | No
 # ----------------------------------------------------------------------------- inputs
 
 
-def frame(arch: Pi05Arch, prompt_tokens: int) -> tuple[list, list, torch.Tensor, torch.Tensor]:
-    """Return one LIBERO-shaped frame: two random cameras, the masked third, a prompt in 200 slots."""
+def frame(arch: Pi05Arch, prompt_tokens: int, batch: int = 1) -> tuple[list, list, torch.Tensor, torch.Tensor]:
+    """Return `batch` LIBERO-shaped frames on the CPU: two random cameras, the masked third, a prompt in 200 slots."""
     generator = torch.Generator().manual_seed(0)
     side = arch.image_size
-    images = [torch.rand(1, 3, side, side, generator=generator) * 2 - 1 for _ in range(2)]
-    images.append(-torch.ones(1, 3, side, side))
-    masks = [torch.tensor([True]), torch.tensor([True]), torch.tensor([False])]
-    tokens = torch.zeros(1, TOKEN_SLOTS, dtype=torch.long)
-    tokens[0, :prompt_tokens] = torch.randint(3, arch.vocab_size, (prompt_tokens,), generator=generator)
-    token_mask = torch.zeros(1, TOKEN_SLOTS, dtype=torch.bool)
-    token_mask[0, :prompt_tokens] = True
+    images = [torch.rand(batch, 3, side, side, generator=generator) * 2 - 1 for _ in range(2)]
+    images.append(-torch.ones(batch, 3, side, side))
+    masks = [torch.ones(batch, dtype=torch.bool), torch.ones(batch, dtype=torch.bool), torch.zeros(batch, dtype=torch.bool)]
+    tokens = torch.zeros(batch, TOKEN_SLOTS, dtype=torch.long)
+    tokens[:, :prompt_tokens] = torch.randint(3, arch.vocab_size, (batch, prompt_tokens), generator=generator)
+    token_mask = torch.zeros(batch, TOKEN_SLOTS, dtype=torch.bool)
+    token_mask[:, :prompt_tokens] = True
     return images, masks, tokens, token_mask
 
 

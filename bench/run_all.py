@@ -25,10 +25,12 @@ BENCHMARKS = (
     "capture_throughput", "concept_map_speed", "slicing_memory", "sae_encoding", "incremental_refresh", "policy_sweep",
     "cli_startup",
     "serve_latency",
+    "serve_throughput",
     "evaluate_cost",
     "rollout_throughput",
     "sae_training",
     "slicing_remote",
+    "capture_input",
 )
 OPT_IN = ("real_size", "policy_real_size")  # run only when asked (--real-size or --only)
 REPORT = REPO_ROOT / "BENCHMARKS.md"

@@ -52,7 +52,6 @@ def mid_arch() -> Any:
 def build_policy(folder: Path, arch: Any, device: torch.device) -> tuple[Any, Any]:
     """Return (served policy, vector catalog) of a random checkpoint of `arch`, cached under `folder`."""
     from steering_core.pi05.policy import Pi05Policy
-    from steering_core.serve import SteeredPi05Policy, SteeringVector, VectorCatalog
     from steering_core.synthetic.pi05 import write_pi05_checkpoint
     from steering_core.synthetic.tokenizer import write_tokenizer
 
@@ -62,8 +61,14 @@ def build_policy(folder: Path, arch: Any, device: torch.device) -> tuple[Any, An
         write_pi05_checkpoint(checkpoint, arch, seed=1)
     if not tokenizer.is_file():
         write_tokenizer(tokenizer)
-    policy = Pi05Policy.from_checkpoint(checkpoint, arch, device=device, tokenizer_path=tokenizer)
-    vector = torch.randn(arch.width, generator=torch.Generator().manual_seed(2))
+    return steered(Pi05Policy.from_checkpoint(checkpoint, arch, device=device, tokenizer_path=tokenizer), checkpoint)
+
+
+def steered(policy: Any, checkpoint: Path) -> tuple[Any, Any]:
+    """Return (served policy with fixed noise, a catalog of one random CPU vector at LAYER) for a `Pi05Policy`."""
+    from steering_core.serve import SteeredPi05Policy, SteeringVector, VectorCatalog
+
+    vector = torch.randn(policy.arch.width, generator=torch.Generator().manual_seed(2))
     catalog = VectorCatalog([SteeringVector(PAIR, LAYER, "residual", vector, float(vector.norm()), checkpoint,
                                             "residual")])
     served = SteeredPi05Policy(policy, noise_seed=NOISE_SEED)

@@ -92,8 +92,9 @@ def capture_command(
     episodes_per_shard: int = typer.Option(
         _CAPTURE_FIELDS["episodes_per_shard"].default, "--episodes-per-shard", min=1, help="Episodes per shard file."
     ),
-    num_workers: int = typer.Option(
-        _CAPTURE_FIELDS["num_workers"].default, "--num-workers", min=0, help="DataLoader processes decoding frames."
+    num_workers: int | None = typer.Option(
+        _CAPTURE_FIELDS["num_workers"].default, "--num-workers", min=0,
+        help="DataLoader processes decoding frames (default: one per usable core less one, at most 8).",
     ),
     video_backend: str | None = typer.Option(
         None, "--video-backend", help="lerobot video decoder for video datasets, e.g. pyav (default: lerobot's)."

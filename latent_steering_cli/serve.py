@@ -25,6 +25,7 @@ from steering_core.serve.episodes import EpisodeLog
 from steering_core.serve.request import DEFAULT_MAX_ALPHA
 from steering_core.serve.server import (
     DEFAULT_BATCH_WAIT_MS,
+    DEFAULT_IDLE_TIMEOUT_S,
     DEFAULT_INFERENCE_TIMEOUT_S,
     DEFAULT_MAX_BATCH,
     DEFAULT_MAX_CONNECTIONS,
@@ -96,6 +97,10 @@ def serve_command(
         DEFAULT_MAX_QUEUE, "--max-queue", min=1, help="Frames a connection may send ahead of the request being "
         "answered before the server stops reading from it."
     ),
+    idle_timeout_s: float = typer.Option(
+        DEFAULT_IDLE_TIMEOUT_S, "--idle-timeout-s", min=0.001, help="Close a connection that sends nothing for this "
+        "long; at the connection cap, one idle for 30 s gives way to a new client."
+    ),
     max_batch: int = typer.Option(
         DEFAULT_MAX_BATCH, "--max-batch", min=1, max=MAX_BATCH, help="Rows per policy call: requests arriving "
         "together (and a request's own leading batch dimension) share one call; 1 serves one request per call."
@@ -145,7 +150,7 @@ def serve_command(
                               max_message_bytes=int(max_message_mb * 2**20), max_alpha=max_alpha, api_key=api_key,
                               episode_log=episode_log, inference_timeout_s=inference_timeout_s,
                               max_connections=max_connections, max_queue=max_queue, max_batch=max_batch,
-                              batch_wait_ms=batch_wait_ms)
+                              batch_wait_ms=batch_wait_ms, idle_timeout_s=idle_timeout_s)
     server.run()
 
 

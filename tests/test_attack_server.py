@@ -239,6 +239,8 @@ CASES = {
     "steering_second_entry_not_a_dict": (with_steering([steer(), 3]), "steering[1]: expected a dict"),
     "steering_second_entry_bad_alpha": (with_steering([steer(), steer(alpha=None)]), "steering[1].alpha"),
     "steering_of_20k_entries": (with_steering([steer(alpha=0.0)] * 20_000), "steering: 20000 entries"),
+    "steering_entries_each_within_the_bound_adding_up_over_it": (
+        with_steering([steer(alpha=90.0)] * 16), "steering: the entries' |alpha| add up to 1440"),
     # control messages
     "ctrl_unknown": (lambda g: pack({"__ctrl__": "reset"}), "__ctrl__: unknown control message 'reset'"),
     "ctrl_not_a_str": (lambda g: pack({"__ctrl__": 1}), "__ctrl__: expected a str"),
@@ -246,6 +248,8 @@ CASES = {
     "ctrl_success_str": (lambda g: pack({"__ctrl__": "episode_end", "__success__": "yes"}),
                          "__success__: expected bool"),
     "ctrl_unknown_field": (ctrl(__robot__="arm"), "episode_start: unknown key(s) ['__robot__']"),
+    "ctrl_task_of_500k_characters": (ctrl(__task__="t" * 500_000), "__task__: 500000 characters; expected at most"),
+    "ctrl_experiment_over_the_bound": (ctrl(__experiment__="e" * 1001), "__experiment__: 1001 characters"),
     # the client's own text in a key, and a key too long to echo
     "line_break_in_a_key": (with_(**{"extra\nline": tagged(b"", "|O", [0])}), "extra line: array dtype"),
     "key_of_100k_characters": (with_(**{"k" * 100_000: tagged(b"", "|O", [0])}), "kkkkkkkk"),
@@ -361,6 +365,39 @@ def test_connection_cap_closes_extra_connections_with_try_again_later(catalog, g
                     return
             time.sleep(0.1)
         raise AssertionError("no room after two of two connections closed")
+
+
+def test_idle_connections_are_closed_and_cannot_hold_the_cap(catalog, good):
+    """16 sockets that never send shut every client out: an idle timeout closes them, and at the cap the
+    connection idle longest gives way to a new client (one with a request in flight never does)."""
+    with running(PolicyServer(TrappedPolicy(), catalog, idle_timeout_s=0.5)) as server, \
+            connect(url(server), max_size=None) as idle:
+        idle.recv()
+        with pytest.raises(ConnectionClosed) as closed:
+            idle.recv(timeout=60)
+        assert closed.value.rcvd.code == 1001 and "--idle-timeout-s" in closed.value.rcvd.reason
+    with running(PolicyServer(TrappedPolicy(), catalog, max_connections=2, evict_idle_s=0.2)) as server:
+        with connect(url(server), max_size=None) as first, connect(url(server), max_size=None) as second:
+            first.recv(), second.recv()
+            time.sleep(0.5)  # both idle past evict_idle_s
+            assert_serves(second, good)  # `second` is active again: `first` is the idlest
+            with connect(url(server), max_size=None) as third:
+                third.recv(timeout=10)  # admitted
+                with pytest.raises(ConnectionClosed) as closed:
+                    first.recv(timeout=10)
+                assert closed.value.rcvd.code == 1013 and "idle for" in closed.value.rcvd.reason
+                assert_serves(second, good)
+    with running(PolicyServer(TrappedPolicy(slow_s=3.0), catalog, max_connections=1, evict_idle_s=0.0)) as server, \
+            connect(url(server), max_size=None) as busy:
+        busy.recv()
+        busy.send(pack(good | {"prompt": "slow"}))
+        deadline = time.monotonic() + 60  # generous: only a broken server takes this long to read one frame
+        while not server._busy and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with connect(url(server), max_size=None) as other, pytest.raises(ConnectionClosed) as refused:
+            other.recv(timeout=10)  # the one connection has a request in flight: it never gives way
+        assert refused.value.rcvd.code == 1013 and "--max-connections" in refused.value.rcvd.reason
+        assert unpack(busy.recv(timeout=30))["actions"].shape == (10, 7)
 
 
 def frames_sent_ahead(catalog, good, max_queue: int) -> int:

@@ -23,6 +23,7 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
     sys.path.insert(0, str(REPO_ROOT))
 
 from bench import (  # noqa: E402
+    capture_input,
     capture_throughput,
     cli_startup,
     concept_map_speed,
@@ -34,6 +35,7 @@ from bench import (  # noqa: E402
     sae_encoding,
     sae_training,
     serve_latency,
+    serve_throughput,
     slicing_memory,
 )
 from bench.common import Result  # noqa: E402
@@ -84,6 +86,32 @@ def test_capture_baseline_captures_the_same_rows(cache, tmp_path, refresh_run):
     cases = [row["case"] for row in result.table]
     assert cases == ["measured cpu, layer 2", "measured cpu, layers 1,2 (seed: 2 x its measured pass)",
                      "real pi0.5, layer 12 (analytic)", "real pi0.5, layers 4,8,12 (analytic)"]
+
+
+@pytest.mark.slow
+def test_capture_input_measures_every_loader_against_the_model(cache, tmp_path):
+    result = run_quick(capture_input, cache, tmp_path)
+    cases = [row["case"].split(" (")[0] for row in result.table]
+    assert cases == ["old: decode + resize in 1 worker", "decode, 1 worker", "decode, 2 workers",
+                     "decode + slots on cpu, default", "projected: 16-core machine, default 8 workers", "model"]
+    rates = {case: row["frames/s"] for case, row in zip(cases, result.table)}
+    efficiency = rates["decode, 2 workers"] / (2 * rates["decode, 1 worker"])
+    assert result.checks["efficiency"] == pytest.approx(efficiency)
+    assert rates["projected: 16-core machine, default 8 workers"] == pytest.approx(rates["decode, 1 worker"] * 8 * efficiency)
+    assert result.ratio == pytest.approx(rates["projected: 16-core machine, default 8 workers"] / rates["model"])
+
+
+def test_capture_input_and_the_study_model_read_a_gpu_checks_figures(tmp_path):
+    check = tmp_path / "gpu_check.json"
+    figures = {"peak_tflops": 790.0, "capture_frames_per_s": {"32": 240.0, "128": 236.0},
+               "sample_actions_ms": {"1": 38.0, "4": 41.0}}
+    check.write_text(json.dumps({"checks": {"figures": figures}}))
+    assert capture_input.gpu_check_fps(check) == 240.0  # the fastest batch
+    model = serve_throughput.gpu_inputs(check)
+    assert (model["peak_tflops"], model["batch1_ms"]) == (790.0, 38.0)
+    check.write_text(json.dumps({"checks": {"figures": {"peak_tflops": 790.0}}}))
+    with pytest.raises(ValueError, match=r"gpu_check.json: no figures \['capture_frames_per_s'\] under checks.figures"):
+        capture_input.gpu_check_fps(check)
 
 
 @pytest.mark.slow
@@ -248,6 +276,32 @@ def test_flop_model_known_answers():
     # ours runs 2 of 3 cameras and 13 of 18 layers over fewer tokens: well under half the prefix
     assert 2.0 < seed / ours < 3.0
     assert capture_throughput.h100_frames_per_second(ours) == pytest.approx(0.4 * 989e12 / ours)
+
+
+def test_policy_flop_model_and_the_study_model_known_answers():
+    real = Pi05Arch()
+    sample = capture_throughput.sample_flops(real, 16)
+    # every layer and ten expert steps: more than capture's prefix to layer 12; the seed's call (3 cameras, 200
+    # language slots) about twice as much
+    assert sample > capture_throughput.ours_flops(real, 12, 16)
+    assert 1.5 < capture_throughput.seed_flops(real, 1) / sample < 2.5
+    gpu = {"peak_tflops": 800.0, "batch1_ms": 100.0, "source": "hand"}
+    rows = {row["quantity"].split(" (")[0]: row["value"] for row in serve_throughput.grid_model(gpu)}
+    row_s = sample / (0.4 * 800e12)
+    assert rows["policy rows"] == 2000 * 60  # 300 steps replanned every 5
+    assert rows["GPU s per call of rows_per_call rows"] == pytest.approx(max(0.1, 16 * row_s))
+    assert rows["GPU minutes"] == pytest.approx(7500 * max(0.1, 16 * row_s) / 60)
+    assert rows["simulator minutes"] == pytest.approx(2000 * (310 / 93.7 + 60 * 0.216) / 16 / 60)
+
+
+@pytest.mark.slow
+def test_batched_server_answers_each_client_as_alone(cache, tmp_path):
+    result = run_quick(serve_throughput, cache, tmp_path)
+    assert result.checks["same_as_alone"] is True
+    assert [(row["clients"], row["batching"]) for row in result.table] == [(1, "off"), (1, "on"), (8, "off"),
+                                                                           (8, "on")]
+    assert all(row["rows per call"] == 1 for row in result.table if row["batching"] == "off")
+    assert result.checks["rows_per_call_8"] > 1  # eight clients in a closed loop share calls
 
 
 def test_report_renders_summary_and_sections():

@@ -331,6 +331,55 @@ def test_ten_concurrent_clients_twenty_requests_each(catalog, observations, tmp_
     assert policy.calls == 200 and policy.max_concurrent == 1  # one inference at a time
 
 
+class BatchingFakePolicy(FakePolicy):
+    """FakePolicy answering several requests per call (`infer_batch`), recording each call's requests; a prompt
+    "explode" passes the request checks but fails the policy, in a batch or alone."""
+
+    def __init__(self) -> None:
+        super().__init__(delay_s=0.01)
+        self.batches: list[int] = []
+
+    def infer(self, observation: dict, steering) -> dict:
+        if observation["prompt"] == "explode":
+            raise RuntimeError("the policy failed on this observation")
+        return super().infer(observation, steering)
+
+    def infer_batch(self, observations: list[dict], steering: list) -> list[dict]:
+        self.batches.append(len(observations))
+        if any(observation["prompt"] == "explode" for observation in observations):
+            raise RuntimeError("the policy failed on one observation of the batch")
+        return [super(BatchingFakePolicy, self).infer(o, s) for o, s in zip(observations, steering, strict=True)]
+
+
+def test_eight_batched_clients_a_failing_request_fails_alone(catalog, observations, tmp_path):
+    """Requests of eight clients share calls; a malformed request is refused before any call, and one that fails
+    inside a shared call fails alone: the call is run again request by request, every other reply exact."""
+    def request(client: int, i: int) -> dict:
+        obs = observations[(client + i) % len(observations)]
+        if (client, i) == (3, 2):
+            return obs | {"prompt": "explode"}
+        if (client, i) == (5, 1):
+            return obs | {"observation/state": np.array([np.nan])}
+        return obs | {"steering": {"pair": "open_vs_close", "layer": 1 + i % 2, "alpha": client + i / 10}}
+
+    clients = [[{"obs": request(c, i)} for i in range(6)] for c in range(8)]
+    policy = BatchingFakePolicy()
+    with running(PolicyServer(policy, catalog)) as server:
+        results = run_openpi_client(tmp_path, server.port, clients)
+    for c, client in enumerate(results):
+        for i, result in enumerate(client["results"]):
+            if (c, i) == (3, 2):
+                assert "inference failed (the server keeps serving): RuntimeError: the policy failed on this " \
+                       "observation" in result["error"]
+            elif (c, i) == (5, 1):
+                assert "bad request: observation/state: the state is not finite" in result["error"]
+            else:
+                obs = observations[(c + i) % len(observations)]
+                want = expected(catalog, obs, ("open_vs_close", 1 + i % 2, c + i / 10))
+                assert result["reply"]["actions"].tobytes() == want.tobytes(), (c, i)
+    assert max(policy.batches) > 1 and policy.max_concurrent == 1  # calls were shared, one at a time
+
+
 # ---------------------------------------------------------------- episodes and api key (openpi's current client)
 
 def start(experiment: str, episode_id: int, task: str = "open the top drawer of the cabinet") -> dict:
@@ -398,6 +447,21 @@ def test_episode_control_messages_are_acknowledged_recorded_logged_and_written(c
         assert line.endswith(f"from {r['client']}: success {r['success']}, {r['inferences']} inference(s), "
                              f"ended by {r['ended_by']}")
     assert any("episode_end from 127.0.0.1:" in m and "without episode_start" in m for m in caplog.messages)
+
+
+def test_the_episodes_file_rotates_at_its_bound(tmp_path, monkeypatch):
+    from steering_core.serve import episodes
+
+    monkeypatch.setattr(episodes, "MAX_EPISODES_FILE_BYTES", 2000)
+    path = tmp_path / "episodes.jsonl"
+    log = EpisodeLog(path)
+    for index in range(40):
+        log.add(episodes.Episode("127.0.0.1:1", "exp", "a task", index, 0.0, 3, True, 1.0, "episode_end"))
+    rotated = tmp_path / "episodes.jsonl.1"
+    assert path.stat().st_size <= 2000 and rotated.stat().st_size <= 2000  # disk use under twice the bound
+    ids = [json.loads(line)["episode_id"] for f in (rotated, path) for line in f.read_text().splitlines()]
+    assert ids == list(range(40 - len(ids), 40)) and len(ids) > 10  # the newest episodes, in order
+    assert len(log.records) == 40
 
 
 def test_api_key_refuses_the_upgrade_with_401_and_leaves_healthz_open(catalog, observations, tmp_path, caplog):

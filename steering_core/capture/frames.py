@@ -1,23 +1,28 @@
-"""Frames for capture: LeRobot frames (v3.0 through lerobot, v2.x through `V2Frames`) batched by a DataLoader whose workers decode and resize the cameras."""
+"""Frames for capture: LeRobot frames (v3.0 through lerobot, v2.x through `V2Frames`) batched by a DataLoader whose
+workers decode the cameras to uint8, then resized into pi0.5's camera slots on the model's device."""
 
 from __future__ import annotations
 
-import functools
 import multiprocessing
-from collections.abc import Sequence
+import os
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
+import torch
 from torch.utils.data import DataLoader, Dataset, default_collate
 
 from steering_core.data.dataset import DatasetMeta
 from steering_core.data.v2_frames import V2Frames
-from steering_core.pi05 import libero_camera_slots
-from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
+from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, camera_slots, libero_uint8_cameras
 
 # Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork.
 WORKER_PRELOAD = ("torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
 FRAME_KEYS = (*LIBERO_IMAGE_KEYS, "task", "index", "episode_index", "frame_index")  # what capture reads per frame
+# Default worker cap: a worker decodes 70-220 frames/s of two 256 px PNG cameras on a shared core, so 8 keep
+# ahead of pi0.5 on one GPU (~240 frames/s at layer 12 on an H200; BENCHMARKS.md §15) while each worker's copy
+# of torch and lerobot (a few hundred MB) stays bounded on a many-core machine.
+MAX_DEFAULT_WORKERS = 8
 
 
 class FrameDataset(Dataset):
@@ -34,13 +39,23 @@ class FrameDataset(Dataset):
         return {key: item[key] for key in self.keys}
 
 
-def _collate(items: list[dict[str, Any]], image_size: int) -> dict[str, Any]:
-    """Return one batch with the three camera slots already resized (runs in a DataLoader worker)."""
+def _collate(items: list[dict[str, Any]]) -> dict[str, Any]:
+    """Return one batch with both cameras as uint8 (B, 3, H, W) (runs in a DataLoader worker)."""
     batch = default_collate(items)
-    batch["images"], batch["image_masks"] = libero_camera_slots(
-        batch.pop(LIBERO_IMAGE_KEYS[0]), batch.pop(LIBERO_IMAGE_KEYS[1]), image_size
-    )
+    for key, frames in zip(LIBERO_IMAGE_KEYS, libero_uint8_cameras(*(batch[key] for key in LIBERO_IMAGE_KEYS))):
+        batch[key] = frames
     return batch
+
+
+def slots_on_device(batch: dict[str, Any], image_size: int, device: torch.device) -> dict[str, Any]:
+    """Return the batch with its uint8 cameras replaced by pi0.5's three slots computed on `device`.
+
+    `images`: [base, left wrist, right wrist] float32 (B, 3, size, size) in [-1, 1] on `device`;
+    `image_masks`: (B,) bool (`pi05.preprocess.camera_slots`). The copy is asynchronous from pinned memory.
+    """
+    cameras = [batch[key].to(device, non_blocking=True) for key in LIBERO_IMAGE_KEYS]
+    slots = dict(zip(("images", "image_masks"), camera_slots(*cameras, image_size)))
+    return {**{key: value for key, value in batch.items() if key not in LIBERO_IMAGE_KEYS}, **slots}
 
 
 def frame_source(meta: DatasetMeta, repo_id: str, episodes: Sequence[int], video_backend: str | None) -> Any:
@@ -72,18 +87,39 @@ def batch_plan(frames: Any, groups: dict[str, tuple[int, ...]], batch_size: int)
 
 
 def frame_loader(
-    frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], image_size: int, num_workers: int,
-    pin_memory: bool,
+    frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], num_workers: int, pin_memory: bool
 ) -> DataLoader:
-    """Return a DataLoader yielding one batch per `plan` entry, cameras already in pi0.5's three slots."""
+    """Return a DataLoader yielding one batch per `plan` entry, both cameras uint8 (B, 3, H, W)."""
     return DataLoader(
         FrameDataset(frames, keys),
         batch_sampler=[positions for _, positions in plan],
         num_workers=num_workers,
         multiprocessing_context=worker_start_method(num_workers),
-        collate_fn=functools.partial(_collate, image_size=image_size),
+        collate_fn=_collate,
         pin_memory=pin_memory,
     )
+
+
+def frame_batches(
+    frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], image_size: int, num_workers: int | None,
+    device: torch.device,
+) -> Iterator[dict[str, Any]]:
+    """Return an iterator of one batch per `plan` entry, cameras in pi0.5's three slots on `device`.
+
+    The workers (`frame_workers(num_workers)`) start now, so they decode while the caller loads its model.
+    """
+    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), pin_memory=device.type == "cuda")
+    return (slots_on_device(batch, image_size, device) for batch in iter(loader))
+
+
+def frame_workers(num_workers: int | None) -> int:
+    """Return how many frame workers to start: `num_workers`, or for None one per core this process may run
+    on (its CPU affinity) less one for the main process, which copies frames to the device and drives the model,
+    at most `MAX_DEFAULT_WORKERS`: 0 (decode in-process) on one core, 1 on two, 8 on a 16-core GPU machine."""
+    if num_workers is not None:
+        return num_workers
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(0, min(cores - 1, MAX_DEFAULT_WORKERS))
 
 
 def worker_start_method(num_workers: int) -> str | None:

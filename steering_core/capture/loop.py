@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_loader, frame_source
+from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_batches, frame_source
 from steering_core.capture.run_identity import episode_records, run_spec
 from steering_core.capture.selected_rows import selected_residuals
 from steering_core.capture.settings import (
@@ -213,9 +213,9 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     plan = batch_plan(frames, job.groups, settings.batch_size)
     keys = [*FRAME_KEYS, *([STATE_KEY] if job.inputs.norm_stats is not None else [])]
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork
-    # before CUDA is initialised.
-    batches = iter(frame_loader(frames, plan, keys, settings.arch.image_size, settings.num_workers,
-                                pin_memory=resolve_device(settings.device).type == "cuda"))
+    # before CUDA is initialised. The cameras are resized on the model's device, not in the workers.
+    batches = frame_batches(frames, plan, keys, settings.arch.image_size, settings.num_workers,
+                            resolve_device(settings.device))
     model = _load_model(settings, job.inputs)
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}

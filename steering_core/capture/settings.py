@@ -53,7 +53,8 @@ class CaptureSettings(StrictModel):
     dtype: str | None = None  # compute dtype; default openpi's bfloat16 policy on CUDA, float32 on CPU
     storage_dtype: StorageDtype = "float32"
     episodes_per_shard: int = Field(1, ge=1)  # 1: adding demos never rewrites a shard
-    num_workers: int = Field(2, ge=0)  # DataLoader processes decoding and resizing frames
+    # DataLoader processes decoding frames; None: one per usable core less one, at most 8 (capture.frames.frame_workers)
+    num_workers: int | None = Field(None, ge=0)
     video_backend: str | None = None  # lerobot's decoder for video datasets (None: lerobot's default)
 
     @field_validator("layers")

@@ -59,6 +59,15 @@ def libero_camera_slots(
     `image` (agentview) and `wrist_image` are float32 (B, 3, H, W) in [0, 1] as LeRobotDataset returns
     them. The right wrist is an all-zero image (all -1 after scaling) with mask False, as pi0.5 expects.
     """
+    return camera_slots(*libero_uint8_cameras(image, wrist_image), image_size)
+
+
+def libero_uint8_cameras(image: torch.Tensor, wrist_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Return both cameras as uint8 (B, 3, H, W) (`to_uint8`) after checking them as `libero_camera_slots` does.
+
+    The first half of `libero_camera_slots`: capture runs it in its frame workers and `camera_slots` on the
+    model's device, a quarter of the float32 bytes copied there.
+    """
     problems = []
     for name, frames in zip(LIBERO_IMAGE_KEYS, (image, wrist_image)):
         if frames.ndim != 4 or frames.shape[1] != 3 or not frames.dtype.is_floating_point:
@@ -67,7 +76,7 @@ def libero_camera_slots(
         problems.append(f"batch sizes differ: image {image.shape[0]}, wrist_image {wrist_image.shape[0]}")
     if problems:
         raise ValueError("libero_camera_slots: " + "; ".join(problems))
-    return camera_slots(to_uint8(image), to_uint8(wrist_image), image_size)
+    return to_uint8(image), to_uint8(wrist_image)
 
 
 def camera_slots(

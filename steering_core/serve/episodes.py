@@ -27,7 +27,11 @@ logger = logging.getLogger(__name__)
 
 CTRL_KEY = "__ctrl__"
 ACK_KEY = "__ack__"
-EPISODES_KEPT = 10_000  # finished episodes a server keeps in memory (the episodes file keeps them all)
+EPISODES_KEPT = 10_000  # finished episodes a server keeps in memory
+MAX_FIELD_CHARS = 1000  # an experiment or task name; LIBERO's instructions are under 100 characters
+# the episodes file: past this size it moves to <file>.1 (replacing the older one) and a new file begins, so the
+# server's disk use stays under twice this (about 0.3 KB an episode: a file holds ~200,000)
+MAX_EPISODES_FILE_BYTES = 64 * 2**20
 # message key -> (record field, accepted types, openpi's server default)
 START_FIELDS = {"__experiment__": ("experiment", (str,), "unknown"), "__task__": ("task", (str,), ""),
                 "__episode_id__": ("episode_id", (int, np.integer), -1)}
@@ -51,7 +55,8 @@ class Episode:
 
 class EpisodeLog:
     """The server's finished episodes: the last EPISODES_KEPT in `records`, every one logged and, with a
-    `path`, appended to it as one JSON line (written whole and flushed)."""
+    `path`, appended to it as one JSON line (written whole and flushed; the file rotates at
+    MAX_EPISODES_FILE_BYTES)."""
 
     def __init__(self, path: Path | None = None) -> None:
         self.path = path
@@ -66,8 +71,14 @@ class EpisodeLog:
                     episode.episode_id, episode.experiment, episode.task, episode.client, episode.success,
                     episode.inferences, episode.ended_by)
         if self.path is not None:
+            line = json.dumps(record) + "\n"
+            if self.path.stat().st_size + len(line.encode()) > MAX_EPISODES_FILE_BYTES:
+                rotated = self.path.with_name(self.path.name + ".1")
+                self.path.replace(rotated)
+                logger.info("episodes file %s reached %d MiB: moved to %s, a new one begins", self.path,
+                            MAX_EPISODES_FILE_BYTES // 2**20, rotated)
             with self.path.open("a", encoding="utf-8") as f:
-                f.write(json.dumps(record) + "\n")
+                f.write(line)
 
 
 class ConnectionEpisodes:
@@ -124,5 +135,7 @@ def _fields(message: Mapping[str, Any], spec: dict[str, tuple]) -> dict[str, Any
         value = message.get(key, default)
         if not isinstance(value, types) or (bool not in types and isinstance(value, bool)):
             raise RequestError(key, f"expected {types[0].__name__}, got {type(value).__name__} {value!r:.60}")
+        if isinstance(value, str) and len(value) > MAX_FIELD_CHARS:
+            raise RequestError(key, f"{len(value)} characters; expected at most {MAX_FIELD_CHARS}")
         fields[name] = value.item() if isinstance(value, np.generic) else value
     return fields

@@ -150,7 +150,12 @@ def parse_steering(
     if isinstance(value, list | tuple):
         if len(value) > MAX_STEERING_ENTRIES:
             raise RequestError(key, f"{len(value)} entries; expected at most {MAX_STEERING_ENTRIES}")
-        return tuple(_parse_entry(entry, catalog, f"{key}[{i}]", limits) for i, entry in enumerate(value))
+        entries = tuple(_parse_entry(entry, catalog, f"{key}[{i}]", limits) for i, entry in enumerate(value))
+        total = sum(_bounded_size(entry)[0] for entry in entries)
+        if total > limits.max_alpha:  # the vectors add up: the bound is on their sum, not on each
+            raise RequestError(key, f"the entries' |alpha| add up to {total:g} (residual_norm units), above the "
+                                    f"server's bound {limits.max_alpha:g} on their sum (serve --max-alpha)")
+        return entries
     raise RequestError(key, f"expected a dict like {{'pair': 'open_vs_close', 'layer': 12, 'alpha': 4.0}} "
                             f"or a list of them, got {_describe(value)}")
 
@@ -207,18 +212,20 @@ def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringL
             if vector.mean_residual_norm is None else "norm 0"
         raise RequestError(f"{key}.alpha_units", f"{vector.path} has {problem}, so alpha cannot be in residual_norm "
                                                  "units; send \"alpha_units\": \"vector\"")
-    _check_bound(float(alpha), units, vector, limits.max_alpha, f"{key}.alpha")
-    return AppliedSteering(vector, float(alpha), units)
+    applied = AppliedSteering(vector, float(alpha), units)
+    size, unit = _bounded_size(applied)
+    if size > limits.max_alpha:
+        raise RequestError(f"{key}.alpha", f"|alpha| is {size:g} in {unit} units, above the server's bound "
+                                           f"{limits.max_alpha:g} (serve --max-alpha)")
+    return applied
 
 
-def _check_bound(alpha: float, units: str, vector: SteeringVector, max_alpha: float, key: str) -> None:
-    """Raise unless |α| in residual_norm units (vector units for a vector without a recorded R) is within the bound."""
-    size, unit = abs(alpha), units
-    if units == "vector" and vector.mean_residual_norm is not None:
-        size, unit = size * vector.norm / vector.mean_residual_norm, "residual_norm"
-    if size > max_alpha:
-        raise RequestError(key, f"|alpha| is {size:g} in {unit} units, above the server's bound {max_alpha:g} "
-                                "(serve --max-alpha)")
+def _bounded_size(applied: AppliedSteering) -> tuple[float, str]:
+    """Return |α| in residual_norm units (vector units for a vector without a recorded R) and that unit."""
+    vector = applied.vector
+    if applied.alpha_units == "vector" and vector.mean_residual_norm is not None:
+        return abs(applied.alpha) * vector.norm / vector.mean_residual_norm, "residual_norm"
+    return abs(applied.alpha), applied.alpha_units
 
 
 def _required(mapping: Mapping, name: str, key: str | None = None) -> Any:

@@ -11,7 +11,9 @@ order per connection, and requests of all connections that arrive within `batch_
 one share one policy call of up to `max_batch` rows (dynamic batching; a request may itself carry a leading batch
 dimension), each row with its own prompt, steering and noise. One call runs at a time, in a worker thread so the
 event loop keeps answering pings; a request without actions within the inference timeout is answered with an error.
-Bounds per server: `max_connections` connections (more are closed with 1013, try again later), each reading
+Bounds per server: `max_connections` connections (at the cap the connection idle longest, if idle for
+`evict_idle_s`, is closed to admit a new one; otherwise the new one is closed with 1013, try again later; a
+connection that sends nothing for `idle_timeout_s` is closed, so idle sockets cannot hold the cap), each reading
 at most `max_queue` frames ahead of the request being answered, each frame at most TRANSPORT_LIMIT_FACTOR x
 `max_message_bytes` (websockets closes a connection sending more with 1009).
 SIGINT/SIGTERM (or `request_stop`) stop accepting connections, let the request in flight finish and be
@@ -65,6 +67,10 @@ DEFAULT_INFERENCE_TIMEOUT_S = 120.0
 # max_connections x (max_queue + 1) x TRANSPORT_LIMIT_FACTOR x max_message_bytes (1.5 GiB with the defaults)
 DEFAULT_MAX_CONNECTIONS = 16
 DEFAULT_MAX_QUEUE = 2  # an openpi client sends one observation and waits for its actions
+# an openpi client sends a frame every few control steps and resets its env between episodes in seconds: a
+# connection silent this long is gone or idle on purpose, and holds a place another client may need
+DEFAULT_IDLE_TIMEOUT_S = 300.0
+DEFAULT_EVICT_IDLE_S = 30.0  # at the connection cap, the connection idle longest gives way if idle this long
 # dynamic batching: a policy call costs about the same for 1 and 16 rows on a GPU (bound by launches), so requests
 # arriving while one waits share a call; the window is short against a LIBERO client's 50 ms control step
 DEFAULT_MAX_BATCH = DEFAULT_MAX_CONNECTIONS  # rows per policy call: one frame from every connection
@@ -138,6 +144,8 @@ class PolicyServer:
         max_queue: int = DEFAULT_MAX_QUEUE,
         max_batch: int = DEFAULT_MAX_BATCH,
         batch_wait_ms: float = DEFAULT_BATCH_WAIT_MS,
+        idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S,
+        evict_idle_s: float = DEFAULT_EVICT_IDLE_S,
     ) -> None:
         self.policy = policy
         self.catalog = catalog or VectorCatalog()
@@ -151,6 +159,10 @@ class PolicyServer:
         if not 0 <= batch_wait_ms <= MAX_BATCH_WAIT_MS:
             raise ValueError(f"batch_wait_ms {batch_wait_ms!r}: expected 0 to {MAX_BATCH_WAIT_MS:g} ms")
         self.max_batch, self.batch_wait_ms = max_batch, float(batch_wait_ms)
+        if not idle_timeout_s > 0 or not evict_idle_s >= 0:
+            raise ValueError(f"idle_timeout_s {idle_timeout_s!r} and evict_idle_s {evict_idle_s!r}: expected a "
+                             "positive number of seconds and a non-negative one")
+        self.idle_timeout_s, self.evict_idle_s = idle_timeout_s, evict_idle_s
         self.api_key = api_key
         self.episode_log = episode_log or EpisodeLog()
         self.metadata = self._metadata()
@@ -159,6 +171,7 @@ class PolicyServer:
         self._stop: asyncio.Event | None = None
         self._connections: set[ServerConnection] = set()
         self._busy: set[ServerConnection] = set()
+        self._active: dict[ServerConnection, float] = {}  # when each connection last sent a frame (or opened)
         self._waiting: list[_Pending] = []  # requests not yet in a policy call, oldest first
         self._arrived: asyncio.Event | None = None
 
@@ -230,20 +243,26 @@ class PolicyServer:
         return response
 
     async def _handle(self, ws: ServerConnection) -> None:
-        if len(self._connections) >= self.max_connections:
+        if len(self._connections) >= self.max_connections and not await self._evict_idlest():
             logger.warning("refused a connection from %s: %d connections open (serve --max-connections)",
                            _address(ws), len(self._connections))
             await ws.close(CloseCode.TRY_AGAIN_LATER, f"the server has its limit of {self.max_connections} "
                                                       "connections (--max-connections); try again later")
             return
         self._connections.add(ws)
+        self._active[ws] = time.monotonic()
         episodes = ConnectionEpisodes(_address(ws), self.episode_log)
         try:
             await ws.send(self._encoded_metadata)
             previous_total_ms = None
             while not self._stop.is_set():
-                message = await ws.recv()
-                start = time.monotonic()
+                try:
+                    message = await asyncio.wait_for(ws.recv(), self.idle_timeout_s)
+                except TimeoutError:
+                    logger.info("closed %s: idle for %g s (serve --idle-timeout-s)", _address(ws), self.idle_timeout_s)
+                    await ws.close(CloseCode.GOING_AWAY, f"idle for {self.idle_timeout_s:g} s (--idle-timeout-s)")
+                    break
+                start = self._active[ws] = time.monotonic()
                 self._busy.add(ws)
                 try:
                     reply, control = await self._answer(message, previous_total_ms, episodes)
@@ -257,7 +276,24 @@ class PolicyServer:
             pass
         finally:
             self._connections.discard(ws)
+            self._active.pop(ws, None)
             episodes.close()
+
+    async def _evict_idlest(self) -> bool:
+        """Close the connection idle longest, if it has no request in flight and has been idle `evict_idle_s`;
+        return whether one was (its place is free at once)."""
+        now = time.monotonic()
+        idle = [(now - self._active[c], c) for c in self._connections if c not in self._busy and c in self._active]
+        seconds, idlest = max(idle, key=lambda entry: entry[0], default=(0.0, None))
+        if idlest is None or seconds < self.evict_idle_s:
+            return False
+        logger.warning("closed %s, idle for %.0f s, to admit a new connection (serve --max-connections)",
+                       _address(idlest), seconds)
+        self._connections.discard(idlest)
+        self._active.pop(idlest, None)
+        await idlest.close(CloseCode.TRY_AGAIN_LATER, f"idle for {seconds:.0f} s while the server is full "
+                                                      "(--max-connections); reconnect when you next need it")
+        return True
 
     async def _answer(self, message: str | bytes, previous_total_ms: float | None,
                       episodes: ConnectionEpisodes) -> tuple[str | bytes, bool]:
@@ -308,11 +344,13 @@ class PolicyServer:
 
     async def _batches(self) -> None:
         """Run the waiting requests, one policy call at a time: each call takes the oldest waiting requests (up to
-        `max_batch` rows, at least one request), once `batch_wait_ms` has passed since the oldest arrived or the
-        rows are full."""
+        `max_batch` rows, at least one request), once `batch_wait_ms` has passed since the oldest arrived, the rows
+        are full, or every open connection has a request waiting (a connection sends its next one only after its
+        reply, so no other could join: a lone client never waits)."""
         while True:
             await self._arrived.wait()
-            while self._waiting and sum(p.rows for p in self._waiting) < self.max_batch:
+            while (self._waiting and sum(p.rows for p in self._waiting) < self.max_batch
+                   and len(self._waiting) < len(self._connections)):
                 left = self._waiting[0].queued + self.batch_wait_ms / 1000 - time.monotonic()
                 if left <= 0:
                     break
@@ -420,6 +458,8 @@ class PolicyServer:
                 "max_message_bytes": self.max_message_bytes,
                 "inference_timeout_s": self.inference_timeout_s,
                 "max_connections": self.max_connections,
+                "idle_timeout_s": self.idle_timeout_s,
+                "evict_idle_s": self.evict_idle_s,
                 "max_queue": self.max_queue,
                 "api_key_required": self.api_key is not None,
                 "control_messages": {"episode_start": list(START_FIELDS), "episode_end": list(END_FIELDS),
