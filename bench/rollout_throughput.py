@@ -1,9 +1,10 @@
-"""Closed-loop rollouts: simulator steps/s, rendering only at replans, in-process vs served policy, 1 vs 2 workers.
+"""Closed-loop rollouts: simulator steps/s, rendering only at replans, in-process vs served policy, 1 vs 2 workers,
+1 env vs 8 in lockstep.
 
 One LIBERO env (libero_goal, "turn on the stove", initial state 0, openpi's 256 px agentview and wrist cameras)
 is built once per process, and the policy is the random tiny pi0.5 (openpi's "dummy" Gemma sizes) on the CPU
 with fixed noise. Every process, the measuring one included, runs as a pool worker would: torch, OpenMP,
-MKL and llvmpipe (Mesa's software renderer, behind MuJoCo's EGL here) on one thread. Four measurements, each
+MKL and llvmpipe (Mesa's software renderer, behind MuJoCo's EGL here) on one thread. Five measurements, each
 against a baseline timed in the same run:
 
 1. Simulator steps/s per worker: `env.step` with the dummy action (no motion, gripper open), in alternating
@@ -25,6 +26,13 @@ against a baseline timed in the same run:
    headline. On a shared machine another process's CPU use lowers it; the load average before the run and
    the other processes' CPU share during the 2-worker run (from /proc/stat, minus the workers' own CPU
    time) are reported with it.
+5. Envs in lockstep (`rollout.envs_per_worker`): the same initial states run as a chunk does, K envs of the
+   scene stepped together with one batched `LocalPolicy.infer_batch` call per step for the episodes that
+   replan (`run_lockstep`), against one env and one `infer` per replan (`run_episode`, K = 1); episodes/hour
+   of wall time, resets included, the K envs built beforehand. Each episode must reach the same outcome in the
+   same steps, and its first chunk (the same observation in both runs) must agree to float32 rounding of the
+   batched call; the simulator carries that rounding on, so later actions drift apart (the largest gap is
+   reported).
 
 Episodes are alternated with their baselines over the rounds and the fastest of each kept, so load from
 other jobs falls on both.
@@ -61,9 +69,13 @@ SETTINGS = {
     "calls": 30,             # alternated local/remote policy calls
     "worker_episodes": 3,    # episodes per worker in part 4
     "worker_steps": 40,      # policy steps per worker episode
+    "lockstep_envs": 8,      # K of part 5 (the setting's default for a chunk of 8 or more episodes)
+    "lockstep_episodes": 8,  # initial states 0..7 of part 5, run with K envs and with one
+    "lockstep_steps": 20,    # policy steps per part 5 episode (4 replans)
 }
 QUICK = {"rounds": 1, "plain_steps": 20, "render_steps": 4, "episode_steps": 10, "calls": 3, "worker_episodes": 1,
-         "worker_steps": 10}
+         "worker_steps": 10, "lockstep_envs": 2, "lockstep_episodes": 3, "lockstep_steps": 6}
+LOCKSTEP_ATOL = 1e-5  # a batched call's rows equal the lone calls' to float32 rounding (actions of size ~1)
 SCALING_TARGET = 1.7  # 2-worker / 1-worker closed-loop throughput on 2 cores (issue 23)
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS")
 
@@ -259,6 +271,42 @@ def run_workers(count: int, folder: Path, settings: dict) -> dict[str, float]:
             "other_cores": max(0.0, busy - worker_cpu / wall)}
 
 
+# ----------------------------------------------------------------------------- 5. envs in lockstep
+
+
+def lockstep_episodes(count: int, max_steps: int) -> list[dict[str, Any]]:
+    """Return `run_episode` keywords of the benchmark task's first `count` initial states (a chunk's episodes)."""
+    from steering_core.rollout.libero_env import initial_states, task_index
+
+    states = initial_states(SUITE, task_index(SUITE, INSTRUCTION))
+    return [dict(prompt=INSTRUCTION, init_state=states[index], init_index=index, max_steps=max_steps,
+                 toward_goal=None, episode_id=index) for index in range(count)]
+
+
+def run_chunk_episodes(envs: list[Any], policy: Any, episodes: list[dict[str, Any]]) -> list[Any]:
+    """Return the records of a chunk's episodes: one env asking `infer` per replan (K = 1, `run_episode`), or
+    several in lockstep sharing `infer_batch` calls (`run_lockstep`)."""
+    from steering_core.rollout.episode import run_episode, run_lockstep
+
+    if len(envs) == 1:
+        return [run_episode(envs[0], policy, **episode) for episode in episodes]
+    return run_lockstep(envs, policy, episodes)
+
+
+class BatchCounting:
+    """A policy passing every call through, counting the rows of each `infer_batch` call."""
+
+    def __init__(self, policy: Any) -> None:
+        self.policy, self.batch_sizes = policy, []
+
+    def infer_batch(self, observations: list[dict]) -> list[np.ndarray]:
+        self.batch_sizes.append(len(observations))
+        return self.policy.infer_batch(observations)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.policy, name)
+
+
 # ----------------------------------------------------------------------------- main
 
 
@@ -277,6 +325,7 @@ def measure(args: argparse.Namespace) -> Result:
     load_before = os.getloadavg()
     folder = cache_dir(args)
     from steering_core.rollout.client import RemotePolicy
+    from steering_core.rollout.protocol import REPLAN_STEPS
     from steering_core.serve import PolicyServer
     from steering_core.serve.server import serving_in_thread
 
@@ -315,7 +364,23 @@ def measure(args: argparse.Namespace) -> Result:
             same_recorded &= np.array_equal(record.actions, recorded.actions)
             same_recorded &= len(recorded.frames) == recorded.steps + 1
             steps, calls_per_episode = record.steps, record.policy_calls
-    env.close()
+    lockstep = [env, *(open_env(folder)[0] for _ in range(settings["lockstep_envs"] - 1))]
+    chunk = lockstep_episodes(settings["lockstep_episodes"], settings["lockstep_steps"])
+    counting = BatchCounting(local)
+    chunks: dict[str, list[float]] = {"one env": [], "lockstep": []}
+    for _ in range(settings["rounds"]):
+        alone, seconds = timed_call(run_chunk_episodes, lockstep[:1], local, chunk)
+        chunks["one env"].append(seconds)
+        together, seconds = timed_call(run_chunk_episodes, lockstep, counting, chunk)
+        chunks["lockstep"].append(seconds)
+    pairs = list(zip(alone, together, strict=True))
+    gaps = [float(np.max(np.abs(a.actions - b.actions), initial=0.0)) for a, b in pairs]
+    first_gap = max(float(np.max(np.abs(a.actions[:REPLAN_STEPS] - b.actions[:REPLAN_STEPS]))) for a, b in pairs)
+    same_lockstep = all((a.outcome, a.steps) == (b.outcome, b.steps) for a, b in pairs) and first_gap <= LOCKSTEP_ATOL
+    exact_lockstep = sum(np.array_equal(a.actions, b.actions) for a, b in pairs)
+    batch_rows = max(counting.batch_sizes)
+    for built in lockstep:
+        built.close()
 
     load_workers = os.getloadavg()
     runs = [run_workers(count, folder, settings) for count in (1, 2)]
@@ -323,6 +388,8 @@ def measure(args: argparse.Namespace) -> Result:
     ratio = throughput[1] / throughput[0]
     others = runs[1]["other_cores"]  # CPU other processes used during the 2-worker run
 
+    per_hour = {name: settings["lockstep_episodes"] * 3600 / min(values) for name, values in chunks.items()}
+    lockstep_ratio = per_hour["lockstep"] / per_hour["one env"]
     best = {name: max(values) for name, values in rates.items()}
     fastest = {name: min(values) for name, values in episodes.items()}
     med = {name: median(values) * 1000 for name, values in calls.items()}
@@ -355,6 +422,14 @@ def measure(args: argparse.Namespace) -> Result:
                        f"episodes/s; workers' CPU {run['worker_cores']:.2f} cores, other processes "
                        f"{run['other_cores']:.2f} (machine busy {run['machine_busy_cores']:.2f} of {os.cpu_count()})"}
         for index, run in enumerate(runs)
+    ] + [
+        {"measure": f"5. episodes/hour: {settings['lockstep_envs']} envs in lockstep (run_lockstep) vs 1 "
+                    "(run_episode)", "ours": per_hour["lockstep"], "baseline": per_hour["one env"],
+         "ratio": lockstep_ratio,
+         "conditions": f"{settings['lockstep_episodes']} episodes (initial states 0..{settings['lockstep_episodes'] - 1})"
+                       f" of {settings['lockstep_steps']} policy + 10 wait steps, resets included; "
+                       f"{len(counting.batch_sizes) // settings['rounds']} batched calls of up to {batch_rows} rows "
+                       f"per chunk; best of {settings['rounds']}"},
     ]
     met = ratio >= SCALING_TARGET
     notes = [
@@ -372,6 +447,11 @@ def measure(args: argparse.Namespace) -> Result:
         f"{same_remote}, recorded vs not {same_recorded}, local vs remote calls {same_call}",
         f"scaling 2 workers / 1: {ratio:.2f}x (target >= {SCALING_TARGET}x: {'met' if met else 'missed'}); each "
         "worker runs torch, OpenMP, MKL and llvmpipe on one thread; throughput counts resets and wait steps",
+        f"envs in lockstep: {settings['lockstep_envs']} envs of the scene in one process; {exact_lockstep} of "
+        f"{len(gaps)} episodes executed bit-identical actions with K = {settings['lockstep_envs']} and K = 1; first "
+        f"chunks agree to {first_gap:.2g} (tolerance {LOCKSTEP_ATOL:g}), whole episodes to {max(gaps):.2g} (the "
+        f"simulator carries the rounding on); same outcomes and steps and first chunks: {same_lockstep}; on the "
+        "CPU the simulator and renders run serially in one process, so only the policy calls' share can shrink",
         f"the server shares this process (and its GIL) with the episode loop, on 127.0.0.1; medians of calls "
         f"{', '.join(f'{k} {median(v) * 1000:.1f} ms' for k, v in calls.items())}",
     ]
@@ -388,7 +468,9 @@ def measure(args: argparse.Namespace) -> Result:
         notes=notes,
         checks={"same_actions_openpi_loop": bool(same_loop), "same_actions_served": bool(same_remote),
                 "same_actions_recorded": bool(same_recorded),
-                "same_call_actions": bool(same_call), "episode_steps": steps, "policy_calls": calls_per_episode,
+                "same_call_actions": bool(same_call), "same_episodes_lockstep": bool(same_lockstep),
+                "lockstep_batch_rows": batch_rows, "lockstep_episode_steps": [record.steps for record in together],
+                "episode_steps": steps, "policy_calls": calls_per_episode,
                 "worker_steps": [run["steps"] for run in runs], "other_cores_busy": others},
     ), args)
 

@@ -5,6 +5,7 @@ and a synthetic pair of cells whose toward-task success grows with α, written w
 from __future__ import annotations
 
 import collections
+import hashlib
 import math
 from pathlib import Path
 
@@ -70,6 +71,34 @@ class ScriptedPolicy:
 
     def episode_start(self, task: str, episode_id: int) -> None:
         self.events.append(("start", task, episode_id))
+
+    def episode_end(self, success: bool) -> None:
+        self.events.append(("end", success))
+
+
+class ObservationPolicy:
+    """Returns (10, 7) float32 chunks drawn from a hash of the observation's state, images and prompt: its actions
+    depend on nothing but the observation (row-independent). Records the size of every `infer_batch` call."""
+
+    def __init__(self, salt: int = 0):
+        self.salt = salt
+        self.batch_sizes: list[int] = []
+        self.events: list[tuple] = []
+
+    def infer(self, observation: dict) -> np.ndarray:
+        digest = hashlib.sha256(str(self.salt).encode())
+        for key in ("observation/state", "observation/image", "observation/wrist_image"):
+            digest.update(np.ascontiguousarray(observation[key]).tobytes())
+        digest.update(observation["prompt"].encode())
+        rng = np.random.default_rng(int.from_bytes(digest.digest()[:8], "little"))
+        return rng.uniform(-0.6, 0.6, (10, 7)).astype(np.float32)
+
+    def infer_batch(self, observations: list[dict]) -> list[np.ndarray]:
+        self.batch_sizes.append(len(observations))
+        return [self.infer(observation) for observation in observations]
+
+    def episode_start(self, task: str, episode_id: int) -> None:
+        self.events.append(("start", episode_id))
 
     def episode_end(self, success: bool) -> None:
         self.events.append(("end", success))

@@ -231,7 +231,10 @@ def test_rollout_loops_execute_the_same_actions(cache, tmp_path):
     assert checks["same_actions_recorded"]  # a recorded episode renders every step and acts the same
     assert (checks["episode_steps"], checks["policy_calls"]) == (rollout_throughput.QUICK["episode_steps"], 2)
     assert checks["worker_steps"] == [20, 40]  # 1 then 2 workers, one episode each of 10 wait + 10 policy steps
-    assert [row["measure"][:2] for row in result.table] == ["1.", "1.", "2.", "2.", "3.", "3.", "4.", "4."]
+    # 3 episodes on 2 envs in lockstep end as on one env, first chunks equal, sharing calls of 2 rows; 6 steps each
+    assert checks["same_episodes_lockstep"] and checks["lockstep_batch_rows"] == 2
+    assert checks["lockstep_episode_steps"] == [rollout_throughput.QUICK["lockstep_steps"]] * 3
+    assert [row["measure"][:2] for row in result.table] == ["1.", "1.", "2.", "2.", "3.", "3.", "4.", "4.", "5."]
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):

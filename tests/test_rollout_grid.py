@@ -1,5 +1,6 @@
 """Rollout settings, the run config's `rollout` section and the grid of paired cells (no simulator)."""
 
+import re
 import textwrap
 from pathlib import Path
 
@@ -92,6 +93,17 @@ def test_bad_rollout_sections_are_refused_naming_the_field(tmp_path, replace, me
         config(tmp_path, text=CONFIG.replace(replace, message))
 
 
+def test_envs_per_worker_defaults_to_eight_or_the_chunks_episodes_and_refuses_bad_counts(tmp_path):
+    assert [RolloutSettings().lockstep_envs(n) for n in (1, 5, 8, 20)] == [1, 5, 8, 8]
+    assert [RolloutSettings(envs_per_worker=3).lockstep_envs(n) for n in (1, 5)] == [1, 3]
+    assert config(tmp_path, "  envs_per_worker: 64\n").rollout.envs_per_worker == 64
+    expected = ("envs_per_worker {}: expected a positive integer up to 64 (LIBERO envs in one process), or null "
+                "for min(8, the chunk's episodes)")
+    for bad in (0, -2, 65):
+        with pytest.raises(ValueError, match=re.escape(expected.format(bad))):
+            config(tmp_path, f"  envs_per_worker: {bad}\n")
+
+
 def test_the_last_layer_is_refused_for_rollouts(tmp_path):
     with pytest.raises(ValueError, match="last decoder layer"):
         config(tmp_path, text=CONFIG.replace("layers: [1, 2]", "layers: [1, 3]").replace(
@@ -148,5 +160,5 @@ def test_settings_enter_a_chunk_identity_only_when_they_change_its_episodes():
     for change in ({"max_steps": 40}, {"seed": 8}, {"noise_seed": 1}, {"videos": False}, {"direction": "mean_difference"}):
         assert settings_inputs(base.model_copy(update=change)) != settings_inputs(base), change
     for change in ({"policy": "ws://gpu:8000"}, {"libero_assets": "/assets"}, {"device": "cpu"}, {"note": "x"},
-                   {"chunk_episodes": 2}):
+                   {"chunk_episodes": 2}, {"envs_per_worker": 3}):
         assert settings_inputs(base.model_copy(update=change)) == settings_inputs(base), change

@@ -14,8 +14,11 @@ from steering_core.config import RolloutSection, load_run_config, write_run_conf
 from steering_core.config.run import RunConfig
 from steering_core.config.sections import DatasetSection, ModelSection, PairSection, SourcesSection
 from steering_core.pi05.policy import Pi05Policy
+from steering_core.rollout.client import LocalPolicy
 from steering_core.rollout.local_run import rollout_config
+from steering_core.rollout.plan import config_jobs
 from steering_core.rollout.records import read_cell
+from steering_core.rollout.run import run_chunk
 from steering_core.rollout.settings import LiberoTask, RolloutPair
 from steering_core.serve import PolicyServer, SteeredPi05Policy, VectorCatalog
 from steering_core.serve.server import serving_in_thread
@@ -110,3 +113,26 @@ def test_the_served_policy_gives_the_same_episodes(run):
     assert len(episodes) == 2 * len(CELLS)
     assert {e["task"] for e in episodes} == {"turn on the stove", "open the middle drawer of the cabinet"}
     assert all(e["success"] is False and e["inferences"] > 0 for e in episodes)
+
+
+def test_a_chunk_on_two_envs_in_lockstep_gives_the_episodes_of_chunks_on_one(run, tmp_path, monkeypatch):
+    """Both initial states in one task run, two envs sharing batched calls: each episode as its chunk of one ran it.
+    The batched rows equal the lone calls' to float32 rounding: exactly that on the first chunk (the same
+    observation), a little more later on as the simulator carries it; a row given to the wrong episode is ~1 off."""
+    config, _ = run
+    settings = config.rollout.settings().model_copy(update={"chunk_episodes": 2, "envs_per_worker": 2})
+    job = next(job for job in config_jobs(config, PAIR, 1) if job.cell.name == "negative_steered_a+2")
+    job = job.model_copy(update={"init_states": (0, 1), "output_dir": tmp_path})
+    rows, progress, infer_batch = [], [], LocalPolicy.infer_batch
+    monkeypatch.setattr(LocalPolicy, "infer_batch", lambda self, batch: rows.append(len(batch)) or infer_batch(self, batch))
+    with fixed_threads():
+        folder = run_chunk(job, config.capture_settings(), settings, progress=lambda *done: progress.append(done))
+    assert progress == [(1, 2), (2, 2)] and rows == [2, 2, 2]  # both replan at steps 0, 5 and 10 of 12
+    together, together_arrays = read_cell(folder)
+    alone, alone_arrays = cell(config, "negative_steered_a+2")
+    assert [e["init_index"] for e in together["episodes"]] == [0, 1]
+    for mine, theirs in zip(together["episodes"], alone["episodes"], strict=True):
+        assert (mine["outcome"], mine["steps"]) == (theirs["outcome"], theirs["steps"])
+    np.testing.assert_allclose(together_arrays["actions"][:, :5], alone_arrays["actions"][:, :5], atol=1e-5)
+    np.testing.assert_allclose(together_arrays["actions"], alone_arrays["actions"], atol=1e-2)
+    assert together["episodes"][0]["video"] and together["episodes"][1]["video"] is None

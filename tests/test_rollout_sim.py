@@ -1,17 +1,18 @@
 """Closed-loop episodes in the real LIBERO simulator (CPU, one libero_goal env for the module).
 
-`run_episode` (cameras rendered only for the policy) against openpi's loop rendering every step; goal
-predicates on joint states set directly; task lookup.
+`run_episode` (cameras rendered only for the policy) against openpi's loop rendering every step; `run_lockstep`
+(several envs, batched policy calls) against `run_episode`; goal predicates on joint states set directly; task
+lookup.
 """
 
 import re
 
 import numpy as np
 import pytest
-from helpers_rollout import RecordingEnv, ScriptedPolicy, openpi_loop
+from helpers_rollout import ObservationPolicy, RecordingEnv, ScriptedPolicy, openpi_loop
 
 from steering_core.rollout.assets import resolve_assets
-from steering_core.rollout.episode import run_episode
+from steering_core.rollout.episode import run_episode, run_lockstep
 from steering_core.rollout.libero_env import (
     DeferredCameras,
     find_task,
@@ -302,3 +303,50 @@ def test_an_episode_does_not_depend_on_the_episodes_before_it(env, init_state):
     for other in (again, fresh):
         assert np.array_equal(other.robot_qpos, first.robot_qpos) and np.array_equal(other.actions, first.actions)
         assert all(np.array_equal(other.joints[name], first.joints[name]) for name in first.joints)
+
+
+def assert_same_record(mine, theirs):
+    assert (mine.prompt, mine.init_index, mine.outcome, mine.steps, mine.success_step, mine.toward_step,
+            mine.policy_calls, mine.joint_limit_hits, mine.toward_at_start) == (
+        theirs.prompt, theirs.init_index, theirs.outcome, theirs.steps, theirs.success_step, theirs.toward_step,
+        theirs.policy_calls, theirs.joint_limit_hits, theirs.toward_at_start)
+    assert np.array_equal(mine.actions, theirs.actions) and np.array_equal(mine.robot_qpos, theirs.robot_qpos)
+    assert list(mine.joints) == list(theirs.joints)
+    assert all(np.array_equal(mine.joints[name], theirs.joints[name]) for name in theirs.joints)
+    assert np.array_equal(mine.jerk, theirs.jerk, equal_nan=True)
+    assert len(mine.frames) == len(theirs.frames)
+    assert all(np.array_equal(a, b) for a, b in zip(mine.frames, theirs.frames, strict=True))
+
+
+@pytest.mark.slow
+def test_lockstep_envs_give_each_episode_the_record_of_run_episode(env):
+    """Three envs, five episodes of unequal budgets: slots are reused, replans fall on different steps, and the
+    policy's rows depend only on their own observation, so every record equals the episode run alone."""
+    states = initial_states(SUITE, task_index(SUITE, INSTRUCTION))
+    toward = goal(SUITE, task_index(SUITE, "turn on the stove"))
+    episodes = [dict(prompt=INSTRUCTION, init_state=states[index], init_index=index, max_steps=budget,
+                     toward_goal=toward, record_frames=index == 1, episode_id=index)
+                for index, budget in zip((1, 2, 3, 4, 5), (12, 4, 9, 7, 3), strict=True)]
+    alone = [run_episode(env, ObservationPolicy(), **episode) for episode in episodes]
+
+    task = find_task(SUITE, task_index(SUITE, INSTRUCTION))
+    more = [make_env(task), make_env(task)]
+    policy, ended = ObservationPolicy(), []
+    try:
+        together = run_lockstep([env, *more], policy, episodes, on_record=lambda _, record: ended.append(record.init_index))
+    finally:
+        for built in more:
+            built.close()
+
+    assert [record.init_index for record in together] == [1, 2, 3, 4, 5]
+    for mine, theirs in zip(together, alone, strict=True):
+        assert_same_record(mine, theirs)
+    assert [record.steps for record in together] == [12, 4, 9, 7, 3]  # no goal reached: every budget spent
+    assert len(together[0].frames) == 13 and together[1].frames == []
+    # 1, 2, 3 start together; 4 takes 2's env after step 4 (lockstep steps 5-11), 5 takes 3's after step 9 (10-12)
+    assert ended == [2, 3, 4, 1, 5]
+    # replans at lockstep steps 1 (1, 2, 3), 5 (4), 6 (1, 3), 10 (4, 5), 11 (1): one call each
+    assert policy.batch_sizes == [3, 1, 2, 2, 1]
+    assert sum(record.policy_calls for record in alone) == 9
+    assert [event for event in policy.events if event[0] == "start"] == [("start", i) for i in (1, 2, 3, 4, 5)]
+    assert sum(event[0] == "end" for event in policy.events) == 5

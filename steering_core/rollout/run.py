@@ -1,5 +1,6 @@
-"""Run one chunk of a rollout cell: build the LIBERO scene of the cell's side, reach the policy (in-process or a
-`latent-steering serve`), run the chunk's episodes under openpi's protocol and write them as one record."""
+"""Run one chunk of a rollout cell: build the LIBERO scene of the cell's side (`envs_per_worker` envs of it, stepped
+in lockstep), reach the policy (in-process or a `latent-steering serve`), run the chunk's episodes under openpi's
+protocol and write them as one record."""
 
 from __future__ import annotations
 
@@ -67,21 +68,25 @@ def make_policy(job: RolloutJob, model: CaptureSettings, settings: RolloutSettin
     return LocalPolicy(SteeredPi05Policy(policy, noise_seed=settings.noise_seed), steering)
 
 
-_open_env: dict[str, Any] = {}  # the last scene's env, kept for the next chunk of this process (one at a time)
+_open_envs: dict[str, list[Any]] = {}  # the last scene's envs, kept for the next chunk of this process (one scene)
 
 
-def _scene_env(task: Any) -> Any:
-    """Return an env of `task`'s scene: the one the previous chunk used when it is the same task (construction takes
-    seconds; each episode resets the env anyway), else a new one (closing the old)."""
+def _scene_envs(task: Any, count: int) -> list[Any]:
+    """Return `count` envs of `task`'s scene: those the previous chunks built when it is the same task
+    (construction takes seconds; each episode resets its env anyway), plus new ones as needed; another scene's
+    envs are closed first."""
     from steering_core.rollout import libero_env
 
     key = f"{task.problem_folder}/{task.bddl_file}"
-    if key not in _open_env:
-        for old in _open_env.values():
+    if key not in _open_envs:
+        for old in (env for envs in _open_envs.values() for env in envs):
             old.close()
-        _open_env.clear()
-        _open_env[key] = libero_env.make_env(task)
-    return _open_env[key]
+        _open_envs.clear()
+        _open_envs[key] = []
+    envs = _open_envs[key]
+    while len(envs) < count:
+        envs.append(libero_env.make_env(task))
+    return envs[:count]
 
 
 def libero_task(task: LiberoTask) -> tuple[int, Any]:
@@ -115,22 +120,25 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     scene_index, scene = libero_task(job.scene_task)
     toward_index, toward = libero_task(job.toward_task)
     prompt = (toward if job.cell.prompt_side != job.cell.side else scene).language
-    env = _scene_env(scene)
+    envs = _scene_envs(scene, settings.lockstep_envs(len(job.init_states)))
     goal = Goal.from_task(toward)
-    goal.check(env)
-    thresholds = goal_thresholds([Goal.of_env(env), goal], env)  # drawn on the pair's joint plot
+    goal.check(envs[0])
+    thresholds = goal_thresholds([Goal.of_env(envs[0]), goal], envs[0])  # drawn on the pair's joint plot
     states = initial_states(job.scene_task, job.init_states)
     max_steps = settings.max_steps or suite_max_steps(job.scene_task.suite)
     policy = make_policy(job, model, settings, api_key)
-    done = []
+    episodes = [dict(prompt=prompt, init_state=states[index], init_index=index, max_steps=max_steps,
+                     toward_goal=goal, record_frames=settings.videos and index == settings.first_init_state,
+                     seed=settings.seed, episode_id=index) for index in job.init_states]
+    ended = []
+
+    def report(index: int, _: Any) -> None:
+        ended.append(index)
+        if progress is not None:
+            progress(len(ended), len(episodes))
+
     try:
-        for i, index in enumerate(job.init_states):
-            done.append(episode.run_episode(
-                env, policy, prompt=prompt, init_state=states[index], init_index=index, max_steps=max_steps,
-                toward_goal=goal, record_frames=settings.videos and index == settings.first_init_state,
-                seed=settings.seed, episode_id=index))
-            if progress is not None:
-                progress(i + 1, len(job.init_states))
+        done = episode.run_lockstep(envs, policy, episodes, on_record=report)
     finally:
         if hasattr(policy, "close"):  # a server connection
             policy.close()

@@ -16,6 +16,8 @@ SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero
 # α toward the other task, in residual_norm units (the evaluation's): the shift is |α| typical residual norms.
 DEFAULT_ALPHAS_TOWARD = (0.0, 1.0, 2.0, 4.0)
 MAX_ALPHAS = 64  # α values of a grid: each adds a cell per side and condition
+MAX_ENVS_PER_WORKER = 64  # LIBERO envs one rollout process holds at once (each a MuJoCo scene and render context)
+DEFAULT_ENVS_PER_WORKER = 8  # a policy call on a GPU costs about the same for a batch of 1 and of 8
 MIN_RANDOM_DIRECTIONS = 4  # below this the random band is too thin to call a steered rate above it (summary warns)
 
 
@@ -58,6 +60,9 @@ class RolloutSettings(StrictModel):
     wrong_concept: bool = True                  # another pair's direction at the same α (needs two pairs)
     instruction_swap: bool = True               # the other task's instruction, unsteered: the ceiling
     chunk_episodes: int = Field(5, gt=0, le=1000)  # episodes per task run (the fan-out's unit)
+    envs_per_worker: int | None = None          # envs a task run steps in lockstep, batching their policy calls;
+                                                # None: min(8, the chunk's episodes). Outside the identity, like
+                                                # device: it moves actions by float32 rounding (a row's batch place)
     max_steps: int | None = Field(None, gt=0, le=10_000)  # None: openpi's per suite
     seed: int = 7                               # the environment seed (openpi's)
     noise_seed: int | None = 0                  # the in-process policy's initial noise (None: fresh per call, as
@@ -83,6 +88,18 @@ class RolloutSettings(StrictModel):
         if grid[:1] != (0.0,) or len(grid) < 2:
             raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")
         return grid
+
+    @field_validator("envs_per_worker")
+    @classmethod
+    def _envs_per_worker(cls, envs: int | None) -> int | None:
+        if envs is not None and not 1 <= envs <= MAX_ENVS_PER_WORKER:
+            raise ValueError(f"envs_per_worker {envs}: expected a positive integer up to {MAX_ENVS_PER_WORKER} (LIBERO "
+                             f"envs in one process), or null for min({DEFAULT_ENVS_PER_WORKER}, the chunk's episodes)")
+        return envs
+
+    def lockstep_envs(self, episodes: int) -> int:
+        """Return how many envs a task run of `episodes` episodes steps in lockstep (no more than it has episodes)."""
+        return min(self.envs_per_worker or DEFAULT_ENVS_PER_WORKER, episodes)
 
     @field_validator("policy")
     @classmethod
