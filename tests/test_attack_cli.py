@@ -149,7 +149,7 @@ CASES = [
     case("steer", "--layer", "7", "7"),
     case("steer", "--batch-size", "0", "--batch-size 0: input should be greater than 0"),  # the model refuses it
     case("steer", "--top-k", "0", "--top-k 0: input should be greater than 0"),
-    case("steer", "--top-k", "100000", "top_k 100000", "256"),
+    case("steer", "--top-k", "300", "top_k 300", "256"),  # within the bound, above the SAE's latents
     case("steer", "--device", "tpu", "tpu"),
     case("steer", "--sae", "no-such-release", "no-such-release"),
     case("steer", "--sae", lambda world, tmp: world.sae(2), "sae_layer02"),
