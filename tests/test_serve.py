@@ -3,6 +3,7 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import math
@@ -434,6 +435,29 @@ def test_api_key_from_a_file_or_the_environment(tmp_path):
 
 
 # ---------------------------------------------------------------- health, keepalive, default steering, shutdown
+
+class WarmingPolicy(FakePolicy):
+    """A fake policy whose warm-up records whether the server already listened."""
+
+    def __init__(self, events: list[str]) -> None:
+        super().__init__()
+        self.events = events
+
+    def warm_up(self) -> None:
+        self.events.append("warm_up")
+
+
+def test_warm_up_runs_once_before_the_server_listens(catalog):
+    events: list[str] = []
+    server = PolicyServer(WarmingPolicy(events), catalog, port=0)
+
+    def ready() -> None:
+        events.append("ready")
+        server.request_stop()
+
+    asyncio.run(server.serve(ready=ready))
+    assert events == ["warm_up", "ready"]
+
 
 def test_health_check_and_default_steering(catalog, observations):
     default = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 3.0}, catalog)

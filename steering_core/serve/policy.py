@@ -1,4 +1,5 @@
-"""The policy a server serves: anything with `metadata` and `infer(observation, steering) -> dict`.
+"""The policy a server serves: anything with `metadata` and `infer(observation, steering) -> dict`, and optionally
+`warm_up()`, which the server runs once before it listens.
 
 `SteeredPi05Policy` adapts `Pi05Policy`: each selected vector becomes a `Steering` on the language model's
 residual stream at the prompt's instruction tokens (where the steer step measured the concepts).
@@ -71,6 +72,11 @@ class SteeredPi05Policy:
         mask = self.policy.instruction_mask(prompt)
         return [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
                          token_mask=mask) for s in steering]
+
+    def warm_up(self) -> None:
+        """Compile the policy's denoising step at the served batch size (one observation) when it runs compiled."""
+        if getattr(self.policy, "compiled", False):
+            self.policy.warm_up(batch=1)
 
     def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:
         steerings = self.steerings(observation[PROMPT_KEY], steering)
