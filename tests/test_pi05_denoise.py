@@ -141,6 +141,30 @@ def test_shapes_past_the_bound_run_eagerly(eager, batch, noise, caplog):
     assert "compiled already, the most per policy" in caplog.text
 
 
+def test_batches_past_the_row_bound_run_eagerly(eager, batch, noise):
+    policy = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.norm_stats_file, compiled=True)
+    policy.denoiser.max_rows = ROWS - 1
+    actions = policy.sample_actions(*batch.args(), noise=noise, num_steps=2)
+    assert torch.equal(actions, eager.sample_actions(*batch.args(), noise=noise, num_steps=2))
+    assert policy.denoiser.variants == set() == policy.denoiser.refused
+
+
+def test_hooks_on_the_expert_see_every_step(compiled, eager, batch, noise):
+    """Capture records expert layer outputs with forward hooks added after compilation: they must still fire."""
+    policy, _ = compiled
+    seen = {}
+    for name, model in (("compiled", policy), ("eager", eager)):
+        outputs = []
+        handle = model.expert.layers[1].register_forward_hook(lambda _m, _a, output: outputs.append(output.clone()))
+        try:
+            model.sample_actions(*batch.args(), noise=noise, num_steps=3)
+        finally:
+            handle.remove()
+        seen[name] = outputs
+    assert len(seen["compiled"]) == 3
+    torch.testing.assert_close(torch.stack(seen["compiled"]), torch.stack(seen["eager"]), rtol=1e-5, atol=1e-5)
+
+
 @CUDA
 def test_cuda_compiled_matches_eager_within_bfloat16_rounding(checkpoint, tokenizer):
     """On CUDA (bfloat16 by default) the compiled policy is as close to the eager one as bfloat16's rounding moves

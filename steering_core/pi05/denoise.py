@@ -12,7 +12,10 @@ The compiled step therefore sees the cache and mask padded to the untrimmed pref
 columns (their softmax weight is exactly 0, so the valid outputs are unchanged) and the expert additions as
 one dense (depth, rows, 1, width) tensor, zero at unsteered layers (x + 0 = x). A policy compiles one
 variant per (rows, untrimmed prefix length): one per batch size for a server. At most `max_variants` are
-compiled; other shapes run eagerly, so a process's compiled code cannot grow without bound.
+compiled, each of at most `max_rows` rows (larger batches are bound by arithmetic, not launches); other shapes
+run eagerly, so a process's compiled code and graph memory cannot grow without bound. While a forward
+hook watches the expert (capture records its layer outputs so) the loop runs eagerly: dynamo does not guard
+on hooks added after it traced a module, so a compiled step would skip them.
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ logger = logging.getLogger(__name__)
 # start-up for the same launch savings at batch 1
 CUDA_COMPILE_MODE = "reduce-overhead"
 MAX_COMPILED_VARIANTS = 8  # distinct (rows, prefix length) compiled per policy; dynamo's own recompile_limit is 8
+# more rows are bound by arithmetic, not launches; and CUDA graphs copy the padded KV cache into static
+# buffers of their own, 18 MB per row at real size (an evaluation sweep of 320 rows: 5.7 GB per variant)
+MAX_COMPILED_ROWS = 16
 
 Step = Callable[..., torch.Tensor]
 
@@ -66,6 +72,14 @@ def dense_additions(
     return dense
 
 
+def has_hooks(module: torch.nn.Module) -> bool:
+    """Return whether a forward hook (global, or on `module` or a submodule) would see `module` run."""
+    hooks = torch.nn.modules.module
+    if hooks._global_forward_hooks or hooks._global_forward_pre_hooks:
+        return True
+    return any(m._forward_hooks or m._forward_pre_hooks for m in module.modules())
+
+
 def compile_step(expert: ActionExpert, mode: str | None) -> Step:
     """Return `expert.euler_step` compiled for fixed shapes, taking the additions as one dense tensor."""
 
@@ -77,12 +91,13 @@ def compile_step(expert: ActionExpert, mode: str | None) -> Step:
 
 class Denoiser:
     """The Euler loop of one expert; `compiled` runs the compiled step (built on first use) for up to
-    `max_variants` shapes (module docstring)."""
+    `max_variants` shapes of at most `max_rows` rows (module docstring)."""
 
-    def __init__(self, expert: ActionExpert, compiled: bool, max_variants: int = MAX_COMPILED_VARIANTS):
+    def __init__(self, expert: ActionExpert, compiled: bool, max_variants: int = MAX_COMPILED_VARIANTS,
+                 max_rows: int = MAX_COMPILED_ROWS):
         self.expert = expert
         self.compiled = compiled
-        self.max_variants = max_variants
+        self.max_variants, self.max_rows = max_variants, max_rows
         self.variants: set[tuple[int, int]] = set()  # (rows, prefix length) the compiled step has run
         self.refused: set[tuple[int, int]] = set()  # shapes past the bound, run eagerly
         self._step: Step | None = None
@@ -105,12 +120,14 @@ class Denoiser:
         compiled step pads the cache to.
         """
         variant = (actions.shape[0], prefix_length)
-        if self.compiled and variant not in self.variants and len(self.variants) >= self.max_variants:
+        # a compiled graph would not run hooks added after it was traced (capture's recorders)
+        compiled = self.compiled and actions.shape[0] <= self.max_rows and not has_hooks(self.expert)
+        if compiled and variant not in self.variants and len(self.variants) >= self.max_variants:
             if variant not in self.refused:
                 self.refused.add(variant)
                 logger.warning("denoising %s eagerly: %d shapes (rows, prefix length) compiled already, the "
                                "most per policy", variant, self.max_variants)
-        elif self.compiled:
+        elif compiled:
             self.variants.add(variant)
             return self._run_compiled(actions, times, dt, rotary, keys_values, mask, additions, prefix_length)
         for time in times:
