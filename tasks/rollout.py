@@ -41,7 +41,7 @@ def job_inputs(job: RolloutJob) -> dict[str, Any]:
 def settings_inputs(settings: RolloutSettings) -> dict[str, Any]:
     """Return the settings that change an episode (not how the policy is reached nor where assets are read)."""
     return plain(settings.model_dump(mode="json", exclude={"policy", "api_key_file", "libero_assets", "device",
-                                                           "note", "chunk_episodes"}))
+                                                           "compiled", "note", "chunk_episodes"}))
 
 
 def transient_connection(exc: BaseException) -> bool:
