@@ -11,7 +11,7 @@ import torch
 from helpers_pi05 import make_batch
 
 from steering_core.pi05 import Pi05Policy, PromptTokenizer, Steering
-from steering_core.pi05.denoise import dense_additions, pad_prefix
+from steering_core.pi05.denoise import dense_additions, pad_prefix, pad_rows, row_bucket
 from steering_core.pi05.model import MASKED_LOGIT
 from steering_core.pi05.steering import Splice
 from steering_core.synthetic.pi05 import tiny_arch, tiny_expert_arch, write_pi05_checkpoint
@@ -22,6 +22,7 @@ EXPERT = tiny_expert_arch(ARCH)
 MAX_LEN = 24
 FULL_PREFIX = 3 * ARCH.tokens_per_image + MAX_LEN
 ROWS = 3  # the batch's rows; a sweep of three entries over one row has as many
+BUCKET = 4  # the compiled rows they run at: padded to the next row bucket
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: the compiled step's CUDA graphs")
 
 
@@ -98,10 +99,17 @@ def test_dense_additions_place_each_layer():
     assert torch.equal(dense[1], addition.expand(2, 1, 8)) and not dense[[0, 2]].any()
 
 
+def test_rows_run_at_the_smallest_bucket_holding_them():
+    assert [row_bucket(rows) for rows in (1, 2, 3, 5, 9, 16, 17)] == [1, 2, 4, 8, 16, 16, None]
+    assert row_bucket(9, max_rows=8) is None
+    padded = pad_rows(torch.ones(3, 2), 4)
+    assert padded.shape == (4, 2) and torch.equal(padded[:3], torch.ones(3, 2)) and not padded[3].any()
+
+
 def test_warm_up_compiles_one_variant(compiled):
     policy, graphs = compiled
     assert graphs >= 1  # dynamo really compiled the step: no silent fallback to eager
-    assert policy.denoiser.variants == {(ROWS, FULL_PREFIX)}
+    assert policy.denoiser.variants == {(BUCKET, FULL_PREFIX)}
 
 
 @pytest.mark.parametrize("case", ["plain", "lm and expert", "splice"])
@@ -118,7 +126,7 @@ def test_compiled_matches_eager(compiled, eager, batch, noise, case):
     torch.testing.assert_close(actions, expected, rtol=1e-4, atol=1e-4)
     plain = eager.sample_actions(*batch.args(), noise=noise)
     assert case == "plain" or (expected - plain).abs().max() > 1e-2  # the steering or splice really acts
-    assert policy.denoiser.variants == {(ROWS, FULL_PREFIX)}  # steering needs no other compiled shape
+    assert policy.denoiser.variants == {(BUCKET, FULL_PREFIX)}  # steering needs no other compiled shape
 
 
 def test_compiled_sweep_matches_eager(compiled, eager, batch, noise):
@@ -129,7 +137,7 @@ def test_compiled_sweep_matches_eager(compiled, eager, batch, noise):
     expected = eager.sample_actions_sweep(*one.args(), entries, noise=noise[:1])
     torch.testing.assert_close(policy.sample_actions_sweep(*one.args(), entries, noise=noise[:1]), expected,
                                rtol=1e-4, atol=1e-4)
-    assert policy.denoiser.variants == {(ROWS, FULL_PREFIX)}
+    assert policy.denoiser.variants == {(BUCKET, FULL_PREFIX)}
 
 
 def test_shapes_past_the_bound_run_eagerly(eager, batch, noise, caplog):
@@ -137,7 +145,7 @@ def test_shapes_past_the_bound_run_eagerly(eager, batch, noise, caplog):
     policy.denoiser.max_variants = 0
     actions = policy.sample_actions(*batch.args(), noise=noise, num_steps=2)
     assert torch.equal(actions, eager.sample_actions(*batch.args(), noise=noise, num_steps=2))
-    assert policy.denoiser.variants == set() and policy.denoiser.refused == {(ROWS, FULL_PREFIX)}
+    assert policy.denoiser.variants == set() and policy.denoiser.refused == {(BUCKET, FULL_PREFIX)}
     assert "compiled already, the most per policy" in caplog.text
 
 

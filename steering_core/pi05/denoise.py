@@ -11,9 +11,10 @@ skipped, language padding after the longest prompt is trimmed) and with which ex
 The compiled step therefore sees the cache and mask padded to the untrimmed prefix length with masked zero
 columns (their softmax weight is exactly 0, so the valid outputs are unchanged) and the expert additions as
 one dense (depth, rows, 1, width) tensor, zero at unsteered layers (x + 0 = x). A policy compiles one
-variant per (rows, untrimmed prefix length): one per batch size for a server. At most `max_variants` are
-compiled, each of at most `max_rows` rows (larger batches are bound by arithmetic, not launches); other shapes
-run eagerly, so a process's compiled code and graph memory cannot grow without bound. While a forward
+variant per (row bucket, untrimmed prefix length): rows are padded with zero rows up to 1, 2, 4, 8 or 16
+(`ROW_BUCKETS`), so a server batching up to 16 requests compiles five variants, all at its warm-up. At most
+`max_variants` are compiled, each of at most `max_rows` rows (larger batches are bound by arithmetic, not
+launches); other shapes run eagerly, so a process's compiled code and graph memory cannot grow without bound. While a forward
 hook watches the expert (capture records its layer outputs so) the loop runs eagerly: dynamo does not guard
 on hooks added after it traced a module, so a compiled step would skip them.
 """
@@ -38,6 +39,9 @@ MAX_COMPILED_VARIANTS = 8  # distinct (rows, prefix length) compiled per policy;
 # more rows are bound by arithmetic, not launches; and CUDA graphs copy the padded KV cache into static
 # buffers of their own, 18 MB per row at real size (an evaluation sweep of 320 rows: 5.7 GB per variant)
 MAX_COMPILED_ROWS = 16
+# rows are padded up to one of these sizes (zero rows, dropped after): a server batching 1..16 requests compiles
+# five variants, all at its warm-up, instead of one per batch size as they arrive
+ROW_BUCKETS = (1, 2, 4, 8, 16)
 
 Step = Callable[..., torch.Tensor]
 
@@ -58,6 +62,19 @@ def pad_prefix(keys_values: KeyValues, mask: torch.Tensor, length: int) -> tuple
     padded = [tuple(F.pad(tensor, (0, 0, 0, extra)) for tensor in layer) for layer in keys_values]
     masked = mask.new_full((*mask.shape[:-1], extra), MASKED_LOGIT)
     return padded, torch.cat([mask[..., :cached], masked, mask[..., cached:]], dim=-1)
+
+
+def row_bucket(rows: int, max_rows: int = MAX_COMPILED_ROWS) -> int | None:
+    """Return the compiled row count a batch of `rows` runs at (the smallest bucket holding it), or None past
+    `max_rows` (run eagerly)."""
+    return next((bucket for bucket in ROW_BUCKETS if rows <= bucket <= max_rows), None)
+
+
+def pad_rows(tensor: torch.Tensor, rows: int) -> torch.Tensor:
+    """Return `tensor` with zero rows appended along dim 0 up to `rows` (rows of a batch never mix: the added
+    ones only cost their arithmetic)."""
+    extra = rows - tensor.shape[0]
+    return tensor if extra == 0 else torch.cat([tensor, tensor.new_zeros((extra, *tensor.shape[1:]))])
 
 
 def dense_additions(
@@ -119,9 +136,10 @@ class Denoiser:
         additions: {expert layer: (rows, 1, width)} steering; prefix_length: the untrimmed prefix length the
         compiled step pads the cache to.
         """
-        variant = (actions.shape[0], prefix_length)
+        bucket = row_bucket(actions.shape[0], self.max_rows)
+        variant = (bucket, prefix_length)
         # a compiled graph would not run hooks added after it was traced (capture's recorders)
-        compiled = self.compiled and actions.shape[0] <= self.max_rows and not has_hooks(self.expert)
+        compiled = self.compiled and bucket is not None and not has_hooks(self.expert)
         if compiled and variant not in self.variants and len(self.variants) >= self.max_variants:
             if variant not in self.refused:
                 self.refused.add(variant)
@@ -129,20 +147,24 @@ class Denoiser:
                                "most per policy", variant, self.max_variants)
         elif compiled:
             self.variants.add(variant)
-            return self._run_compiled(actions, times, dt, rotary, keys_values, mask, additions, prefix_length)
+            return self._run_compiled(actions, times, dt, rotary, keys_values, mask, additions, prefix_length, bucket)
         for time in times:
             actions = self.expert.euler_step(actions, time, dt, rotary, keys_values, mask, additions)
         return actions
 
-    def _run_compiled(self, actions, times, dt, rotary, keys_values, mask, additions, prefix_length):
+    def _run_compiled(self, actions, times, dt, rotary, keys_values, mask, additions, prefix_length, bucket):
         if self._step is None:
             self._step = compile_step(self.expert, CUDA_COMPILE_MODE if actions.device.type == "cuda" else None)
+        rows = actions.shape[0]
         keys_values, mask = pad_prefix(keys_values, mask, prefix_length)
+        keys_values = [tuple(pad_rows(tensor, bucket) for tensor in layer) for layer in keys_values]
+        mask, rotary = pad_rows(mask, bucket), tuple(pad_rows(tensor, bucket) for tensor in rotary)
         arch = self.expert.expert_arch
-        dense = dense_additions(additions, arch.depth, actions.shape[0], arch.width, self.expert.compute_dtype,
-                                actions.device)
+        dense = dense_additions(additions, arch.depth, rows, arch.width, self.expert.compute_dtype, actions.device)
+        dense = pad_rows(dense.transpose(0, 1), bucket).transpose(0, 1).contiguous()  # (depth, bucket, 1, width)
+        actions = pad_rows(actions, bucket)
         for time in times:
             # a CUDA graph's outputs are overwritten by its next replay: start a new step, keep a copy
             torch.compiler.cudagraph_mark_step_begin()
             actions = self._step(actions, time, dt, rotary, keys_values, mask, dense).clone()
-        return actions
+        return actions[:rows]

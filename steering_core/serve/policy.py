@@ -73,10 +73,15 @@ class SteeredPi05Policy:
         return [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
                          token_mask=mask) for s in steering]
 
-    def warm_up(self) -> None:
-        """Compile the policy's denoising step at the served batch size (one observation) when it runs compiled."""
+    def warm_up(self, max_rows: int = 1) -> None:
+        """Compile the policy's denoising step for every row bucket a call of up to `max_rows` rows runs at (the
+        server's --max-batch), when it runs compiled."""
         if getattr(self.policy, "compiled", False):
-            self.policy.warm_up(batch=1)
+            from steering_core.pi05.denoise import ROW_BUCKETS, row_bucket
+
+            largest = row_bucket(max_rows) or max(ROW_BUCKETS)
+            for bucket in (b for b in ROW_BUCKETS if b <= largest):
+                self.policy.warm_up(batch=bucket)
 
     def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:
         steerings = self.steerings(observation[PROMPT_KEY], steering)
