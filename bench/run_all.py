@@ -3,7 +3,8 @@
     uv run python -m bench.run_all [--device cuda] [--only capture_throughput ...] [--real-size]
 
 `--real-size` adds the real-size sections (bench.real_size and bench.policy_real_size: one 7.2 GB generated
-checkpoint, up to 14 GB of memory, a few minutes), which the 10-minute budget leaves out.
+checkpoint, up to 14 GB of memory, a few minutes), which the 10-minute budget leaves out; so does
+bench.policy_latency (`--only policy_latency`: minutes of compilation per batch size on a CPU).
 
 `--quick` runs the tiny sizes (a smoke run: the numbers mean nothing) and writes its report next to the
 generated inputs instead of over BENCHMARKS.md, unless --output says otherwise.
@@ -32,7 +33,8 @@ BENCHMARKS = (
     "slicing_remote",
     "capture_input",
 )
-OPT_IN = ("real_size", "policy_real_size")  # run only when asked (--real-size or --only)
+# run only when asked (--real-size or --only): minutes of loading, or of compiling (policy_latency)
+OPT_IN = ("real_size", "policy_real_size", "policy_latency")
 REPORT = REPO_ROOT / "BENCHMARKS.md"
 QUICK_REPORT = "BENCHMARKS.quick.md"  # under the cache folder
 BUDGET_MINUTES = 10  # the whole set on a 2-core machine

@@ -97,6 +97,8 @@ def evaluate_command(
     batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Frames per policy call."),
     device: str | None = device_option(None),
     dtype: str | None = typer.Option(None, "--dtype", help="Compute dtype (default bfloat16 on CUDA, float32 on CPU)."),
+    compiled: bool | None = typer.Option(None, "--compiled/--eager", help="Run the policy's denoising step compiled "
+                                         "(default: on CUDA only; batches over 16 rows run eagerly)."),
 ) -> None:
     """Dose-response of each pair's steering vectors on held-out frames: efficacy vs α, against random directions.
 

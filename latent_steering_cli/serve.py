@@ -66,6 +66,10 @@ def serve_command(
     dtype: str | None = typer.Option(
         None, "--dtype", help="Compute dtype (default: openpi's bfloat16 policy on CUDA, float32 on CPU)."
     ),
+    compiled: bool | None = typer.Option(
+        None, "--compiled/--eager", help="Run the denoising step compiled (torch.compile; CUDA graphs on CUDA), paid "
+        "once at start-up before /healthz answers (default: compiled on CUDA, eager on CPU)."
+    ),
     arch_file: Path | None = typer.Option(
         None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
     ),
@@ -140,7 +144,7 @@ def serve_command(
         policy = Pi05Policy.from_checkpoint(
             checkpoint_path, arch, device=device, dtype=dtype, action_horizon=action_horizon,
             tokenizer_path=tokenizer_path or _tokenizer_beside(checkpoint_path), prompt_format=prompt_format,
-            norm_stats_path=norm_stats, asset_id=asset_id,
+            norm_stats_path=norm_stats, asset_id=asset_id, compiled=compiled,
         )
         if "actions" not in policy.norm_stats:  # read now: a missing or broken file stops here, not at a request
             raise ValueError(f"{policy.norm_stats_file}: no `actions` entry; the served actions are unnormalised by it")

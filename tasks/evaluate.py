@@ -70,6 +70,11 @@ def job_inputs(job: evaluate_run.EvaluateJob) -> dict[str, Any]:
     }
 
 
+def settings_inputs(settings: EvaluateSettings) -> dict[str, Any]:
+    """Return the settings that change an evaluation's numbers beyond rounding (not whether the policy runs compiled)."""
+    return plain(settings.model_dump(mode="json", exclude={"compiled"}))
+
+
 def evaluation_identity(
     job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings | None,
     settings: EvaluateSettings,
@@ -83,14 +88,15 @@ def evaluation_identity(
     inputs["job"].pop("output_dir")
     return sha256_json({"code": code_version("steering_core.evaluate.run"), "job": inputs, "model": model_inputs(model),
                         "steering": sae_inputs(steering_settings) if steering_settings is not None else None,
-                        "settings": plain(settings)})
+                        "settings": settings_inputs(settings)})
 
 
 @task(
     name="evaluate-steering",
     task_run_name="evaluate {job.pair} {job.label}",
     tags=[GPU_TAG],
-    cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs, steering=sae_inputs),
+    cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs, steering=sae_inputs,
+                             settings=settings_inputs),
     retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )

@@ -42,7 +42,7 @@ def settings_inputs(settings: RolloutSettings) -> dict[str, Any]:
     """Return the settings that change an episode (not how the policy is reached, where assets are read, nor how
     episodes are placed on task runs and envs)."""
     return plain(settings.model_dump(mode="json", exclude={"policy", "api_key_file", "libero_assets", "device",
-                                                           "note", "chunk_episodes", "envs_per_worker"}))
+                                                           "compiled", "note", "chunk_episodes", "envs_per_worker"}))
 
 
 def transient_connection(exc: BaseException) -> bool:

@@ -28,6 +28,7 @@ from bench import (  # noqa: E402
     cli_startup,
     concept_map_speed,
     evaluate_cost,
+    policy_latency,
     policy_sweep,
     real_size,
     rollout_throughput,
@@ -189,6 +190,14 @@ def test_policy_sweep_equals_separate_calls(cache, tmp_path):
     assert [row["case"] for row in result.table] == ["measured cpu, lm layer 1, 8 alphas",
                                                      "real pi0.5, lm layer 12 (analytic)",
                                                      "real pi0.5, expert stream (analytic)"]
+
+
+@pytest.mark.slow
+def test_policy_latency_compiled_gives_the_eager_actions(cache, tmp_path):
+    result = run_quick(policy_latency, cache, tmp_path)
+    assert result.checks["max_abs_difference"] < 1e-4
+    assert [row["batch"] for row in result.table] == list(policy_latency.QUICK["batches"])
+    assert all(row["warm-up s (compile)"] > 0 and row["compiled ms"] > 0 for row in result.table)
 
 
 def test_policy_sweep_flop_model():

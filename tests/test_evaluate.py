@@ -572,3 +572,13 @@ def test_ui_artifact_inlines_the_efficacy_plot_in_a_narrow_table(tmp_path):
     assert f"data:image/png;base64,{base64.b64encode(png).decode('ascii')}" in text
     table = [line for line in text.splitlines() if line.startswith("| open_vs_close, ")]
     assert len(table) == 2 and all(line.count("|") == 6 for line in table)
+
+
+def test_evaluation_identity_leaves_out_whether_the_policy_runs_compiled():
+    from steering_core.evaluate import EvaluateSettings
+    from tasks.evaluate import settings_inputs
+
+    base = EvaluateSettings()
+    assert settings_inputs(base.model_copy(update={"compiled": False})) == settings_inputs(base)
+    assert settings_inputs(base.model_copy(update={"num_steps": 5})) != settings_inputs(base)
+

@@ -160,5 +160,5 @@ def test_settings_enter_a_chunk_identity_only_when_they_change_its_episodes():
     for change in ({"max_steps": 40}, {"seed": 8}, {"noise_seed": 1}, {"videos": False}, {"direction": "mean_difference"}):
         assert settings_inputs(base.model_copy(update=change)) != settings_inputs(base), change
     for change in ({"policy": "ws://gpu:8000"}, {"libero_assets": "/assets"}, {"device": "cpu"}, {"note": "x"},
-                   {"chunk_episodes": 2}, {"envs_per_worker": 3}):
+                   {"chunk_episodes": 2}, {"envs_per_worker": 3}, {"compiled": True}, {"compiled": False}):
         assert settings_inputs(base.model_copy(update=change)) == settings_inputs(base), change

@@ -3,6 +3,7 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import math
@@ -34,6 +35,7 @@ from websockets.sync.client import connect
 from steering_core.serve import (
     PolicyServer,
     RequestError,
+    SteeredPi05Policy,
     SteeringVector,
     VectorCatalog,
     parse_steering,
@@ -501,6 +503,49 @@ def test_api_key_from_a_file_or_the_environment(tmp_path):
 
 
 # ---------------------------------------------------------------- health, keepalive, default steering, shutdown
+
+class WarmingPolicy(FakePolicy):
+    """A fake policy whose warm-up records whether the server already listened."""
+
+    def __init__(self, events: list[str]) -> None:
+        super().__init__()
+        self.events = events
+
+    def warm_up(self, max_rows: int) -> None:
+        self.events.append(f"warm_up {max_rows}")
+
+
+def test_warm_up_runs_once_before_the_server_listens(catalog):
+    events: list[str] = []
+    server = PolicyServer(WarmingPolicy(events), catalog, port=0, max_batch=6)
+
+    def ready() -> None:
+        events.append("ready")
+        server.request_stop()
+
+    asyncio.run(server.serve(ready=ready))
+    assert events == ["warm_up 6", "ready"]  # every row count a batched call may have
+
+
+class CompiledRecorder:
+    """A compiled policy's stand-in: records the batch sizes it is warmed up at."""
+
+    def __init__(self, compiled: bool) -> None:
+        self.compiled, self.batches = compiled, []
+
+    def warm_up(self, batch: int) -> None:
+        self.batches.append(batch)
+
+
+def test_a_served_compiled_policy_warms_every_row_bucket_up_to_the_served_batch():
+    for max_rows, expected in ((1, [1]), (6, [1, 2, 4, 8]), (16, [1, 2, 4, 8, 16]), (40, [1, 2, 4, 8, 16])):
+        policy = CompiledRecorder(compiled=True)
+        SteeredPi05Policy(policy).warm_up(max_rows)
+        assert policy.batches == expected, max_rows  # past 16 rows the denoising step runs eagerly
+    eager = CompiledRecorder(compiled=False)
+    SteeredPi05Policy(eager).warm_up(16)
+    assert eager.batches == []
+
 
 def test_health_check_and_default_steering(catalog, observations):
     default = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 3.0}, catalog)

@@ -152,7 +152,7 @@ def evaluate_pair(
         "in_sample_note": IN_SAMPLE_NOTE if pair.split.in_sample else None, "note": settings.note,
         "include_decoder_bias": include_decoder_bias,
         "positions_note": positions_note,
-        "settings": settings.model_dump(mode="json", exclude={"device"}),
+        "settings": settings.model_dump(mode="json", exclude={"device", "compiled"}),
         "frames": [f.as_json() for f in frames], "model": metadata or {},
     }
     record = pair_record(head, names, settings.alphas, metrics, vector_scale)

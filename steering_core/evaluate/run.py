@@ -222,13 +222,15 @@ def slice_decision_run(run_dir: Path, pair: str, layers: Sequence[int], *, data_
 
 
 @functools.lru_cache(maxsize=1)
-def load_policy(model: CaptureSettings, device: str, dtype: str | None) -> Any:
-    """Return the Pi05Policy of `model` (cached: one policy per process and model)."""
+def load_policy(model: CaptureSettings, device: str, dtype: str | None, compiled: bool | None = None) -> Any:
+    """Return the Pi05Policy of `model` (cached: one policy per process and model); `compiled`: its denoising step's
+    setting (`Pi05Policy.from_checkpoint`)."""
     from steering_core.pi05.policy import Pi05Policy
 
     return Pi05Policy.from_checkpoint(
         model.checkpoint_path, arch=model.arch, device=device, dtype=dtype, tokenizer_path=model.tokenizer_path,
         prompt_format=model.prompt_format, norm_stats_path=model.norm_stats_path, asset_id=model.norm_stats_asset_id,
+        compiled=compiled,
     )
 
 
@@ -290,7 +292,7 @@ def _evaluate(
         directions = decision_directions(pair.slices)
     else:
         directions = pair_directions(job.directions, sae, top_k=settings.top_k)
-    policy = policy if policy is not None else load_policy(model, settings.device, settings.dtype)
+    policy = policy if policy is not None else load_policy(model, settings.device, settings.dtype, settings.compiled)
     width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
     from steering_core.pi05.steering import Steering
 

@@ -59,6 +59,7 @@ class EvaluateSettings(StrictModel):
     entries_per_call: int = Field(40, gt=0, le=1024)  # steered (direction, α) entries per sweep call (bounds GPU memory)
     device: str = "auto"
     dtype: str | None = None                   # None: bfloat16 on CUDA, float32 on CPU (as openpi)
+    compiled: bool | None = None               # the compiled denoising step (None: on CUDA); rounding only: no identity
     note: str | None = None                    # printed at the top of the summary (e.g. "tiny random model")
 
     @property

@@ -202,3 +202,17 @@ class ActionExpert(nn.Module):
                 hidden = hidden + additions[index]
         hidden, _ = self.norm(hidden, cond)  # the final norm's gate is unused
         return self.action_out_proj(hidden.to(self.action_out_proj.weight.dtype)).float()
+
+    def euler_step(
+        self,
+        actions: torch.Tensor,
+        time: torch.Tensor,
+        dt: torch.Tensor,
+        rotary: tuple[torch.Tensor, torch.Tensor],
+        prefix: KeyValues,
+        mask: torch.Tensor,
+        additions: Mapping[int, torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """Return actions + dt * velocity (B, H, action_dim) float32 at flow time `time` (0-d float32, spec 10.4)."""
+        cond = self.condition(time.expand(actions.shape[0]))
+        return actions + dt * self.velocity(actions, cond, rotary, prefix, mask, additions)

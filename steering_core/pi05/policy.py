@@ -28,6 +28,7 @@ from steering_core.pi05.checkpoint import (
     read_expert_tensors,
     resolve_model_file,
 )
+from steering_core.pi05.denoise import Denoiser
 from steering_core.pi05.expert import ActionExpert, euler_times, expert_checkpoint_key, expert_parameter_dtype
 from steering_core.pi05.model import MASKED_LOGIT, Attention, KeyValueRecorder, Pi05Prefix
 from steering_core.pi05.norm_stats import (
@@ -40,7 +41,14 @@ from steering_core.pi05.norm_stats import (
 from steering_core.pi05.norm_stats import (
     norm_stats_path as default_norm_stats_path,
 )
-from steering_core.pi05.observation import ObservationBatch, observation_batch
+from steering_core.pi05.observation import (
+    IMAGE_KEY,
+    PROMPT_KEY,
+    STATE_KEY,
+    WRIST_IMAGE_KEY,
+    ObservationBatch,
+    observation_batch,
+)
 from steering_core.pi05.steering import (
     Splice,
     Steering,
@@ -56,6 +64,7 @@ from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer
 logger = logging.getLogger(__name__)
 
 ROBOT_ACTION_DIM = 7  # LiberoOutputs keeps the first 7 of the 32 model action dimensions
+LIBERO_STATE_DIM = 8  # eef position 3, axis-angle 3, gripper qpos 2: the warm-up's dummy state
 DEFAULT_STEPS = 10  # sample_actions' default number of Euler steps
 
 
@@ -69,6 +78,7 @@ class Pi05Policy(nn.Module):
         action_horizon: int,
         tokenizer: PromptTokenizer | None,
         norm_stats_file: Path,
+        compiled: bool = False,
     ):
         super().__init__()
         self.prefix = prefix
@@ -78,6 +88,12 @@ class Pi05Policy(nn.Module):
         self.norm_stats_file = norm_stats_file
         self.attention: Attention = "sdpa"  # the prefix's fused attention; "eager" is openpi's explicit mask
         self._norm_stats: dict[str, NormStats] | None = None
+        self.denoiser = Denoiser(expert, compiled)
+
+    @property
+    def compiled(self) -> bool:
+        """Return whether the denoising step runs compiled (`steering_core.pi05.denoise`)."""
+        return self.denoiser.compiled
 
     @classmethod
     def from_checkpoint(
@@ -92,6 +108,7 @@ class Pi05Policy(nn.Module):
         norm_stats_path: str | os.PathLike | None = None,
         asset_id: str = LIBERO_ASSET_ID,
         expert_arch: ExpertArch | None = None,
+        compiled: bool | None = None,
     ) -> Pi05Policy:
         """Return the policy of a converted openpi PyTorch pi0.5 checkpoint (folder or model.safetensors).
 
@@ -106,6 +123,8 @@ class Pi05Policy(nn.Module):
                 default `<checkpoint>/assets/<asset_id>/norm_stats.json`, read on first use.
             expert_arch: expert dimensions; default gemma_300m beside the real language model, else read
                 from the checkpoint's shapes.
+            compiled: run the denoising step compiled (`steering_core.pi05.denoise`: the same actions within
+                rounding, a one-off compilation per batch size, paid by `warm_up`); default on CUDA only.
         """
         arch = arch or Pi05Arch()
         if isinstance(action_horizon, bool) or not isinstance(action_horizon, int) or action_horizon < 1:
@@ -137,9 +156,11 @@ class Pi05Policy(nn.Module):
         expert.load_state_dict({local[key]: tensor for key, tensor in tensors.items()}, strict=True, assign=True)
         expert.requires_grad_(False).eval()
         stats_file = Path(norm_stats_path) if norm_stats_path is not None else default_norm_stats_path(model_file, asset_id)
-        policy = cls(prefix, expert, action_horizon, tokenizer, stats_file)
+        compiled = device.type == "cuda" if compiled is None else compiled
+        policy = cls(prefix, expert, action_horizon, tokenizer, stats_file, compiled)
         policy.eval()
-        logger.info("pi0.5 policy from %s on %s in %s (expert %s)", model_file, device, dtype, expert_arch)
+        logger.info("pi0.5 policy from %s on %s in %s (expert %s%s)", model_file, device, dtype, expert_arch,
+                    ", compiled denoising" if compiled else "")
         return policy
 
     # ------------------------------------------------------------------ properties
@@ -273,11 +294,8 @@ class Pi05Policy(nn.Module):
         mask = torch.where(allowed, 0.0, MASKED_LOGIT).to(torch.float32)[:, None, None, :]
         steer = stack_entries([expert_additions(entry, self.expert.compute_dtype) for entry in entries],
                               batch)
-        actions = noise.repeat(n, 1, 1)
-        for t in times:
-            cond = self.expert.condition(t.expand(n * batch))
-            velocity = self.expert.velocity(actions, cond, rotary, keys_values, mask, steer)
-            actions = actions + dt * velocity
+        full = self.arch.prefix_length(len(images), n_tokens)
+        actions = self.denoiser.run(noise.repeat(n, 1, 1), times, dt, rotary, keys_values, mask, steer, full)
         return actions.view(n, batch, horizon, self.action_dim)
 
     def _prefix_cache(
@@ -402,3 +420,22 @@ class Pi05Policy(nn.Module):
         actions = self.sample_actions(batch.images, batch.image_masks, tokens, token_mask, noise=noise,
                                       num_steps=num_steps, steering=steering)
         return self.robot_actions(actions)
+
+    def warm_up(self, batch: int = 1) -> float:
+        """Return the seconds one `infer` of a dummy observation of `batch` frames took.
+
+        With `compiled`, the first call of a batch size compiles its denoising step (seconds to minutes); a
+        server calls this before it reports ready, so no request pays it. Needs the tokenizer, as `infer`.
+        """
+        side = self.arch.image_size
+        frames = np.zeros((batch, side, side, 3), dtype=np.uint8)
+        state_dim = LIBERO_STATE_DIM
+        if self._require_tokenizer().prompt_format is PromptFormat.DISCRETE_STATE and "state" in self.norm_stats:
+            state_dim = len(self.norm_stats["state"].mean)
+        observation = {IMAGE_KEY: frames, WRIST_IMAGE_KEY: frames, STATE_KEY: np.zeros((batch, state_dim)),
+                       PROMPT_KEY: ["warm up"] * batch}
+        start = time.perf_counter()
+        self.infer(observation)
+        seconds = time.perf_counter() - start
+        logger.info("warmed up at batch %d in %.1f s%s", batch, seconds, " (compiled denoising)" if self.compiled else "")
+        return seconds

@@ -73,6 +73,7 @@ class RolloutSettings(StrictModel):
     libero_assets: str = "installed"            # "installed" (PyPI packages, verified), "download", or a folder
     device: str = "auto"
     dtype: str | None = None                    # None: bfloat16 on CUDA, float32 on CPU (as openpi)
+    compiled: bool | None = None                # the compiled denoising step (None: on CUDA); rounding only: no identity
     note: str | None = None                     # printed at the top of the summary (e.g. "tiny random model")
 
     @field_validator("alphas")

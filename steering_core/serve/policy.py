@@ -1,4 +1,5 @@
-"""The policy a server serves: anything with `metadata` and `infer(observation, steering) -> dict`.
+"""The policy a server serves: anything with `metadata` and `infer(observation, steering) -> dict`, and optionally
+`warm_up()`, which the server runs once before it listens.
 
 `SteeredPi05Policy` adapts `Pi05Policy`: each selected vector becomes a `Steering` on the language model's
 residual stream at the prompt's instruction tokens (where the steer step measured the concepts).
@@ -84,6 +85,16 @@ class SteeredPi05Policy:
             steerings += [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
                                    token_mask=mine) for s in entries]
         return steerings
+
+    def warm_up(self, max_rows: int = 1) -> None:
+        """Compile the policy's denoising step for every row bucket a call of up to `max_rows` rows runs at (the
+        server's --max-batch), when it runs compiled."""
+        if getattr(self.policy, "compiled", False):
+            from steering_core.pi05.denoise import ROW_BUCKETS, row_bucket
+
+            largest = row_bucket(max_rows) or max(ROW_BUCKETS)
+            for bucket in (b for b in ROW_BUCKETS if b <= largest):
+                self.policy.warm_up(batch=bucket)
 
     def infer(self, observation: dict[str, Any], steering: Sequence[AppliedSteering]) -> dict[str, Any]:
         return self.infer_batch([observation], [steering])[0]

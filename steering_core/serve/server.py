@@ -5,7 +5,8 @@ On connect the client gets the metadata; each binary msgpack observation gets on
 gets one line of text naming the key (never a traceback) and the connection stays open for the next request.
 Control messages (`__ctrl__` episode_start / episode_end, openpi's current client) record episodes
 (steering_core.serve.episodes). With an api key, an upgrade without `Authorization: Api-Key <key>` gets HTTP 401.
-`GET /healthz` answers 200 "OK\\n" on the same port, key or not; any other plain HTTP request gets 426 (at `/`)
+`GET /healthz` answers 200 "OK\\n" on the same port, key or not, from the moment the server listens: after the
+policy's `warm_up()` (if it has one) has run; any other plain HTTP request gets 426 (at `/`)
 or 404, and a malformed one a one-line warning in the log. One model serves every connection: requests run in
 order per connection, and requests of all connections that arrive within `batch_wait_ms` of the oldest waiting
 one share one policy call of up to `max_batch` rows (dynamic batching; a request may itself carry a leading batch
@@ -186,6 +187,9 @@ class PolicyServer:
         if install_signal_handlers:
             for signum in (signal.SIGINT, signal.SIGTERM):
                 self._loop.add_signal_handler(signum, self._stop.set)
+        warm_up = getattr(self.policy, "warm_up", None)
+        if warm_up is not None:  # before listening: once /healthz answers, no request pays a compilation
+            await asyncio.to_thread(warm_up, self.max_batch)  # every row count a call may have
         async with serve(
             self._handle, self.host, self.port, compression=None, process_request=self._check_request,
             max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR, max_queue=self.max_queue,
