@@ -56,6 +56,7 @@ from bench.common import (
     repeat_timed,
     timed,
 )
+from bench.policy_latency import measure_latency
 from bench.real_size import checkpoint_folder
 from steering_core.devices import resolve_device, resolve_dtype
 from steering_core.pi05 import Pi05Arch, Pi05Policy, Steering
@@ -72,6 +73,7 @@ from steering_core.synthetic.pi05 import tiny_arch
 TOLERANCES = {torch.float32: 1e-5, torch.bfloat16: 3e-2}
 PROMPT_TOKENS = REAL_PROMPT_TOKENS  # valid tokens of each frame's prompt
 STEPS = 10  # denoising steps
+BATCH1_TARGET_MS = 40.0  # batch-1 sample_actions on an H100/H200-class GPU (published pi0.5: 22-57 ms on 4090 / L40S)
 SWEEP_ALPHAS = policy_sweep.ALPHAS  # 8 steerings
 VECTOR_NORM = 10.0  # steering vectors' norm (alpha 1)
 # The precision section steers the LM at every prefix position with alpha 16: in the mid-size random model that
@@ -362,15 +364,31 @@ def kernel_seconds(call: Callable[[], Any], device: torch.device) -> float | Non
 
 
 def latency(ctx: Context) -> Section:
-    """Load the policy; time sample_actions against batch size and its kernel time against wall time."""
+    """Load the policy; time sample_actions against batch size and its kernel time against wall time; then the
+    batch-1 call of the other build (compiled denoising against eager), with its actions compared."""
     policy, load_seconds = ctx.policy()
     parameters = sum(p.numel() * p.element_size() for p in policy.parameters()) / 2**30
-    section = policy_latency(policy, ctx.sizes.latency_batches, ctx.sizes.repeats, "as from_checkpoint builds it")
+    build = "compiled" if policy.compiled else "eager"
+    section = policy_latency(policy, ctx.sizes.latency_batches, ctx.sizes.repeats, f"as from_checkpoint builds it: {build}")
     section.measures.insert(0, {"measure": "from_checkpoint s", "value": load_seconds,
                                 "against": f"{parameters:.3g} GiB of parameters", "ratio": ""})
+    other = Pi05Policy(policy.prefix, policy.expert, policy.action_horizon, policy.tokenizer, policy.norm_stats_file,
+                       compiled=not policy.compiled)  # the same weights
+    mine, theirs = measure_latency(policy, 1, ctx.sizes.repeats), measure_latency(other, 1, ctx.sizes.repeats)
+    compiled, eager = (mine, theirs) if policy.compiled else (theirs, mine)
+    section.measure("sample_actions ms, batch 1, compiled denoising", compiled["median_ms"],
+                    f"eager {eager['median_ms']:.4g} ms", compiled["median_ms"] / eager["median_ms"])
+    section.measure("compiled batch-1 ms against the 40 ms target", compiled["median_ms"], "40 ms",
+                    compiled["median_ms"] / BATCH1_TARGET_MS)
+    section.measure("compilation s (warm-up, batch 1)", compiled["warm_up_s"], "paid once per process and batch size")
+    section.comparisons.append(Comparison("compiled vs eager actions, batch 1", "relative error",
+                                          relative_error(compiled["actions"], eager["actions"]), tolerance(ctx.dtype)))
+    section.figures["compiled_batch1_ms"] = compiled["median_ms"]
     section.notes.append(f"latency: {STEPS} denoising steps, fixed noise, {PROMPT_TOKENS}-token prompts; "
                          "the ratio is the time against batch 1 times the batch (below 1: batching pays); kernel "
-                         "time is the sum of the batch-1 call's CUDA kernels and copies (torch.profiler).")
+                         "time is the sum of the batch-1 call's CUDA kernels and copies (torch.profiler); the "
+                         "compiled denoising step (default on CUDA) against eager on the same weights, its first "
+                         "call (the compilation) timed apart.")
     return section
 
 

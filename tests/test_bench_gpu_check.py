@@ -56,10 +56,13 @@ def test_quick_check_runs_every_section_and_every_comparison_passes(tmp_path):
         cosine = comparisons[f"bfloat16 cpu vs float32 cpu: effect of {stream}-steered steering / 1 - cosine"]
         assert cosine["tolerance"] == gpu_check.TOLERANCES[torch.bfloat16]
     latency = [row["measure"] for row in sections["latency"]["measures"]]
-    assert latency == ["from_checkpoint s", "sample_actions ms, batch 1 (as from_checkpoint builds it)",
-                       "sample_actions ms, batch 4 (as from_checkpoint builds it)",
-                       "GPU kernel ms, batch 1 (as from_checkpoint builds it)"]
-    assert sections["latency"]["measures"][-1]["value"] == "n/a (CPU)"
+    built = "as from_checkpoint builds it: eager"  # on the CPU; compiled denoising is CUDA's default
+    assert latency == ["from_checkpoint s", f"sample_actions ms, batch 1 ({built})",
+                       f"sample_actions ms, batch 4 ({built})", f"GPU kernel ms, batch 1 ({built})",
+                       "sample_actions ms, batch 1, compiled denoising", "compiled batch-1 ms against the 40 ms target",
+                       "compilation s (warm-up, batch 1)"]
+    assert sections["latency"]["measures"][3]["value"] == "n/a (CPU)"
+    assert comparisons["compiled vs eager actions, batch 1 / relative error"]["error"] < 1e-5
     assert [row["measure"].split(" SAE")[0] for row in sections["sae"]["measures"][:2]] == ["standard", "topk"]
     figures = payload["checks"]["figures"]  # what the capture-input and server benchmarks read
     assert set(figures["sample_actions_ms"]) == {"1", "4"} and figures["peak_tflops"] > 0
