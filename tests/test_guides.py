@@ -64,5 +64,8 @@ def test_policy_example_runs(tmp_path, monkeypatch):
         '"paligemma_tokenizer.model"': repr(str(tokenizer)),
         "layer=12": "layer=2",
     }
-    scope = run_example("Pi05Policy", substitutions, arch, tmp_path, monkeypatch)
+    scope = run_example("Pi05Policy, Steering", substitutions, arch, tmp_path, monkeypatch)
     assert scope["actions"].shape == (10, 7)
+    scope = run_example("policy.warm_up", {key: value for key, value in substitutions.items() if key != "layer=12"},
+                        arch, tmp_path, monkeypatch)
+    assert scope["seconds"] > 0 and not scope["policy"].compiled  # compiled=None: eager on the CPU
