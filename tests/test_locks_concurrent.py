@@ -228,8 +228,9 @@ def test_two_runs_started_together_compute_each_output_once(prefect_server, tmp_
     logs = finish([(start_run(config_path, prefect_server, tmp_path / f"run{i}.log"), tmp_path / f"run{i}.log")
                    for i in (1, 2)])
     assert not any("Resource deadlock" in log or "Traceback" in log for log in logs)
-    assert computed(logs) == single  # each output once, whichever run computed it
-    assert "already holds this evaluation; reused" in "".join(logs)  # the second run waited and reused
+    # each output once, whichever run computed it; whether the other run waited on a lock ("already holds this
+    # evaluation; reused") or found the output already cached depends on the machine's timing, so either passes
+    assert computed(logs) == single
     together = tree(root)
     assert together.keys() == alone.keys()
     # the same task records (same cache keys); their summaries say what each run did there (a dataset created or
