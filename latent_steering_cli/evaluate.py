@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import typer
@@ -108,70 +109,110 @@ def evaluate_command(
     pairs); with --config, its evaluate.expert_layers are evaluated too (--layer or --expert-layers alone
     select one pathway).
     """
+    options = EvaluateOptions(**ctx.params)
     expert = layer_list(expert_layers, "--expert-layers") if expert_layers is not None else None
     with input_errors():
         plan = _config_plan if config is not None else _flags_plan
-        _run(*plan(ctx.params, expert, _setting_overrides(ctx.params)))
+        _run(*plan(options, expert, _setting_overrides(options)))
+
+
+@dataclass(frozen=True)
+class EvaluateOptions:
+    """The options of `latent-steering evaluate`, as given (None: not given)."""
+
+    config: Path | None
+    pairs_config: Path | None
+    layer: int | None
+    pair: list[str]
+    data_root: Path
+    steering_root: Path | None
+    output_root: Path | None
+    lerobot_root: Path | None
+    repo_id: str | None
+    checkpoint_path: Path | None
+    tokenizer_path: Path | None
+    norm_stats: Path | None
+    arch_file: Path | None
+    decision_run: Path | None
+    expert_layers: str | None
+    sae: str
+    sae_id: str | None
+    sae_dir: Path | None
+    paths_relative_to: PathsRelativeTo
+    alphas: str | None
+    max_frames: int | None
+    noise_seeds: int | None
+    random_directions: int | None
+    top_k: int | None
+    batch_size: int | None
+    device: str | None
+    dtype: str | None
+    compiled: bool | None
 
 
 Plan = tuple[list[tuple[EvaluateJob, SteeringSettings | None]], CaptureSettings, EvaluateSettings]
 
 
-def _setting_overrides(flags: dict) -> dict:
-    """Return the evaluation settings the flags give: each given option named as an EvaluateSettings field (the rest
-    keep the run config's or the defaults)."""
-    overrides = {name: flags[name] for name in EvaluateSettings.model_fields if flags.get(name) is not None}
-    return overrides | ({"alphas": _parse_floats(flags["alphas"])} if flags["alphas"] else {})
+def _setting_overrides(options: EvaluateOptions) -> dict:
+    """Return the evaluation settings the options give: each given option named as an EvaluateSettings field (the
+    rest keep the run config's or the defaults)."""
+    overrides = {name: value for name, value in asdict(options).items()
+                 if name in EvaluateSettings.model_fields and value is not None}
+    return overrides | ({"alphas": _parse_floats(options.alphas)} if options.alphas else {})
 
 
-def _config_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
+def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: dict) -> Plan:
     """Return the jobs of a run config: its pairs (or --pair) at its layers and expert layers (or --layer,
     --expert-layers), with its model and evaluate settings."""
-    path_flags = ("pairs_config", "lerobot_root", "checkpoint_path", "tokenizer_path", "steering_root", "output_root",
-                  "decision_run")
-    if given := [_flag(name) for name in path_flags if flags[name] is not None]:
+    path_flags = {"--pairs-config": options.pairs_config, "--lerobot-root": options.lerobot_root,
+                  "--checkpoint-path": options.checkpoint_path, "--tokenizer-path": options.tokenizer_path,
+                  "--steering-root": options.steering_root, "--output-root": options.output_root,
+                  "--decision-run": options.decision_run}
+    if given := [flag for flag, value in path_flags.items() if value is not None]:
         raise typer.BadParameter(f"{', '.join(given)} cannot be combined with --config", param_hint="--config")
-    run = load_run_config(flags["config"])
+    run = load_run_config(options.config)
     if stray := sorted(set(expert or ()) - set(run.expert_layers)):
         raise typer.BadParameter(f"{stray}: the run config's evaluate.expert_layers are {list(run.expert_layers)}",
                                  param_hint="--expert-layers")
-    layer = flags["layer"]
+    layer = options.layer
     layers = [layer] if layer is not None else [] if expert is not None else list(run.layers)
     expert = expert if expert is not None else [] if layer is not None else run.expert_layers
-    names = flags["pair"] or [p.name for p in run.pairs]
+    names = options.pair or [p.name for p in run.pairs]
     jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
     jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
     return jobs, run.capture_settings(), EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
 
 
-def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
+def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: dict) -> Plan:
     """Return the jobs the path flags describe: a pairs config's pairs at --layer, and/or the expert directions
     of a --decision-run at --expert-layers."""
-    _require_flags(flags, expert)
+    _require_flags(options, expert)
     settings = EvaluateSettings(**overrides)
-    layer, data_root, lerobot_root = flags["layer"], flags["data_root"], flags["lerobot_root"]
+    layer, data_root, lerobot_root = options.layer, options.data_root, options.lerobot_root
     model = CaptureSettings(
-        checkpoint_path=flags["checkpoint_path"], tokenizer_path=flags["tokenizer_path"],
-        layers=(layer,) if layer is not None else expert, norm_stats_path=flags["norm_stats"],
-        arch=read_arch(flags["arch_file"]),
+        checkpoint_path=options.checkpoint_path, tokenizer_path=options.tokenizer_path,
+        layers=(layer,) if layer is not None else expert, norm_stats_path=options.norm_stats,
+        arch=read_arch(options.arch_file),
     )
-    names = [check_name(name, "--pair") for name in flags["pair"]] or [
-        p.name for p in read_pairs_config(flags["pairs_config"]).pairs]
-    places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=flags["repo_id"] or lerobot_root.name,
-                  output_root=flags["output_root"] or data_root / STEERING_EVAL_ROOT)
-    jobs = _layer_jobs(flags, names, places, settings) if layer is not None else []
-    if flags["decision_run"] is not None:
-        jobs += _expert_jobs(flags["decision_run"], expert, names, places, model, settings)
+    names = [check_name(name, "--pair") for name in options.pair] or [
+        p.name for p in read_pairs_config(options.pairs_config).pairs]
+    places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=options.repo_id or lerobot_root.name,
+                  output_root=options.output_root or data_root / STEERING_EVAL_ROOT)
+    jobs = _layer_jobs(options, names, places, settings) if layer is not None else []
+    if options.decision_run is not None:
+        jobs += _expert_jobs(options.decision_run, expert, names, places, model, settings)
     return jobs, model, settings
 
 
-def _require_flags(flags: dict, expert: list[int] | None) -> None:
+def _require_flags(options: EvaluateOptions, expert: list[int] | None) -> None:
     """Refuse a flag set that names no complete job (--config missing)."""
-    decision_run = flags["decision_run"]
-    needed = (("pairs_config", "layer") if flags["layer"] is not None or decision_run is None else ())
-    needed += ("lerobot_root", "checkpoint_path", "tokenizer_path")
-    missing = [_flag(name) for name in needed if flags[name] is None]
-    if decision_run is not None and flags["layer"] is None and not (flags["pair"] or flags["pairs_config"]):
+    decision_run = options.decision_run
+    needed = {"--lerobot-root": options.lerobot_root, "--checkpoint-path": options.checkpoint_path,
+              "--tokenizer-path": options.tokenizer_path}
+    if options.layer is not None or decision_run is None:
+        needed = {"--pairs-config": options.pairs_config, "--layer": options.layer} | needed
+    missing = [flag for flag, value in needed.items() if value is None]
+    if decision_run is not None and options.layer is None and not (options.pair or options.pairs_config):
         missing.insert(0, "--pair or --pairs-config")
     if decision_run is not None and expert is None:
         missing.append("--expert-layers")
@@ -182,15 +223,15 @@ def _require_flags(flags: dict, expert: list[int] | None) -> None:
                                  param_hint="--expert-layers")
 
 
-def _layer_jobs(flags: dict, names: list[str], places: dict, settings: EvaluateSettings) -> list:
+def _layer_jobs(options: EvaluateOptions, names: list[str], places: dict, settings: EvaluateSettings) -> list:
     """Return the language-model jobs of each named pair of --pairs-config at --layer."""
-    sae, pairs_config, data_root = flags["sae"], flags["pairs_config"], flags["data_root"]
-    steering = SteeringSettings(pairs_config=pairs_config, layer=flags["layer"], device=settings.device,
-                                sae=None if sae.lower() == NO_SAE else sae, sae_id=flags["sae_id"],
-                                sae_dir=flags["sae_dir"])
-    base_dir = Path.cwd() if flags["paths_relative_to"] == "cwd" else pairs_config.parent
-    steering_root = flags["steering_root"] or data_root / STEERING_ROOT
-    return [(pair_job(pairs_config, name, flags["layer"], base_dir=base_dir, steering_root=steering_root, **places),
+    sae, pairs_config, data_root = options.sae, options.pairs_config, options.data_root
+    steering = SteeringSettings(pairs_config=pairs_config, layer=options.layer, device=settings.device,
+                                sae=None if sae.lower() == NO_SAE else sae, sae_id=options.sae_id,
+                                sae_dir=options.sae_dir)
+    base_dir = Path.cwd() if options.paths_relative_to == "cwd" else pairs_config.parent
+    steering_root = options.steering_root or data_root / STEERING_ROOT
+    return [(pair_job(pairs_config, name, options.layer, base_dir=base_dir, steering_root=steering_root, **places),
              steering) for name in names]
 
 
@@ -202,10 +243,6 @@ def _expert_jobs(decision_run: Path, expert: list[int], names: list[str], places
     check_decision_run(decision_run, expert, model, settings.num_steps)  # before anything is written
     slices = {name: slice_decision_run(decision_run, name, expert, data_root=places["data_root"]) for name in names}
     return [(expert_job(name, layer, slices_root=slices[name], **places), None) for layer in expert for name in names]
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
 
 
 def _run(jobs: list[tuple[EvaluateJob, SteeringSettings | None]], model: CaptureSettings,
