@@ -21,18 +21,16 @@ from steering_core.serve import (
     parse_steering_option,
 )
 from steering_core.serve.auth import API_KEY_ENV, read_api_key
+from steering_core.serve.batching import DEFAULT_BATCH_WAIT_MS, MAX_BATCH, MAX_BATCH_WAIT_MS
 from steering_core.serve.episodes import EpisodeLog
 from steering_core.serve.request import DEFAULT_MAX_ALPHA
 from steering_core.serve.server import (
-    DEFAULT_BATCH_WAIT_MS,
     DEFAULT_IDLE_TIMEOUT_S,
     DEFAULT_INFERENCE_TIMEOUT_S,
     DEFAULT_MAX_BATCH,
     DEFAULT_MAX_CONNECTIONS,
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_QUEUE,
-    MAX_BATCH,
-    MAX_BATCH_WAIT_MS,
 )
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT

@@ -119,7 +119,7 @@ class HeldFirstCall:
     def _hold(self, requests: int) -> None:
         if not self.calls:
             deadline = time.monotonic() + GATE_TIMEOUT_S
-            while len(self.server._waiting) + requests < self.total and time.monotonic() < deadline:
+            while self.server.batcher.waiting_requests + requests < self.total and time.monotonic() < deadline:
                 time.sleep(0.01)
         self.calls.append(requests)
 

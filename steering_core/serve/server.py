@@ -9,9 +9,10 @@ Control messages (`__ctrl__` episode_start / episode_end, openpi's current clien
 policy's `warm_up()` (if it has one) has run; any other plain HTTP request gets 426 (at `/`)
 or 404, and a malformed one a one-line warning in the log. One model serves every connection: requests run in
 order per connection, and requests of all connections that arrive within `batch_wait_ms` of the oldest waiting
-one share one policy call of up to `max_batch` rows (dynamic batching; a request may itself carry a leading batch
-dimension), each row with its own prompt, steering and noise. One call runs at a time, in a worker thread so the
-event loop keeps answering pings; a request without actions within the inference timeout is answered with an error.
+one share one policy call of up to `max_batch` rows (dynamic batching, steering_core.serve.batching; a request may
+itself carry a leading batch dimension), each row with its own prompt, steering and noise. One call runs at a
+time, in a worker thread so the event loop keeps answering pings; a request without actions within the inference
+timeout is answered with an error.
 Bounds per server: `max_connections` connections (at the cap the connection idle longest, if idle for
 `evict_idle_s`, is closed to admit a new one; otherwise the new one is closed with 1013, try again later; a
 connection that sends nothing for `idle_timeout_s` is closed, so idle sockets cannot hold the cap), each reading
@@ -31,7 +32,6 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -42,6 +42,11 @@ from websockets.http11 import Request, Response
 
 from steering_core.serve import codec
 from steering_core.serve.auth import HEADER, SCHEME, authorized
+from steering_core.serve.batching import (
+    DEFAULT_BATCH_WAIT_MS,
+    Batcher,
+    InferenceFailed,
+)
 from steering_core.serve.catalog import RANDOM_DERIVATION, VectorCatalog
 from steering_core.serve.episodes import CTRL_KEY, END_FIELDS, START_FIELDS, ConnectionEpisodes, EpisodeLog
 from steering_core.serve.policy import ServedPolicy
@@ -72,29 +77,8 @@ DEFAULT_MAX_QUEUE = 2  # an openpi client sends one observation and waits for it
 # connection silent this long is gone or idle on purpose, and holds a place another client may need
 DEFAULT_IDLE_TIMEOUT_S = 300.0
 DEFAULT_EVICT_IDLE_S = 30.0  # at the connection cap, the connection idle longest gives way if idle this long
-# dynamic batching: a policy call costs about the same for 1 and 16 rows on a GPU (bound by launches), so requests
-# arriving while one waits share a call; the window is short against a LIBERO client's 50 ms control step
 DEFAULT_MAX_BATCH = DEFAULT_MAX_CONNECTIONS  # rows per policy call: one frame from every connection
-DEFAULT_BATCH_WAIT_MS = 5.0
-MAX_BATCH_WAIT_MS = 1000.0  # a longer window only delays every request
-MAX_BATCH = 256  # rows of one call: pi0.5's activations at 256 rows fill a GPU's memory several times over
 MAX_REPLY_CHARS = 1000  # an error reply is one line, cut to this length
-
-
-class InferenceFailed(RuntimeError):
-    """The policy gave no usable actions for a well-formed request (timeout, non-finite actions)."""
-
-
-@dataclass(eq=False)
-class _Pending:
-    """A checked request waiting for (or in) a policy call; `reply` gets (result, server timing) or an error."""
-
-    observation: dict[str, Any]
-    steering: tuple[AppliedSteering, ...]
-    rows: int
-    queued: float
-    reply: asyncio.Future
-    started: float | None = None
 
 
 class _OneLineHandshakeErrors(logging.Filter):
@@ -125,7 +109,7 @@ class PolicyServer:
     With `api_key`, only upgrades carrying it are accepted. Finished episodes go to `episode_log` (default: one
     kept in memory only); `episodes` lists the last EPISODES_KEPT. `inference_timeout_s`, `max_connections` and
     `max_queue` bound a request's wait and the server's memory; `max_batch` (rows) and `batch_wait_ms` shape the
-    policy calls (module docstring); `max_batch` 1 serves one request per call.
+    policy calls (steering_core.serve.batching); `max_batch` 1 serves one request per call.
     """
 
     def __init__(
@@ -155,11 +139,9 @@ class PolicyServer:
         self.host, self.port = host, port
         self.max_message_bytes = max_message_bytes
         self.inference_timeout_s, self.max_connections, self.max_queue = inference_timeout_s, max_connections, max_queue
-        if isinstance(max_batch, bool) or not isinstance(max_batch, int) or not 1 <= max_batch <= MAX_BATCH:
-            raise ValueError(f"max_batch {max_batch!r}: expected an integer from 1 to {MAX_BATCH} (rows per call)")
-        if not 0 <= batch_wait_ms <= MAX_BATCH_WAIT_MS:
-            raise ValueError(f"batch_wait_ms {batch_wait_ms!r}: expected 0 to {MAX_BATCH_WAIT_MS:g} ms")
-        self.max_batch, self.batch_wait_ms = max_batch, float(batch_wait_ms)
+        self.batcher = Batcher(policy, max_batch=max_batch, batch_wait_ms=batch_wait_ms,
+                               inference_timeout_s=inference_timeout_s, open_connections=lambda: len(self._connections))
+        self.max_batch, self.batch_wait_ms = self.batcher.max_batch, self.batcher.batch_wait_ms
         if not idle_timeout_s > 0 or not evict_idle_s >= 0:
             raise ValueError(f"idle_timeout_s {idle_timeout_s!r} and evict_idle_s {evict_idle_s!r}: expected a "
                              "positive number of seconds and a non-negative one")
@@ -173,8 +155,6 @@ class PolicyServer:
         self._connections: set[ServerConnection] = set()
         self._busy: set[ServerConnection] = set()
         self._active: dict[ServerConnection, float] = {}  # when each connection last sent a frame (or opened)
-        self._waiting: list[_Pending] = []  # requests not yet in a policy call, oldest first
-        self._arrived: asyncio.Event | None = None
 
     def run(self) -> None:
         """Serve until SIGINT or SIGTERM (blocking; call from the main thread)."""
@@ -182,8 +162,8 @@ class PolicyServer:
 
     async def serve(self, *, ready: Callable[[], None] | None = None, install_signal_handlers: bool = False) -> None:
         """Serve until `request_stop`; call `ready()` once listening."""
-        self._loop, self._stop, self._arrived = asyncio.get_running_loop(), asyncio.Event(), asyncio.Event()
-        batcher = asyncio.create_task(self._batches())
+        self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
+        batches = self.batcher.start()
         if install_signal_handlers:
             for signum in (signal.SIGINT, signal.SIGTERM):
                 self._loop.add_signal_handler(signum, self._stop.set)
@@ -202,9 +182,9 @@ class PolicyServer:
                 ready()
             await self._stop.wait()
             await self._shutdown(server)
-        batcher.cancel()
+        batches.cancel()
         with contextlib.suppress(asyncio.CancelledError):
-            await batcher
+            await batches
 
     @property
     def episodes(self) -> list[dict[str, Any]]:
@@ -308,7 +288,7 @@ class PolicyServer:
             if isinstance(request, dict) and CTRL_KEY in request:
                 return codec.pack(episodes.control(request)), True
             observation, steering, rows = self._read(request)
-            result, timing = await self._infer(observation, steering, rows)
+            result, timing = await self.batcher.submit(observation, steering, rows)
             _check_actions(result, steering)
             episodes.inferred()
             result[STEERING_KEY] = [s.describe() for s in steering]
@@ -327,97 +307,6 @@ class PolicyServer:
         except Exception as err:  # the policy's own error: its traceback goes to the log, one line to the client
             logger.exception("inference failed")
             return _one_line(f"inference failed (the server keeps serving): {type(err).__name__}: {err}"), False
-
-    async def _infer(self, observation: dict[str, Any], steering: tuple[AppliedSteering, ...],
-                     rows: int) -> tuple[dict, dict]:
-        """Return the policy's result and the server timing (queue and inference time, the call's rows and
-        requests); raise InferenceFailed when no actions come within the inference timeout of its arrival."""
-        pending = _Pending(observation, steering, rows, time.monotonic(), self._loop.create_future())
-        self._waiting.append(pending)
-        self._arrived.set()
-        timeout = self.inference_timeout_s
-        try:
-            return await asyncio.wait_for(asyncio.shield(pending.reply), timeout)
-        except TimeoutError:
-            pending.reply.cancel()  # its call, if one runs, drops the result
-            if pending.started is None:
-                self._waiting.remove(pending)
-                raise InferenceFailed(f"timed out after {timeout:g} s waiting for the model, which other requests "
-                                      "hold (serve --inference-timeout-s)") from None
-            raise InferenceFailed(f"timed out: no actions within {timeout:g} s (serve --inference-timeout-s)") from None
-
-    async def _batches(self) -> None:
-        """Run the waiting requests, one policy call at a time: each call takes the oldest waiting requests (up to
-        `max_batch` rows, at least one request), once `batch_wait_ms` has passed since the oldest arrived, the rows
-        are full, or every open connection has a request waiting (a connection sends its next one only after its
-        reply, so no other could join: a lone client never waits)."""
-        while True:
-            await self._arrived.wait()
-            while (self._waiting and sum(p.rows for p in self._waiting) < self.max_batch
-                   and len(self._waiting) < len(self._connections)):
-                left = self._waiting[0].queued + self.batch_wait_ms / 1000 - time.monotonic()
-                if left <= 0:
-                    break
-                self._arrived.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._arrived.wait(), left)
-            batch, rows = [], 0
-            while self._waiting and (not batch or rows + self._waiting[0].rows <= self.max_batch):
-                batch.append(self._waiting.pop(0))
-                rows += batch[-1].rows
-            if not self._waiting:
-                self._arrived.clear()
-            if batch:
-                await self._call(batch)
-
-    async def _call(self, batch: list[_Pending]) -> None:
-        """Run one policy call for `batch` in a daemon thread and settle each request's reply.
-
-        A call still running at a request's inference timeout keeps the model until its thread returns (later
-        requests time out too), so two calls never run at once. A daemon thread of its own keeps a stuck call from
-        stopping the server.
-        """
-        started = time.monotonic()
-        for pending in batch:
-            pending.started = started
-        try:
-            results = await _in_daemon_thread(self._loop, self._run_policy, [p.observation for p in batch],
-                                              [p.steering for p in batch])
-        except Exception as err:  # handed to every request of the call
-            results = [err] * len(batch)
-        finished, rows = time.monotonic(), sum(p.rows for p in batch)
-        late = [p for p in batch if p.reply.done()]  # answered with the timeout meanwhile
-        if late:
-            logger.warning("a policy call that timed out ended after %.1f s; the results of %d request(s) were "
-                           "dropped", finished - started, len(late))
-        for pending, result in zip(batch, results, strict=True):
-            if pending in late:
-                continue
-            if isinstance(result, BaseException):
-                pending.reply.set_exception(result)
-            else:
-                pending.reply.set_result((dict(result), {
-                    "infer_ms": (finished - started) * 1000, "queue_ms": (started - pending.queued) * 1000,
-                    "batch_rows": rows, "batch_requests": len(batch)}))
-
-    def _run_policy(self, observations: list[dict[str, Any]],
-                    steering: list[tuple[AppliedSteering, ...]]) -> list[dict[str, Any] | Exception]:
-        """Return a result (or the error) per request: one `infer_batch` call when the policy has it and there are
-        several, else one `infer` each. A batch that fails is run again one request at a time, so one bad request
-        fails alone."""
-        batched = getattr(self.policy, "infer_batch", None)
-        if batched is not None and len(observations) > 1:
-            try:
-                return list(batched(observations, steering))
-            except Exception:  # found again, request by request, below
-                logger.warning("a batch of %d requests failed; running them one at a time", len(observations))
-        results: list[dict[str, Any] | Exception] = []
-        for observation, entries in zip(observations, steering, strict=True):
-            try:
-                results.append(self.policy.infer(observation, entries))
-            except Exception as err:  # handed to its own request
-                results.append(err)
-        return results
 
     def _unpack(self, message: str | bytes) -> Any:
         if isinstance(message, str):
@@ -480,31 +369,6 @@ def _check_actions(result: dict[str, Any], steering: tuple[AppliedSteering, ...]
     if not np.isfinite(actions).all():
         logger.warning("non-finite actions withheld (steering %s)", [s.describe() for s in steering])
         raise InferenceFailed("the policy's actions are not finite; lower |alpha| of the steering entry")
-
-
-def _in_daemon_thread(loop: asyncio.AbstractEventLoop, fn: Callable, *args: Any) -> asyncio.Future:
-    """Return a future of `fn(*args)` run in a new daemon thread (the loop's default executor joins its threads
-    at shutdown, without a timeout before Python 3.12)."""
-    future = loop.create_future()
-
-    def settle(result: Any, error: Exception | None) -> None:
-        if future.cancelled():
-            return
-        if error is not None:
-            future.set_exception(error)
-        else:
-            future.set_result(result)
-
-    def main() -> None:
-        try:
-            result, error = fn(*args), None
-        except Exception as err:  # handed to the awaiting request
-            result, error = None, err
-        with contextlib.suppress(RuntimeError):  # the loop has closed: the server stopped, nobody waits
-            loop.call_soon_threadsafe(settle, result, error)
-
-    threading.Thread(target=main, name="policy-inference", daemon=True).start()
-    return future
 
 
 def _one_line(text: str) -> str:
