@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from pydantic import Field, model_validator
 
 from steering_core.data.contrast import ContrastManifest, read_manifest
-from steering_core.data.dataset import DatasetMeta, IndexColumns, read_index_columns, read_meta
+from steering_core.data.dataset import DatasetMeta, IndexColumns, read_index_columns
+from steering_core.data.dataset_checks import check_dataset
 from steering_core.storage.fileio import read_json, write_json
 from steering_core.storage.schema import StrictModel, read_model
 
@@ -67,6 +68,7 @@ class ConceptMap(StrictModel):
                     problems.append(f"{where}: length {row.length}, expected end_index - start_index + 1")
                 if row.end_index >= self.sample_count:
                     problems.append(f"{where}: end_index {row.end_index} >= sample_count {self.sample_count}")
+        problems += _shared_rows(self.concepts)
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -80,6 +82,18 @@ class ConceptMap(StrictModel):
         return self.model_copy(update={
             "concepts": concepts, "concept_count": {c: len(rows) for c, rows in concepts.items()},
         })
+
+
+def _shared_rows(concepts: Mapping[str, Sequence[ConceptRow]]) -> list[str]:
+    """Return the problem of two rows covering the same dataset index (a frame counted twice, or in both
+    concepts of a contrast), else none."""
+    ranges = sorted((row.start_index, row.end_index, concept, row.segment_id)
+                    for concept, rows in concepts.items() for row in rows)
+    for (_, end, concept, segment), (start, _, other, other_segment) in zip(ranges, ranges[1:]):
+        if start <= end:
+            return [f"concepts[{other!r}] segment {other_segment} shares index {start} with concepts[{concept!r}] "
+                    f"segment {segment}; expected each frame in at most one row"]
+    return []
 
 
 def build_concept_map(
@@ -98,7 +112,7 @@ def build_concept_map(
     manifest = read_manifest(manifest_path)
     if not manifest.segments:
         raise ValueError(f"{manifest_path}: the manifest has no segments; rebuild it with `latent-steering manifest`")
-    meta = read_meta(lerobot_root)
+    meta = check_dataset(lerobot_root)
     manifest, from_sources = _locate_hdf5_demos(manifest, meta)
     problems = _dataset_problems(manifest, meta, from_sources)
     if problems:
