@@ -8,6 +8,7 @@ rows (`slice`): each refused in one line naming the file and field (`helpers_att
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 import struct
@@ -21,6 +22,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from helpers_attack import Attack, Case, World, assert_refused, good
+from PIL import Image
 
 from steering_core.data.libero import MAX_ABS_VALUE
 
@@ -152,9 +154,17 @@ def episode_stats_inf(dataset: Path) -> tuple[Path, str]:
 
 
 def png_header(width: int, height: int, colour: int) -> bytes:
-    """The signature and IHDR chunk of an 8-bit PNG (what the header check reads), with no pixels after it."""
+    """The signature and IHDR chunk of an 8-bit PNG (what the header check reads), with no pixels after it:
+    a 12000x12000 image declared in 33 bytes."""
     ihdr = b"IHDR" + struct.pack(">IIBBBBB", width, height, 8, colour, 0, 0, 0)
     return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
+
+
+def png(width: int, height: int, mode: str) -> bytes:
+    """A real PNG of `mode` ("RGB", "L") and this size, as Pillow writes it."""
+    out = io.BytesIO()
+    Image.new(mode, (width, height)).save(out, format="PNG")
+    return out.getvalue()
 
 
 def first_image(data: bytes) -> Callable[[Path], tuple[Path, str]]:
@@ -187,8 +197,8 @@ DATASET_ATTACKS = [
     dataset_attack("state_shape", "manifest", feature_shape("state", [8, 2]), "'state'"),
     dataset_attack("image_shape", "capture", feature_shape("image", [32, 32, 3]), "64x64", "[32, 32, 3]"),
     dataset_attack("png_corrupt", "capture", first_image(b"\x89PNG not an image"), "not a PNG"),
-    dataset_attack("png_8x8", "capture", first_image(png_header(8, 8, 2)), "8x8"),
-    dataset_attack("png_grayscale", "capture", first_image(png_header(64, 64, 0)), "colour type 0"),
+    dataset_attack("png_8x8", "capture", first_image(png(8, 8, "RGB")), "8x8"),
+    dataset_attack("png_grayscale", "capture", first_image(png(64, 64, "L")), "colour type 0"),
     dataset_attack("png_12000", "capture", first_image(png_header(12000, 12000, 2)), "12000x12000"),
 ]
 
