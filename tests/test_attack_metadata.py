@@ -138,6 +138,16 @@ def task_row_dropped(dataset: Path) -> tuple[Path, str]:
     return path, repr(str(frame.index[-1]))
 
 
+def task_renumbered(dataset: Path) -> tuple[Path, str]:
+    """tasks.parquet gives its last task another index: the texts agree, the frames' `task_index` names nothing."""
+    path = dataset / "meta" / "tasks.parquet"
+    frame = pq.read_table(path).to_pandas()
+    last = int(frame["task_index"].iloc[-1])
+    frame.loc[frame.index[-1], "task_index"] = 99
+    frame.to_parquet(path)
+    return path, f"`task_index` {last}"
+
+
 def stats_nan(dataset: Path) -> tuple[Path, str]:
     path = dataset / "meta" / "stats.json"
     stats = json.loads(path.read_text())
@@ -193,6 +203,7 @@ DATASET_ATTACKS = [
     dataset_attack("stats_nan", "manifest", stats_nan),
     dataset_attack("episode_stats_inf", "manifest", episode_stats_inf, "NaN or Inf"),
     dataset_attack("task_missing_from_tasks", "capture", task_row_dropped, "`tasks`"),
+    dataset_attack("task_index_renumbered", "capture", task_renumbered, "does not list"),
     dataset_attack("actions_shape", "capture", feature_shape("actions", [6]), "'actions'", "holds 7"),
     dataset_attack("state_shape", "manifest", feature_shape("state", [8, 2]), "'state'"),
     dataset_attack("image_shape", "capture", feature_shape("image", [32, 32, 3]), "64x64", "[32, 32, 3]"),
