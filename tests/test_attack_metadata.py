@@ -260,8 +260,8 @@ def manifest_twice(world: World, tmp_path: Path) -> Case:
     path.write_text(json.dumps(manifest))
     argv = good(world, tmp_path)["concept-map"]
     argv[argv.index("--manifest-path") + 1] = path
-    first = manifest["segments"][0]
-    return Case(["concept-map", *argv], (str(path), f"segments[{len(manifest['segments']) // 2}]", first["demo"]))
+    return Case(["concept-map", *argv], (str(path), f"segments[{len(manifest['segments']) // 2}]",
+                                         "the same segment as segments[0]"))
 
 
 def concepts_share_rows(world: World, tmp_path: Path) -> Case:
@@ -274,7 +274,7 @@ def concepts_share_rows(world: World, tmp_path: Path) -> Case:
     path.write_text(json.dumps(concept_map))
     argv = good(world, tmp_path)["slice"]
     argv[argv.index("--concept-map-path") + 1] = path
-    return Case(["slice", *argv], (str(path), f"concepts[{second!r}]", f"concepts[{first!r}]", "shares index"))
+    return Case(["slice", *argv], (str(path), f"concepts[{second!r}]", f"concepts[{first!r}]", "share dataset index"))
 
 
 ATTACKS = [*DATASET_ATTACKS, *HDF5_ATTACKS, manifest_twice, concepts_share_rows]

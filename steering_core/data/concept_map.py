@@ -85,14 +85,20 @@ class ConceptMap(StrictModel):
 
 
 def _shared_rows(concepts: Mapping[str, Sequence[ConceptRow]]) -> list[str]:
-    """Return the problem of two rows covering the same dataset index (a frame counted twice, or in both
-    concepts of a contrast), else none."""
-    ranges = sorted((row.start_index, row.end_index, concept, row.segment_id)
-                    for concept, rows in concepts.items() for row in rows)
-    for (_, end, concept, segment), (start, _, other, other_segment) in zip(ranges, ranges[1:]):
-        if start <= end:
-            return [f"concepts[{other!r}] segment {other_segment} shares index {start} with concepts[{concept!r}] "
-                    f"segment {segment}; expected each frame in at most one row"]
+    """Return the problem of two concepts covering the same dataset index (a frame on both sides of a contrast),
+    else none. Rows of one concept may overlap: slicing keeps such a frame once."""
+    spans = []  # (start, end, concept): each concept's rows merged into disjoint index ranges
+    for concept, rows in concepts.items():
+        for row in sorted(rows, key=lambda r: r.start_index):
+            if spans and spans[-1][2] == concept and row.start_index <= spans[-1][1] + 1:
+                spans[-1] = (spans[-1][0], max(spans[-1][1], row.end_index), concept)
+            else:
+                spans.append((row.start_index, row.end_index, concept))
+    spans.sort()
+    for (_, end, concept), (start, _, other) in zip(spans, spans[1:]):
+        if start <= end:  # merged spans of one concept never overlap: these are two concepts
+            return [f"concepts[{other!r}] and concepts[{concept!r}] share dataset index {start}; expected each "
+                    "frame in one concept at most"]
     return []
 
 

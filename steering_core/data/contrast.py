@@ -122,12 +122,11 @@ class ContrastManifest(StrictModel):
         tasks = self.axis.mean_delta_per_task
         if len(tasks) != 2:
             problems.append(f"axis.mean_delta_per_task has {len(tasks)} task(s) {list(tasks)}, expected 2")
-        first: dict[tuple[str, str], int] = {}  # a demo's frames counted twice would double its samples
+        first: dict[tuple[str, str, int, int], int] = {}  # a segment listed twice would double its samples
         for i, seg in enumerate(self.segments):
             where = f"segments[{i}] ({seg.demo})"
-            if (seen := first.setdefault((seg.file, seg.demo), i)) != i:
-                problems.append(f"{where}: demo {seg.demo!r} of {seg.file!r} is already segments[{seen}]; "
-                                "expected one segment per demo")
+            if (seen := first.setdefault((seg.file, seg.demo, seg.start_step, seg.end_step), i)) != i:
+                problems.append(f"{where}: the same segment as segments[{seen}]; expected each segment once")
             if seg.task not in tasks:
                 problems.append(f"{where}: task {seg.task!r} is not in axis.mean_delta_per_task {list(tasks)}")
             if not 0 <= seg.start_step <= seg.end_step:
