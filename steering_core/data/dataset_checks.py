@@ -12,7 +12,6 @@ four integer index columns: never an image.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Iterator
@@ -33,6 +32,7 @@ from steering_core.data.dataset import (
     read_index_columns,
     read_meta,
 )
+from steering_core.storage.fileio import parse_json, read_json
 
 STATS_FILE = "meta/stats.json"  # lerobot's dataset-wide statistics (v3.0 and v2.0)
 _FRAME_DTYPES = ("image", "video")
@@ -146,12 +146,12 @@ def _statistics(meta: DatasetMeta) -> Iterator[tuple[str, Any]]:
     """Yield (where, value) for every statistics record of the dataset: stats.json, and per episode."""
     stats = meta.root / STATS_FILE
     if stats.is_file():
-        yield str(stats), json.loads(stats.read_text())  # Python's json reads NaN and Infinity: checked after
+        yield str(stats), read_json(stats)  # Python's json reads NaN and Infinity: checked after
     if meta.is_v2:
         path = meta.root / lerobot_v2.EPISODES_STATS_JSONL
         if path.is_file():
             for number, line in enumerate(path.read_text().splitlines(), start=1):
-                yield f"{path}:{number}", json.loads(line) if line.strip() else None
+                yield f"{path}:{number}", parse_json(line, f"{path}:{number}") if line.strip() else None
         return
     for path in sorted((meta.root / EPISODES_DIR).glob("chunk-*/file-*.parquet")):
         names = [name for name in pq.read_schema(path).names if name.startswith("stats/")]
