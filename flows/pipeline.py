@@ -42,7 +42,7 @@ from flows.evaluate import run_evaluation
 from flows.rollout import run_rollouts
 from flows.train_sae import feature_pages, run_training
 from steering_core.config import RunConfig, share_run_config
-from steering_core.data.dataset import check_dataset
+from steering_core.data.dataset_checks import check_dataset
 from steering_core.pairs import SIDES
 from steering_core.refresh import SOURCES_RECORD_FILE, read_sources_record, scan_inputs, write_sources_record
 from steering_core.remote.publish import publish, pulled

@@ -16,7 +16,8 @@ from pathlib import Path
 from steering_core.capture.settings import check_model_inputs
 from steering_core.capture.shards import ACTION_TOKEN_TYPES
 from steering_core.config import RunConfig
-from steering_core.data.dataset import check_dataset, resolve_task
+from steering_core.data.dataset import resolve_task
+from steering_core.data.dataset_checks import check_dataset
 from steering_core.data.filtering import DEMO_FILE_GLOB, select_files
 from steering_core.data.libero import validate_file
 from steering_core.devices import resolve_device

@@ -73,6 +73,42 @@ def test_bad_frames_fail_in_the_worker_naming_the_camera():
         next(iter(loader))
 
 
+class UndecodableFrames(list):
+    """Frames whose second one fails to decode, as Pillow fails on a corrupt PNG deep in a dataset."""
+
+    def __getitem__(self, position):
+        if position == 1:
+            raise OSError("cannot identify image file <_io.BytesIO object>")
+        return super().__getitem__(position)
+
+
+def test_a_frame_that_cannot_be_decoded_is_one_value_error():
+    items = UndecodableFrames(lerobot_items(2, 16, 16))
+    loader = frame_loader(items, [("0", [0, 1])], ("image", "wrist_image"), 0, False)
+    with pytest.raises(ValueError, match=r"^the frame at dataset position 1 cannot be decoded \(cannot identify"):
+        next(iter(loader))
+
+
+def test_a_frame_of_another_shape_than_declared_is_refused():
+    items = [{**item, "episode_index": 3, "frame_index": position}
+             for position, item in enumerate(lerobot_items(2, 16, 16))]
+    items[1]["wrist_image"] = torch.zeros(1, 16, 16)  # a grayscale frame among RGB ones
+    shapes = {"image": (3, 16, 16), "wrist_image": (3, 16, 16)}
+    loader = frame_loader(items, [("0", [0, 1])], ("image", "wrist_image"), 0, False, shapes)
+    with pytest.raises(ValueError, match=r"^episode 3 frame 1 has camera\(s\) \{'wrist_image': \(1, 16, 16\)\}"):
+        next(iter(loader))
+
+
+def test_a_worker_error_comes_back_as_its_own_line():
+    def batches():
+        yield {"index": 0}
+        raise ValueError("Caught ValueError in DataLoader worker process 0.\nOriginal Traceback (most recent call "
+                         "last):\n  File \"x.py\", line 1\nValueError: episode 3 frame 1 has camera(s) ...")
+    with pytest.raises(ValueError) as raised:
+        list(frames_module._worker_errors(batches()))
+    assert str(raised.value) == "episode 3 frame 1 has camera(s) ..."
+
+
 @pytest.mark.parametrize("cores, workers", [(1, 0), (2, 1), (3, 2), (9, 8), (16, 8), (128, 8)])
 def test_default_workers_leave_one_core_to_the_main_process(monkeypatch, cores, workers):
     monkeypatch.setattr(frames_module.os, "sched_getaffinity", lambda _pid: set(range(cores)), raising=False)

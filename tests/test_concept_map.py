@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 from latent_steering_cli import app
 from steering_core.data.concept_map import build_concept_map, read_concept_map, read_rename_map, write_concept_map
 from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
+from steering_core.data.dataset import read_meta
 
 REFERENCE = FORMATS / "open_vs_close_concept_map.json"
 REFERENCE_MANIFEST = FORMATS / "open_vs_close.json"
@@ -85,18 +86,18 @@ def test_matches_brute_force(root, rows, manifest_path):
 
 
 def test_order_follows_the_dataset_not_the_manifest(root, rows, manifest_path, tmp_path):
-    # CLOSE first in the manifest, shuffled, one segment twice and one shortened: the map is still in dataset order.
+    # CLOSE first in the manifest, shuffled, one segment shortened: the map is still in dataset order.
     def shuffle(payload):
         segments = payload["segments"]
         extra = dict(segments[0], start_step=5, end_step=9, axis_values=segments[0]["axis_values"][:5])
-        payload["segments"] = [segments[5], segments[3], extra, segments[4], segments[0], segments[0]]
+        payload["segments"] = [segments[5], segments[3], extra, segments[4], segments[0]]
 
     path = edit_manifest(manifest_path, tmp_path / "shuffled.json", shuffle)
     result = build_concept_map(path, root, repo_id="lab/other")
     assert result.model_dump(mode="json")["concepts"] == brute_force_map(path, rows, {})
     assert list(result.concepts) == [OPEN, CLOSE]
-    # frames 5..9 of episode 0 come before its window 9..29; the duplicates tie and keep manifest order
-    assert [r.segment_id for r in result.concepts[OPEN]] == [2, 4, 5]
+    # frames 5..9 of episode 0 come before its window 9..29
+    assert [r.segment_id for r in result.concepts[OPEN]] == [2, 4]
     assert [r.segment_id for r in result.concepts[CLOSE]] == [1, 3, 0]  # episodes 1, 4, 6
     assert result.repo_id == "lab/other"
 
@@ -204,11 +205,9 @@ def test_frames_missing_from_the_data(root, manifest_path, tmp_path):
     message = str(err.value)
     segment = json.loads(seed_manifest.read_text())["segments"][4]
     assert segment["episode_index"] == 4
-    assert "the global `index` column is not 0..frames-1" in message
-    wanted = segment["end_step"] - segment["start_step"] + 1
-    assert (f"segments[4] (episode_000004): frames {segment['start_step']}..{segment['end_step']} of episode 4: "
-            f"the data files hold {wanted - 1} of these {wanted} frames") in message
-    assert message.endswith("The dataset's data files do not match its metadata; re-create the dataset.")
+    frames = sum(e.length for e in read_meta(holed).episodes)
+    assert message == (f"{holed}: the data files hold {frames - 1} frames, but {holed / 'meta/episodes'} lists "
+                       f"{frames}; re-create the dataset")  # refused before any segment is located
 
 
 def test_cli_concept_map(root, rows, manifest_path, tmp_path):

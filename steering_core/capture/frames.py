@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import torch
+from PIL import Image
 from torch.utils.data import DataLoader, Dataset, default_collate
 
 from steering_core.data.dataset import DatasetMeta
@@ -27,16 +28,30 @@ MAX_DEFAULT_WORKERS = 8
 
 
 class FrameDataset(Dataset):
-    """The dataset's frames reduced to what capture reads (cameras, state, task, index columns)."""
+    """The dataset's frames reduced to what capture reads (cameras, state, task, index columns).
 
-    def __init__(self, frames: Any, keys: Sequence[str]):
-        self.frames, self.keys = frames, tuple(keys)
+    A frame whose camera cannot be decoded, or decodes to another shape than info.json declares, is refused in
+    one ValueError naming the dataset, episode and frame (the first frame of each file was checked before the run,
+    `image_cells.check_png_headers`; the rest are checked here, as they are decoded).
+    """
+
+    def __init__(self, frames: Any, keys: Sequence[str], shapes: Mapping[str, tuple[int, ...]] | None = None):
+        self.frames, self.keys, self.shapes = frames, tuple(keys), dict(shapes or {})  # camera -> (3, H, W)
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def __getitem__(self, position: int) -> dict[str, Any]:
-        item = self.frames[position]
+        try:
+            item = self.frames[position]
+        except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as err:  # Pillow's decoding errors
+            raise ValueError(f"the frame at dataset position {position} cannot be decoded ({err}); "
+                             "expected PNG cameras, re-create the dataset") from None
+        bad = {key: tuple(item[key].shape) for key, shape in self.shapes.items() if tuple(item[key].shape) != shape}
+        if bad:
+            raise ValueError(f"episode {int(item['episode_index'])} frame "
+                             f"{int(item['frame_index'])} has camera(s) {bad}, expected {self.shapes} "
+                             "(`features.<camera>.shape` in meta/info.json); re-create the dataset")
         return {key: item[key] for key in self.keys}
 
 
@@ -88,12 +103,19 @@ def batch_plan(frames: Any, groups: dict[str, tuple[int, ...]], batch_size: int)
     return plan
 
 
+def camera_shapes(meta: DatasetMeta) -> dict[str, tuple[int, int, int]]:
+    """Return camera -> (3, H, W) as info.json declares (H, W, 3), what a decoded frame must be."""
+    features = meta.info["features"]
+    return {key: (3, *features[key]["shape"][:2]) for key in LIBERO_IMAGE_KEYS if key in features}
+
+
 def frame_loader(
-    frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], num_workers: int, pin_memory: bool
+    frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], num_workers: int, pin_memory: bool,
+    shapes: Mapping[str, tuple[int, ...]] | None = None,
 ) -> DataLoader:
     """Return a DataLoader yielding one batch per `plan` entry, both cameras uint8 (B, 3, H, W)."""
     return DataLoader(
-        FrameDataset(frames, keys),
+        FrameDataset(frames, keys, shapes),
         batch_sampler=[positions for _, positions in plan],
         num_workers=num_workers,
         multiprocessing_context=worker_start_method(num_workers),
@@ -104,14 +126,26 @@ def frame_loader(
 
 def frame_batches(
     frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], image_size: int, num_workers: int | None,
-    device: torch.device,
+    device: torch.device, shapes: Mapping[str, tuple[int, ...]] | None = None,
 ) -> Iterator[dict[str, Any]]:
     """Return an iterator of one batch per `plan` entry, cameras in pi0.5's three slots on `device`.
 
     The workers (`frame_workers(num_workers)`) start now, so they decode while the caller loads its model.
+    A frame refused in a worker (`FrameDataset`) is raised here as the worker's one-line ValueError.
     """
-    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), pin_memory=device.type == "cuda")
-    return (slots_on_device(batch, image_size, device) for batch in iter(loader))
+    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", shapes)
+    return (slots_on_device(batch, image_size, device) for batch in _worker_errors(iter(loader)))
+
+
+def _worker_errors(batches: Iterator[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+    """Yield `batches`, raising a worker's ValueError with its own message (torch adds the worker's traceback)."""
+    try:
+        yield from batches
+    except ValueError as err:
+        lines = str(err).strip().splitlines()
+        if len(lines) > 1 and lines[-1].startswith("ValueError: "):
+            raise ValueError(lines[-1].removeprefix("ValueError: ")) from None
+        raise
 
 
 def frame_workers(num_workers: int | None) -> int:

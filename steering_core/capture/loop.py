@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_batches, frame_source
+from steering_core.capture.frames import FRAME_KEYS, batch_plan, camera_shapes, frame_batches, frame_source
 from steering_core.capture.run_identity import episode_records, run_spec
 from steering_core.capture.selected_rows import selected_residuals
 from steering_core.capture.settings import (
@@ -48,8 +48,9 @@ from steering_core.capture.shards import (
     write_run_spec,
     write_shard,
 )
-from steering_core.data.dataset import DatasetMeta, read_meta
-from steering_core.data.image_cells import check_image_cells
+from steering_core.data.dataset import DatasetMeta
+from steering_core.data.dataset_checks import check_dataset
+from steering_core.data.image_cells import check_image_cells, check_png_headers
 from steering_core.devices import resolve_device
 from steering_core.pi05 import TokenizedPrompt, quantile_normalize
 from steering_core.remote.locks import group_locks
@@ -120,12 +121,14 @@ def capture(
     """
     run_dir = Path(run_dir)
     check_output_dir(run_dir, "run folder")  # before the model loads (~25 s on pi0.5), not after
-    meta = read_meta(dataset_root)
+    meta = check_dataset(dataset_root)
     inputs = check_inputs(meta, settings)
     groups = _episode_groups(meta, settings.episodes_per_shard, episodes)
     if max_frames is not None:
         groups = _first_groups(groups, {e.episode_index: e.length for e in meta.episodes}, max_frames)
-    check_image_cells(meta, [e for members in groups.values() for e in members])  # before the run folder exists
+    chosen = [e for members in groups.values() for e in members]
+    check_image_cells(meta, chosen)  # before the run folder exists
+    check_png_headers(meta, chosen)
     spec = run_spec(meta, repo_id, inputs, settings)
     check_run_spec(run_dir, spec)
 
@@ -217,7 +220,7 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork
     # before CUDA is initialised. The cameras are resized on the model's device, not in the workers.
     batches = frame_batches(frames, plan, keys, settings.arch.image_size, settings.num_workers,
-                            resolve_device(settings.device))
+                            resolve_device(settings.device), camera_shapes(job.meta))
     model = _load_model(settings, job.inputs)
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}

@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from pydantic import Field, model_validator
 
 from steering_core.data.contrast import ContrastManifest, read_manifest
-from steering_core.data.dataset import DatasetMeta, IndexColumns, read_index_columns, read_meta
+from steering_core.data.dataset import DatasetMeta, IndexColumns, read_index_columns
+from steering_core.data.dataset_checks import check_dataset
 from steering_core.storage.fileio import read_json, write_json
 from steering_core.storage.schema import StrictModel, read_model
 
@@ -67,6 +68,7 @@ class ConceptMap(StrictModel):
                     problems.append(f"{where}: length {row.length}, expected end_index - start_index + 1")
                 if row.end_index >= self.sample_count:
                     problems.append(f"{where}: end_index {row.end_index} >= sample_count {self.sample_count}")
+        problems += _shared_rows(self.concepts)
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -80,6 +82,24 @@ class ConceptMap(StrictModel):
         return self.model_copy(update={
             "concepts": concepts, "concept_count": {c: len(rows) for c, rows in concepts.items()},
         })
+
+
+def _shared_rows(concepts: Mapping[str, Sequence[ConceptRow]]) -> list[str]:
+    """Return the problem of two concepts covering the same dataset index (a frame on both sides of a contrast),
+    else none. Rows of one concept may overlap: slicing keeps such a frame once."""
+    spans = []  # (start, end, concept): each concept's rows merged into disjoint index ranges
+    for concept, rows in concepts.items():
+        for row in sorted(rows, key=lambda r: r.start_index):
+            if spans and spans[-1][2] == concept and row.start_index <= spans[-1][1] + 1:
+                spans[-1] = (spans[-1][0], max(spans[-1][1], row.end_index), concept)
+            else:
+                spans.append((row.start_index, row.end_index, concept))
+    spans.sort()
+    for (_, end, concept), (start, _, other) in zip(spans, spans[1:]):
+        if start <= end:  # merged spans of one concept never overlap: these are two concepts
+            return [f"concepts[{other!r}] and concepts[{concept!r}] share dataset index {start}; expected each "
+                    "frame in one concept at most"]
+    return []
 
 
 def build_concept_map(
@@ -98,7 +118,7 @@ def build_concept_map(
     manifest = read_manifest(manifest_path)
     if not manifest.segments:
         raise ValueError(f"{manifest_path}: the manifest has no segments; rebuild it with `latent-steering manifest`")
-    meta = read_meta(lerobot_root)
+    meta = check_dataset(lerobot_root)
     manifest, from_sources = _locate_hdf5_demos(manifest, meta)
     problems = _dataset_problems(manifest, meta, from_sources)
     if problems:

@@ -28,9 +28,9 @@ from steering_core.data.dataset import (
     EpisodeInfo,
     dataset_fingerprint,
     read_episode_columns,
-    read_meta,
     resolve_task,
 )
+from steering_core.data.dataset_checks import check_dataset
 from steering_core.storage.fileio import write_json
 from steering_core.storage.schema import StrictModel, read_model
 
@@ -122,8 +122,11 @@ class ContrastManifest(StrictModel):
         tasks = self.axis.mean_delta_per_task
         if len(tasks) != 2:
             problems.append(f"axis.mean_delta_per_task has {len(tasks)} task(s) {list(tasks)}, expected 2")
+        first: dict[tuple[str, str, int, int], int] = {}  # a segment listed twice would double its samples
         for i, seg in enumerate(self.segments):
             where = f"segments[{i}] ({seg.demo})"
+            if (seen := first.setdefault((seg.file, seg.demo, seg.start_step, seg.end_step), i)) != i:
+                problems.append(f"{where}: the same segment as segments[{seen}]; expected each segment once")
             if seg.task not in tasks:
                 problems.append(f"{where}: task {seg.task!r} is not in axis.mean_delta_per_task {list(tasks)}")
             if not 0 <= seg.start_step <= seg.end_step:
@@ -266,7 +269,7 @@ def build_manifest(
     record (default: the dataset folder's name).
     """
     settings = settings or ContrastSettings()
-    meta = read_meta(root)
+    meta = check_dataset(root)
     text_a, text_b = _task_text(meta, task_a, "A"), _task_text(meta, task_b, "B")
     if text_a == text_b:
         raise ValueError(f"task A and task B are both {text_a!r}; a contrast needs two different tasks")

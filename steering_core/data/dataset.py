@@ -299,19 +299,6 @@ def data_files(meta: DatasetMeta) -> list[Path]:
     return paths
 
 
-def check_dataset(root: str | os.PathLike) -> DatasetMeta:
-    """Return the metadata of the dataset at `root` after checking every data file it lists exists.
-
-    What a run on an existing dataset checks before reading it: FileNotFoundError or ValueError
-    naming the folder or file otherwise. Reads metadata and file listings only.
-    """
-    meta = read_meta(root)
-    if not meta.episodes:
-        raise ValueError(f"{meta.root}: {meta.episodes_source} lists no episodes; nothing to read")
-    data_files(meta)
-    return meta
-
-
 def _read_data_table(path: Path, columns: Sequence[str], filters: list | None = None) -> pa.Table:
     """Return the named columns of one data file; the single place frame data is read."""
     return pq.read_table(path, columns=list(columns), filters=filters)

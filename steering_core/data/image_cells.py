@@ -4,17 +4,22 @@ lerobot decodes an image feature with HF datasets' `Image`, which opens the file
 `bytes` are empty: a dataset could make a run read any file on the machine. lerobot itself always embeds the bytes
 (`finalize`), so a cell without them is refused before any frame is read. Reads parquet statistics (the null count
 of `<key>.bytes` per row group) where the writer kept them, else that column alone.
+
+The first cell of each data file and camera must also be a PNG of the size info.json declares, in RGB: its
+header (the first 26 bytes) is read, never the pixels, so a corrupt, grayscale, tiny or huge image is refused
+before a run starts (`check_png_headers`); later frames are checked as they are decoded (capture.frames).
 """
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Sequence
 from pathlib import Path
 
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from steering_core.data.dataset import DatasetMeta
+from steering_core.data.dataset import INFO_FILE, DatasetMeta
 
 
 def check_image_cells(meta: DatasetMeta, episodes: Sequence[int]) -> None:
@@ -48,3 +53,32 @@ def _cells_without_bytes(path: Path, key: str) -> int:
             return int(pc.sum(pc.is_null(pq.read_table(path, columns=[leaf]).column(0))).as_py() or 0)
         counts.append(stats.null_count)
     return int(sum(counts))
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_RGB = 2  # IHDR colour type of 8-bit RGB, what lerobot writes for an (H, W, 3) image feature
+
+
+def check_png_headers(meta: DatasetMeta, episodes: Sequence[int]) -> None:
+    """Raise a ValueError naming the data file and feature whose first image is no RGB PNG of the declared shape."""
+    features = {key: f for key, f in meta.info["features"].items() if f.get("dtype") == "image"}
+    for path in sorted({meta.root / meta.episode(int(e)).data_file for e in episodes}):
+        if not features:
+            return
+        batch = next(pq.ParquetFile(path).iter_batches(batch_size=1, columns=list(features)))
+        for key, feature in features.items():
+            problem = png_problem(batch.column(key)[0]["bytes"].as_py() or b"", tuple(feature.get("shape") or ()))
+            if problem:
+                raise ValueError(f"{path}: the first image of feature {key!r} {problem} (`features.{key}.shape` "
+                                 f"in {meta.root / INFO_FILE}); re-create the dataset")
+
+
+def png_problem(data: bytes, shape: tuple[int, ...]) -> str | None:
+    """Return what keeps PNG bytes from being an 8-bit RGB image of `shape` (H, W, 3), read from its header."""
+    if len(data) < 26 or not data.startswith(PNG_SIGNATURE) or data[12:16] != b"IHDR":
+        return "is not a PNG, expected one"
+    width, height, depth, colour = struct.unpack(">IIBB", data[16:26])
+    if (height, width, 3) != tuple(shape) or depth != 8 or colour != _PNG_RGB:
+        return (f"is a {height}x{width} PNG of colour type {colour}, depth {depth}; expected shape {list(shape)}, "
+                f"8-bit RGB (colour type {_PNG_RGB})")
+    return None

@@ -70,6 +70,9 @@ _KIND_TEXT = {"image": "uint8", "float": "float", "flag": "uint8"}
 MAX_DEMO_STEPS = 100_000
 MAX_IMAGE_SIDE = 4096
 MAX_STATE_WIDTH = 10_000
+# LIBERO's floats are metres, radians, joint velocities and actions in [-1, 1]; far beyond that a value is corrupt,
+# and past ~1e19 its square (statistics) overflows float32 (1e300 is finite in float64, Inf in float32).
+MAX_ABS_VALUE = 1e9
 
 InstructionSource = Literal["problem_info", "bddl", "filename"]
 _BDDL_LANGUAGE = re.compile(r"\(:language\s+([^()]*?)\s*\)", re.DOTALL)
@@ -239,6 +242,9 @@ def _open_validated(path: Path) -> Iterator[tuple[h5py.File, LiberoFileInfo]]:
         demo_keys = sorted((k for k in data if DEMO_KEY_PATTERN.match(k)), key=demo_sort_key)
         if not demo_keys:
             problems.append(f"`data` has no demo_<k> groups (found {_preview(sorted(data))})")
+        stray = sorted(k for k in data if k not in demo_keys or k != DEMO_KEY.format(index=demo_sort_key(k)))
+        if stray and demo_keys:  # skipped silently, a demo would vanish (demo_x, demo_-5, demo_07 beside demo_7)
+            problems.append(f"`data` holds {_preview(stray)}, expected only demo_<k> groups (k = 0, 1, ...)")
         lengths: dict[str, int] = {}
         for key in demo_keys:
             link = _link_problem(data, key, f"data/{key}")
@@ -326,8 +332,12 @@ def _shape_bound_problem(kind: str, shape: tuple[int, ...], where: str) -> str |
 
 
 def _finite_problems(item: h5py.Dataset, key: str, name: str) -> list[str]:
-    """Return the problem of a float dataset holding NaN or Inf (`non_finite`'s message), else none."""
-    problem = non_finite(item[()], f"data/{key}/{name}")
+    """Return the problem of a float dataset holding NaN or Inf (`non_finite`'s message) or values beyond
+    `MAX_ABS_VALUE`, else none."""
+    values = item[()]
+    problem = non_finite(values, f"data/{key}/{name}")
+    if problem is None and values.size and (largest := float(np.abs(values).max())) > MAX_ABS_VALUE:
+        problem = f"data/{key}/{name} holds {largest:g}, expected magnitudes up to {MAX_ABS_VALUE:g}"
     return [] if problem is None else [problem]
 
 
