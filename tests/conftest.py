@@ -15,6 +15,13 @@ os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 os.environ.setdefault("LATENT_STEERING_DIGEST_CACHE", tempfile.mkdtemp(prefix="latent-steering-digests-"))
 
 
+def pytest_report_header(config) -> str:
+    """Say which database the tests' own Prefect servers use (tests/test_server_deployments.py)."""
+    from helpers_prefect_db import backend
+
+    return f"Prefect servers started by tests: {backend()}"
+
+
 @pytest.fixture(autouse=True)
 def torch_threads_put_back():
     """Fail a test that leaves torch on another intra-op thread count: the float32 bits of what runs after it in this
