@@ -15,11 +15,11 @@ os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 os.environ.setdefault("LATENT_STEERING_DIGEST_CACHE", tempfile.mkdtemp(prefix="latent-steering-digests-"))
 
 
-def pytest_report_header(config) -> str:
-    """Say which database the tests' own Prefect servers use (tests/test_server_deployments.py)."""
+def pytest_terminal_summary(terminalreporter) -> None:
+    """Say which database the tests' own Prefect servers used (tests/test_server_deployments.py), under -q too."""
     from helpers_prefect_db import backend
 
-    return f"Prefect servers started by tests: {backend()}"
+    terminalreporter.write_line(f"Prefect servers started by tests/test_server_deployments.py: {backend()}")
 
 
 @pytest.fixture(autouse=True)
