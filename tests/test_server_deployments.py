@@ -55,9 +55,13 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parent.parent
 PREFECT = [sys.executable, "-m", "prefect"]
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
-RUN_TIMEOUT = 900  # seconds for the whole deployment run (4 evaluation runs included) on a busy 2-core machine
+# Deadlines are generous, so that only a hang fails them: a run that took 900 s beside other jobs (load 5-10, two
+# cores) once failed here with its evaluation runs still Running. A scenario's waits are each at most RUN_TIMEOUT.
+RUN_TIMEOUT = 3600  # seconds for one deployment run (4 evaluation runs included), or one wait of a scenario
+CLI_TIMEOUT = 600   # seconds for one CLI call (`latent-steering deploy`, `prefect deployment run`)
+LOG_TIMEOUT = 300   # seconds until a finished run's last log lines are recorded (they are sent after its final state)
 WORKER_GRACE = 5   # seconds a worker gets after SIGTERM before SIGKILL (they rarely stop by themselves)
-SCENARIO_TIMEOUT = 1800  # seconds a background scenario may take (two pipeline runs and a crash recovery)
+SCENARIO_TIMEOUT = 3 * RUN_TIMEOUT  # seconds a test or background scenario may take (its three waits at most)
 # the deploy automation's window in the dying-machines scenario, which waits for it once (the dead parent): five times
 # the longest server stall measured under load (60 s, SQLite), not the 600 s default, to keep the scenario short
 AUTOMATION_WINDOW = 300
@@ -177,7 +181,7 @@ def run_deployment_until_final(env: dict[str, str], deployment: str, worker_log:
     return run
 
 
-def run_cli(env: dict[str, str], *args: str, timeout: int = 180) -> str:
+def run_cli(env: dict[str, str], *args: str, timeout: int = CLI_TIMEOUT) -> str:
     done = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout, check=False)
     assert done.returncode == 0, f"{' '.join(args[:4])} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     return done.stdout + done.stderr
@@ -350,7 +354,7 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(bucket, s
     refreshed = run_deployment_and_wait(env, "latent-steering-refresh/scheduled", tmp_path / "logs" / "worker-cpu.log")
     with get_client(sync_client=True) as client:
         pipelines = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering"])))
-        deadline = time.monotonic() + 30  # a run's last log lines are sent shortly after its final state
+        deadline = time.monotonic() + LOG_TIMEOUT
         while True:
             logs = [log.message for log in client.read_logs(
                 log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[refreshed.id])))]
