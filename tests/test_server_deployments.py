@@ -448,8 +448,8 @@ def dying_machines(env: dict[str, str], processes: Processes, tmp_path: Path) ->
     run_cli(env, LATENT_STEERING, "deploy", "--config", config_url, "--storage", f"{bucket}/data",
             "--heartbeat-timeout", str(AUTOMATION_WINDOW))
     with get_client(sync_client=True) as client:
-        assert [a.name for a in client.read_automations_by_name("latent-steering: crash flow runs whose heartbeats "
-                                                                 "stopped")]
+        assert [a.trigger.within.total_seconds() for a in client.read_automations_by_name(
+            "latent-steering: crash flow runs whose heartbeats stopped")] == [AUTOMATION_WINDOW]
         client.pause_deployment(next(d for d in client.read_deployments() if d.name == "scheduled").id)
     cpu = start_machine(processes, "worker-cpu-1", "cpu", tmp_path / "machine-cpu-1")
     dying = start_machine(processes, "worker-gpu-1", "gpu", tmp_path / "machine-gpu-1")
