@@ -7,10 +7,9 @@ run per target not cached yet, otherwise it calls the phase's flow in this proce
 A child run ends Crashed when its process died: its worker reports that, or, when the worker died with it
 (a machine lost), the parent marks it Crashed once its heartbeats stopped for `orchestration.heartbeat_timeout_seconds`
 while the server kept recording the parent's own (`flows.heartbeats`: a stalled server is not a dead machine); the
-automation `latent-steering deploy` creates is the last resort for runs nobody watches (the parent itself). The parent
-starts such a run again, at most
-`orchestration.resubmits` times; every child's tasks are cached and capture keeps complete shards, so a new
-attempt redoes only what the dead one had not finished. A phase whose runs are not all final after
+automation `latent-steering deploy` creates is the last resort for runs nobody watches (the parent itself). The
+parent starts such a run again, at most `orchestration.resubmits` times; every child's tasks are cached and
+capture keeps complete shards, so a new attempt redoes only what the dead one had not finished. A phase whose runs are not all final after
 `orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted with no worker on
 their pool fail after `orchestration.worker_wait_seconds`, naming the pool.
 """
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 from uuid import UUID
 
+import httpx
 from prefect import get_run_logger, runtime
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.objects import FlowRun, WorkerStatus
@@ -157,7 +157,12 @@ def _watch(orchestration: OrchestrationSection) -> HeartbeatWatch | None:
 def _crash_dead(client: Any, watch: HeartbeatWatch, pending: Sequence[FlowRun]) -> None:
     """Mark Crashed the running runs of `pending` the watch judges dead (the next poll starts them again)."""
     running = [run for run in pending if run.state is not None and run.state.is_running()]
-    for run in watch.dead(client, running) if running else []:
+    try:
+        dead = watch.dead(client, running) if running else []
+    except httpx.HTTPError as error:  # a server that does not answer gives no evidence: judge at the next check
+        get_run_logger().info("heartbeats not read (%s); the children are judged at the next check", error)
+        return
+    for run in dead:
         get_run_logger().warning("%s sent no heartbeat for %.0f s while this run's own were recorded: marking it "
                                  "Crashed", run.name, watch.window)
         client.set_flow_run_state(run.id, Crashed(message=f"no heartbeat for {watch.window:.0f} s while its parent's "
