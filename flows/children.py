@@ -9,9 +9,9 @@ A child run ends Crashed when its process died: its worker reports that, or, whe
 while the server kept recording the parent's own (`flows.heartbeats`: a stalled server is not a dead machine); the
 automation `latent-steering deploy` creates is the last resort for runs nobody watches (the parent itself). The
 parent starts such a run again, at most `orchestration.resubmits` times; every child's tasks are cached and
-capture keeps complete shards, so a new attempt redoes only what the dead one had not finished. A phase whose runs are not all final after
-`orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted with no worker on
-their pool fail after `orchestration.worker_wait_seconds`, naming the pool.
+capture keeps complete shards, so a new attempt redoes only what the dead one had not finished. A phase whose runs
+are not all final after `orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted
+with no worker on their pool fail after `orchestration.worker_wait_seconds`, naming the pool.
 """
 
 from __future__ import annotations
