@@ -46,8 +46,12 @@ GPU_POOL, CPU_POOL, SIM_POOL = "gpu", "cpu", "sim"
 GPU_TAG = "gpu"                              # tag of every GPU task; its limit = GPUs across all workers
 PROJECT_TAG = "latent-steering"              # tag of every deployment in prefect.yaml, so of their flow runs
 # Flow runs of the deployments send a heartbeat event every 30 s (PREFECT_FLOWS_HEARTBEAT_FREQUENCY in prefect.yaml,
-# Prefect's minimum); a run silent for HEARTBEAT_TIMEOUT seconds lost its process (a killed worker, a dead machine).
-HEARTBEAT_TIMEOUT = 90
+# Prefect's minimum). A parent marks its dead children itself, on evidence (flows/heartbeats.py); this automation is
+# the last resort for runs nobody watches (the parent itself). It sees one run's silence only, which a stalled server
+# (a locked database: a 60 s stall was measured under load) causes too, so its default window is ten times that stall:
+# 20 missed heartbeats (deployments/README.md, "When a worker or a machine dies").
+HEARTBEAT_TIMEOUT = 600
+MINIMUM_HEARTBEAT_TIMEOUT = 90  # three heartbeats: Prefect's own rule of thumb for the window
 CRASH_AUTOMATION = "latent-steering: crash flow runs whose heartbeats stopped"
 _FINAL_EVENTS = {f"prefect.flow-run.{state}" for state in ("Completed", "Failed", "Cancelled", "Crashed")}
 
@@ -168,15 +172,18 @@ def deploy_all(config_path: str | os.PathLike, project_dir: Path = PROJECT_DIR, 
 
 
 def setup(config_path: str | os.PathLike, gpu_slots: int = 1, project_dir: Path = PROJECT_DIR,
-          storage: str | None = None) -> str | None:
-    """Create pools, the GPU limit and the crash automation, the result storage of `storage` (a URL, checked
-    first), then deploy the parent, capture and refresh flows; return the results' basepath (None without storage)."""
+          storage: str | None = None, heartbeat_timeout: float = HEARTBEAT_TIMEOUT) -> str | None:
+    """Create pools, the GPU limit and the crash automation (window `heartbeat_timeout` seconds), the result storage
+    of `storage` (a URL, checked first), then deploy every flow; return the results' basepath (None without storage)."""
+    if heartbeat_timeout < MINIMUM_HEARTBEAT_TIMEOUT:
+        raise ValueError(f"--heartbeat-timeout is {heartbeat_timeout:g}, expected at least {MINIMUM_HEARTBEAT_TIMEOUT} "
+                         "seconds (three 30-second heartbeats)")
     if storage is not None:
         storage = check_storage(storage)  # before anything changes on the server
     logger.info("setting up deployments on %s", require_api_url())
     ensure_pools()
     set_gpu_limit(gpu_slots)
-    ensure_crash_automation()
+    ensure_crash_automation(heartbeat_timeout)
     if storage is None:
         deploy_all(config_path, project_dir)
         return None

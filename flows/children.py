@@ -5,12 +5,13 @@ with `orchestration.mode` `deployment` (or `auto` in a flow run started from a d
 run per target not cached yet, otherwise it calls the phase's flow in this process.
 
 A child run ends Crashed when its process died: its worker reports that, or, when the worker died with it
-(a machine lost), the automation `latent-steering deploy` creates marks it Crashed once its heartbeats stop
-(`deployments.setup.ensure_crash_automation`). The parent starts such a run again, at most
-`orchestration.resubmits` times; every child's tasks are cached and capture keeps complete shards, so a new
-attempt redoes only what the dead one had not finished. A phase whose runs are not all final after
-`orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted with no worker on
-their pool fail after `orchestration.worker_wait_seconds`, naming the pool.
+(a machine lost), the parent marks it Crashed once its heartbeats stopped for `orchestration.heartbeat_timeout_seconds`
+while the server kept recording the parent's own (`flows.heartbeats`: a stalled server is not a dead machine); the
+automation `latent-steering deploy` creates is the last resort for runs nobody watches (the parent itself). The
+parent starts such a run again, at most `orchestration.resubmits` times; every child's tasks are cached and
+capture keeps complete shards, so a new attempt redoes only what the dead one had not finished. A phase whose runs
+are not all final after `orchestration.deadline_seconds` is cancelled and fails naming them; runs left unstarted
+with no worker on their pool fail after `orchestration.worker_wait_seconds`, naming the pool.
 """
 
 from __future__ import annotations
@@ -20,13 +21,16 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+from uuid import UUID
 
+import httpx
 from prefect import get_run_logger, runtime
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.objects import FlowRun, WorkerStatus
 from prefect.deployments import run_deployment
-from prefect.states import Cancelled
+from prefect.states import Cancelled, Crashed
 
+from flows.heartbeats import HeartbeatWatch, heartbeat_interval
 from steering_core.config import RunConfig
 from steering_core.config.sections import OrchestrationSection
 
@@ -86,6 +90,8 @@ def run_children(deployment: str, children: Sequence[Child], what: str,
     began = time.monotonic()
     worker_check: float | None = began + orchestration.worker_wait_seconds
     next_report = began + REPORT_SECONDS
+    watch = _watch(orchestration)
+    next_watch = began + (watch.interval if watch else 0)
     finished: dict[str, FlowRun] = {}
     with get_client(sync_client=True) as client:
         while True:
@@ -107,6 +113,9 @@ def run_children(deployment: str, children: Sequence[Child], what: str,
             if not pending:
                 break
             now = time.monotonic()
+            if watch is not None and now >= next_watch:
+                _crash_dead(client, watch, pending)
+                next_watch = now + watch.interval
             if worker_check is not None and now > worker_check:
                 _fail_if_nobody_polls(client, pending, orchestration.worker_wait_seconds, what)
                 worker_check = None  # a worker is there: wait as long as the runs take
@@ -135,6 +144,29 @@ def describe(runs: Sequence[FlowRun]) -> str:
 def _start(deployment: str, child: Child) -> FlowRun:
     """Create one run of `deployment` for `child`, linked to the current flow run, without waiting."""
     return run_deployment(deployment, parameters=child.parameters, flow_run_name=child.name, timeout=0)
+
+
+def _watch(orchestration: OrchestrationSection) -> HeartbeatWatch | None:
+    """Return the heartbeat watch of this flow run's children (None outside a flow run)."""
+    parent_id = runtime.flow_run.id
+    if not parent_id:
+        return None
+    return HeartbeatWatch(UUID(str(parent_id)), orchestration.heartbeat_timeout_seconds, heartbeat_interval())
+
+
+def _crash_dead(client: Any, watch: HeartbeatWatch, pending: Sequence[FlowRun]) -> None:
+    """Mark Crashed the running runs of `pending` the watch judges dead (the next poll starts them again)."""
+    running = [run for run in pending if run.state is not None and run.state.is_running()]
+    try:
+        dead = watch.dead(client, running) if running else []
+    except httpx.HTTPError as error:  # a server that does not answer gives no evidence: judge at the next check
+        get_run_logger().info("heartbeats not read (%s); the children are judged at the next check", error)
+        return
+    for run in dead:
+        get_run_logger().warning("%s sent no heartbeat for %.0f s while this run's own were recorded: marking it "
+                                 "Crashed", run.name, watch.window)
+        client.set_flow_run_state(run.id, Crashed(message=f"no heartbeat for {watch.window:.0f} s while its parent's "
+                                                          "were recorded: its process or machine died"), force=True)
 
 
 def _cancel(client: Any, runs: Sequence[FlowRun], why: str) -> None:

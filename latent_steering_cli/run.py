@@ -119,6 +119,10 @@ def deploy_command(
     storage: str | None = typer.Option(
         None, "--storage", help="Bucket URL (s3://bucket/prefix, gs://...) for Prefect's results: checked writable, "
                                 "saved as the block `latent-steering-results`, named in the deployments' env."),
+    heartbeat_timeout: float | None = typer.Option(
+        None, "--heartbeat-timeout", help="Seconds of heartbeat silence after which the deploy automation marks a "
+                                          "flow run Crashed, the last resort for runs no parent watches (default 600; "
+                                          "deployments/README.md)."),
 ) -> None:
     """Create the `gpu` and `cpu` work pools and the `gpu` concurrency limit, then deploy every flow.
 
@@ -129,7 +133,8 @@ def deploy_command(
         load_run_config(config)
         from deployments.setup import RESULTS_BLOCK, setup
 
-        results = setup(config, gpu_slots=gpu_slots, storage=storage)
+        timeout = {} if heartbeat_timeout is None else {"heartbeat_timeout": heartbeat_timeout}
+        results = setup(config, gpu_slots=gpu_slots, storage=storage, **timeout)
     typer.echo("deployments: latent-steering/pipeline, latent-steering-capture/gpu, latent-steering-evaluate/gpu-evaluate, "
                "latent-steering-train-sae/gpu-train-sae, latent-steering-rollout/sim-rollout, latent-steering-refresh/scheduled")
     if results is not None:

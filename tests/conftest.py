@@ -15,6 +15,13 @@ os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 os.environ.setdefault("LATENT_STEERING_DIGEST_CACHE", tempfile.mkdtemp(prefix="latent-steering-digests-"))
 
 
+def pytest_terminal_summary(terminalreporter) -> None:
+    """Say which database the tests' own Prefect servers used (tests/test_server_deployments.py), under -q too."""
+    from helpers_prefect_db import backend
+
+    terminalreporter.write_line(f"Prefect servers started by tests/test_server_deployments.py: {backend()}")
+
+
 @pytest.fixture(autouse=True)
 def torch_threads_put_back():
     """Fail a test that leaves torch on another intra-op thread count: the float32 bits of what runs after it in this

@@ -103,6 +103,25 @@ def test_without_storage_the_deployments_carry_no_storage_setting(config_path, m
     envs = job_envs()
     assert set(envs) == DEPLOYMENTS
     assert all(not STORAGE_KEYS & set(env) and BASE_ENV.items() <= env.items() for env in envs.values()), envs
+    assert crash_window() == 600  # the default: deployments/README.md says why
+
+
+def crash_window() -> float:
+    """Return the crash automation's window on the server, in seconds."""
+    with get_client(sync_client=True) as client:
+        [automation] = client.read_automations_by_name(CRASH_AUTOMATION)
+    return automation.trigger.within.total_seconds()
+
+
+@pytest.mark.parametrize("seconds", ["89", "0", "-600"])
+def test_a_crash_window_shorter_than_three_heartbeats_is_one_line_and_changes_nothing(config_path, seconds):
+    with get_client(sync_client=True) as client:
+        before = gpu_limit(client)
+    code, lines = deploy(config_path, "--heartbeat-timeout", seconds, "--gpu-slots", "7")
+    assert code == 1 and len(lines) == 1, lines
+    assert lines[0].startswith(f"error: --heartbeat-timeout is {seconds}, expected at least 90 seconds"), lines
+    with get_client(sync_client=True) as client:
+        assert gpu_limit(client) == before != 7
 
 
 def test_a_config_url_is_every_deployment_parameter_as_it_is(config_path, bucket):

@@ -1,6 +1,8 @@
 """A real Prefect server, work pools, deployments and workers: the pipeline as users run it.
 
-Starts `prefect server start` on 127.0.0.1 (free port, SQLite in a temporary PREFECT_HOME), runs
+Starts `prefect server start` on 127.0.0.1 (free port, a PostgreSQL database of its own when
+LATENT_STEERING_TEST_POSTGRES names a server, as `.ci/run` does, else SQLite in a temporary PREFECT_HOME; the
+report header says which: tests/helpers_prefect_db.py), runs
 `latent-steering deploy`, starts one worker per pool, triggers `prefect deployment run`, and checks
 through the API that capture ran on `gpu` (two runs sharing the `gpu` concurrency limit of one) and
 the slicing and SAE tasks on `cpu`, with outputs written. Every process it started, and their
@@ -28,6 +30,7 @@ from pathlib import Path
 import httpx
 import pytest
 import yaml
+from helpers_prefect_db import server_database
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.filters import (
     FlowFilter,
@@ -52,9 +55,17 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parent.parent
 PREFECT = [sys.executable, "-m", "prefect"]
 LATENT_STEERING = str(Path(sys.executable).parent / "latent-steering")  # the console script of this venv
-RUN_TIMEOUT = 900  # seconds for the whole deployment run (4 evaluation runs included) on a busy 2-core machine
+# Deadlines are generous, so that only a hang fails them: a run that took 900 s beside other jobs (load 5-10, two
+# cores) once failed here with its evaluation runs still Running. A scenario's waits are each at most RUN_TIMEOUT.
+RUN_TIMEOUT = 3600  # seconds for one deployment run (4 evaluation runs included), or one wait of a scenario
+CLI_TIMEOUT = 600   # seconds for one CLI call (`latent-steering deploy`, `prefect deployment run`)
+LOG_TIMEOUT = 300   # seconds until a finished run's last log lines are recorded (they are sent after its final state)
 WORKER_GRACE = 5   # seconds a worker gets after SIGTERM before SIGKILL (they rarely stop by themselves)
-SCENARIO_TIMEOUT = 1800  # seconds a background scenario may take (two pipeline runs and a crash recovery)
+SCENARIO_TIMEOUT = 3 * RUN_TIMEOUT  # seconds a test or background scenario may take (its three waits at most)
+# the deploy automation's window in the dying-machines scenario, which waits for it once (the dead parent): five times
+# the longest server stall measured under load (60 s, SQLite), not the 600 s default, to keep the scenario short
+AUTOMATION_WINDOW = 300
+SERVER_START_TIMEOUT = 300  # seconds until /api/health answers: 9-16 s measured idle (migrations on a new database)
 
 
 def free_port() -> int:
@@ -170,7 +181,7 @@ def run_deployment_until_final(env: dict[str, str], deployment: str, worker_log:
     return run
 
 
-def run_cli(env: dict[str, str], *args: str, timeout: int = 180) -> str:
+def run_cli(env: dict[str, str], *args: str, timeout: int = CLI_TIMEOUT) -> str:
     done = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout, check=False)
     assert done.returncode == 0, f"{' '.join(args[:4])} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
     return done.stdout + done.stderr
@@ -178,7 +189,8 @@ def run_cli(env: dict[str, str], *args: str, timeout: int = 180) -> str:
 
 @contextlib.contextmanager
 def prefect_server(folder: Path) -> Iterator[tuple[dict[str, str], Processes]]:
-    """A Prefect server on a free port with its own SQLite database under `folder`; yields (env, processes)."""
+    """A Prefect server on a free port with its own database (`server_database`) and home under `folder`; yields
+    (env, processes). Only the server gets the database URL: workers and flow runs reach it through the API."""
     port = free_port()
     url = f"http://127.0.0.1:{port}/api"
     env = {**os.environ, "PREFECT_HOME": str(folder / "prefect_home"), "PREFECT_API_URL": url,
@@ -187,21 +199,23 @@ def prefect_server(folder: Path) -> Iterator[tuple[dict[str, str], Processes]]:
     logs = folder / "logs"
     logs.mkdir()
     processes = Processes(env, logs)
-    try:
-        processes.start("server", *PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port), "--no-ui")
-        deadline = time.monotonic() + 120
-        while True:  # a busy port still exits 0, so trust only the health endpoint
-            try:
-                if httpx.get(f"{url}/health", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert time.monotonic() < deadline, (logs / "server.log").read_text()[-3000:]
-            time.sleep(1)
-        with temporary_settings(updates={PREFECT_API_URL: url}):
-            yield env, processes
-    finally:
-        processes.stop()
+    with server_database() as database:
+        try:
+            processes.start("server", *PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port),
+                            "--no-ui", env={**env, **database})
+            deadline = time.monotonic() + SERVER_START_TIMEOUT
+            while True:  # a busy port still exits 0, so trust only the health endpoint
+                try:
+                    if httpx.get(f"{url}/health", timeout=2).status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                assert time.monotonic() < deadline, (logs / "server.log").read_text()[-3000:]
+                time.sleep(1)
+            with temporary_settings(updates={PREFECT_API_URL: url}):
+                yield env, processes
+        finally:
+            processes.stop()
 
 
 @pytest.fixture
@@ -340,7 +354,7 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(bucket, s
     refreshed = run_deployment_and_wait(env, "latent-steering-refresh/scheduled", tmp_path / "logs" / "worker-cpu.log")
     with get_client(sync_client=True) as client:
         pipelines = client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["latent-steering"])))
-        deadline = time.monotonic() + 30  # a run's last log lines are sent shortly after its final state
+        deadline = time.monotonic() + LOG_TIMEOUT
         while True:
             logs = [log.message for log in client.read_logs(
                 log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[refreshed.id])))]
@@ -414,25 +428,28 @@ def capture_runs(client) -> list:
 
 def dying_machines(env: dict[str, str], processes: Processes, tmp_path: Path) -> None:
     """Every root in the bucket, each worker on its own machine. The gpu machine dies with its flow-run processes
-    while capture runs are running: the deploy automation marks them Crashed when their heartbeats stop, the parent
-    starts them again on a new gpu machine, and shards published before the crash are kept. Then the cpu machine
-    dies, with the parent, as slicing starts: a pipeline run on a new cpu machine finishes the work, starting no
-    capture run (all cached in the bucket). Nothing half-written is visible and no staging object is left."""
+    while capture runs are running: the parent marks them Crashed when their heartbeats stopped for a window while
+    its own were recorded (flows/heartbeats.py), starts them again on a new gpu machine, and shards published before
+    the crash are kept. Then the cpu machine dies, with the parent, as slicing starts: the deploy automation marks the
+    silent parent Crashed, and a pipeline run on a new cpu machine finishes the work, starting no capture run (all
+    cached in the bucket). Nothing half-written is visible and no staging object is left."""
     name = f"dying-{os.getpid()}-{time.monotonic_ns()}"
     filesystems.filesystem("s3").mkdir(name)
     bucket = f"s3://{name}"
 
     def edit(raw: dict) -> None:
-        raw["orchestration"] = {"shards_per_capture_run": 2, "poll_seconds": 2}  # four capture runs
+        # four capture runs; the parent's watch needs no more than its minimum window: its evidence rules out stalls
+        raw["orchestration"] = {"shards_per_capture_run": 2, "poll_seconds": 2, "heartbeat_timeout_seconds": 60}
         raw["evaluate"] = raw["rollout"] = None  # what follows slicing is not under test here
         raw["layers"], raw["sae"] = [1], {"1": raw["sae"]["1"] | {"train": None}}  # one layer, no training
 
     config_url = bucket_demo(tmp_path, bucket, edit)
     logs = tmp_path / "logs"
-    run_cli(env, LATENT_STEERING, "deploy", "--config", config_url, "--storage", f"{bucket}/data")
+    run_cli(env, LATENT_STEERING, "deploy", "--config", config_url, "--storage", f"{bucket}/data",
+            "--heartbeat-timeout", str(AUTOMATION_WINDOW))
     with get_client(sync_client=True) as client:
-        assert [a.name for a in client.read_automations_by_name("latent-steering: crash flow runs whose heartbeats "
-                                                                 "stopped")]
+        assert [a.trigger.within.total_seconds() for a in client.read_automations_by_name(
+            "latent-steering: crash flow runs whose heartbeats stopped")] == [AUTOMATION_WINDOW]
         client.pause_deployment(next(d for d in client.read_deployments() if d.name == "scheduled").id)
     cpu = start_machine(processes, "worker-cpu-1", "cpu", tmp_path / "machine-cpu-1")
     dying = start_machine(processes, "worker-gpu-1", "gpu", tmp_path / "machine-gpu-1")
@@ -448,7 +465,7 @@ def dying_machines(env: dict[str, str], processes: Processes, tmp_path: Path) ->
     wait_until(mid_capture, "capture runs both complete and running", RUN_TIMEOUT, logs / "worker-gpu-1.log")
     kill_machine(dying)
     start_machine(processes, "worker-gpu-2", "gpu", tmp_path / "machine-gpu-2")
-    with get_client(sync_client=True) as client:  # nothing can change them now but the automation
+    with get_client(sync_client=True) as client:  # nothing can change them now but the parent's heartbeat watch
         before = {r.name: r.state.name for r in capture_runs(client)}
     fs = filesystems.filesystem("s3")
     kept = {path: fs.info(path)["ETag"] for path in bucket_files(f"{bucket}/data/residuals/demo", "**/shard-*.safetensors")}
@@ -466,7 +483,7 @@ def dying_machines(env: dict[str, str], processes: Processes, tmp_path: Path) ->
         runs = capture_runs(client)
         crashed = [r for r in runs if r.state.name == "Crashed"]
         assert sorted(r.name for r in crashed) == sorted(name for name, state in before.items() if state == "Running")
-        assert {"no heartbeat" in r.state.message for r in crashed} == {True}  # marked by the automation
+        assert {"no heartbeat" in r.state.message for r in crashed} == {True}  # marked by the parent's watch
         completed = sorted(r.name for r in runs if r.state.is_completed())
         assert completed == sorted(before)  # each capture run completed once: the first time or on its new attempt
         parent_logs = client.read_logs(log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[parent_id])))

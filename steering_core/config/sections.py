@@ -239,6 +239,9 @@ class OrchestrationSection(StrictModel):
     worker_wait_seconds: float = Field(600.0, gt=0)  # child runs still unstarted, no worker of their pool: fail
     resubmits: int = Field(2, ge=0, le=100)  # times a crashed child run (its process or machine died) is started again
     deadline_seconds: float = Field(86400.0, gt=0)  # a phase's child runs not all finished by then: cancel, fail
+    # a running child silent this long while the server records the parent's own heartbeats: dead, marked Crashed
+    # (flows/heartbeats.py; deployments/README.md, "When a worker or a machine dies")
+    heartbeat_timeout_seconds: float = Field(300.0, ge=60)
 
 
 class RolloutSection(RolloutSettings):
