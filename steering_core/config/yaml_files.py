@@ -16,6 +16,7 @@ from steering_core.config.sections import SUPPLIED
 from steering_core.remote.filesystems import object_path, temporary_copy
 from steering_core.storage.fileio import atomic_path, read_text
 from steering_core.storage.mirrors import is_url, portable, url_of
+from steering_core.storage.schema import error_message
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 
@@ -83,7 +84,7 @@ def format_errors(err: ValidationError, data: Any = None) -> list[str]:
         if error["type"] == "too_short" and any(other[:len(loc)] == loc != other for other in failed):
             continue  # a list too short only because its bad items (reported) were left out
         key = _key_path(loc, data)
-        message = error["msg"].removeprefix("Value error, ")
+        message = error_message(error).removeprefix("Value error, ")
         message = message[:1].lower() + message[1:]
         if error["type"] == "extra_forbidden":
             section, _, field = key.partition(".")
