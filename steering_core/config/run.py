@@ -101,6 +101,8 @@ class RunConfig(StrictModel):
         if self.rollout is not None and depth - 1 in self.rollout_layers:
             problems.append(f"layers include {depth - 1}, the last decoder layer: steering it cannot move the actions, "
                             "so its rollouts would only repeat α = 0; roll out earlier layers")
+        if (overlap := _written_into(self.output_root, self.dataset.existing)) is not None:
+            problems.append(overlap)
         if (self.sources is None) == (self.dataset.existing is None):
             problems.append("give exactly one of `sources` (hdf5 demo folders to filter and convert) and "
                             f"`dataset.existing` (a LeRobot dataset to read in place); found "
@@ -350,3 +352,14 @@ class RunConfig(StrictModel):
                 negative_label=labels[1], negative_path=os.path.relpath(files[labels[1]], base),
             ))
         return PairsConfig(pairs=specs)
+
+
+def _written_into(output_root: Path, existing: Path | None) -> str | None:
+    """Return why the outputs would land in the `existing` dataset (the run never writes there), else None."""
+    if existing is None:
+        return None
+    root, dataset = output_root.resolve(), existing.resolve()
+    if root == dataset or dataset in root.parents:
+        return (f"output_root {output_root} is {'' if root == dataset else 'inside '}dataset.existing {existing}, "
+                "which is read in place and never written; give an output_root outside the dataset")
+    return None

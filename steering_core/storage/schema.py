@@ -13,7 +13,6 @@ from pydantic_core import CoreSchema
 from steering_core.storage.fileio import read_json, sha256_json
 from steering_core.storage.mirrors import portable
 
-
 # Scalars taken only as themselves: "1" or 1.0 is no int, 1 or "yes" no bool, "1.5" or true no float (an int is a
 # float). Containers, paths and literals keep pydantic's conversions: YAML and JSON give lists for tuples, strings
 # for paths, and strings for mapping keys (a dict[int, ...] written as JSON comes back keyed by "12").
