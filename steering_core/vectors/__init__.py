@@ -2,5 +2,6 @@
 
 Modules: `concept_stats` (streaming statistics of one concept's residuals through an SAE), `directions` (a pair's
 `positive - negative` latent mean, decoded to residual space; pairwise cosines), `pair_slices` (a pair's two
-slice files against their index.json), `pair_order` (which concept of a pair is positive), `report` (the per-layer steering report).
+slice files against their index.json), `pair_order` (which concept of a pair is positive), `report` (the
+per-layer steering report).
 """
