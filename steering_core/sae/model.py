@@ -25,6 +25,7 @@ from steering_core.sae.formats import (
     WEIGHTS_FILE,
     SaeConfig,
     apply_scaling_factor,
+    check_sparsity,
     parse_cfg,
     read_cfg,
     read_sae_folder,
@@ -297,6 +298,14 @@ def _check_weights(cfg: SaeConfig, weights: dict[str, torch.Tensor], extra_weigh
         )
 
 
+def check_trained(cfg: SaeConfig, weights: dict[str, torch.Tensor]) -> None:
+    """Raise when an SAE file's encoder or decoder is all zeros (it would encode or decode everything to zero)."""
+    for name in ("W_enc", "W_dec"):
+        if name in weights and not weights[name].any():
+            raise ValueError(f"{cfg.source}: `{name}` is all zeros, expected trained weights (every direction would "
+                             "be zero); the SAE is untrained or damaged: re-download or re-train it")
+
+
 def fold_norm_scaling_factor(weights: dict[str, torch.Tensor], factor: float) -> dict[str, torch.Tensor]:
     """Return weights with an input scale folded in as SAELens does: W_enc * s, W_dec / s, b_dec / s."""
     return weights | {
@@ -361,6 +370,8 @@ def load_sae(
         else:
             weights = fold_norm_scaling_factor(weights, factor)
             cfg = cfg.model_copy(update={"normalize_activations": "none", "norm_scaling_factor": factor})
+    check_trained(cfg, weights)
+    check_sparsity(log_sparsity, cfg)
     sae = sae_class(cfg.architecture)(cfg, weights, device=device, log_sparsity=log_sparsity, weights_path=weights_path)
     logger.info(
         "loaded %s SAE %s (d_in %d, d_sae %d) on %s", cfg.architecture, sae.name, cfg.d_in, cfg.d_sae, sae.device
