@@ -112,10 +112,22 @@ def _key_path(loc: tuple[Any, ...], data: Any) -> str:
 def write_run_config(config: RunConfig, path: str | os.PathLike) -> Path:
     """Write `config` as YAML (absolute paths, non-default values only) and return the path."""
     path = Path(path)
-    payload = config.model_dump(mode="json", exclude_defaults=True)
     with atomic_path(path) as tmp:
-        tmp.write_text(yaml.safe_dump(payload, sort_keys=False, allow_unicode=True), encoding="utf-8")
+        tmp.write_text(run_config_text(config), encoding="utf-8")
     return path
+
+
+def run_config_text(config: RunConfig) -> str:
+    """Return the YAML `write_run_config` writes for `config`."""
+    return yaml.safe_dump(config.model_dump(mode="json", exclude_defaults=True), sort_keys=False, allow_unicode=True)
+
+
+def claim_config_file(path: Path, config: RunConfig) -> None:
+    """Raise unless `path` is free or already holds `config` as `write_run_config` writes it: another run's config
+    is never overwritten."""
+    if path.exists() and (not path.is_file() or path.read_bytes() != run_config_text(config).encode()):
+        raise ValueError(f"{path}: already holds another run config (or is not a file), which would be overwritten; "
+                         "choose another folder, or move the file away")
 
 
 SHARED_CONFIGS = ".runs"  # under a bucket output root: the run configs handed to workers on other machines
