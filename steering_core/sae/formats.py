@@ -104,8 +104,11 @@ def upgrade_legacy_cfg(raw: dict[str, Any]) -> dict[str, Any]:
     return cfg
 
 
-def parse_cfg(raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | None = None) -> SaeConfig:
-    """Return the `SaeConfig` of a cfg.json dict in either layout; raise one error listing every problem.
+def parse_cfg(
+    raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | None = None, where: str | None = None
+) -> SaeConfig:
+    """Return the `SaeConfig` of a cfg.json dict in either layout; raise one error, naming `where` (the cfg file;
+    default `source`), listing every problem.
 
     Each setting has one spelling: a key given twice (at the top level and in `metadata`, or under its pre-6.0
     and its current name) is refused, as are values of another type (`"16"` for an integer, `1` for a flag) and
@@ -140,7 +143,7 @@ def parse_cfg(raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | N
     if flat.get("reshape_activations", "none") != "none":
         problems.append(f"`reshape_activations` is {flat['reshape_activations']!r}: only residual-stream SAEs ('none')")
     if problems:
-        raise ValueError(f"{source}: unusable SAE config:\n  " + "\n  ".join(problems))
+        raise ValueError(f"{where or source}: unusable SAE config: " + "; ".join(problems))
     hook_name = flat.get("hook_name")
     architecture = str(flat.get("architecture", "standard"))
     return SaeConfig(
