@@ -4,6 +4,7 @@ settings of each step built from its section plus what the run supplies."""
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -65,6 +66,22 @@ class RunConfig(StrictModel):
                 raise ValueError(f"pairs[{seen[pair.name]}] and pairs[{i}] are both named {pair.name!r}; names must be unique")
             seen[pair.name] = i
         return pairs
+
+    @field_validator("sae", mode="before")
+    @classmethod
+    def _one_key_per_layer(cls, sae: object) -> object:
+        """Refuse two keys of one layer (`1` and `'1'`, which would merge) and a layer spelled otherwise (`'01'`)."""
+        if not isinstance(sae, dict):
+            return sae
+        seen: dict[int, object] = {}
+        for key in sae:
+            if isinstance(key, str) and re.fullmatch(r"\s*[+-]?\d+\s*", key) and key != str(int(key)):
+                raise ValueError(f"key {key!r}: expected a layer number written as one, e.g. {int(key)}")
+            layer = int(key) if isinstance(key, str) and re.fullmatch(r"-?\d+", key) else key
+            if layer in seen and not isinstance(layer, bool):
+                raise ValueError(f"keys {seen[layer]!r} and {key!r} both name layer {layer}; keep one")
+            seen[layer] = key
+        return sae
 
     @field_validator("layers")
     @classmethod
