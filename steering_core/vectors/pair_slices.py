@@ -4,7 +4,8 @@ A pairs config names each side's slice file and concept label by hand; the slice
 index.json saying which layer they hold and which concept each file is. Refused, one line per pairs config: one
 file or one label on both sides, slices of another layer than the one steered, a file its index.json does not
 list or lists under another concept than the side's label (another pair's slice, say), and two sides cut from
-different concept maps. Slices without an index.json (the seed's) are checked for the first two only.
+different concept maps. Slices without an index.json (the seed's) are checked for the first two only, and an
+index.json without a `layer` or `concepts` for what it does not say.
 """
 
 from __future__ import annotations
@@ -29,13 +30,14 @@ def slice_index(path: Path) -> dict[str, Any] | None:
     return index if isinstance(index, dict) else None
 
 
-def indexed_concept(index: dict[str, Any], path: Path) -> str | None:
-    """Return the concept an index.json lists `path` under (its `.pt` or `.safetensors` copy), else None."""
+def indexed_concepts(index: dict[str, Any], path: Path) -> list[str] | None:
+    """Return the concepts an index.json lists `path` under (its `.pt` or `.safetensors` copy); None when the index
+    lists no concepts."""
     entries = index.get("concepts")
-    names = [concept for concept, entry in entries.items()
-             if isinstance(entry, dict) and path.name in (entry.get("pt"), entry.get("safetensors"))] \
-        if isinstance(entries, dict) else []
-    return names[0] if len(names) == 1 else None
+    if not isinstance(entries, dict):
+        return None
+    return [concept for concept, entry in entries.items()
+            if isinstance(entry, dict) and path.name in (entry.get("pt"), entry.get("safetensors"))]
 
 
 def pair_slice_problems(name: str, labels: tuple[str, str], files: tuple[Path, Path], layer: int) -> list[str]:
@@ -50,14 +52,14 @@ def pair_slice_problems(name: str, labels: tuple[str, str], files: tuple[Path, P
         if index is None:
             continue
         where = f"{side}_path {path}"
-        if index.get("layer") != layer:
-            problems.append(f"{where} holds layer {index.get('layer')!r} slices (its {SLICE_INDEX_FILE}), expected "
+        if index.get("layer", layer) != layer:
+            problems.append(f"{where} holds layer {index['layer']!r} slices (its {SLICE_INDEX_FILE}), expected "
                             f"layer {layer}; point it at the layer{layer:02d} slices")
-        concept = indexed_concept(index, path)
-        if concept is None:
+        concepts = indexed_concepts(index, path)
+        if concepts == []:
             problems.append(f"{where} is not a slice its {SLICE_INDEX_FILE} lists")
-        elif concept != label:
-            problems.append(f"{where} holds concept {concept!r} (its {SLICE_INDEX_FILE}), not the pair's "
+        elif concepts is not None and label not in concepts:
+            problems.append(f"{where} holds concept {concepts[0]!r} (its {SLICE_INDEX_FILE}), not the pair's "
                             f"{side}_label {label!r}; point it at this pair's {label!r} slice")
     maps = [index.get("concept_map") for index in indexes if index is not None]
     if len(maps) == 2 and maps[0] != maps[1]:
