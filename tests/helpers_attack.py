@@ -56,6 +56,17 @@ class Case:
 Attack = Callable[[World, Path], Case]
 
 
+def registrar(table: list[Attack]) -> Callable[[str], Callable[[Attack], Attack]]:
+    """Return `case(name)`: a decorator adding the attack it decorates to `table` under `name` (its test id)."""
+    def case(name: str) -> Callable[[Attack], Attack]:
+        def register(attack: Attack) -> Attack:
+            attack.__name__ = name
+            table.append(attack)
+            return attack
+        return register
+    return case
+
+
 def snapshot(*roots: Path) -> dict[str, tuple[int, int]]:
     """Every file (with its size and modification time) and folder under `roots`.
 

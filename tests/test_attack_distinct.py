@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers_attack import Case, World, assert_refused, config_case, config_text, good
+from helpers_attack import Attack, Case, World, assert_refused, config_case, config_text, good, registrar
 from pydantic import ValidationError
 from safetensors.torch import load_file, save_file
 
@@ -28,16 +28,8 @@ from steering_core.vectors.directions import SteeringSettings
 
 PAIR, OTHER = "open_vs_close", "on_vs_off"
 OPEN, CLOSE, STOVE_ON = "open the top drawer of the cabinet", "close the top drawer of the cabinet", "turn on the stove"
-CASES: list[Callable[[World, Path], Case]] = []
-
-
-def case(name: str):
-    """Register the decorated attack in the table under `name` (the test id)."""
-    def register(attack: Callable[[World, Path], Case]) -> Callable[[World, Path], Case]:
-        attack.__name__ = name
-        CASES.append(attack)
-        return attack
-    return register
+CASES: list[Attack] = []
+case = registrar(CASES)
 
 
 # ----------------------------------------------------------------------------- a pair's two sides: steer, evaluate
@@ -121,18 +113,6 @@ pair_case("file_not_in_index", _not_in_index, "extra.pt is not a slice its index
 pair_case("sides_from_two_concept_maps", _two_concept_maps, "different concept maps")
 
 
-@case("steer_layer2_slices_under_layer1")
-def _layer2_under_layer1(world: World, tmp_path: Path) -> Case:
-    pairs = world.data / "layer2_pairs.json"
-    return Case(steer(world, tmp_path, pairs, 1), (str(pairs), "holds layer 2 slices", "expected layer 1"))
-
-
-@case("steer_layer1_slices_under_layer2_with_its_sae")
-def _layer1_under_layer2(world: World, tmp_path: Path) -> Case:
-    pairs = world.data / "layer1_pairs.json"
-    return Case(steer(world, tmp_path, pairs, 2, world.sae(2)), (str(pairs), "holds layer 1 slices", "expected layer 2"))
-
-
 def evaluate(world: World, tmp_path: Path, pairs: Path, layer: int) -> list:
     """`evaluate` of the run's pairs config `pairs` at `layer` (the rest of its working command line)."""
     argv = [str(word) for word in good(world, tmp_path)["evaluate"]]
@@ -141,10 +121,19 @@ def evaluate(world: World, tmp_path: Path, pairs: Path, layer: int) -> list:
     return ["evaluate", *argv]
 
 
-@case("evaluate_layer1_slices_under_layer2")
-def _evaluate_layer(world: World, tmp_path: Path) -> Case:
-    pairs = world.data / "layer1_pairs.json"
-    return Case(evaluate(world, tmp_path, pairs, 2), (str(pairs), "holds layer 1 slices", "expected layer 2"))
+def wrong_layer(name: str, argv: Callable[[World, Path, Path, int], list], given: int, asked: int) -> None:
+    """A command asked for layer `asked` with the run's pairs config of layer `given`."""
+    @case(name)
+    def attack(world: World, tmp_path: Path) -> Case:
+        pairs = world.data / f"layer{given}_pairs.json"
+        return Case(argv(world, tmp_path, pairs, asked), (str(pairs), f"holds layer {given} slices",
+                                                          f"expected layer {asked}"))
+
+
+wrong_layer("steer_layer2_slices_under_layer1", steer, 2, 1)
+wrong_layer("steer_layer1_slices_under_layer2_with_its_sae",
+            lambda world, tmp_path, pairs, layer: steer(world, tmp_path, pairs, layer, world.sae(layer)), 1, 2)
+wrong_layer("evaluate_layer1_slices_under_layer2", evaluate, 1, 2)
 
 
 @case("evaluate_other_pairs_slice")
