@@ -83,6 +83,8 @@ def demo_command(
     Running it again reuses every cached step.
     """
     output_dir = output_dir.resolve()
+    with input_errors():
+        demo.check_demo_folder(output_dir)
     prefect_environment(home=output_dir / PREFECT_HOME_DIR)
     planted_path = demo.build_planted(output_dir / demo.PLANTED_DIR)
     config_path = demo.build_demo(output_dir, demos_per_task=demos_per_task)

@@ -29,6 +29,7 @@ from steering_core.config import (
     SaeTrainSection,
     SourcesSection,
     SteeringSection,
+    claim_config_file,
     write_run_config,
 )
 from steering_core.evaluate.plots import layer_label, named
@@ -89,40 +90,46 @@ DEMO_PAIRS = (
 
 
 def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tuple[int, ...] = DEMO_LAYERS) -> Path:
-    """Write the demo inputs (those not already there) and the run config under `folder`; return the config path."""
+    """Write the demo inputs (those not already there) and the run config under `folder`; return the config path.
+
+    A `run.yaml` already in `folder` that is not this demo's is refused before anything is written."""
     folder = Path(folder).resolve()
+    config = demo_config(folder, layers)
+    claim_config_file(folder / CONFIG_FILE, config)
     inputs = folder / INPUTS_DIR
     demos = inputs / "demos"
     if not demos.is_dir():
         logger.info("writing %d demos per task for 4 tasks into %s", demos_per_task, demos)
         write_demo_suite(demos, demos_per_task=demos_per_task,
                          settings=SyntheticSettings(image_size=32, num_steps=DEMO_STEPS, length_jitter=4))
-    arch = tiny_arch()
-    checkpoint = inputs / "pi05_tiny"
-    if not checkpoint.is_dir():
-        write_pi05_checkpoint(checkpoint, arch)
+    arch = config.model.arch
+    if not config.model.checkpoint.is_dir():
+        write_pi05_checkpoint(config.model.checkpoint, arch)
     arch_file = inputs / ARCH_FILE
     if not arch_file.is_file():  # for `latent-steering capture --arch-file` in the README walk-through
         write_json(arch_file, arch.model_dump(mode="json"))
-    tokenizer = inputs / "tokenizer.model"
-    if not tokenizer.is_file():
-        write_tokenizer(tokenizer)
-    saes = {}
+    if not config.model.tokenizer.is_file():
+        write_tokenizer(config.model.tokenizer)
     for layer in layers:
-        saes[layer] = inputs / f"sae_{layer_dir(layer)}"
-        if not saes[layer].is_dir():
-            write_sae_folder(saes[layer], d_in=arch.width, d_sae=DEMO_SAE_LATENTS, hook_layer=layer, seed=layer)
-    config = RunConfig(
+        if not (sae := config.sae[layer].path).is_dir():
+            write_sae_folder(sae, d_in=arch.width, d_sae=DEMO_SAE_LATENTS, hook_layer=layer, seed=layer)
+    return write_run_config(config, folder / CONFIG_FILE)
+
+
+def demo_config(folder: Path, layers: tuple[int, ...] = DEMO_LAYERS) -> RunConfig:
+    """Return the demo's run config for the (absolute) demo folder `folder`."""
+    inputs = folder / INPUTS_DIR
+    return RunConfig(
         name="demo",
         output_root=folder / "data",
-        sources=SourcesSection(folders=(demos,)),
+        sources=SourcesSection(folders=(inputs / "demos",)),
         dataset=DatasetSection(repo_id="libero_demo_lerobot", image_size=DEMO_IMAGE_SIZE),
         pairs=tuple(PairSection(name=name, positive=pos, negative=neg) for name, pos, neg in DEMO_PAIRS),
         layers=layers,
-        model=ModelSection(checkpoint=checkpoint, tokenizer=tokenizer, arch=arch),
+        model=ModelSection(checkpoint=inputs / "pi05_tiny", tokenizer=inputs / "tokenizer.model", arch=tiny_arch()),
         capture=CaptureSection(batch_size=16, device="cpu", num_workers=0),  # tiny frames: decoding in-process is faster
-        sae={layer: SaeSection(path=path, train=DEMO_TRAIN if layer == DEMO_TRAINED_LAYER else None)
-             for layer, path in saes.items()},
+        sae={layer: SaeSection(path=inputs / f"sae_{layer_dir(layer)}",
+                               train=DEMO_TRAIN if layer == DEMO_TRAINED_LAYER else None) for layer in layers},
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
                                  note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),
@@ -130,19 +137,21 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
                                episodes=2, max_steps=30, random_directions=0, wrong_concept=False,
                                instruction_swap=False, device="cpu", note=ROLLOUT_NOTE),
     )
-    return write_run_config(config, folder / CONFIG_FILE)
 
 
 def build_planted(folder: str | os.PathLike, *, demos_per_task: int = 6) -> Path:
     """Write the planted-concept run (inputs not already there, and its run config) under `folder`; return the
-    config path. Half the episodes are held out, so selection and report halves hold different episodes."""
+    config path. Half the episodes are held out, so selection and report halves hold different episodes.
+
+    A `run.yaml` already in `folder` that is not this run's is refused before anything is written."""
     folder = Path(folder).resolve()
-    inputs = folder / INPUTS_DIR
-    arch = tiny_arch()
-    if not (inputs / "demos").is_dir():
-        write_demo_suite(inputs / "demos", demos_per_task=demos_per_task, tasks=PLANTED_TASKS,
+    config = planted_config(folder)
+    claim_config_file(folder / CONFIG_FILE, config)
+    demos, arch = config.sources.folders[0], config.model.arch
+    tokenizer, checkpoint, sae = config.model.tokenizer, config.model.checkpoint, config.sae[PLANTED_LAYER].path
+    if not demos.is_dir():
+        write_demo_suite(demos, demos_per_task=demos_per_task, tasks=PLANTED_TASKS,
                          settings=SyntheticSettings(image_size=32, num_steps=16, length_jitter=2))
-    tokenizer, checkpoint, sae = inputs / "tokenizer.model", inputs / "pi05_planted", inputs / "sae"
     if not tokenizer.is_file():
         write_tokenizer(tokenizer, [*LIBERO_INSTRUCTIONS, *PLANTED_CORPUS])
     if not checkpoint.is_dir():
@@ -150,18 +159,31 @@ def build_planted(folder: str | os.PathLike, *, demos_per_task: int = 6) -> Path
         plant_concept(checkpoint, tokenizer, arch)
     if not sae.is_dir():
         write_sae_folder(sae, d_in=arch.width, d_sae=2 * arch.width, hook_layer=PLANTED_LAYER, seed=0)
-    config = RunConfig(
+    return write_run_config(config, folder / CONFIG_FILE)
+
+
+def planted_config(folder: Path) -> RunConfig:
+    """Return the planted-concept run's config for the (absolute) folder `folder`."""
+    inputs = folder / INPUTS_DIR
+    return RunConfig(
         name="planted", output_root=folder / "data", sources=SourcesSection(folders=(inputs / "demos",)),
         dataset=DatasetSection(repo_id="planted_lerobot", image_size=32),
         pairs=(PairSection(name="planted", positive=PLANTED_POSITIVE, negative=PLANTED_NEGATIVE),),
-        layers=(PLANTED_LAYER,), model=ModelSection(checkpoint=checkpoint, tokenizer=tokenizer, arch=arch),
+        layers=(PLANTED_LAYER,),
+        model=ModelSection(checkpoint=inputs / "pi05_planted", tokenizer=inputs / "tokenizer.model", arch=tiny_arch()),
         capture=CaptureSection(batch_size=16, device="cpu", num_workers=0),
-        sae={PLANTED_LAYER: SaeSection(path=sae)},
+        sae={PLANTED_LAYER: SaeSection(path=inputs / "sae")},
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(holdout_fraction=0.5, max_frames=12, noise_seeds=2, bootstrap=200, batch_size=6,
                                  device="cpu", note=PLANTED_NOTE),
     )
-    return write_run_config(config, folder / CONFIG_FILE)
+
+
+def check_demo_folder(folder: str | os.PathLike) -> None:
+    """Raise before anything is written when `folder` (or its planted run's folder) holds a run.yaml not the demo's."""
+    folder = Path(folder).resolve()
+    claim_config_file(folder / CONFIG_FILE, demo_config(folder))
+    claim_config_file(folder / PLANTED_DIR / CONFIG_FILE, planted_config(folder / PLANTED_DIR))
 
 
 def summarise(config: RunConfig) -> dict[str, list[dict[str, Any]]]:

@@ -19,3 +19,8 @@ def other_side(side: str) -> Side:
 def toward_sign(side: str) -> float:
     """Return the sign of α that pushes side `side`'s episodes toward the other side's task."""
     return 1.0 if side == "negative" else -1.0
+
+
+def same_text(a: str, b: str) -> bool:
+    """Return whether two task texts or names are the same, ignoring case and surrounding spaces."""
+    return a.strip().casefold() == b.strip().casefold()

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
 from typer.testing import CliRunner
 
 from latent_steering_cli import app
@@ -55,6 +56,17 @@ class Case:
 Attack = Callable[[World, Path], Case]
 
 
+def registrar(table: list[Attack]) -> Callable[[str], Callable[[Attack], Attack]]:
+    """Return `case(name)`: a decorator adding the attack it decorates to `table` under `name` (its test id)."""
+    def case(name: str) -> Callable[[Attack], Attack]:
+        def register(attack: Attack) -> Attack:
+            attack.__name__ = name
+            table.append(attack)
+            return attack
+        return register
+    return case
+
+
 def snapshot(*roots: Path) -> dict[str, tuple[int, int]]:
     """Every file (with its size and modification time) and folder under `roots`.
 
@@ -86,6 +98,22 @@ def assert_refused(world: World, tmp_path: Path, attack: Attack) -> str:
     after = snapshot(*roots)
     assert after == before, sorted(set(after.items()) ^ set(before.items()))
     return lines[0] if lines else ""
+
+
+def config_text(world: World, tmp_path: Path, edit: Callable[[dict], None] | None = None) -> str:
+    """Return the world's run config as YAML, writing under `tmp_path/out`, after `edit` of its mapping."""
+    data = yaml.safe_load(world.config.read_text(encoding="utf-8"))
+    data["output_root"] = str(tmp_path / "out")
+    if edit is not None:
+        edit(data)
+    return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+
+
+def config_case(tmp_path: Path, text: str | bytes, *names: str) -> Case:
+    """Return `capture --config` of a run config holding `text`; its error names the file and `names`."""
+    path = tmp_path / "run.yaml"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode("utf-8"))
+    return Case(["capture", "--config", path], (str(path), *names))
 
 
 def make_world(base: Path) -> World:

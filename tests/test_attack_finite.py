@@ -18,7 +18,7 @@ import h5py
 import pytest
 import torch
 import yaml
-from helpers_attack import Case, World, assert_refused
+from helpers_attack import Attack, Case, World, assert_refused, registrar
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
@@ -28,16 +28,8 @@ from steering_core.pi05.checkpoint import EMBEDDING_KEY, LM_PREFIX, VISION_PREFI
 from steering_core.synthetic.sae import write_sae_folder
 
 VALUES = {"nan": math.nan, "inf": math.inf, "neg_inf": -math.inf}
-CASES: list[Callable[[World, Path], Case]] = []
-
-
-def case(name: str):
-    """Register the decorated attack in the table under `name` (the test id)."""
-    def register(attack: Callable[[World, Path], Case]) -> Callable[[World, Path], Case]:
-        attack.__name__ = name
-        CASES.append(attack)
-        return attack
-    return register
+CASES: list[Attack] = []
+case = registrar(CASES)
 
 
 def poison_safetensors(path: Path, name: str, value: float, at: int = 0) -> Path:

@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
-from helpers_attack import Attack, Case, World, assert_refused
+from helpers_attack import Attack, Case, World, assert_refused, config_case, config_text
 
 from steering_core.layout import check_name
 
@@ -30,22 +29,6 @@ def named(name: str, attack: Attack) -> Attack:
 
 
 # ----------------------------------------------------------------------------- run configs (capture --config)
-
-
-def config_text(world: World, tmp_path: Path, edit: Callable[[dict], None] | None = None) -> str:
-    """Return the world's run config as YAML, writing under `tmp_path/out`, after `edit` of its mapping."""
-    data = yaml.safe_load(world.config.read_text(encoding="utf-8"))
-    data["output_root"] = str(tmp_path / "out")
-    if edit is not None:
-        edit(data)
-    return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
-
-
-def config_case(tmp_path: Path, text: str | bytes, *names: str) -> Case:
-    """Return `capture --config` of a run config holding `text`; its error names the file and `names`."""
-    path = tmp_path / "run.yaml"
-    path.write_bytes(text if isinstance(text, bytes) else text.encode("utf-8"))
-    return Case(["capture", "--config", path], (str(path), *names))
 
 
 def config_value(name: str, key: str, value: object, shown: str | None = None) -> Attack:

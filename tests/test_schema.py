@@ -41,7 +41,7 @@ def test_read_model_checks_version_then_lists_every_problem(tmp_path):
         read_model(path, Record, what="record", fix="re-run it")
     assert str(err.value) == (
         f"{path}: not a valid record: name: Field required; "
-        "inner.size: Input should be a valid integer, unable to parse string as an integer; "
+        "inner.size: Input should be a valid integer, found a str; "
         "typo: Extra inputs are not permitted; re-run it"
     )
 
@@ -59,5 +59,5 @@ def test_the_same_problem_at_many_list_positions_is_one_line(tmp_path):
         read_model(path, Batch, what="batch")
     assert str(err.value) == (
         f"{path}: not a valid batch: records.<0-2, 4>.x (4 entries): Extra inputs are not permitted; "
-        "records.3.size: Input should be a valid integer, unable to parse string as an integer"
+        "records.3.size: Input should be a valid integer, found a str"
     )

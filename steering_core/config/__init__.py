@@ -52,6 +52,7 @@ from steering_core.config.sections import (
 )
 from steering_core.config.yaml_files import (
     CONFIG_FILE,
+    claim_config_file,
     format_errors,
     load_run_config,
     share_run_config,
@@ -62,6 +63,6 @@ __all__ = [
     "CONFIG_FILE", "PAIRS_CONFIG_FILE", "CaptureSection", "ConfigPath", "DatasetSection", "EvaluateSection",
     "ModelSection", "OrchestrationSection", "PairSection", "RolloutSection", "RunConfig", "SaeSection", "SaeTrainSection",
     "SliceSection",
-    "SourcesSection", "SteeringSection", "format_errors", "load_run_config", "share_run_config",
+    "SourcesSection", "SteeringSection", "claim_config_file", "format_errors", "load_run_config", "share_run_config",
     "write_run_config",
 ]

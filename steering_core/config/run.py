@@ -4,6 +4,7 @@ settings of each step built from its section plus what the run supplies."""
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -66,6 +67,22 @@ class RunConfig(StrictModel):
             seen[pair.name] = i
         return pairs
 
+    @field_validator("sae", mode="before")
+    @classmethod
+    def _one_key_per_layer(cls, sae: object) -> object:
+        """Refuse two keys of one layer (`1` and `'1'`, which would merge) and a layer spelled otherwise (`'01'`)."""
+        if not isinstance(sae, dict):
+            return sae
+        seen: dict[int, object] = {}
+        for key in sae:
+            if isinstance(key, str) and re.fullmatch(r"\s*[+-]?\d+\s*", key) and key != str(int(key)):
+                raise ValueError(f"key {key!r}: expected a layer number written as one, e.g. {int(key)}")
+            layer = int(key) if isinstance(key, str) and re.fullmatch(r"-?\d+", key) else key
+            if layer in seen and not isinstance(layer, bool):
+                raise ValueError(f"keys {seen[layer]!r} and {key!r} both name layer {layer}; keep one")
+            seen[layer] = key
+        return sae
+
     @field_validator("layers")
     @classmethod
     def _sorted_layers(cls, layers: tuple[int, ...]) -> tuple[int, ...]:
@@ -101,6 +118,8 @@ class RunConfig(StrictModel):
         if self.rollout is not None and depth - 1 in self.rollout_layers:
             problems.append(f"layers include {depth - 1}, the last decoder layer: steering it cannot move the actions, "
                             "so its rollouts would only repeat α = 0; roll out earlier layers")
+        if (overlap := _written_into(self.output_root, self.dataset.existing)) is not None:
+            problems.append(overlap)
         if (self.sources is None) == (self.dataset.existing is None):
             problems.append("give exactly one of `sources` (hdf5 demo folders to filter and convert) and "
                             f"`dataset.existing` (a LeRobot dataset to read in place); found "
@@ -350,3 +369,14 @@ class RunConfig(StrictModel):
                 negative_label=labels[1], negative_path=os.path.relpath(files[labels[1]], base),
             ))
         return PairsConfig(pairs=specs)
+
+
+def _written_into(output_root: Path, existing: Path | None) -> str | None:
+    """Return why the outputs would land in the `existing` dataset (the run never writes there), else None."""
+    if existing is None:
+        return None
+    root, dataset = output_root.resolve(), existing.resolve()
+    if root == dataset or dataset in root.parents:
+        return (f"output_root {output_root} is {'' if root == dataset else 'inside '}dataset.existing {existing}, "
+                "which is read in place and never written; give an output_root outside the dataset")
+    return None

@@ -27,6 +27,7 @@ from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
 from steering_core.layout import check_name
+from steering_core.pairs import same_text
 from steering_core.pi05 import Pi05Arch
 from steering_core.remote.publish import pull
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
@@ -47,6 +48,9 @@ SUPPLIED = {
                  "sae_cfg_from": "sae.<layer>.cfg_from", "paths_relative_to": "output_root"},
     "evaluate": {"top_k": "steering.top_k"},
 }
+
+# Former key names still read, section -> former -> current; given beside the current one, a former name is refused.
+FORMER_NAMES = {"orchestration": {"capture": "mode"}}
 
 
 def _resolve_path(value: Path, info: ValidationInfo) -> Path:
@@ -164,8 +168,12 @@ class PairSection(StrictModel):
 
     @model_validator(mode="after")
     def _two_tasks(self) -> PairSection:
-        if self.positive.strip().casefold() == self.negative.strip().casefold():
+        if same_text(self.positive, self.negative):
             raise ValueError(f"positive and negative are both {self.positive!r}; a pair needs two different tasks")
+        concepts = self.concept(self.positive), self.concept(self.negative)
+        if same_text(*concepts):
+            raise ValueError(f"rename gives positive {self.positive!r} and negative {self.negative!r} one concept "
+                             f"{concepts[0]!r}; a pair needs two different concept names")
         return self
 
     def concept(self, task: str) -> str:
@@ -227,7 +235,7 @@ class OrchestrationSection(StrictModel):
 
     # where the phases that can run on workers run (capture, SAE training, evaluation, rollouts): `deployment`,
     # `local` (in the parent's process) or `auto` (deployments when the parent runs from one); `capture:` is its
-    # former name, still read
+    # former name, still read (FORMER_NAMES)
     mode: Literal["auto", "deployment", "local"] = Field("auto", validation_alias=AliasChoices("mode", "capture"))
     capture_deployment: str = "latent-steering-capture/gpu"  # when run from one
     evaluate_deployment: str = "latent-steering-evaluate/gpu-evaluate"

@@ -12,10 +12,11 @@ import yaml
 from pydantic import ValidationError
 
 from steering_core.config.run import RunConfig
-from steering_core.config.sections import SUPPLIED
+from steering_core.config.sections import FORMER_NAMES, SUPPLIED
 from steering_core.remote.filesystems import object_path, temporary_copy
 from steering_core.storage.fileio import atomic_path, read_text
 from steering_core.storage.mirrors import is_url, portable, url_of
+from steering_core.storage.schema import error_message
 
 CONFIG_FILE = "run.yaml"  # name used when a run config is written next to its outputs
 
@@ -83,12 +84,14 @@ def format_errors(err: ValidationError, data: Any = None) -> list[str]:
         if error["type"] == "too_short" and any(other[:len(loc)] == loc != other for other in failed):
             continue  # a list too short only because its bad items (reported) were left out
         key = _key_path(loc, data)
-        message = error["msg"].removeprefix("Value error, ")
+        message = error_message(error).removeprefix("Value error, ")
         message = message[:1].lower() + message[1:]
         if error["type"] == "extra_forbidden":
             section, _, field = key.partition(".")
-            instead = SUPPLIED.get(section, {}).get(field)
-            message = f"set by the run config: use `{instead}`" if instead else "unknown key (check its spelling and section)"
+            instead, current = SUPPLIED.get(section, {}).get(field), FORMER_NAMES.get(section, {}).get(field)
+            message = (f"set by the run config: use `{instead}`" if instead
+                       else f"the former name of `{current}`, given beside it; keep only `{current}`" if current
+                       else "unknown key (check its spelling and section)")
         lines.append(f"{key}: {message}" if key else message)
     return lines
 
@@ -109,10 +112,22 @@ def _key_path(loc: tuple[Any, ...], data: Any) -> str:
 def write_run_config(config: RunConfig, path: str | os.PathLike) -> Path:
     """Write `config` as YAML (absolute paths, non-default values only) and return the path."""
     path = Path(path)
-    payload = config.model_dump(mode="json", exclude_defaults=True)
     with atomic_path(path) as tmp:
-        tmp.write_text(yaml.safe_dump(payload, sort_keys=False, allow_unicode=True), encoding="utf-8")
+        tmp.write_text(run_config_text(config), encoding="utf-8")
     return path
+
+
+def run_config_text(config: RunConfig) -> str:
+    """Return the YAML `write_run_config` writes for `config`."""
+    return yaml.safe_dump(config.model_dump(mode="json", exclude_defaults=True), sort_keys=False, allow_unicode=True)
+
+
+def claim_config_file(path: Path, config: RunConfig) -> None:
+    """Raise unless `path` is free or already holds `config` as `write_run_config` writes it: another run's config
+    is never overwritten."""
+    if path.exists() and (not path.is_file() or path.read_bytes() != run_config_text(config).encode()):
+        raise ValueError(f"{path}: already holds another run config (or is not a file), which would be overwritten; "
+                         "choose another folder, or move the file away")
 
 
 SHARED_CONFIGS = ".runs"  # under a bucket output root: the run configs handed to workers on other machines

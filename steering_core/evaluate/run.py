@@ -37,7 +37,8 @@ from steering_core.sae.model import Sae
 from steering_core.storage.fileio import read_json
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import read_pairs_config
-from steering_core.vectors.pair_order import check_pair_order, manifest_concepts, side_concepts, task_concepts
+from steering_core.vectors.pair_order import check_pair_order, manifest_concepts, task_concepts
+from steering_core.vectors.pair_slices import check_pair_slices
 
 if TYPE_CHECKING:
     from steering_core.config import RunConfig
@@ -85,8 +86,9 @@ def pair_job(
         slices=(base_dir / spec.positive_path, base_dir / spec.negative_path),
         directions=steering_root / layout.layer_dir(layer) / pair,
     )
-    found = side_concepts((spec.positive_label, spec.negative_label), (job.positive_slice, job.negative_slice))
-    check_pair_order(pair, found, manifest_concepts(job.manifest, job.concept_map), job.manifest, pairs_config)
+    labels = spec.positive_label, spec.negative_label
+    check_pair_slices([(pair, labels, (job.positive_slice, job.negative_slice))], layer, pairs_config)
+    check_pair_order(pair, labels, manifest_concepts(job.manifest, job.concept_map), job.manifest, pairs_config)
     return job
 
 

@@ -9,7 +9,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from steering_core.pairs import SIDES, Side
+from steering_core.pairs import SIDES, Side, same_text
 from steering_core.storage.schema import StrictModel
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
@@ -46,6 +46,16 @@ class RolloutPair(StrictModel):
 
     positive: LiberoTask
     negative: LiberoTask
+
+    @model_validator(mode="after")
+    def _two_tasks(self) -> RolloutPair:
+        positive, negative = self.positive, self.negative
+        if positive.suite == negative.suite and (positive.task == negative.task or (
+                isinstance(positive.task, str) and isinstance(negative.task, str)
+                and same_text(positive.task, negative.task))):
+            raise ValueError(f"positive and negative are both {positive.describe()}; the two sides of a pair need "
+                             "two different LIBERO tasks")
+        return self
 
 
 class RolloutSettings(StrictModel):

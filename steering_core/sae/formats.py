@@ -54,7 +54,7 @@ _LEGACY_DEFAULTS = {
 }
 _LEGACY_NORMALIZE = {False: "none", True: "expected_average_only_in"}
 _LAYER_IN_HOOK = re.compile(r"^blocks\.(\d+)\.")
-_DEFAULT_TOPK = 100  # SAELens's TopKSAEConfig.k
+_FLAGS = ("apply_b_dec_to_input", "rescale_acts_by_decoder_norm", "finetuning_scaling_factor")  # JSON true/false
 
 
 class SaeConfig(StrictModel):
@@ -104,14 +104,33 @@ def upgrade_legacy_cfg(raw: dict[str, Any]) -> dict[str, Any]:
     return cfg
 
 
-def parse_cfg(raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | None = None) -> SaeConfig:
-    """Return the `SaeConfig` of a cfg.json dict in either layout; raise one error listing every problem."""
+def parse_cfg(
+    raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | None = None, where: str | None = None
+) -> SaeConfig:
+    """Return the `SaeConfig` of a cfg.json dict in either layout; raise one error, naming `where` (the cfg file;
+    default `source`), listing every problem.
+
+    Each setting has one spelling: a key given twice (at the top level and in `metadata`, or under its pre-6.0
+    and its current name) is refused, as are values of another type (`"16"` for an integer, `1` for a flag) and
+    a topk SAE without its `k` (SAELens would take 100).
+    """
+    problems = _spelling_problems(raw)
     flat = upgrade_legacy_cfg(raw) if is_legacy_cfg(raw) else {**_metadata(raw), **raw}
     flat.update(overrides or {})
-    problems = []
     for key in ("d_in", "d_sae"):
-        if not isinstance(flat.get(key), int) or flat[key] <= 0:
+        if not _positive_int(flat.get(key)):
             problems.append(f"`{key}` is {flat.get(key)!r}, expected a positive integer")
+    for key in _FLAGS:
+        if not isinstance(flat.get(key, False), bool | None):
+            problems.append(f"`{key}` is {flat[key]!r}, expected true or false")
+    if flat.get("architecture") == "topk" and not _positive_int(flat.get("k")):
+        found = "missing" if flat.get("k") is None else f"{flat['k']!r}"
+        problems.append(f"`k` is {found}, expected a positive integer: a topk SAE keeps its k largest latents per "
+                        "row (legacy configs: activation_fn_kwargs.k)")
+    if flat.get("architecture") == "topk" and flat.get("activation_fn", "topk") != "topk" and (
+            "activation_fn" in raw or "activation_fn_str" in raw):
+        problems.append(f"`architecture` is 'topk' but `activation_fn` is {flat['activation_fn']!r}; give one "
+                        "activation (remove activation_fn, or set it to 'topk')")
     dtype = str(flat.get("dtype", "float32")).removeprefix("torch.")
     if dtype not in DTYPES:
         problems.append(f"`dtype` is {flat.get('dtype')!r}, expected one of {sorted(DTYPES)}")
@@ -124,7 +143,7 @@ def parse_cfg(raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | N
     if flat.get("reshape_activations", "none") != "none":
         problems.append(f"`reshape_activations` is {flat['reshape_activations']!r}: only residual-stream SAEs ('none')")
     if problems:
-        raise ValueError(f"{source}: unusable SAE config:\n  " + "\n  ".join(problems))
+        raise ValueError(f"{where or source}: unusable SAE config: " + "; ".join(problems))
     hook_name = flat.get("hook_name")
     architecture = str(flat.get("architecture", "standard"))
     return SaeConfig(
@@ -135,16 +154,44 @@ def parse_cfg(raw: dict[str, Any], *, source: str, overrides: dict[str, Any] | N
         hook_layer=flat["hook_layer"] if flat.get("hook_layer") is not None else hook_layer_of(hook_name),
         dtype=dtype,
         normalize_activations=normalize,
-        apply_b_dec_to_input=bool(flat.get("apply_b_dec_to_input", True)),
-        k=flat.get("k", _DEFAULT_TOPK) if architecture == "topk" else None,
-        rescale_acts_by_decoder_norm=bool(flat.get("rescale_acts_by_decoder_norm", False)),
-        finetuning_scaling_factor=bool(flat.get("finetuning_scaling_factor", False)),
+        apply_b_dec_to_input=_flag(flat, "apply_b_dec_to_input", True),
+        k=flat["k"] if architecture == "topk" else None,
+        rescale_acts_by_decoder_norm=_flag(flat, "rescale_acts_by_decoder_norm", False),
+        finetuning_scaling_factor=_flag(flat, "finetuning_scaling_factor", False),
         model_name=flat.get("model_name"),
         neuronpedia_id=flat.get("neuronpedia_id"),
         release=flat.get("release"),
         sae_id=flat.get("sae_id"),
         source=source,
     )
+
+
+def _spelling_problems(raw: dict[str, Any]) -> list[str]:
+    """Return a problem for each setting a cfg.json gives under two keys (SAELens would keep one silently)."""
+    problems = []
+    if "metadata" in raw and "meta" in raw:
+        problems.append("`metadata` and `meta` are both given; keep `metadata`")
+    if is_legacy_cfg(raw):
+        problems += [f"`{old}` and `{new}` are both given (the pre-6.0 and the current name); keep one"
+                     for old, new in _LEGACY_RENAMES.items() if old in raw and new in raw]
+        kwargs = raw.get("activation_fn_kwargs")
+        if "k" in raw and isinstance(kwargs, dict) and "k" in kwargs:
+            problems.append("`k` and `activation_fn_kwargs.k` are both given; keep one")
+    else:
+        problems += [f"`{key}` is given at the top level and in `metadata`; keep one"
+                     for key in sorted(set(_metadata(raw)) & set(raw))]
+    return problems
+
+
+def _positive_int(value: Any) -> bool:
+    """Return whether a JSON value is a positive integer (true and 4.0 are not)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value > 0
+
+
+def _flag(flat: dict[str, Any], key: str, default: bool) -> bool:
+    """Return a cfg flag, its default when absent or null."""
+    value = flat.get(key)
+    return default if value is None else value
 
 
 def hook_layer_of(hook_name: str | None) -> int | None:
@@ -179,6 +226,16 @@ def read_sae_folder(folder: Path) -> tuple[dict[str, Any], dict[str, torch.Tenso
                 raise ValueError(f"{folder / SPARSITY_FILE}: no tensor `sparsity`, found {sorted(handle.keys())}")
             log_sparsity = handle.get_tensor("sparsity")
     return raw, weights, log_sparsity
+
+
+def check_sparsity(log_sparsity: torch.Tensor | None, cfg: SaeConfig) -> None:
+    """Raise unless a sparsity tensor (when there is one) holds one float per latent of the SAE `cfg` describes."""
+    if log_sparsity is None:
+        return
+    if tuple(log_sparsity.shape) != (cfg.d_sae,) or not log_sparsity.is_floating_point():
+        raise ValueError(f"{Path(cfg.source).parent / SPARSITY_FILE}: `sparsity` is {tuple(log_sparsity.shape)} "
+                         f"{log_sparsity.dtype}, expected ({cfg.d_sae},) floats (one log10 firing frequency per "
+                         "latent, d_sae of cfg.json); remove the file or use the one saved with these weights")
 
 
 def read_state_dict_file(path: Path) -> dict[str, torch.Tensor]:

@@ -20,11 +20,13 @@ from typing import Any, ClassVar
 import torch
 
 from steering_core.sae.formats import (
+    CFG_FILE,
     DTYPES,
     STATE_DICT_SUFFIXES,
     WEIGHTS_FILE,
     SaeConfig,
     apply_scaling_factor,
+    check_sparsity,
     parse_cfg,
     read_cfg,
     read_sae_folder,
@@ -293,8 +295,16 @@ def _check_weights(cfg: SaeConfig, weights: dict[str, torch.Tensor], extra_weigh
     if problems:
         raise ValueError(
             f"{cfg.source}: {cfg.architecture} SAE weights do not match its config "
-            f"(d_in {cfg.d_in}, d_sae {cfg.d_sae}):\n  " + "\n  ".join(problems)
+            f"(d_in {cfg.d_in}, d_sae {cfg.d_sae}): " + "; ".join(problems)
         )
+
+
+def check_trained(cfg: SaeConfig, weights: dict[str, torch.Tensor]) -> None:
+    """Raise when an SAE file's encoder or decoder is all zeros (it would encode or decode everything to zero)."""
+    for name in ("W_enc", "W_dec"):
+        if name in weights and not weights[name].any():
+            raise ValueError(f"{cfg.source}: `{name}` is all zeros, expected trained weights (every direction would "
+                             "be zero); the SAE is untrained or damaged: re-download or re-train it")
 
 
 def fold_norm_scaling_factor(weights: dict[str, torch.Tensor], factor: float) -> dict[str, torch.Tensor]:
@@ -332,23 +342,23 @@ def load_sae(
             raise ValueError(f"{path}: an SAE file must be a state dict ending in {' or '.join(STATE_DICT_SUFFIXES)}")
         weights, weights_path = read_state_dict_file(path), path
         if cfg_from is None:
-            raw, known = state_dict_cfg(weights, sae_id=sae_id), None
+            raw, known, cfg_file = state_dict_cfg(weights, sae_id=sae_id), None, path
         else:
             cfg_folder, known = _locate(cfg_from, sae_id, local_dir)
-            raw = read_cfg(cfg_folder)
+            raw, cfg_file = read_cfg(cfg_folder), cfg_folder / CFG_FILE
     else:
         if cfg_from is not None:
             raise ValueError(f"cfg_from applies to state-dict files only; {source} already has a cfg.json")
         folder, known = _locate(source, sae_id, local_dir)
         raw, weights, log_sparsity = read_sae_folder(folder)
-        weights_path = folder / WEIGHTS_FILE
+        weights_path, cfg_file = folder / WEIGHTS_FILE, folder / CFG_FILE
     overrides: dict[str, Any] = {}
     if known is not None:
         release, known_id, entry = known
         overrides = {"release": release, "sae_id": known_id}
         if entry.neuronpedia_id:
             overrides["neuronpedia_id"] = entry.neuronpedia_id
-    cfg = parse_cfg(raw, source=str(weights_path), overrides=overrides)
+    cfg = parse_cfg(raw, source=str(weights_path), overrides=overrides, where=str(cfg_file))
     weights = apply_scaling_factor(cfg, weights)
     if cfg.normalize_activations == "expected_average_only_in":
         factor = known[2].norm_scaling_factor if known is not None else None
@@ -361,6 +371,8 @@ def load_sae(
         else:
             weights = fold_norm_scaling_factor(weights, factor)
             cfg = cfg.model_copy(update={"normalize_activations": "none", "norm_scaling_factor": factor})
+    check_trained(cfg, weights)
+    check_sparsity(log_sparsity, cfg)
     sae = sae_class(cfg.architecture)(cfg, weights, device=device, log_sparsity=log_sparsity, weights_path=weights_path)
     logger.info(
         "loaded %s SAE %s (d_in %d, d_sae %d) on %s", cfg.architecture, sae.name, cfg.d_in, cfg.d_sae, sae.device

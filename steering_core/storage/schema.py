@@ -1,21 +1,48 @@
-"""Base for every settings model (unknown keys are errors, canonical hash) and the validated JSON reader."""
+"""Base for every settings model (unknown keys and converted scalars are errors, canonical hash) and the validated
+JSON reader."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, GetCoreSchemaHandler, ValidationError
+from pydantic_core import CoreSchema
 
 from steering_core.storage.fileio import read_json, sha256_json
 from steering_core.storage.mirrors import portable
 
+# Scalars taken only as themselves: "1" or 1.0 is no int, 1 or "yes" no bool, "1.5" or true no float (an int is a
+# float). Containers, paths and literals keep pydantic's conversions: YAML and JSON give lists for tuples, strings
+# for paths, and strings for mapping keys (a dict[int, ...] written as JSON comes back keyed by "12").
+STRICT_SCALARS = ("int", "bool", "float", "str")
+_TYPE_ERRORS = ("int_type", "bool_type", "float_type", "string_type")  # a scalar of another type
+
+
+def _strict_scalars(schema: Any) -> None:
+    """Mark every int, bool, float and str of a pydantic core schema strict, except mapping keys (in place)."""
+    if isinstance(schema, dict):
+        if schema.get("type") in STRICT_SCALARS:
+            schema["strict"] = True
+        for key, value in schema.items():
+            if key != "keys_schema":
+                _strict_scalars(value)
+    elif isinstance(schema, list):
+        for item in schema:
+            _strict_scalars(item)
+
 
 class StrictModel(BaseModel):
-    """A pydantic model that forbids unknown keys and round-trips through JSON."""
+    """A pydantic model that forbids unknown keys, takes scalars only of their own type, and round-trips through JSON."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @classmethod
+    def __get_pydantic_core_schema__(cls, source: type[BaseModel], handler: GetCoreSchemaHandler) -> CoreSchema:
+        schema = handler(source)
+        _strict_scalars(schema)
+        return schema
 
     def fingerprint(self) -> str:
         """Return the sha256 of this model's canonical JSON: part of a step's identity."""
@@ -23,6 +50,15 @@ class StrictModel(BaseModel):
 
 
 M = TypeVar("M", bound=BaseModel)
+
+
+def error_message(error: Mapping[str, Any], *, value: bool = True) -> str:
+    """Return a pydantic error's message, with what was found (the value and its type, or the type alone) when it
+    was a scalar of another type."""
+    if error["type"] not in _TYPE_ERRORS:
+        return error["msg"]
+    kind = type(error["input"]).__name__
+    return f"{error['msg']}, found {error['input']!r} ({kind})" if value else f"{error['msg']}, found a {kind}"
 
 
 def validation_problems(err: ValidationError) -> str:
@@ -34,7 +70,7 @@ def validation_problems(err: ValidationError) -> str:
     groups: dict[tuple[tuple[Any, ...], str], list[tuple[int, ...]]] = {}
     for problem in err.errors():
         shape = tuple(None if isinstance(part, int) else part for part in problem["loc"])
-        groups.setdefault((shape, problem["msg"]), []).append(
+        groups.setdefault((shape, error_message(problem, value=False)), []).append(
             tuple(part for part in problem["loc"] if isinstance(part, int)))
     lines = []
     for (shape, message), positions in groups.items():

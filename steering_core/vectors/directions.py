@@ -59,6 +59,7 @@ from steering_core.vectors.concept_stats import (
     read_concept_stats,
 )
 from steering_core.vectors.pair_order import check_slices_order
+from steering_core.vectors.pair_slices import check_pair_slices
 from steering_core.vectors.report import write_report
 
 logger = logging.getLogger(__name__)
@@ -380,14 +381,17 @@ def check_sae_layer(sae: Sae, layer: int) -> None:
 def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, progress: ProgressCallback | None = None) -> Path:
     """Run every step for one layer; return the layer folder.
 
-    Steps: concept statistics, pair directions, pairwise stats, report. A pair whose slices' manifest lists its
-    concepts the other way round is refused first (`pair_order.check_slices_order`).
+    Steps: concept statistics, pair directions, pairwise stats, report. A pair whose slices do not match its labels
+    and the layer (`pair_slices.check_pair_slices`), or whose slices' manifest lists its concepts the other way
+    round (`pair_order.check_slices_order`), is refused first.
 
     Relative concept paths resolve as `resolve_concept_path` says. A preloaded `sae` overrides `settings.sae`.
     The layer folder is locked meanwhile: a second run on it waits, then reuses the statistics (the SAE pass).
     """
     config = read_pairs_config(settings.pairs_config)
     sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
+    check_pair_slices([(pair.name, (pair.positive_label, pair.negative_label), pairs[pair.name])
+                       for pair in config.pairs], settings.layer, settings.pairs_config)
     for pair in config.pairs:
         check_slices_order(pair.name, (pair.positive_label, pair.negative_label), pairs[pair.name],
                            settings.pairs_config)

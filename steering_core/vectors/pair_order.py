@@ -2,20 +2,19 @@
 
 Downstream, the manifest's task order is (positive, negative): the evaluation's instruction swap and the sign of
 its efficacy. A hand-written pairs config listing the concepts the other way round gives a reversed direction
-that reads as success at α < 0, so it is refused. A side's concept is the one the slices' index.json names for
-its file, else the side's label. Phase 3 finds the manifest through the slices (index.json -> concept map ->
+that reads as success at α < 0, so it is refused. A side's concept is its label (`pair_slices` checked it against
+the slices' index.json). Phase 3 finds the manifest through the slices (index.json -> concept map ->
 manifest) and refuses only a reversed pair; the evaluation knows the pair's manifest and wants its two tasks.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 from steering_core.data.concept_map import ConceptMap, read_concept_map
 from steering_core.data.contrast import ContrastManifest, read_manifest
-from steering_core.layout import SLICE_INDEX_FILE
 from steering_core.storage.fileio import read_json
+from steering_core.vectors.pair_slices import slice_index
 
 
 def task_concepts(concept_map: ConceptMap, manifest: ContrastManifest, tasks: tuple[str, ...], where: Path) -> tuple[str, ...]:
@@ -34,11 +33,6 @@ def manifest_concepts(manifest_path: Path, concept_map_path: Path) -> tuple[str,
     return task_concepts(read_concept_map(concept_map_path), manifest, tasks, concept_map_path)
 
 
-def side_concepts(labels: tuple[str, str], files: tuple[Path, Path]) -> tuple[str, str]:
-    """Return each side's concept: the one its slices' index.json names for its file, else its label."""
-    return tuple(_slice_concept(path) or label for label, path in zip(labels, files, strict=True))
-
-
 def check_pair_order(name: str, found: tuple[str, str], expected: tuple[str, str], manifest: Path, where: Path) -> None:
     """Raise (one line naming both orders) unless the pair's (positive, negative) concepts are `expected`."""
     if tuple(found) != tuple(expected):
@@ -53,30 +47,13 @@ def check_slices_order(name: str, labels: tuple[str, str], files: tuple[Path, Pa
 
     Slices without an index.json, a concept map or a manifest that can be found are not checked.
     """
-    index = _slice_index(files[0])
+    index = slice_index(files[0])
     map_path = Path(str(index.get("concept_map"))) if index else None
     if map_path is None or not map_path.is_file():
         return
     manifest_path = Path(str(read_json(map_path).get("manifest")))
     if not manifest_path.is_file():
         return
-    found, expected = side_concepts(labels, files), manifest_concepts(manifest_path, map_path)
-    if tuple(found) == tuple(reversed(expected)):
-        check_pair_order(name, found, expected, manifest_path, where)
-
-
-def _slice_index(path: Path) -> dict[str, Any] | None:
-    index_path = path.parent / SLICE_INDEX_FILE
-    if not index_path.is_file():
-        return None
-    index = read_json(index_path)
-    return index if isinstance(index, dict) else None
-
-
-def _slice_concept(path: Path) -> str | None:
-    entries = (_slice_index(path) or {}).get("concepts")
-    if not isinstance(entries, dict):
-        return None
-    names = [concept for concept, entry in entries.items()
-             if isinstance(entry, dict) and path.name in (entry.get("pt"), entry.get("safetensors"))]
-    return names[0] if len(names) == 1 else None
+    expected = manifest_concepts(manifest_path, map_path)
+    if tuple(labels) == tuple(reversed(expected)):
+        check_pair_order(name, labels, expected, manifest_path, where)
