@@ -28,6 +28,7 @@ from steering_core.evaluate.run import (
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.arch import read_arch
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
+from steering_core.workload import evaluation_problems
 
 _DEFAULTS = EvaluateSettings()
 NO_SAE = "none"
@@ -141,7 +142,9 @@ def _config_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan
     names = flags["pair"] or [p.name for p in run.pairs]
     jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
     jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
-    return jobs, run.capture_settings(), EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
+    settings = EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
+    _check_work(settings, run.capture.action_horizon)
+    return jobs, run.capture_settings(), settings
 
 
 def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
@@ -149,6 +152,7 @@ def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
     of a --decision-run at --expert-layers."""
     _require_flags(flags, expert)
     settings = EvaluateSettings(**overrides)
+    _check_work(settings, CaptureSettings.model_fields["action_horizon"].default)
     layer, data_root, lerobot_root = flags["layer"], flags["data_root"], flags["lerobot_root"]
     model = CaptureSettings(
         checkpoint_path=flags["checkpoint_path"], tokenizer_path=flags["tokenizer_path"],
@@ -163,6 +167,12 @@ def _flags_plan(flags: dict, expert: list[int] | None, overrides: dict) -> Plan:
     if flags["decision_run"] is not None:
         jobs += _expert_jobs(flags["decision_run"], expert, names, places, model, settings)
     return jobs, model, settings
+
+
+def _check_work(settings: EvaluateSettings, action_horizon: int) -> None:
+    """Refuse settings whose estimated work per (pair, layer) is over its limit (`steering_core.workload`)."""
+    if problems := evaluation_problems(settings, action_horizon):
+        raise ValueError("; ".join(problems))
 
 
 def _require_flags(flags: dict, expert: list[int] | None) -> None:
