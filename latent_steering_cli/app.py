@@ -14,6 +14,7 @@ from typer.core import TyperGroup
 
 from latent_steering_cli.lazy import LazyCommands, current_options
 from steering_core.storage.mirrors import is_url, portable
+from steering_core.storage.os_limits import machine_error_line
 
 # Options holding one string that lists several values (e.g. `--layers "12 14"`); the seed passes them
 # space-separated as separate words, which are joined back into that one value.
@@ -92,7 +93,8 @@ class SeedSpellingGroup(TyperGroup):
         return name, command, rest
 
     def invoke(self, ctx: Any) -> Any:
-        result = super().invoke(ctx)
+        with machine_errors():
+            result = super().invoke(ctx)
         if ctx.meta.get(_MOUNTED):
             from latent_steering_cli.storage import publish_changed
 
@@ -172,4 +174,18 @@ def input_errors(*extra: type[Exception]) -> Iterator[None]:
     except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError,
             *extra) as err:
         typer.secho(f"error: {portable(str(err))}", fg=typer.colors.RED, err=True)  # mirror paths as their URLs
+        raise typer.Exit(1) from None
+
+
+@contextlib.contextmanager
+def machine_errors() -> Iterator[None]:
+    """Turn an error of the machine (full disk, name too long, memory, nesting: `machine_error_line`) met anywhere in a
+    command into one `error: ...` line and exit code 1; any other error propagates."""
+    try:
+        yield
+    except (OSError, MemoryError, RecursionError) as err:
+        line = machine_error_line(err)
+        if line is None:
+            raise
+        typer.secho(f"error: {portable(line)}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1) from None

@@ -29,6 +29,7 @@ from steering_core.evaluate.run import (
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.arch import read_arch
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
+from steering_core.workload import evaluation_problems
 
 _DEFAULTS = EvaluateSettings()
 NO_SAE = "none"
@@ -180,7 +181,9 @@ def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: 
     names = options.pair or [p.name for p in run.pairs]
     jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
     jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
-    return jobs, run.capture_settings(), EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
+    settings = EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
+    _check_work(settings, run.capture.action_horizon)
+    return jobs, run.capture_settings(), settings
 
 
 def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: dict) -> Plan:
@@ -188,6 +191,7 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
     of a --decision-run at --expert-layers."""
     _require_flags(options, expert)
     settings = EvaluateSettings(**overrides)
+    _check_work(settings, CaptureSettings.model_fields["action_horizon"].default)
     layer, data_root, lerobot_root = options.layer, options.data_root, options.lerobot_root
     model = CaptureSettings(
         checkpoint_path=options.checkpoint_path, tokenizer_path=options.tokenizer_path,
@@ -202,6 +206,12 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
     if options.decision_run is not None:
         jobs += _expert_jobs(options.decision_run, expert, names, places, model, settings)
     return jobs, model, settings
+
+
+def _check_work(settings: EvaluateSettings, action_horizon: int) -> None:
+    """Refuse settings whose estimated work per (pair, layer) is over its limit (`steering_core.workload`)."""
+    if problems := evaluation_problems(settings, action_horizon):
+        raise ValueError("; ".join(problems))
 
 
 def _require_flags(options: EvaluateOptions, expert: list[int] | None) -> None:

@@ -8,6 +8,7 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from steering_core.config import load_run_config
+from steering_core.workload import rollout_problems
 
 
 @app.command("rollout")
@@ -49,6 +50,8 @@ def rollout_command(
             chosen = " ".join([*(f"--pair {name}" for name in pair), *(f"--layer {at}" for at in layer)])
             raise ValueError(f"{chosen}: no (pair, layer) left to roll out: the config maps {sorted(section.pairs)} "
                              f"at layers {list(run_config.layers)}")
+        if problems := rollout_problems(run_config, targets, where=f"{config}: rollout"):
+            raise ValueError("; ".join(problems))
         summaries = rollout_config(run_config, targets, api_key=read_api_key(section.api_key_file))
     for layer_number, path in summaries.items():
         typer.echo(f"layer {layer_number}: {path}")

@@ -35,6 +35,7 @@ from steering_core.evaluate import EvaluateSettings
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
+from steering_core.workload import evaluation_problems, rollout_problems
 
 PAIRS_CONFIG_FILE = "{layer_dir}_pairs.json"  # the seed's data/latent_steering/layer12_pairs.json
 
@@ -120,6 +121,7 @@ class RunConfig(StrictModel):
                             "so its rollouts would only repeat α = 0; roll out earlier layers")
         if (overlap := _written_into(self.output_root, self.dataset.existing)) is not None:
             problems.append(overlap)
+        problems += self._workload_problems()
         if (self.sources is None) == (self.dataset.existing is None):
             problems.append("give exactly one of `sources` (hdf5 demo folders to filter and convert) and "
                             f"`dataset.existing` (a LeRobot dataset to read in place); found "
@@ -127,6 +129,13 @@ class RunConfig(StrictModel):
         if problems:
             raise ValueError("; ".join(problems))
         return self
+
+    def _workload_problems(self) -> list[str]:
+        """Return the evaluation's and the rollouts' estimated work over its limit (`steering_core.workload`)."""
+        problems = rollout_problems(self)
+        if self.evaluate is not None:
+            problems += evaluation_problems(self.evaluate_settings(), self.capture.action_horizon)
+        return problems
 
     # ------------------------------------------------------------------ paths (the seed's layout)
 

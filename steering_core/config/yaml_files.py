@@ -50,11 +50,27 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
         raise ValueError("\n".join(f"{path}: {line}" for line in format_errors(err, data))) from None
 
 
+MAX_DEPTH = 64  # mappings and lists inside each other; a run config nests 5 deep, Python's recursion stops near 300
+
+
 class UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader, refusing a mapping that names one key twice (YAML would silently keep the last).
+    """YAML's safe loader, refusing a mapping that names one key twice (YAML would silently keep the last), and
+    values nested more than `MAX_DEPTH` deep (before the recursion that builds them could exhaust Python's stack).
 
     Keys merged in with `<<: *alias` may be overridden: only keys written in the mapping itself are compared.
     """
+
+    depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        self.depth += 1
+        try:
+            if self.depth > MAX_DEPTH:
+                raise yaml.composer.ComposerError(None, None, f"values nested more than {MAX_DEPTH} levels deep; a "
+                                                  "run config nests a few levels", self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: set[Any] = set()

@@ -365,8 +365,20 @@ def read_episode_columns(
                     f"{_describe_ints(frames[rows].tolist())}, expected 0..{episode.length - 1} "
                     f"(length {episode.length} in {meta.episodes_source}); the dataset is corrupt, re-create it"
                 )
-            result[episode.episode_index] = values[rows]
+            result[episode.episode_index] = _finite_rows(values[rows], path, column, episode.episode_index)
     return {e.episode_index: result[e.episode_index] for e in wanted}
+
+
+def _finite_rows(values: np.ndarray, path: Path, column: str, episode_index: int) -> np.ndarray:
+    """Return an episode's (frames, dim) `values`; ValueError naming the data file, episode, frame and column
+    position of the first NaN or Inf (a state or action no step can compute with)."""
+    bad = np.argwhere(~np.isfinite(values))
+    if len(bad):
+        frame, position = (int(i) for i in bad[0])
+        raise ValueError(f"{path}: episode {episode_index} frame_index {frame}: `{column}`[{position}] is "
+                         f"{values[frame, position]}, expected a finite number ({len(bad)} such value(s) in the "
+                         "episode); the dataset is corrupt, re-create it")
+    return values
 
 
 def read_episode_column(root: str | os.PathLike, episode_index: int, column: str) -> np.ndarray:

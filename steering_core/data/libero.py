@@ -69,6 +69,7 @@ _KIND_TEXT = {"image": "uint8", "float": "float", "flag": "uint8"}
 # demos run at most a few hundred steps at 128-256 px; its flattened MuJoCo state has about a hundred values.
 MAX_DEMO_STEPS = 100_000
 MAX_IMAGE_SIDE = 4096
+MIN_IMAGE_SIDE = 8  # the smallest image the converter resizes (its --image-size bound)
 MAX_STATE_WIDTH = 10_000
 # LIBERO's floats are metres, radians, joint velocities and actions in [-1, 1]; far beyond that a value is corrupt,
 # and past ~1e19 its square (statistics) overflows float32 (1e300 is finite in float64, Inf in float32).
@@ -328,6 +329,9 @@ def _shape_bound_problem(kind: str, shape: tuple[int, ...], where: str) -> str |
     bounds = [("steps", MAX_DEMO_STEPS)] + {"image": [("height", MAX_IMAGE_SIDE), ("width", MAX_IMAGE_SIDE)],
                                            "float": [("width", MAX_STATE_WIDTH)]}.get(kind, [])
     over = [f"{name} {size} > {bound}" for (name, bound), size in zip(bounds, shape) if size > bound]
+    if kind == "image":  # an image the converter cannot orient and resize: LIBERO renders 128x128
+        over += [f"{name} {size} < {MIN_IMAGE_SIDE}" for name, size in zip(("height", "width"), shape[1:3])
+                 if size < MIN_IMAGE_SIDE]
     return f"{where} declares shape {shape}: {', '.join(over)}; not a LIBERO demo" if over else None
 
 

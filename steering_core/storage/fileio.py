@@ -26,6 +26,7 @@ from typing import Any
 from isal.isal_zlib import crc32  # zlib's CRC-32, same values, by carry-less multiply: ~8x zlib's speed
 
 from steering_core.storage.mirrors import localize, portable
+from steering_core.storage.os_limits import check_path_parts, reraise_disk_full
 
 _HASH_CHUNK = 1 << 20  # 1 MiB reads keep hashing fast without holding whole files
 
@@ -54,14 +55,16 @@ def _share(path: Path, umask: int) -> None:
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary sibling path; rename it onto `path` only if the block succeeds."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_staging(path)
-    fd, tmp = tempfile.mkstemp(prefix=_staging_prefix(path), suffix=".tmp", dir=path.parent)
+    path = check_path_parts(path, "output", extra=staging_extra())
+    with reraise_disk_full(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_staging(path)
+        fd, tmp = tempfile.mkstemp(prefix=_staging_prefix(path), suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
+        with reraise_disk_full(path, tmp_path):
+            yield tmp_path
         _share(tmp_path, _umask())  # mkstemp (and some writers, like safetensors) make 0600; outputs are shared
         os.replace(tmp_path, path)
     finally:
@@ -78,15 +81,17 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
     supports it (Linux renameat2); elsewhere by two renames, undone if the second fails
     and finished by the next call if the process dies between them.
     """
-    path = Path(path)
+    path = check_path_parts(path, "output", extra=staging_extra())
     remove_stale_staging(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path}: already exists; remove it or pass overwrite=True")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(path), suffix=".tmp", dir=path.parent))
+    with reraise_disk_full(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(path), suffix=".tmp", dir=path.parent))
     tmp_path = staging / path.name
     try:
-        yield tmp_path
+        with reraise_disk_full(path, tmp_path):
+            yield tmp_path
         umask = _umask()
         for folder, _, names in os.walk(tmp_path):
             _share(Path(folder), umask)
@@ -126,6 +131,11 @@ def _swap_by_renames(new: Path, target: Path, old: Path) -> None:
         if old.exists():
             os.replace(old, target)
         raise
+
+
+def staging_extra() -> int:
+    """Return the bytes a staging name adds to its target's: the prefix's, mkstemp's 8 random characters, `.tmp`."""
+    return len(os.fsencode(_staging_prefix(Path()))) + 8 + len(".tmp")
 
 
 def _staging_prefix(path: Path) -> str:
@@ -175,7 +185,7 @@ def check_output_dir(path: str | os.PathLike, what: str = "output folder") -> Pa
     Refused: `path` or one of its parents is a file, or the deepest existing parent is not writable.
     Nothing is created, so a check before hours of work leaves no trace.
     """
-    path = Path(path).absolute()
+    path = check_path_parts(Path(path).absolute(), f"the {what}", extra=staging_extra())
     for candidate in (path, *path.parents):
         if candidate.exists() or candidate.is_symlink():
             if not candidate.is_dir():
@@ -268,6 +278,9 @@ def parse_json(text: str, where: str) -> Any:
         raise ValueError(f"{where}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
     except DuplicateKeyError as err:
         raise ValueError(f"{where}: {err}; keep one") from None
+    except RecursionError:  # the C decoder stops at Python's recursion limit (about 1,000 levels) by itself
+        raise ValueError(f"{where}: values nested too deeply to read (past Python's recursion limit); expected JSON "
+                         "nesting a few levels") from None
 
 
 def sha256_file(path: str | os.PathLike) -> str:

@@ -35,6 +35,9 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
+from steering_core.storage.fileio import staging_extra
+from steering_core.storage.os_limits import check_path_parts
+
 logger = logging.getLogger(__name__)
 
 GROUP_LOCK = ".capture-{group}.lock"
@@ -68,10 +71,14 @@ def order(output: str | os.PathLike, group: int = -1) -> Order:
 def local_group_locks(run_dir: str | os.PathLike, groups: Iterable[int]) -> Iterator[None]:
     """Hold an exclusive lock on each shard group of `run_dir`, in ascending order; the lock files go on exit."""
     run_dir = Path(run_dir)
+    made = _missing_folders(run_dir)
     locks = [(order(run_dir, group), run_dir / GROUP_LOCK.format(group=group), f"{run_dir}: shard group {group}")
              for group in set(groups)]
-    with _holding(locks, keep=lambda: False):
-        yield
+    try:
+        with _holding(locks, keep=lambda: False):
+            yield
+    finally:  # a capture that wrote nothing (it failed at once, e.g. on a full disk) leaves no empty run folder
+        _remove_empty(made)
 
 
 @contextlib.contextmanager
@@ -81,18 +88,28 @@ def local_output_lock(output: str | os.PathLike) -> Iterator[None]:
     If the block leaves no `output` (a step that failed, e.g. on bad input), the lock file and the folders
     made for it are removed again, so nothing is left behind.
     """
-    output = Path(output)
+    output = check_path_parts(output, "output", extra=staging_extra())  # before any folder is made for it
     folder = output.parent
-    made = [p for p in (folder, *folder.parents) if not p.exists()]  # deepest first
+    made = _missing_folders(folder)
     lock = (order(output), folder / OUTPUT_LOCK.format(name=output.name), f"{folder}: output {output.name}")
     try:
         with _holding([lock], keep=lambda: output.exists() or output.is_symlink()):
             yield
     finally:
         if not output.exists() and not output.is_symlink():
-            for path in made:
-                with contextlib.suppress(OSError):  # not empty: another step wrote there meanwhile
-                    path.rmdir()
+            _remove_empty(made)
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """Return `folder` and those of its parents that do not exist yet, deepest first."""
+    return [path for path in (folder, *folder.parents) if not path.exists()]
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove each of `folders` (deepest first) that is empty."""
+    for path in folders:
+        with contextlib.suppress(OSError):  # not empty: a step wrote there meanwhile
+            path.rmdir()
 
 
 @contextlib.contextmanager

@@ -12,6 +12,7 @@ stream restarts at the checkpoint's sample and nothing in training draws random 
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import io
 import logging
@@ -63,7 +64,12 @@ def train_sae(source: RowSource, out_dir: Path, settings: TrainSettings, *, laye
         if _finished(out_dir, identity):
             logger.info("%s: already trained with these rows and settings", out_dir)
             return out_dir
-        _train(source, out_dir, settings, identity, layer=layer, model_name=model_name, progress=progress)
+        try:
+            _train(source, out_dir, settings, identity, layer=layer, model_name=model_name, progress=progress)
+        except BaseException:
+            with contextlib.suppress(OSError):  # nothing kept (e.g. a full disk at the first write): no empty folder
+                out_dir.rmdir()
+            raise
     return out_dir
 
 
