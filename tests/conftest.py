@@ -19,7 +19,10 @@ def pytest_terminal_summary(terminalreporter) -> None:
     """Say which database the tests' own Prefect servers used (tests/test_server_deployments.py), under -q too."""
     from helpers_prefect_db import backend
 
-    terminalreporter.write_line(f"Prefect servers started by tests/test_server_deployments.py: {backend()}")
+    ran = [report for reports in terminalreporter.stats.values() for report in reports
+           if getattr(report, "nodeid", "").startswith("tests/test_server_deployments.py")]
+    if ran:
+        terminalreporter.write_line(f"Prefect servers started by tests/test_server_deployments.py: {backend()}")
 
 
 @pytest.fixture(autouse=True)
