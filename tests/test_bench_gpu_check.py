@@ -19,7 +19,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repository root, not an installed package
     sys.path.insert(0, str(REPO_ROOT))
 
-from bench import capture_input, gpu_check, serve_throughput  # noqa: E402
+from bench import capture_input, gpu_check, gpu_harness, gpu_matmul_sections, serve_throughput  # noqa: E402
 from bench.common import Result  # noqa: E402
 
 SECTIONS = ["peak", "capture", "latency", "sweep", "server", "precision", "sae"]
@@ -54,7 +54,7 @@ def test_quick_check_runs_every_section_and_every_comparison_passes(tmp_path):
         assert 0 < comparisons[f"bfloat16 cpu vs float32 cpu: {case} / {metric}"]["error"] < 3e-2
     for stream in ("LM", "expert"):
         cosine = comparisons[f"bfloat16 cpu vs float32 cpu: effect of {stream}-steered steering / 1 - cosine"]
-        assert cosine["tolerance"] == gpu_check.TOLERANCES[torch.bfloat16]
+        assert cosine["tolerance"] == gpu_harness.TOLERANCES[torch.bfloat16]
     latency = [row["measure"] for row in sections["latency"]["measures"]]
     built = "as from_checkpoint builds it: eager"  # on the CPU; compiled denoising is CUDA's default
     assert latency == ["from_checkpoint s", f"sample_actions ms, batch 1 ({built})",
@@ -73,7 +73,7 @@ def test_quick_check_runs_every_section_and_every_comparison_passes(tmp_path):
 @pytest.mark.slow
 def test_a_comparison_over_its_tolerance_fails_the_check(tmp_path, monkeypatch):
     # bfloat16 against float32 is off by ~1e-3: a 1e-6 tolerance must fail those comparisons, and only those
-    monkeypatch.setitem(gpu_check.TOLERANCES, torch.bfloat16, 1e-6)
+    monkeypatch.setitem(gpu_harness.TOLERANCES, torch.bfloat16, 1e-6)
     output = tmp_path / "check.json"
     with pytest.raises(SystemExit) as exit_info:
         gpu_check.main(["--quick", "--sections", "precision", f"--cache-dir={tmp_path / 'cache'}", f"--json={output}"])
@@ -88,7 +88,7 @@ def test_a_comparison_over_its_tolerance_fails_the_check(tmp_path, monkeypatch):
 
 
 def test_training_step_without_saelens_times_a_plain_torch_step(tmp_path, monkeypatch):
-    monkeypatch.setattr(gpu_check, "saelens_installed", lambda: False)
+    monkeypatch.setattr(gpu_matmul_sections, "saelens_installed", lambda: False)
     result = gpu_check.main(["--quick", "--sections", "sae", f"--cache-dir={tmp_path}",
                              f"--json={tmp_path / 'check.json'}"])
     training = result.checks["sections"]["sae"]["measures"][-1]
