@@ -92,6 +92,7 @@ def play_machines(deployment_id, known: set, stop: threading.Event) -> None:
         heartbeat(by_name["child b"].id)
 
 
+@pytest.mark.slow  # a minute: it waits for the phase deadline
 @pytest.mark.timeout(600)  # generous: the session server may start first, beside other jobs
 def test_a_child_silent_while_the_parent_is_heard_is_crashed_and_started_again(idle_deployment, monkeypatch):
     """`child a` stops sending heartbeats while the parent's are recorded: after the window the parent marks it
