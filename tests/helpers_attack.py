@@ -9,6 +9,7 @@ not beside the bad input (nothing half-written, no existing output touched).
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,6 +66,19 @@ def registrar(table: list[Attack]) -> Callable[[str], Callable[[Attack], Attack]
             return attack
         return register
     return case
+
+
+def named(name: str, attack: Attack) -> Attack:
+    """`attack` under `name`, the id its table row shows."""
+    attack.__name__ = name
+    return attack
+
+
+def dataset_copy(world: World, tmp_path: Path) -> Path:
+    """A copy of the world's dataset under `tmp_path`, for a case to change."""
+    dataset = tmp_path / "dataset"
+    shutil.copytree(world.dataset, dataset)
+    return dataset
 
 
 def snapshot(*roots: Path) -> dict[str, tuple[int, int]]:

@@ -21,21 +21,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from helpers_attack import Attack, Case, World, assert_refused, good
+from helpers_attack import Attack, Case, World, assert_refused, dataset_copy, good, named
 from PIL import Image
 
 from steering_core.data.libero import MAX_ABS_VALUE
-
-
-def named(name: str, attack: Attack) -> Attack:
-    attack.__name__ = name
-    return attack
-
-
-def dataset_copy(world: World, tmp_path: Path) -> Path:
-    dataset = tmp_path / "dataset"
-    shutil.copytree(world.dataset, dataset)
-    return dataset
 
 
 def command(name: str, world: World, tmp_path: Path, dataset: Path) -> list:

@@ -13,20 +13,9 @@ import h5py
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from helpers_attack import Attack, Case, World, assert_refused
+from helpers_attack import Attack, Case, World, assert_refused, dataset_copy, named
 
 from steering_core.data.libero import MAX_STATE_WIDTH
-
-
-def named(name: str, attack: Attack) -> Attack:
-    attack.__name__ = name
-    return attack
-
-
-def dataset_copy(world: World, tmp_path: Path) -> Path:
-    dataset = tmp_path / "dataset"
-    shutil.copytree(world.dataset, dataset)
-    return dataset
 
 
 def info_template(name: str, key: str, template: str, expect: str) -> Attack:
