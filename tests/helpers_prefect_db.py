@@ -15,6 +15,7 @@ import uuid
 from collections.abc import Iterator
 
 POSTGRES_ENV = "LATENT_STEERING_TEST_POSTGRES"
+URL_SCHEME = "postgresql+asyncpg://"
 
 
 def backend() -> str:
@@ -31,6 +32,8 @@ def server_database() -> Iterator[dict[str, str]]:
     if not url:
         yield {}
         return
+    if not url.startswith(URL_SCHEME) or "\n" in url:
+        raise ValueError(f"{POSTGRES_ENV}: expected one URL {URL_SCHEME}user:password@host:port/database, got {url!r}")
     name = f"prefect_test_{uuid.uuid4().hex[:16]}"
     asyncio.run(_execute(url, f'CREATE DATABASE "{name}"'))
     try:
@@ -42,7 +45,7 @@ def server_database() -> Iterator[dict[str, str]]:
 async def _execute(url: str, statement: str) -> None:
     import asyncpg  # only where PostgreSQL is used
 
-    connection = await asyncpg.connect(url.replace("postgresql+asyncpg://", "postgresql://", 1))
+    connection = await asyncpg.connect(url.replace(URL_SCHEME, "postgresql://", 1))
     try:
         await connection.execute(statement)
     finally:
