@@ -1,11 +1,17 @@
-"""Session-wide test settings: offline hub access, quiet telemetry, a private digest cache, one Prefect server,
-the S3 endpoint, and the runs several test modules read."""
+"""Session-wide test settings: one intra-op thread per process, offline hub access, quiet telemetry, a private digest
+cache, the modules' order, one Prefect server, the S3 endpoint, and the runs several test modules read."""
 
 import os
 import tempfile
 
-import pytest
-from helpers_s3 import bucket, s3_endpoint  # noqa: F401  the S3 endpoint fixtures
+# Before torch is imported, here and in every subprocess a test starts: the suite runs on two pytest-xdist workers
+# (pyproject.toml), and two processes each spinning two OpenMP threads on two cores ran it 1.4x slower. Every
+# process of a test agrees on the count, so float32 bits compared across processes still agree.
+for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(variable, "1")
+
+import pytest  # noqa: E402
+from helpers_s3 import bucket, s3_endpoint  # noqa: E402, F401  the S3 endpoint fixtures
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
@@ -13,6 +19,25 @@ os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 # large files' digests are remembered across processes; tests keep theirs out of the user cache
 os.environ.setdefault("LATENT_STEERING_DIGEST_CACHE", tempfile.mkdtemp(prefix="latent-steering-digests-"))
+
+
+# The longest modules, first (with --no-loadscope-reorder, xdist hands modules out in this order), so that the two
+# workers finish together instead of one starting the server deployments when the other is nearly done.
+LONGEST_FIRST = ("test_server_deployments.py", "test_flows.py", "test_bench.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Order the modules: the longest first, then those holding `slow` tests, then the rest; within a module, and
+    otherwise, the collection order stays."""
+    slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
+
+    def rank(item: pytest.Item) -> int:
+        name = item.path.name
+        if name in LONGEST_FIRST:
+            return LONGEST_FIRST.index(name)
+        return len(LONGEST_FIRST) + (item.path not in slow_modules)
+
+    items.sort(key=rank)
 
 
 def pytest_terminal_summary(terminalreporter) -> None:
@@ -62,7 +87,8 @@ def attack_world(tmp_path_factory):
 @pytest.fixture(scope="session")
 def cli_steps_run(tmp_path_factory):
     """The demo inputs (2 demos per task) and the seed's steps run on them one by one through the CLI
-    (`helpers_pipeline.run_cli_steps`), once for the session; return (run config, output folder)."""
+    (`helpers_pipeline.run_cli_steps`), once for the session (a worker); return (run config, output folder). Read
+    only: the demo flow and the deployment run compare their outputs with it."""
     from helpers_pipeline import run_cli_steps
 
     from steering_core.config import load_run_config
