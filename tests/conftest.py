@@ -4,10 +4,11 @@ cache, the modules' order, one Prefect server, the S3 endpoint, and the runs sev
 import os
 import tempfile
 
-# Before torch is imported, here and in every subprocess a test starts: the suite runs on two pytest-xdist workers
-# (pyproject.toml), and two processes each spinning two OpenMP threads on two cores ran it 1.4x slower. Every
-# process of a test agrees on the count, so float32 bits compared across processes still agree.
-for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+# One thread for torch (OpenMP, MKL), numpy (OpenBLAS) and MuJoCo's software renderer (llvmpipe), set before they
+# are imported, here and in every subprocess a test starts: the suite runs on two pytest-xdist workers
+# (pyproject.toml), and two processes each spinning two OpenMP threads on two cores ran it 1.2x slower (3,208 s of
+# CPU against 2,604). Every process of a test agrees on the count, so float32 bits compared across processes agree.
+for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
     os.environ.setdefault(variable, "1")
 
 import pytest  # noqa: E402
