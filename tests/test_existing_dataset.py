@@ -28,6 +28,7 @@ from flows.refresh import refresh
 from steering_core.config import (
     CaptureSection,
     DatasetSection,
+    EvaluateSection,
     ModelSection,
     PairSection,
     RunConfig,
@@ -110,6 +111,10 @@ def write_config(folder: Path, inputs: dict[str, Path], *, sources: SourcesSecti
         capture=CaptureSection(batch_size=4, device="cpu", num_workers=0),
         sae={LAYER: SaeSection(path=inputs["sae"])},
         steering=SteeringSection(device="cpu", batch_size=16, top_k=5),
+        # phase 4 reads frames from the dataset in place too; the smallest evaluation (the default one was 60% of
+        # the time here): its measurements are under test elsewhere
+        evaluate=EvaluateSection(max_frames=2, noise_seeds=1, alphas=(-1.0, 0.0, 1.0), random_directions=8,
+                                 permutations=0, bootstrap=20, device="cpu"),
     )
     return write_run_config(config, folder / "run.yaml")
 

@@ -176,6 +176,31 @@ def test_code_version_follows_project_imports_only():
     assert code_version("steering_core.capture.slicing") != code_version("steering_core.capture.shards")
 
 
+def test_code_modules_parse_each_source_once_and_again_when_it_changes(tmp_path, monkeypatch):
+    """A tree of its own (steering_core/a.py imports b): the second walk parses nothing; an edited a.py that imports c
+    instead is parsed again, and its version follows c, not the b it remembered."""
+    from steering_core import identity
+
+    package = tmp_path / "steering_core"
+    package.mkdir()
+    (package / "b.py").write_text("X = 1\n")
+    (package / "c.py").write_text("Y = 2\n")
+    (package / "a.py").write_text("from steering_core import b\n")
+    monkeypatch.setattr(identity, "_PROJECT_ROOT", tmp_path)
+    monkeypatch.setattr(identity, "_module_file", identity._module_file.__wrapped__)  # no paths remembered
+    monkeypatch.setattr(identity, "_IMPORTS", {})
+    parsed = []
+    real_parse = identity.ast.parse
+    monkeypatch.setattr(identity.ast, "parse", lambda source: parsed.append(source) or real_parse(source))
+
+    assert list(identity.code_modules("steering_core.a")) == ["steering_core.a", "steering_core.b"]
+    assert len(parsed) == 2
+    identity.code_modules("steering_core.a")
+    assert len(parsed) == 2  # nothing parsed again
+    (package / "a.py").write_text("from steering_core import c\n")
+    assert list(identity.code_modules("steering_core.a")) == ["steering_core.a", "steering_core.c"]
+    assert parsed[2:] == [b"from steering_core import c\n", b"Y = 2\n"]
+
 def test_retry_only_on_transient_errors():
     io, gpu = retry_if(transient_io), retry_if(transient_gpu)
     assert io(double, None, Failed(data=OSError(errno.EIO, "disk")))
