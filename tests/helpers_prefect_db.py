@@ -39,7 +39,24 @@ def server_database() -> Iterator[dict[str, str]]:
     try:
         yield {"PREFECT_API_DATABASE_CONNECTION_URL": f"{url.rsplit('/', 1)[0]}/{name}"}
     finally:
-        asyncio.run(_execute(url, f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        asyncio.run(_drop(url, name))
+
+
+DROP_TRIES = 30  # one a second: an autovacuum worker on the database lasts a moment
+
+
+async def _drop(url: str, name: str) -> None:
+    """Drop the database, its sessions ended (FORCE). An autovacuum worker on it can only be ended by a member of
+    pg_signal_backend (`.ci/postgres` grants it): without that, wait for the worker to finish and try again."""
+    import asyncpg
+
+    for tries_left in reversed(range(DROP_TRIES)):
+        try:
+            return await _execute(url, f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        except (asyncpg.InsufficientPrivilegeError, asyncpg.ObjectInUseError):
+            if not tries_left:
+                raise
+            await asyncio.sleep(1)
 
 
 async def _execute(url: str, statement: str) -> None:
