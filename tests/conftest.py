@@ -6,8 +6,8 @@ import tempfile
 
 # One thread for torch (OpenMP, MKL), numpy (OpenBLAS) and MuJoCo's software renderer (llvmpipe), set before they
 # are imported, here and in every subprocess a test starts: the suite runs on two pytest-xdist workers
-# (pyproject.toml), and two processes each spinning two OpenMP threads on two cores ran it 1.2x slower (3,208 s of
-# CPU against 2,604). Every process of a test agrees on the count, so float32 bits compared across processes agree.
+# (pyproject.toml), and two processes each spinning two OpenMP threads on two cores used 1.2x the CPU time (3,208 s
+# against 2,604). Every process of a test agrees on the count, so float32 bits compared across processes agree.
 for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
     os.environ.setdefault(variable, "1")
 
