@@ -201,6 +201,7 @@ def test_code_modules_parse_each_source_once_and_again_when_it_changes(tmp_path,
     assert list(identity.code_modules("steering_core.a")) == ["steering_core.a", "steering_core.c"]
     assert parsed[2:] == [b"from steering_core import c\n", b"Y = 2\n"]
 
+
 def test_retry_only_on_transient_errors():
     io, gpu = retry_if(transient_io), retry_if(transient_gpu)
     assert io(double, None, Failed(data=OSError(errno.EIO, "disk")))
