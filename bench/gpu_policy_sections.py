@@ -176,7 +176,7 @@ def latency(ctx: Context) -> Section:
     section = policy_latency(policy, ctx.sizes.latency_batches, ctx.sizes.repeats, f"as from_checkpoint builds it: {build}")
     section.measures.insert(0, {"measure": "from_checkpoint s", "value": load_seconds,
                                 "against": f"{parameters:.3g} GiB of parameters", "ratio": ""})
-    other = Pi05Policy(policy.prefix, policy.expert, policy.action_horizon, policy.tokenizer, policy.norm_stats_file,
+    other = Pi05Policy(policy.prefix, policy.expert, policy.action_horizon, policy.tokenizer, policy.normalization,
                        compiled=not policy.compiled)  # the same weights
     mine, theirs = measure_latency(policy, 1, ctx.sizes.repeats), measure_latency(other, 1, ctx.sizes.repeats)
     compiled, eager = (mine, theirs) if policy.compiled else (theirs, mine)

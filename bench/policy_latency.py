@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> Result:
                                                                                                         REPEATS)
     checkpoint = build_checkpoint(cache_dir(args) / "policy-sweep", arch)
     eager = Pi05Policy.from_checkpoint(checkpoint, arch, device=device, compiled=False)
-    compiled = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.norm_stats_file, compiled=True)
+    compiled = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.normalization, compiled=True)
     table, difference = [], 0.0
     for batch in batches:
         ours, baseline = measure_latency(compiled, batch, repeats), measure_latency(eager, batch, repeats)

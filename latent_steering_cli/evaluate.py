@@ -28,6 +28,7 @@ from steering_core.evaluate.run import (
 )
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.arch import read_arch
+from steering_core.pi05.robot_side import DEFAULT_HORIZON
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
 from steering_core.workload import evaluation_problems
 
@@ -182,7 +183,7 @@ def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: 
     jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
     jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
     settings = EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
-    _check_work(settings, run.capture.action_horizon)
+    _check_work(settings, run.capture.action_horizon or DEFAULT_HORIZON)
     return jobs, run.capture_settings(), settings
 
 
@@ -191,7 +192,7 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
     of a --decision-run at --expert-layers."""
     _require_flags(options, expert)
     settings = EvaluateSettings(**overrides)
-    _check_work(settings, CaptureSettings.model_fields["action_horizon"].default)
+    _check_work(settings, DEFAULT_HORIZON)
     layer, data_root, lerobot_root = options.layer, options.data_root, options.lerobot_root
     model = CaptureSettings(
         checkpoint_path=options.checkpoint_path, tokenizer_path=options.tokenizer_path,

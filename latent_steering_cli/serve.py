@@ -144,8 +144,7 @@ def serve_command(
             tokenizer_path=tokenizer_path or _tokenizer_beside(checkpoint_path), prompt_format=prompt_format,
             norm_stats_path=norm_stats, asset_id=asset_id, compiled=compiled,
         )
-        if "actions" not in policy.norm_stats:  # read now: a missing or broken file stops here, not at a request
-            raise ValueError(f"{policy.norm_stats_file}: no `actions` entry; the served actions are unnormalised by it")
+        policy.normalization.check()  # read now: a missing or broken file stops here, not at a request
         served = SteeredPi05Policy(policy, noise_seed=noise_seed)
         served.check_catalog(catalog)
         server = PolicyServer(served, catalog, default_steering=default, host=host, port=port,

@@ -27,7 +27,7 @@ from steering_core.pi05.checkpoint import (
     expert_arch_from_checkpoint,
     expert_tensor_shapes,
     prefix_tensor_shapes,
-    resolve_model_file,
+    resolve_checkpoint,
 )
 from steering_core.remote.filesystems import check_writable
 from steering_core.storage.fileio import check_output_dir
@@ -64,7 +64,8 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     """Return one line per problem found in the run's inputs and output paths (empty: ready to run)."""
     capture = config.capture_settings()
     model = _failures([
-        lambda: check_prefix_layout(resolve_model_file(capture.checkpoint_path), capture.arch, max(capture.layers)),
+        lambda: check_prefix_layout(resolve_checkpoint(capture.checkpoint_path, capture.layout), capture.arch,
+                                    max(capture.layers)),
         lambda: check_model_inputs(capture),
     ])
     if config.expert_layers and not model:  # the decision capture reads the whole policy: checked when the rest is fine
@@ -89,12 +90,12 @@ def _check_checkpoint_finite(config: RunConfig) -> None:
     """Raise naming the tensor if a checkpoint tensor the run reads holds NaN or Inf (the prefix up to the deepest
     layer; the whole prefix and the action expert when the decision rows are captured)."""
     capture = config.capture_settings()
-    model_file = resolve_model_file(capture.checkpoint_path)
+    checkpoint = resolve_checkpoint(capture.checkpoint_path, capture.layout)
     if not config.expert_layers:
-        check_finite(model_file, prefix_tensor_shapes(capture.arch, max(capture.layers)))
+        check_finite(checkpoint, prefix_tensor_shapes(capture.arch, max(capture.layers)))
         return
-    expert = expert_arch_from_checkpoint(model_file, capture.arch)
-    check_finite(model_file, prefix_tensor_shapes(capture.arch, capture.arch.depth - 1) | expert_tensor_shapes(expert))
+    expert = expert_arch_from_checkpoint(checkpoint, capture.arch)
+    check_finite(checkpoint, prefix_tensor_shapes(capture.arch, capture.arch.depth - 1) | expert_tensor_shapes(expert))
 
 
 def _check_sae(config: RunConfig, layer: int, *, check_width: bool) -> None:

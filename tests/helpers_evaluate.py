@@ -15,13 +15,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
 
 from steering_core.evaluate.frames import EvalFrame
 from steering_core.evaluate.sweep import Prompt
-from steering_core.pi05.norm_stats import NormStats
 
 HORIZON, ACTION_DIM, T = 4, 32, 6
 # robot actions = model actions[:7] * 2 + 0.5; the norm stats' std per robot dimension (the efficacy's unit)
@@ -48,7 +48,8 @@ class FakePolicy:
                  stream: str = "lm", saturate: bool = False):
         gen = torch.Generator().manual_seed(123)
         self.width, self.depth, self.beta, self.stream, self.saturate = width, depth, beta, stream, saturate
-        self.norm_stats = {"actions": NormStats(np.zeros(ACTION_DIM), ACTION_STD, None, None)}
+        self.normalization = SimpleNamespace(source="the fake policy's statistics",
+                                             action_std=lambda: np.asarray(ACTION_STD, dtype=np.float64))
         self.u = planted.double() / planted.double().norm()
         self.embed = torch.randn(10, width, generator=gen, dtype=torch.float64)
         # the instruction tokens' mean embeddings differ by exactly gap * u

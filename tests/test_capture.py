@@ -251,7 +251,7 @@ def test_discrete_state_prompt(inputs, tmp_path):
 def test_capture_errors(inputs, tmp_path):
     checkpoint, tokenizer, dataset = inputs
     run_dir = tmp_path / "run"
-    with pytest.raises(FileNotFoundError, match="SentencePiece tokenizer not found"):
+    with pytest.raises(FileNotFoundError, match="tokenizer not found"):
         capture(dataset, REPO_ID, run_dir, settings_for(inputs, tokenizer_path=tmp_path / "none.model"))
     with pytest.raises(FileNotFoundError, match="pi0.5 checkpoint not found"):
         capture(dataset, REPO_ID, run_dir, settings_for(inputs, checkpoint_path=tmp_path / "none"))

@@ -141,7 +141,7 @@ def test_compiled_sweep_matches_eager(compiled, eager, batch, noise):
 
 
 def test_shapes_past_the_bound_run_eagerly(eager, batch, noise, caplog):
-    policy = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.norm_stats_file, compiled=True)
+    policy = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.normalization, compiled=True)
     policy.denoiser.max_variants = 0
     actions = policy.sample_actions(*batch.args(), noise=noise, num_steps=2)
     assert torch.equal(actions, eager.sample_actions(*batch.args(), noise=noise, num_steps=2))
@@ -150,7 +150,7 @@ def test_shapes_past_the_bound_run_eagerly(eager, batch, noise, caplog):
 
 
 def test_batches_past_the_row_bound_run_eagerly(eager, batch, noise):
-    policy = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.norm_stats_file, compiled=True)
+    policy = Pi05Policy(eager.prefix, eager.expert, eager.action_horizon, None, eager.normalization, compiled=True)
     policy.denoiser.max_rows = ROWS - 1
     actions = policy.sample_actions(*batch.args(), noise=noise, num_steps=2)
     assert torch.equal(actions, eager.sample_actions(*batch.args(), noise=noise, num_steps=2))

@@ -277,7 +277,7 @@ def test_infer_runs_openpi_libero_preprocessing(policy, tokenizer_path):
     tokens, mask = torch.from_numpy(encoded.ids)[None], torch.from_numpy(encoded.mask)[None]
     assert tokens.shape == (1, 200) and tokens[0, 0] == 2
     model = policy.sample_actions(images, masks, tokens, mask, noise=noise[None])
-    stats = policy.norm_stats["actions"]
+    stats = policy.normalization.stats["actions"]
     by_hand = (model[0, :, :7].double().numpy() + 1) / 2 * (stats.q99 - stats.q01 + 1e-6) + stats.q01
     np.testing.assert_allclose(result["actions"], by_hand, rtol=1e-6, atol=1e-6)
     # a batched observation gives the same rows

@@ -89,7 +89,7 @@ def test_long_prompt_is_truncated_with_a_warning(model_path, sp, caplog):
 
 def test_missing_tokenizer_is_file_not_found(tmp_path):
     missing = tmp_path / "paligemma_tokenizer.model"
-    with pytest.raises(FileNotFoundError, match=f"{missing}: SentencePiece tokenizer not found"):
+    with pytest.raises(FileNotFoundError, match=f"{missing}: tokenizer not found"):
         PromptTokenizer(missing)
 
 
@@ -123,4 +123,4 @@ def test_non_paligemma_conventions_are_one_clear_error(tmp_path):
     assert "bos id is 1, expected 2" in message
     assert "'\\n' encodes as pieces" in message
     assert "adds a dummy-prefix" in message
-    assert message.endswith("pass paligemma_tokenizer.model")
+    assert message.endswith("pass paligemma_tokenizer.model or PaliGemma's tokenizer.json")

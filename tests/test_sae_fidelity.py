@@ -226,7 +226,7 @@ def load(frames):
 
 def by_hand_delta(policy, prompts, replace, layer, num_steps):
     """Return the mean over frames of ‖Δ robot actions / std‖, each frame run alone."""
-    std = torch.tensor(policy.norm_stats["actions"].std[:7], dtype=torch.float64)
+    std = torch.tensor(policy.normalization.stats["actions"].std[:7], dtype=torch.float64)
     total = 0.0
     for frame in FRAMES:
         inputs, prompt = load([frame]), prompts[frame.side]

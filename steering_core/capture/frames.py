@@ -3,6 +3,7 @@ workers decode the cameras to uint8, then resized into pi0.5's camera slots on t
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 from collections.abc import Iterator, Mapping, Sequence
@@ -16,7 +17,7 @@ from torch.utils.data import DataLoader, Dataset, default_collate
 from steering_core.data.dataset import DatasetMeta
 from steering_core.data.image_cells import check_image_cells
 from steering_core.data.v2_frames import V2Frames
-from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, camera_slots, libero_uint8_cameras
+from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
 
 # Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork.
 WORKER_PRELOAD = ("torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
@@ -55,22 +56,23 @@ class FrameDataset(Dataset):
         return {key: item[key] for key in self.keys}
 
 
-def _collate(items: list[dict[str, Any]]) -> dict[str, Any]:
+def _collate(items: list[dict[str, Any]], cameras: Cameras = Cameras()) -> dict[str, Any]:
     """Return one batch with both cameras as uint8 (B, 3, H, W) (runs in a DataLoader worker)."""
     batch = default_collate(items)
-    for key, frames in zip(LIBERO_IMAGE_KEYS, libero_uint8_cameras(*(batch[key] for key in LIBERO_IMAGE_KEYS))):
+    for key, frames in zip(LIBERO_IMAGE_KEYS, cameras.worker_uint8(*(batch[key] for key in LIBERO_IMAGE_KEYS))):
         batch[key] = frames
     return batch
 
 
-def slots_on_device(batch: dict[str, Any], image_size: int, device: torch.device) -> dict[str, Any]:
-    """Return the batch with its uint8 cameras replaced by pi0.5's three slots computed on `device`.
+def slots_on_device(batch: dict[str, Any], image_size: int, device: torch.device,
+                    cameras: Cameras = Cameras()) -> dict[str, Any]:
+    """Return the batch with its uint8 cameras replaced by the checkpoint's camera slots computed on `device`.
 
-    `images`: [base, left wrist, right wrist] float32 (B, 3, size, size) in [-1, 1] on `device`;
-    `image_masks`: (B,) bool (`pi05.preprocess.camera_slots`). The copy is asynchronous from pinned memory.
+    `images`: the slots (openpi: [base, left wrist, right wrist]) float32 (B, 3, size, size) in [-1, 1] on `device`;
+    `image_masks`: (B,) bool (`pi05.preprocess.Cameras`). The copy is asynchronous from pinned memory.
     """
-    cameras = [batch[key].to(device, non_blocking=True) for key in LIBERO_IMAGE_KEYS]
-    slots = dict(zip(("images", "image_masks"), camera_slots(*cameras, image_size)))
+    frames = [batch[key].to(device, non_blocking=True) for key in LIBERO_IMAGE_KEYS]
+    slots = dict(zip(("images", "image_masks"), cameras.from_uint8(*frames, image_size)))
     return {**{key: value for key, value in batch.items() if key not in LIBERO_IMAGE_KEYS}, **slots}
 
 
@@ -111,7 +113,7 @@ def camera_shapes(meta: DatasetMeta) -> dict[str, tuple[int, int, int]]:
 
 def frame_loader(
     frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], num_workers: int, pin_memory: bool,
-    shapes: Mapping[str, tuple[int, ...]] | None = None,
+    shapes: Mapping[str, tuple[int, ...]] | None = None, cameras: Cameras = Cameras(),
 ) -> DataLoader:
     """Return a DataLoader yielding one batch per `plan` entry, both cameras uint8 (B, 3, H, W)."""
     return DataLoader(
@@ -119,22 +121,22 @@ def frame_loader(
         batch_sampler=[positions for _, positions in plan],
         num_workers=num_workers,
         multiprocessing_context=worker_start_method(num_workers),
-        collate_fn=_collate,
+        collate_fn=functools.partial(_collate, cameras=cameras),
         pin_memory=pin_memory,
     )
 
 
 def frame_batches(
     frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], image_size: int, num_workers: int | None,
-    device: torch.device, shapes: Mapping[str, tuple[int, ...]] | None = None,
+    device: torch.device, shapes: Mapping[str, tuple[int, ...]] | None = None, cameras: Cameras = Cameras(),
 ) -> Iterator[dict[str, Any]]:
     """Return an iterator of one batch per `plan` entry, cameras in pi0.5's three slots on `device`.
 
     The workers (`frame_workers(num_workers)`) start now, so they decode while the caller loads its model.
     A frame refused in a worker (`FrameDataset`) is raised here as the worker's one-line ValueError.
     """
-    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", shapes)
-    return (slots_on_device(batch, image_size, device) for batch in _worker_errors(iter(loader)))
+    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", shapes, cameras)
+    return (slots_on_device(batch, image_size, device, cameras) for batch in _worker_errors(iter(loader)))
 
 
 def _worker_errors(batches: Iterator[dict[str, Any]]) -> Iterator[dict[str, Any]]:

@@ -52,7 +52,7 @@ from steering_core.data.dataset import DatasetMeta
 from steering_core.data.dataset_checks import check_dataset
 from steering_core.data.image_cells import check_image_cells, check_png_headers
 from steering_core.devices import resolve_device
-from steering_core.pi05 import TokenizedPrompt, quantile_normalize
+from steering_core.pi05 import TokenizedPrompt
 from steering_core.remote.locks import group_locks
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.storage.fileio import check_output_dir, sha256_json
@@ -216,11 +216,11 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     episodes = sorted(e for members in job.groups.values() for e in members)
     frames = frame_source(job.meta, job.repo_id, episodes, settings.video_backend)
     plan = batch_plan(frames, job.groups, settings.batch_size)
-    keys = [*FRAME_KEYS, *([STATE_KEY] if job.inputs.norm_stats is not None else [])]
+    keys = [*FRAME_KEYS, *([STATE_KEY] if job.inputs.reads_state else [])]
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork
     # before CUDA is initialised. The cameras are resized on the model's device, not in the workers.
     batches = frame_batches(frames, plan, keys, settings.arch.image_size, settings.num_workers,
-                            resolve_device(settings.device), camera_shapes(job.meta))
+                            resolve_device(settings.device), camera_shapes(job.meta), job.inputs.robot.cameras)
     model = _load_model(settings, job.inputs)
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}
@@ -242,12 +242,15 @@ def _load_model(settings: CaptureSettings, inputs: CaptureInputs) -> Pi05Prefix 
         from steering_core.pi05.policy import Pi05Policy
 
         return Pi05Policy.from_checkpoint(settings.checkpoint_path, settings.arch, settings.device, settings.dtype,
-                                          action_horizon=settings.action_horizon, expert_arch=inputs.expert_arch)
+                                          action_horizon=inputs.robot.action_horizon, expert_arch=inputs.expert_arch,
+                                          prompt_format=inputs.robot.prompt_format,
+                                          norm_stats_path=settings.norm_stats_path,
+                                          asset_id=settings.norm_stats_asset_id, layout=inputs.checkpoint.layout.name,
+                                          max_token_len=inputs.robot.max_token_len)
     from steering_core.pi05.model import Pi05Prefix
 
-    return Pi05Prefix.from_checkpoint(
-        settings.checkpoint_path, settings.arch, max(settings.layers), settings.device, settings.dtype
-    )
+    return Pi05Prefix.from_checkpoint(inputs.checkpoint, settings.arch, max(settings.layers), settings.device,
+                                      settings.dtype)
 
 
 def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[str, TokenizedPrompt]) -> TokenizedPrompt:
@@ -255,9 +258,9 @@ def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[
 
     Discrete-state prompts are not cached: nearly every frame has its own state bins.
     """
-    tokenizer, norm_stats = job.inputs.tokenizer, job.inputs.norm_stats
-    if norm_stats is not None:
-        return tokenizer.tokenize(task, quantile_normalize(state.numpy(), norm_stats))
+    tokenizer = job.inputs.tokenizer
+    if job.inputs.reads_state:
+        return tokenizer.tokenize(task, job.inputs.robot.normalization.normalize_state(state.numpy()[None])[0])
     if task not in cache:
         cache[task] = tokenizer.tokenize(task)
     return cache[task]
@@ -282,7 +285,7 @@ def _capture_batch(
     if settings.token_type in ACTION_TOKEN_TYPES:
         frame_of_row = np.repeat(np.arange(len(prompts), dtype=np.int64), settings.num_steps)
         rows_of = _action_rows_of(model, batch, tokens, token_mask, settings)
-        positions = np.full(len(frame_of_row), _action_position(settings), dtype=np.int64)
+        positions = np.full(len(frame_of_row), _action_position(settings, model), dtype=np.int64)
         token_ids = np.full(len(frame_of_row), -1, dtype=np.int64)  # the action tokens have no vocabulary id
         steps = {STEP: np.tile(np.arange(settings.num_steps, dtype=np.int64), len(prompts))}
     else:
@@ -309,9 +312,9 @@ def _capture_batch(
         _record_task(buffer.tasks, task, prompt, chosen, language_start)
 
 
-def _action_position(settings: CaptureSettings) -> int:
+def _action_position(settings: CaptureSettings, policy: Pi05Policy) -> int:
     """Return the `token_position` of action rows: the decision token's index in the chunk, -1 for adarms."""
-    return settings.action_horizon - 1 if settings.token_type == "decision" else -1
+    return policy.action_horizon - 1 if settings.token_type == "decision" else -1
 
 
 def _action_rows_of(
@@ -324,7 +327,7 @@ def _action_rows_of(
     def rows_of(start: int, stop: int) -> dict[int, torch.Tensor]:
         if settings.token_type == "adarms":
             return adarms_rows(policy, stop - start, settings.layers, settings.num_steps)
-        noise = frame_noise(indices[start:stop], settings.action_horizon, policy.action_dim, settings.noise_seed)
+        noise = frame_noise(indices[start:stop], policy.action_horizon, policy.action_dim, settings.noise_seed)
         return decision_rows(policy, [i[start:stop] for i in batch["images"]],
                              [m[start:stop] for m in batch["image_masks"]], tokens[start:stop],
                              token_mask[start:stop], noise, settings.layers, settings.num_steps)

@@ -15,9 +15,15 @@ from steering_core.capture.shards import RunSpec
 from steering_core.data import lerobot_v2
 from steering_core.data.dataset import DatasetMeta, dataset_fingerprint, read_episode_columns
 from steering_core.devices import resolve_device, resolve_dtype
-from steering_core.pi05.norm_stats import norm_stats_path
+from steering_core.pi05.robot_side import RobotSide
 from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import sha256_file, sha256_json
+
+
+def _statistics_digest(robot: RobotSide) -> str:
+    """Return the sha256 of the files the state prompt's statistics come from (one file: its own sha256)."""
+    files = robot.normalization.files
+    return sha256_file(files[0]) if len(files) == 1 else sha256_json([sha256_file(path) for path in files])
 
 
 def checkpoint_fingerprint(model_file: str | os.PathLike) -> str:
@@ -35,24 +41,23 @@ def run_spec(
     settings: CaptureSettings,
 ) -> RunSpec:
     """Return the run spec: what the rows depend on (`inputs`) and where it was read from (`sources`)."""
-    model_file, tokenizer = inputs.model_file, inputs.tokenizer
-    stats_file = None
-    if inputs.norm_stats is not None:
-        stats_file = norm_stats_path(settings.norm_stats_path or settings.checkpoint_path, settings.norm_stats_asset_id)
+    model_file, tokenizer, robot = inputs.model_file, inputs.tokenizer, inputs.robot
+    stats_file = robot.normalization.source if inputs.reads_state else None
     depends_on = {
         "checkpoint_fingerprint": checkpoint_fingerprint(model_file),
+        "layout": inputs.checkpoint.layout.name.value,
         "arch": settings.arch.model_dump(mode="json"),
         "compute_dtype": str(resolve_dtype(settings.dtype, resolve_device(settings.device))).removeprefix("torch."),
-        "prompt_format": settings.prompt_format.value,
-        "max_token_len": settings.max_token_len,
+        "prompt_format": robot.prompt_format.value,
+        "max_token_len": robot.max_token_len,
         "tokenizer_sha256": sha256_file(tokenizer.path),
-        "norm_stats_sha256": sha256_file(stats_file) if stats_file else None,
+        "norm_stats_sha256": _statistics_digest(robot) if stats_file else None,
     }
     width = settings.arch.width
     if inputs.expert_arch is not None:  # decision / adarms: the expert's stream, from the full sampler
         width = inputs.expert_arch.width
         depends_on |= {"expert_arch": inputs.expert_arch.model_dump(mode="json"), "num_steps": settings.num_steps,
-                       "noise_seed": settings.noise_seed, "action_horizon": settings.action_horizon}
+                       "noise_seed": settings.noise_seed, "action_horizon": robot.action_horizon}
     sources = {  # absolute, so the record still points at its inputs when read from elsewhere
         "checkpoint": str(model_file.resolve()),
         "tokenizer": str(tokenizer.path.resolve()),

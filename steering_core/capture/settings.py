@@ -10,17 +10,18 @@ from pydantic import Field, field_validator
 
 from steering_core.capture.shards import ACTION_TOKEN_TYPES, StorageDtype, TokenType
 from steering_core.data.dataset import DatasetMeta
-from steering_core.pi05 import NormStats, Pi05Arch, PromptFormat, PromptTokenizer, TokenizedPrompt, read_norm_stats
+from steering_core.pi05 import Pi05Arch, PromptFormat, PromptTokenizer, TokenizedPrompt
 from steering_core.pi05.arch import ExpertArch
 from steering_core.pi05.checkpoint import (
+    Checkpoint,
     check_expert_tensors,
     check_prefix_layout,
     expert_arch_from_checkpoint,
-    resolve_model_file,
 )
-from steering_core.pi05.norm_stats import LIBERO_ASSET_ID, norm_stats_path
+from steering_core.pi05.layouts import LayoutName, resolve_checkpoint
+from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
-from steering_core.pi05.tokenizer import MAX_TOKEN_LEN
+from steering_core.pi05.robot_side import RobotSide, robot_side
 from steering_core.storage.schema import StrictModel
 
 STATE_KEY = "state"  # the dataset feature the discrete-state prompt reads
@@ -31,18 +32,21 @@ N_CAMERAS = 3  # pi0.5's camera slots: base, left wrist, right wrist (absent in 
 class CaptureSettings(StrictModel):
     """What to capture and how; the seed's `save_residuals.py` flags plus the new ones."""
 
-    checkpoint_path: Path  # openpi PyTorch checkpoint folder (model.safetensors) or the file itself
-    tokenizer_path: Path  # PaliGemma SentencePiece model (paligemma_tokenizer.model)
+    checkpoint_path: Path  # pi0.5 checkpoint folder (openpi's converted or lerobot's) or its model.safetensors
+    layout: LayoutName = LayoutName.AUTO  # the checkpoint's layout: detected from the folder, or forced and checked
+    tokenizer_path: Path  # PaliGemma SentencePiece model (paligemma_tokenizer.model) or its tokenizer.json
     layers: tuple[int, ...] = (12,)  # the seed's SAE layer; decision/adarms: action expert layers
     token_type: TokenType = "instructions"
     # decision / adarms only: the full sampler runs per frame from noise drawn by a generator seeded
     # with (noise_seed, the frame's global index), so re-capturing gives the same rows
     num_steps: int = Field(10, ge=1, le=1000)  # Euler denoising steps (openpi's default)
     noise_seed: int = Field(0, ge=0, lt=2**31)
-    action_horizon: int = Field(10, ge=1, le=1000)  # action tokens per chunk (pi05_libero: 10)
-    prompt_format: PromptFormat = PromptFormat.LIBERO  # pi05_libero's; other pi0.5 checkpoints: discrete_state
-    max_token_len: int = Field(MAX_TOKEN_LEN, ge=1, le=8192)
-    norm_stats_path: Path | None = None  # discrete_state only; default <checkpoint>/assets/<asset id>/norm_stats.json
+    # action tokens per chunk; None: the checkpoint's (openpi action_horizon, lerobot chunk_size), else 10
+    action_horizon: int | None = Field(None, ge=1, le=1000)
+    # None: the checkpoint's (openpi: libero, pi05_libero's; lerobot: discrete_state, its only format)
+    prompt_format: PromptFormat | None = None
+    max_token_len: int | None = Field(None, ge=1, le=8192)  # None: lerobot's tokenizer_max_length, else 200
+    norm_stats_path: Path | None = None  # openpi discrete_state only; default <checkpoint>/assets/<asset id>/norm_stats.json
     norm_stats_asset_id: str = LIBERO_ASSET_ID
     skip_norm_stats: bool = False  # the seed's flag: never read norm stats (the libero format needs none)
     arch: Pi05Arch = Pi05Arch()
@@ -57,6 +61,16 @@ class CaptureSettings(StrictModel):
     num_workers: int | None = Field(None, ge=0, le=256)
     video_backend: str | None = None  # lerobot's decoder for video datasets (None: lerobot's default)
 
+    def robot_side(self) -> RobotSide:
+        """Return the checkpoint's statistics, cameras, prompt format, horizon and prompt length (`robot_side`)."""
+        return robot_side(resolve_checkpoint(self.checkpoint_path, self.layout), self.arch, self.prompt_format,
+                          self.norm_stats_path, self.norm_stats_asset_id, self.action_horizon, self.max_token_len)
+
+    def prompt_tokenizer(self) -> PromptTokenizer:
+        """Return the tokenizer in the checkpoint's prompt format and length."""
+        robot = self.robot_side()
+        return PromptTokenizer(self.tokenizer_path, robot.max_token_len, robot.prompt_format)
+
     @field_validator("layers")
     @classmethod
     def _layers_sorted(cls, layers: tuple[int, ...]) -> tuple[int, ...]:
@@ -67,12 +81,22 @@ class CaptureSettings(StrictModel):
 
 @dataclass(frozen=True)
 class CaptureInputs:
-    """The checked inputs of a capture: checkpoint file, tokenizer, and the state norm stats (discrete_state only)."""
+    """The checked inputs of a capture: the checkpoint, tokenizer, the checkpoint's robot side (statistics, cameras,
+    prompt format, horizon) and whether the prompt reads the state."""
 
-    model_file: Path
+    checkpoint: Checkpoint
     tokenizer: PromptTokenizer
-    norm_stats: NormStats | None
+    robot: RobotSide
     expert_arch: ExpertArch | None = None  # the action expert's dimensions (decision / adarms captures)
+
+    @property
+    def model_file(self) -> Path:
+        return self.checkpoint.model_file
+
+    @property
+    def reads_state(self) -> bool:
+        """Return whether the prompt carries the state (the discrete-state format)."""
+        return self.robot.prompt_format is PromptFormat.DISCRETE_STATE
 
 
 def select_tokens(prompt: TokenizedPrompt, token_type: str) -> np.ndarray:
@@ -93,8 +117,9 @@ def select_tokens(prompt: TokenizedPrompt, token_type: str) -> np.ndarray:
 
 
 def check_inputs(meta: DatasetMeta, settings: CaptureSettings) -> CaptureInputs:
-    """Return the checkpoint file, tokenizer and state norm stats after checking every input once (no model loaded)."""
-    discrete = settings.prompt_format is PromptFormat.DISCRETE_STATE
+    """Return the checkpoint, tokenizer and robot side after checking every input once (no model loaded)."""
+    inputs = check_model_inputs(settings)
+    discrete = inputs.reads_state
     problems = []
     features = meta.info["features"]
     needed = [*LIBERO_IMAGE_KEYS, *([STATE_KEY] if discrete else [])]
@@ -109,25 +134,27 @@ def check_inputs(meta: DatasetMeta, settings: CaptureSettings) -> CaptureInputs:
             )
     if problems:
         raise ValueError("\n".join(problems))
-    return check_model_inputs(settings)
+    return inputs
 
 
 def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
-    """Return the checked checkpoint file, tokenizer and norm stats: everything but the dataset (no model loaded).
+    """Return the checked checkpoint, tokenizer and robot side: everything but the dataset (no model loaded).
 
     The checkpoint's header must hold every prefix tensor up to the deepest layer with the arch's shapes;
     the action token types need the whole prefix and the action expert, whose layers `layers` then name.
     """
-    model_file = resolve_model_file(settings.checkpoint_path)
-    tokenizer = PromptTokenizer(settings.tokenizer_path, settings.max_token_len, settings.prompt_format)
-    discrete = settings.prompt_format is PromptFormat.DISCRETE_STATE
+    checkpoint = resolve_checkpoint(settings.checkpoint_path, settings.layout)
+    robot = robot_side(checkpoint, settings.arch, settings.prompt_format, settings.norm_stats_path,
+                       settings.norm_stats_asset_id, settings.action_horizon, settings.max_token_len)
+    tokenizer = PromptTokenizer(settings.tokenizer_path, robot.max_token_len, robot.prompt_format)
+    discrete = robot.prompt_format is PromptFormat.DISCRETE_STATE
     problems = []
     expert_arch = None
     depth, stream = settings.arch.depth, "language model"
     if settings.token_type in ACTION_TOKEN_TYPES:
-        check_prefix_layout(model_file, settings.arch, settings.arch.depth - 1)
-        expert_arch = expert_arch_from_checkpoint(model_file, settings.arch)
-        check_expert_tensors(model_file, expert_arch)
+        check_prefix_layout(checkpoint, settings.arch, settings.arch.depth - 1)
+        expert_arch = expert_arch_from_checkpoint(checkpoint, settings.arch)
+        check_expert_tensors(checkpoint, expert_arch)
         depth, stream = expert_arch.depth, f"action expert ({settings.token_type} token type)"
     bad_layers = [layer for layer in settings.layers if not 0 <= layer < depth]
     if bad_layers:
@@ -147,12 +174,7 @@ def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
     if problems:
         raise ValueError("\n".join(problems))
     if expert_arch is None:
-        check_prefix_layout(model_file, settings.arch, max(settings.layers))
-    norm_stats = None
+        check_prefix_layout(checkpoint, settings.arch, max(settings.layers))
     if discrete:
-        source = settings.norm_stats_path or settings.checkpoint_path
-        stats = read_norm_stats(source, settings.norm_stats_asset_id)
-        if STATE_KEY not in stats:
-            raise ValueError(f"{norm_stats_path(source, settings.norm_stats_asset_id)}: no `{STATE_KEY}` entry")
-        norm_stats = stats[STATE_KEY]
-    return CaptureInputs(model_file, tokenizer, norm_stats, expert_arch)
+        robot.normalization.check_state()  # read now, not at the first frame
+    return CaptureInputs(checkpoint, tokenizer, robot, expert_arch)

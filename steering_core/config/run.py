@@ -32,6 +32,7 @@ from steering_core.config.sections import (
 from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
+from steering_core.pi05.robot_side import DEFAULT_HORIZON
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
@@ -134,7 +135,7 @@ class RunConfig(StrictModel):
         """Return the evaluation's and the rollouts' estimated work over its limit (`steering_core.workload`)."""
         problems = rollout_problems(self)
         if self.evaluate is not None:
-            problems += evaluation_problems(self.evaluate_settings(), self.capture.action_horizon)
+            problems += evaluation_problems(self.evaluate_settings(), self.capture.action_horizon or DEFAULT_HORIZON)
         return problems
 
     # ------------------------------------------------------------------ paths (the seed's layout)
@@ -285,6 +286,7 @@ class RunConfig(StrictModel):
         return CaptureSettings(
             **self.capture.model_dump(),
             checkpoint_path=self.model.checkpoint,
+            layout=self.model.layout,
             tokenizer_path=self.model.tokenizer,
             norm_stats_path=self.model.norm_stats,
             arch=self.model.arch,

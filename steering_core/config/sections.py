@@ -29,6 +29,7 @@ from steering_core.evaluate import EvaluateSettings
 from steering_core.layout import check_name
 from steering_core.pairs import same_text
 from steering_core.pi05 import Pi05Arch
+from steering_core.pi05.layouts import LayoutName
 from steering_core.remote.publish import pull
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
 from steering_core.sae.training.settings import TrainSettings
@@ -40,7 +41,7 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 MAX_NAME_CHARS = 100  # a name becomes a path component with suffixes added (the file system allows 255 bytes)
 # Step settings the run config supplies itself, and where to set them instead.
 SUPPLIED = {
-    "capture": {"checkpoint_path": "model.checkpoint", "tokenizer_path": "model.tokenizer",
+    "capture": {"checkpoint_path": "model.checkpoint", "layout": "model.layout", "tokenizer_path": "model.tokenizer",
                 "norm_stats_path": "model.norm_stats", "arch": "model.arch", "layers": "layers"},
     "slicing": {"layers": "layers", "token_type": "capture.token_type", "holdout_episodes": "evaluate.holdout_fraction"},
     "steering": {"pairs_config": "pairs", "output_root": "output_root", "layer": "layers", "sae": "sae.<layer>",
@@ -184,9 +185,10 @@ class PairSection(StrictModel):
 class ModelSection(StrictModel):
     """The pi0.5 checkpoint and what reads it."""
 
-    checkpoint: ConfigPath                 # openpi PyTorch checkpoint folder or its model.safetensors
-    tokenizer: ConfigPath                  # PaliGemma SentencePiece model
-    norm_stats: ConfigPath | None = None   # discrete-state prompts only; default: the checkpoint's assets
+    checkpoint: ConfigPath                 # pi0.5 checkpoint folder (openpi's converted or lerobot's) or its model.safetensors
+    layout: LayoutName = LayoutName.AUTO   # the checkpoint's layout: detected from the folder, or forced and checked
+    tokenizer: ConfigPath                  # PaliGemma SentencePiece model or its tokenizer.json
+    norm_stats: ConfigPath | None = None   # openpi discrete-state prompts only; default: the checkpoint's assets
     arch: Pi05Arch = Pi05Arch()            # real pi0.5 dimensions; tiny models pass theirs
 
 

@@ -64,12 +64,9 @@ def mean_residual_norm(slice_paths: Sequence[Path]) -> float:
 
 
 def action_scale(policy: SweepPolicy) -> torch.Tensor:
-    """Return the (7,) float64 std of each robot action dimension, from the policy's `actions` norm stats."""
-    where = getattr(policy, "norm_stats_file", "the policy's norm stats")
-    stats = policy.norm_stats.get("actions")
-    if stats is None:
-        raise ValueError(f"{where}: no `actions` entry; the evaluation reports actions in units of their std")
-    std = torch.as_tensor(stats.std, dtype=torch.float64)[:ROBOT_DIM]
+    """Return the (7,) float64 std of each robot action dimension, from the policy's action statistics."""
+    where = policy.normalization.source
+    std = torch.as_tensor(policy.normalization.action_std(), dtype=torch.float64)[:ROBOT_DIM]
     if std.numel() < ROBOT_DIM or not bool((std > 0).all()):
         raise ValueError(f"{where}: actions.std {std.tolist()} must hold {ROBOT_DIM} positive values "
                          "(the robot action dimensions)")

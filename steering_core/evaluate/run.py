@@ -166,8 +166,8 @@ def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> No
                          f"(0..{model.arch.depth - 1})")
     if stream == "lm" and layer == model.arch.depth - 1:
         raise ValueError(f"layer {layer}: {LAST_LM_LAYER}; evaluate layers 0..{layer - 1}")
-    if model.prompt_format is not PromptFormat.LIBERO:
-        raise ValueError(f"prompt_format {model.prompt_format.value!r}: the evaluation steers one prompt per task, "
+    if (prompt_format := model.robot_side().prompt_format) is not PromptFormat.LIBERO:
+        raise ValueError(f"prompt_format {prompt_format.value!r}: the evaluation steers one prompt per task, "
                          "which needs the libero format (the state stays out of the prompt)")
 
 
@@ -192,10 +192,10 @@ def check_decision_run(run_dir: Path, layers: Sequence[int], model: CaptureSetti
                        where: str = "--decision-run") -> None:
     """Raise ValueError (one line naming `where`) unless `run_dir` holds `decision` rows of `layers` whose
     width is the checkpoint's action-expert width and whose sampler had `num_steps` steps. Reads headers only."""
-    from steering_core.pi05.checkpoint import expert_arch_from_checkpoint, resolve_model_file
+    from steering_core.pi05.checkpoint import expert_arch_from_checkpoint, resolve_checkpoint
 
     run = read_run_metadata(run_dir).run
-    expert = expert_arch_from_checkpoint(resolve_model_file(model.checkpoint_path), model.arch)
+    expert = expert_arch_from_checkpoint(resolve_checkpoint(model.checkpoint_path, model.layout), model.arch)
     problems = []
     if run.token_type != "decision":
         problems.append(f"it holds `{run.token_type}` rows, expected `decision` rows (capture --token-type decision)")
@@ -232,7 +232,7 @@ def load_policy(model: CaptureSettings, device: str, dtype: str | None, compiled
     return Pi05Policy.from_checkpoint(
         model.checkpoint_path, arch=model.arch, device=device, dtype=dtype, tokenizer_path=model.tokenizer_path,
         prompt_format=model.prompt_format, norm_stats_path=model.norm_stats_path, asset_id=model.norm_stats_asset_id,
-        compiled=compiled,
+        compiled=compiled, layout=model.layout, action_horizon=model.action_horizon, max_token_len=model.max_token_len,
     )
 
 
@@ -298,7 +298,7 @@ def _evaluate(
     width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
     from steering_core.pi05.steering import Steering
 
-    tokenizer = PromptTokenizer(model.tokenizer_path, model.max_token_len, model.prompt_format)
+    tokenizer = model.prompt_tokenizer()
 
     def load(frames: Sequence[EvalFrame]) -> dict[str, Any]:
         return load_frames(job.dataset_root, job.repo_id, frames, model.arch.image_size, model.video_backend)

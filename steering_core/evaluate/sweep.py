@@ -34,7 +34,7 @@ class SweepPolicy(Protocol):
 
     action_horizon: int
     action_dim: int
-    norm_stats: dict[str, Any]  # feature -> NormStats; `actions` gives the std the metrics divide by
+    normalization: Any  # the robot side: `action_std()` gives the std the metrics divide by, `source` its file
 
     def sample_actions(self, images: list[torch.Tensor], image_masks: list[torch.Tensor], tokens: torch.Tensor,
                        token_mask: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int = 10,

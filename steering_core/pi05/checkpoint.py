@@ -1,16 +1,16 @@
-"""openpi PyTorch pi0.5 checkpoints: parameter names, expected shapes and lazy, validated reading.
+"""pi0.5 checkpoints: parameter names, expected shapes and lazy, validated reading, in either layout.
 
-The prefix (SigLIP tower, projector, token embedding, language-model layers 0..max_layer) and the action
-expert with its heads are read separately, each after checking its names and shapes in the file header.
-The language model's final norm and the expert's lm_head are never read: no output depends on them.
+Every tensor is named by openpi's key (the canonical name, spec 1.2); `steering_core.pi05.layouts.Checkpoint`
+maps it to the name its file stores (lerobot prefixes `model.` and embeds with `embed_tokens`). The prefix (SigLIP
+tower, projector, token embedding, language-model layers 0..max_layer) and the action expert with its heads are
+read separately, each after checking its names and shapes in the file header. The language model's final norm,
+lerobot's unused `lm_head` and the expert's lm_head are never read: no output depends on them.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Callable, Iterable
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -18,7 +18,16 @@ from safetensors import safe_open
 from tqdm.auto import tqdm
 
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
-from steering_core.storage.fileio import read_json
+from steering_core.pi05.layouts import (
+    CONFIG_FILE,
+    EMBEDDING_KEY,
+    LM_PREFIX,
+    MODEL_FILE,
+    PALIGEMMA,
+    Checkpoint,
+    resolve_checkpoint,
+    resolve_model_file,
+)
 from steering_core.tensor_files import (
     check_safetensors,
     read_tensor,
@@ -30,18 +39,12 @@ from steering_core.tensor_files import (
 
 logger = logging.getLogger(__name__)
 
-MODEL_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
+__all__ = ["CONFIG_FILE", "MODEL_FILE", "Checkpoint", "resolve_checkpoint", "resolve_model_file"]
 
 # Name prefixes of openpi's module tree (spec 1.2), concatenated directly with the suffixes below.
-PALIGEMMA = "paligemma_with_expert.paligemma."
 VISION_PREFIX = PALIGEMMA + "model.vision_tower.vision_model."
 PROJECTOR_PREFIX = PALIGEMMA + "model.multi_modal_projector."
-LM_PREFIX = PALIGEMMA + "model.language_model."
 EXPERT_PREFIX = "paligemma_with_expert.gemma_expert."
-# The embedding table is tied to PaliGemma's lm_head; safetensors keeps only the alphabetically first
-# name of a shared group, so the file stores it as lm_head.weight and has no embed_tokens (spec 1.3).
-EMBEDDING_KEY = PALIGEMMA + "lm_head.weight"
 EXPERT_LAYERS = EXPERT_PREFIX + "model.layers."
 ACTION_IN_KEY = "action_in_proj.weight"  # (expert width, action_dim): its presence marks a full checkpoint
 HEADS = ("action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")
@@ -51,31 +54,7 @@ CHECKPOINT_FIX = "the checkpoint is damaged; re-download or re-convert it"
 _FLOAT_DTYPES = {"BF16", "F16", "F32", "F64"}  # a converted file is uniform, a training file mixed (spec 1.4)
 
 Shape = tuple[int, ...]
-Placement = Callable[[str], tuple[torch.device, torch.dtype]]  # checkpoint name -> run-time (device, dtype)
-
-
-def resolve_model_file(path: str | os.PathLike) -> Path:
-    """Return the `model.safetensors` of a checkpoint folder, or `path` itself if it is that file."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / MODEL_FILE
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path}: pi0.5 checkpoint not found; pass a converted openpi PyTorch checkpoint folder "
-            f"(holding {MODEL_FILE}) or the .safetensors file itself"
-        )
-    return path
-
-
-def read_checkpoint_config(model_file: Path) -> dict[str, Any] | None:
-    """Return the checkpoint's `config.json` beside `model_file` (action_dim, variants, precision), if any."""
-    config_file = model_file.parent / CONFIG_FILE
-    if not config_file.is_file():
-        return None
-    config = read_json(config_file)
-    if not isinstance(config, dict):
-        raise ValueError(f"{config_file}: expected a JSON object, found {type(config).__name__}")
-    return config
+Placement = Callable[[str], tuple[torch.device, torch.dtype]]  # canonical name -> run-time (device, dtype)
 
 
 def check_max_layer(arch: Pi05Arch, max_layer: int | None) -> int:
@@ -143,11 +122,12 @@ def prefix_tensor_shapes(arch: Pi05Arch, max_layer: int) -> dict[str, Shape]:
     return shapes
 
 
-def _problems(handle: Any, expected: dict[str, Shape]) -> list[tuple[str, str, str]]:
-    """Return sorted (name, found, expected) for every needed tensor that is missing or malformed."""
+def _problems(handle: Any, checkpoint: Checkpoint, expected: dict[str, Shape]) -> list[tuple[str, str, str]]:
+    """Return sorted (stored name, found, expected) for every needed tensor that is missing or malformed."""
     stored = set(handle.keys())
     problems = []
-    for name, shape in expected.items():
+    for canonical, shape in expected.items():
+        name = checkpoint.stored(canonical)
         if name not in stored:
             problems.append((name, "missing", str(shape)))
             continue
@@ -195,7 +175,7 @@ def expert_tensor_shapes(expert: ExpertArch) -> dict[str, Shape]:
     return shapes
 
 
-def expert_arch_from_checkpoint(model_file: Path, arch: Pi05Arch) -> ExpertArch:
+def expert_arch_from_checkpoint(checkpoint: Checkpoint, arch: Pi05Arch) -> ExpertArch:
     """Return the expert's dimensions: gemma_300m beside the real language model, else read from the header.
 
     Width and action_dim come from `action_in_proj`, the MLP size from layer 0, the depth from the layer
@@ -203,16 +183,16 @@ def expert_arch_from_checkpoint(model_file: Path, arch: Pi05Arch) -> ExpertArch:
     """
     if arch == Pi05Arch():
         return ExpertArch()
-    with safe_open(str(model_file), framework="pt", device="cpu") as handle:
-        names = set(handle.keys())
+    with safe_open(str(checkpoint.model_file), framework="pt", device="cpu") as handle:
+        names = {checkpoint.canonical(name) for name in handle.keys()}
         if ACTION_IN_KEY not in names:
             raise ValueError(
-                f"{model_file}: no action expert ({ACTION_IN_KEY} missing): this looks like a prefix-only "
-                "checkpoint; sampling actions needs the whole converted openpi pi0.5 checkpoint"
+                f"{checkpoint.model_file}: no action expert ({checkpoint.stored(ACTION_IN_KEY)} missing): this looks "
+                "like a prefix-only checkpoint; sampling actions needs the whole pi0.5 checkpoint"
             )
-        width, action_dim = handle.get_slice(ACTION_IN_KEY).get_shape()
+        width, action_dim = handle.get_slice(checkpoint.stored(ACTION_IN_KEY)).get_shape()
         gate = f"{EXPERT_LAYERS}0.mlp.gate_proj.weight"
-        mlp_dim = handle.get_slice(gate).get_shape()[0] if gate in names else 1
+        mlp_dim = handle.get_slice(checkpoint.stored(gate)).get_shape()[0] if gate in names else 1
     depth = len({name[len(EXPERT_LAYERS) :].split(".")[0] for name in names if name.startswith(EXPERT_LAYERS)})
     return ExpertArch(
         width=width, depth=max(depth, 1), mlp_dim=mlp_dim, num_heads=arch.num_heads,
@@ -220,79 +200,84 @@ def expert_arch_from_checkpoint(model_file: Path, arch: Pi05Arch) -> ExpertArch:
     )
 
 
-def check_tensors(model_file: Path, expected: dict[str, Shape], what: str, hint: str) -> None:
+def check_tensors(checkpoint: Checkpoint, expected: dict[str, Shape], what: str, hint: str) -> None:
     """Raise one ValueError listing every tensor of `expected` that is missing or malformed in the header.
 
-    `what` names the part ("action expert tensors"), `hint` says how to fix it. A file that is not
-    safetensors is refused before the reader trusts its header length.
+    `expected` is keyed by canonical names; the message names the stored ones. `what` names the part ("action
+    expert tensors"), `hint` says how to fix it. A file that is not safetensors is refused before the reader trusts
+    its header length.
     """
+    model_file = checkpoint.model_file
     check_safetensors(model_file)
     with safe_open(str(model_file), framework="pt", device="cpu") as handle:
-        problems = _problems(handle, expected)
+        problems = _problems(handle, checkpoint, expected)
     if problems:
         lines = "\n".join(
             f"  {name}: {'' if found == 'missing' else 'found '}{found}, expected {want}"
             for name, found, want in problems
         )
         raise ValueError(
-            f"{model_file}: {len(problems)} of {len(expected)} {what} are missing or do not match:\n{lines}\n{hint}"
+            f"{model_file}: {len(problems)} of {len(expected)} {what} are missing or do not match (the file is in "
+            f"{checkpoint.layout.name.value}'s layout):\n{lines}\n{hint}"
         )
 
 
 def read_tensors(
-    model_file: Path,
+    checkpoint: Checkpoint,
     expected: dict[str, Shape],
     placement: Placement,
     what: str,
     hint: str,
 ) -> dict[str, torch.Tensor]:
-    """Return checkpoint name -> tensor for the names of `expected`, read after `check_tensors`.
+    """Return canonical name -> tensor for the names of `expected`, read after `check_tensors`.
 
     `placement(name)` gives each tensor's run-time (device, dtype). Each tensor is allocated there and
     filled by plain file reads (`steering_core.tensor_files`): no memory map keeps the file's pages resident,
     and converted tensors pass through one staging buffer of 16 MiB, so peak memory is the converted
     tensors plus that buffer.
     """
-    check_tensors(model_file, expected, what, hint)
+    check_tensors(checkpoint, expected, what, hint)
+    model_file = checkpoint.model_file
     locations = tensor_locations(model_file)
     staging = staging_buffer()  # one buffer for every converted tensor: no allocator churn
     tensors = {}
     with open(model_file, "rb", buffering=0) as handle:
         for name in tqdm(expected, desc="loading pi0.5 tensors", unit="tensor", leave=False, disable=None):
             device, dtype = placement(name)
-            tensors[name] = read_tensor(handle, locations[name], device, dtype, staging)
-            require_finite(tensors[name], model_file, name, CHECKPOINT_FIX)
-    logger.info("%s: read %d %s", model_file, len(tensors), what)
+            stored = checkpoint.stored(name)
+            tensors[name] = read_tensor(handle, locations[stored], device, dtype, staging)
+            require_finite(tensors[name], model_file, stored, CHECKPOINT_FIX)
+    logger.info("%s: read %d %s", checkpoint.describe, len(tensors), what)
     return tensors
 
 
-def check_finite(model_file: Path, names: Iterable[str]) -> None:
-    """Raise naming the file and tensor unless every tensor of `names` is finite (read in chunks, none kept)."""
-    names = list(names)
-    logger.info("%s: checking %d tensors for NaN and Inf", model_file, len(names))
-    require_finite_file(model_file, names, CHECKPOINT_FIX)
+def check_finite(checkpoint: Checkpoint, names: Iterable[str]) -> None:
+    """Raise naming the file and tensor unless every tensor of canonical `names` is finite (read in chunks)."""
+    names = [checkpoint.stored(name) for name in names]
+    logger.info("%s: checking %d tensors for NaN and Inf", checkpoint.model_file, len(names))
+    require_finite_file(checkpoint.model_file, names, CHECKPOINT_FIX)
 
 
 def _prefix_what_hint(arch: Pi05Arch, max_layer: int) -> tuple[str, str]:
     """Return how prefix tensor problems are named and fixed."""
     return (f"prefix tensors (up to decoder layer {max_layer})",
-            f"They do not match {arch!r}. Pass the Pi05Arch this checkpoint was built with, or re-convert it "
-            "with openpi's convert_jax_model_to_pytorch.py.")
+            f"They do not match {arch!r}. Pass the Pi05Arch this checkpoint was built with (its tensors' shapes, "
+            "whatever config.json's variant names say).")
 
 
-def check_prefix_layout(model_file: Path, arch: Pi05Arch, max_layer: int) -> None:
+def check_prefix_layout(checkpoint: Checkpoint, arch: Pi05Arch, max_layer: int) -> None:
     """Raise unless the file holds every prefix tensor up to `max_layer` with the arch's shapes (header only)."""
-    check_tensors(model_file, prefix_tensor_shapes(arch, max_layer), *_prefix_what_hint(arch, max_layer))
+    check_tensors(checkpoint, prefix_tensor_shapes(arch, max_layer), *_prefix_what_hint(arch, max_layer))
 
 
 def read_prefix_tensors(
-    model_file: Path,
+    checkpoint: Checkpoint,
     arch: Pi05Arch,
     max_layer: int,
     placement: Placement,
 ) -> dict[str, torch.Tensor]:
-    """Return checkpoint name -> tensor for the prefix up to `max_layer` (`read_tensors`)."""
-    return read_tensors(model_file, prefix_tensor_shapes(arch, max_layer), placement, *_prefix_what_hint(arch, max_layer))
+    """Return canonical name -> tensor for the prefix up to `max_layer` (`read_tensors`)."""
+    return read_tensors(checkpoint, prefix_tensor_shapes(arch, max_layer), placement, *_prefix_what_hint(arch, max_layer))
 
 
 EXPERT_WHAT = "action expert tensors"
@@ -301,20 +286,20 @@ EXPERT_WHAT = "action expert tensors"
 def expert_hint(expert: ExpertArch) -> str:
     """Return how to fix an expert that does not match the file."""
     return (
-        f"They do not match {expert!r}. Sampling actions needs the whole converted openpi pi0.5 checkpoint "
+        f"They do not match {expert!r}. Sampling actions needs the whole pi0.5 checkpoint "
         "(a prefix-only file has no expert)."
     )
 
 
-def check_expert_tensors(model_file: Path, expert: ExpertArch) -> None:
+def check_expert_tensors(checkpoint: Checkpoint, expert: ExpertArch) -> None:
     """Raise unless the file holds the action expert and heads of `expert` (header only, no data read)."""
-    check_tensors(model_file, expert_tensor_shapes(expert), EXPERT_WHAT, expert_hint(expert))
+    check_tensors(checkpoint, expert_tensor_shapes(expert), EXPERT_WHAT, expert_hint(expert))
 
 
 def read_expert_tensors(
-    model_file: Path,
+    checkpoint: Checkpoint,
     expert: ExpertArch,
     placement: Placement,
 ) -> dict[str, torch.Tensor]:
-    """Return checkpoint name -> tensor for the action expert and the heads (`read_tensors`)."""
-    return read_tensors(model_file, expert_tensor_shapes(expert), placement, EXPERT_WHAT, expert_hint(expert))
+    """Return canonical name -> tensor for the action expert and the heads (`read_tensors`)."""
+    return read_tensors(checkpoint, expert_tensor_shapes(expert), placement, EXPERT_WHAT, expert_hint(expert))

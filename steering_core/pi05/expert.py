@@ -22,9 +22,6 @@ from steering_core.pi05.model import NORM_EPS
 
 TIME_MIN_PERIOD, TIME_MAX_PERIOD = 4e-3, 4.0  # openpi's sinusoidal time embedding (spec 10.3)
 
-# adaRMS norm parameters and the heads under a half-precision policy stay float32 (spec 10.6)
-FLOAT32_SELECTORS = ("layernorm.dense", "norm.dense", "action_in_proj", "action_out_proj", "time_mlp_")
-
 KeyValues = Sequence[tuple[torch.Tensor, torch.Tensor]]  # per layer (B, kv_heads, S, head_dim) keys, values
 
 
@@ -33,12 +30,6 @@ def expert_checkpoint_key(parameter: str) -> str:
     if parameter.startswith(("layers.", "norm.")):
         return EXPERT_PREFIX + "model." + parameter
     return parameter
-
-
-def expert_parameter_dtype(key: str, dtype: torch.dtype) -> torch.dtype:
-    """Return the run-time dtype of expert checkpoint tensor `key` under compute dtype `dtype`."""
-    half = dtype in (torch.bfloat16, torch.float16)
-    return torch.float32 if half and any(selector in key for selector in FLOAT32_SELECTORS) else dtype
 
 
 def time_embedding(time: torch.Tensor, width: int) -> torch.Tensor:

@@ -32,10 +32,9 @@ from steering_core.pi05.checkpoint import (
     PROJECTOR_PREFIX,
     VISION_PREFIX,
     check_max_layer,
-    read_checkpoint_config,
     read_prefix_tensors,
-    resolve_model_file,
 )
+from steering_core.pi05.layouts import OPENPI, Checkpoint, CheckpointLayout, LayoutName, resolve_checkpoint
 
 logger = logging.getLogger(__name__)
 
@@ -46,16 +45,6 @@ ROPE_THETA = 10000.0
 ACTIVATION = "gelu_pytorch_tanh"  # GELU with the tanh approximation, in both towers
 # openpi's additive mask value for disallowed pairs, added before a float32 softmax (spec 3.4)
 MASKED_LOGIT = -2.3819763e38
-
-# Under a half-precision policy openpi keeps these parameters in float32 (spec 1.4); the final norm and
-# the expert's adaRMS selectors of that list never match here because those tensors are never loaded.
-FLOAT32_SELECTORS = (
-    "embeddings.patch_embedding.weight",
-    "embeddings.patch_embedding.bias",
-    "embeddings.position_embedding.weight",
-    "input_layernorm",
-    "post_attention_layernorm",
-)
 
 # Module parameter prefix -> checkpoint key prefix (spec 1.2); the rest of each name is identical.
 PARAMETER_PREFIXES = (
@@ -114,10 +103,11 @@ def siglip_config(arch: Pi05Arch) -> SiglipVisionConfig:
     return config
 
 
-def parameter_dtype(key: str, dtype: torch.dtype) -> torch.dtype:
-    """Return the run-time dtype of checkpoint tensor `key` under compute dtype `dtype` (spec 1.4)."""
+def parameter_dtype(key: str, dtype: torch.dtype, layout: CheckpointLayout = OPENPI) -> torch.dtype:
+    """Return the run-time dtype of canonical tensor `key` under compute dtype `dtype`: the layout's library keeps
+    some parameters in float32 under a half-precision policy (spec 1.4, 11.6)."""
     half = dtype in (torch.bfloat16, torch.float16)
-    return torch.float32 if half and any(selector in key for selector in FLOAT32_SELECTORS) else dtype
+    return torch.float32 if half and any(selector in key for selector in layout.float32_selectors) else dtype
 
 
 class SiglipEmbeddings(nn.Module):
@@ -182,50 +172,61 @@ class Pi05Prefix(nn.Module):
             self.embed_tokens = nn.Embedding(arch.vocab_size, arch.width)
             self.layers = nn.ModuleList(GemmaDecoderLayer(self.lm_config, index) for index in range(n_layers))
         self.rotary_emb = GemmaRotaryEmbedding(self.lm_config)
-        self.model_file: Path | None = None
-        self.checkpoint_config: dict[str, Any] | None = None
+        self.checkpoint: Checkpoint | None = None
 
     @classmethod
     def from_checkpoint(
         cls,
-        path: str | os.PathLike,
+        path: str | os.PathLike | Checkpoint,
         arch: Pi05Arch | None = None,
         max_layer: int | None = None,
         device: str | torch.device | None = None,
         dtype: str | torch.dtype | None = None,
+        layout: LayoutName | str = LayoutName.AUTO,
     ) -> Pi05Prefix:
-        """Return the prefix model of an openpi PyTorch pi0.5 checkpoint, loaded up to decoder layer `max_layer`.
+        """Return the prefix model of a pi0.5 checkpoint (openpi's or lerobot's layout), loaded up to decoder
+        layer `max_layer`.
 
         Args:
-            path: checkpoint folder holding `model.safetensors` (and `config.json`), or the file itself.
+            path: checkpoint folder holding `model.safetensors` (and `config.json`), the file itself, or a
+                resolved `Checkpoint`.
             arch: dimensions to check the checkpoint against; default the real pi0.5.
             max_layer: deepest decoder layer that will be captured; default the last. Deeper layers, the
                 final norm, the action expert and the heads are never read.
             device: default CUDA when available, else CPU.
-            dtype: compute dtype; default openpi's policy (bfloat16 with float32 norms and patch/position
-                embeddings) on CUDA, float32 on CPU.
+            dtype: compute dtype; default the layout's library's policy on CUDA (bfloat16 with its float32
+                parameters, `CheckpointLayout.float32_selectors`), float32 on CPU.
+            layout: `auto` (detected from the folder), `openpi` or `lerobot` (then checked against the folder).
         """
         arch = arch or Pi05Arch()
-        model_file = resolve_model_file(path)
+        checkpoint = path if isinstance(path, Checkpoint) else resolve_checkpoint(path, layout)
         max_layer = check_max_layer(arch, max_layer)
         device = resolve_device(device)
         dtype = resolve_dtype(dtype, device)
-        checkpoint_config = read_checkpoint_config(model_file)  # a broken config.json fails before the weights
         model = cls(arch, max_layer + 1)
         local_names = {checkpoint_key(name): name for name, _ in model.named_parameters()}
         tensors = read_prefix_tensors(
-            model_file,
+            checkpoint,
             arch,
             max_layer,
-            lambda key: (device, parameter_dtype(key, dtype)),
+            lambda key: (device, parameter_dtype(key, dtype, checkpoint.layout)),
         )
         model.load_state_dict({local_names[key]: tensor for key, tensor in tensors.items()}, strict=True, assign=True)
         model.rotary_emb.to(device)
         model.requires_grad_(False).eval()
-        model.model_file = model_file
-        model.checkpoint_config = checkpoint_config
-        logger.info("pi0.5 prefix from %s: layers 0..%d on %s in %s", model_file, max_layer, device, dtype)
+        model.checkpoint = checkpoint
+        logger.info("pi0.5 prefix from %s: layers 0..%d on %s in %s", checkpoint.describe, max_layer, device, dtype)
         return model
+
+    @property
+    def model_file(self) -> Path | None:
+        """Return the weights file the model was loaded from."""
+        return None if self.checkpoint is None else self.checkpoint.model_file
+
+    @property
+    def checkpoint_config(self) -> dict[str, Any] | None:
+        """Return the checkpoint's `config.json`, if its folder has one."""
+        return None if self.checkpoint is None else self.checkpoint.config
 
     @property
     def device(self) -> torch.device:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from steering_core.pi05.preprocess import camera_slots
+from steering_core.pi05.preprocess import Cameras
 
 IMAGE_KEY = "observation/image"
 WRIST_IMAGE_KEY = "observation/wrist_image"
@@ -55,8 +55,9 @@ def _channels_first(frames: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.array(frames, copy=True)).permute(0, 3, 1, 2)  # a copy: inputs may be read-only
 
 
-def observation_batch(observation: Mapping[str, Any], image_size: int) -> ObservationBatch:
-    """Return the model inputs of an openpi LIBERO observation; one ValueError names every bad key."""
+def observation_batch(observation: Mapping[str, Any], image_size: int, cameras: Cameras = Cameras()) -> ObservationBatch:
+    """Return the model inputs of an openpi LIBERO observation, its two cameras in the checkpoint's slots
+    (`cameras`); one ValueError names every bad key."""
     if not isinstance(observation, Mapping):
         raise ValueError(f"observation must be a dict with keys {REQUIRED_KEYS}, found {type(observation).__name__}")
     missing = [key for key in REQUIRED_KEYS if key not in observation]
@@ -79,5 +80,5 @@ def observation_batch(observation: Mapping[str, Any], image_size: int) -> Observ
         problems.append(f"`{PROMPT_KEY}` gives {len(prompts)} prompts for a batch of {batch}; expected a str per frame")
     if problems:
         raise ValueError("observation: " + "; ".join(problems))
-    images, image_masks = camera_slots(_channels_first(image), _channels_first(wrist), image_size)
+    images, image_masks = cameras.from_uint8(_channels_first(image), _channels_first(wrist), image_size)
     return ObservationBatch(images, image_masks, prompts, states, batched)

@@ -13,7 +13,6 @@ import logging
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,21 +25,13 @@ from steering_core.pi05.checkpoint import (
     check_expert_tensors,
     expert_arch_from_checkpoint,
     read_expert_tensors,
-    resolve_model_file,
 )
 from steering_core.pi05.denoise import Denoiser
-from steering_core.pi05.expert import ActionExpert, euler_times, expert_checkpoint_key, expert_parameter_dtype
-from steering_core.pi05.model import MASKED_LOGIT, Attention, KeyValueRecorder, Pi05Prefix
-from steering_core.pi05.norm_stats import (
-    LIBERO_ASSET_ID,
-    NormStats,
-    quantile_normalize,
-    quantile_unnormalize,
-    read_norm_stats,
-)
-from steering_core.pi05.norm_stats import (
-    norm_stats_path as default_norm_stats_path,
-)
+from steering_core.pi05.expert import ActionExpert, euler_times, expert_checkpoint_key
+from steering_core.pi05.layouts import LayoutName, resolve_checkpoint
+from steering_core.pi05.model import MASKED_LOGIT, Attention, KeyValueRecorder, Pi05Prefix, parameter_dtype
+from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
+from steering_core.pi05.normalization import ROBOT_ACTION_DIM
 from steering_core.pi05.observation import (
     IMAGE_KEY,
     PROMPT_KEY,
@@ -49,6 +40,8 @@ from steering_core.pi05.observation import (
     ObservationBatch,
     observation_batch,
 )
+from steering_core.pi05.preprocess import Cameras
+from steering_core.pi05.robot_side import Normalization, robot_side
 from steering_core.pi05.steering import (
     Splice,
     Steering,
@@ -63,9 +56,9 @@ from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer
 
 logger = logging.getLogger(__name__)
 
-ROBOT_ACTION_DIM = 7  # LiberoOutputs keeps the first 7 of the 32 model action dimensions
 LIBERO_STATE_DIM = 8  # eef position 3, axis-angle 3, gripper qpos 2: the warm-up's dummy state
 DEFAULT_STEPS = 10  # sample_actions' default number of Euler steps
+
 
 
 class Pi05Policy(nn.Module):
@@ -77,17 +70,18 @@ class Pi05Policy(nn.Module):
         expert: ActionExpert,
         action_horizon: int,
         tokenizer: PromptTokenizer | None,
-        norm_stats_file: Path,
+        normalization: Normalization,
         compiled: bool = False,
+        cameras: Cameras = Cameras(),
     ):
         super().__init__()
         self.prefix = prefix
         self.expert = expert
         self.action_horizon = action_horizon
         self.tokenizer = tokenizer
-        self.norm_stats_file = norm_stats_file
+        self.normalization = normalization
+        self.cameras = cameras
         self.attention: Attention = "sdpa"  # the prefix's fused attention; "eager" is openpi's explicit mask
-        self._norm_stats: dict[str, NormStats] | None = None
         self.denoiser = Denoiser(expert, compiled)
 
     @property
@@ -102,41 +96,48 @@ class Pi05Policy(nn.Module):
         arch: Pi05Arch | None = None,
         device: str | torch.device | None = None,
         dtype: str | torch.dtype | None = None,
-        action_horizon: int = 10,
+        action_horizon: int | None = None,
         tokenizer_path: str | os.PathLike | None = None,
-        prompt_format: PromptFormat = PromptFormat.LIBERO,
+        prompt_format: PromptFormat | None = None,
         norm_stats_path: str | os.PathLike | None = None,
         asset_id: str = LIBERO_ASSET_ID,
         expert_arch: ExpertArch | None = None,
         compiled: bool | None = None,
+        layout: LayoutName | str = LayoutName.AUTO,
+        max_token_len: int | None = None,
     ) -> Pi05Policy:
-        """Return the policy of a converted openpi PyTorch pi0.5 checkpoint (folder or model.safetensors).
+        """Return the policy of a pi0.5 checkpoint: openpi's converted PyTorch folder or lerobot's PI05Policy folder
+        (detected, or `layout` forced), or the model.safetensors of either.
 
         Args:
             arch: language model and SigLIP dimensions; default the real pi0.5.
-            device, dtype: default CUDA with openpi's bfloat16 policy (float32 norms, adaRMS and heads)
-                when available, else CPU float32.
-            action_horizon: actions per chunk (pi05_libero: 10).
-            tokenizer_path: PaliGemma SentencePiece model; needed by `infer` and `instruction_mask` only.
-            prompt_format: how the checkpoint reads its prompt (pi05_libero: libero, no state).
-            norm_stats_path, asset_id: norm stats for `robot_actions` (and the discrete-state prompt);
-                default `<checkpoint>/assets/<asset_id>/norm_stats.json`, read on first use.
+            device, dtype: default CUDA with the layout's bfloat16 policy (its float32 parameters) when available,
+                else CPU float32.
+            action_horizon: actions per chunk; default the checkpoint's (openpi `action_horizon`, lerobot
+                `chunk_size`), else 10 (pi05_libero).
+            tokenizer_path: PaliGemma's SentencePiece model or tokenizer.json; needed by `infer`, `tokenize` and
+                `instruction_mask` only.
+            prompt_format: how the checkpoint reads its prompt; default libero for openpi (pi05_libero: no state),
+                discrete_state for lerobot (its preprocessor always puts the state in the prompt).
+            norm_stats_path, asset_id: openpi only: the norm stats for `robot_actions` (and the discrete-state
+                prompt); default `<checkpoint>/assets/<asset_id>/norm_stats.json`, read on first use. lerobot's
+                statistics come from its processor files.
             expert_arch: expert dimensions; default gemma_300m beside the real language model, else read
                 from the checkpoint's shapes.
             compiled: run the denoising step compiled (`steering_core.pi05.denoise`: the same actions within
                 rounding, a one-off compilation per batch size, paid by `warm_up`); default on CUDA only.
+            max_token_len: the tokenizer's prompt length; default lerobot's tokenizer_max_length, else 200.
         """
         arch = arch or Pi05Arch()
-        if isinstance(action_horizon, bool) or not isinstance(action_horizon, int) or action_horizon < 1:
-            raise ValueError(f"action_horizon {action_horizon!r} must be a positive integer")
-        model_file = resolve_model_file(path)
-        expert_arch = expert_arch or expert_arch_from_checkpoint(model_file, arch)
+        checkpoint = resolve_checkpoint(path, layout)
+        robot = robot_side(checkpoint, arch, prompt_format, norm_stats_path, asset_id, action_horizon, max_token_len)
+        expert_arch = expert_arch or expert_arch_from_checkpoint(checkpoint, arch)
         expert_arch.check_pairs_with(arch)
         # the expert's names and shapes fail a prefix-only or mismatched file before any data is read
-        check_expert_tensors(model_file, expert_arch)
+        check_expert_tensors(checkpoint, expert_arch)
         tokenizer = None
         if tokenizer_path is not None:
-            tokenizer = PromptTokenizer(tokenizer_path, prompt_format=prompt_format)
+            tokenizer = PromptTokenizer(tokenizer_path, robot.max_token_len, robot.prompt_format)
             if tokenizer.vocab_size > arch.vocab_size:
                 raise ValueError(
                     f"{tokenizer_path}: {tokenizer.vocab_size} pieces, more than the model's vocab_size "
@@ -144,22 +145,21 @@ class Pi05Policy(nn.Module):
                 )
         device = resolve_device(device)
         dtype = resolve_dtype(dtype, device)
-        prefix = Pi05Prefix.from_checkpoint(model_file, arch, device=device, dtype=dtype)
+        prefix = Pi05Prefix.from_checkpoint(checkpoint, arch, device=device, dtype=dtype)
         with torch.device("meta"):
             expert = ActionExpert(expert_arch)
         local = {expert_checkpoint_key(name): name for name, _ in expert.named_parameters()}
         tensors = read_expert_tensors(
-            model_file,
+            checkpoint,
             expert_arch,
-            lambda key: (device, expert_parameter_dtype(key, dtype)),
+            lambda key: (device, parameter_dtype(key, dtype, checkpoint.layout)),
         )
         expert.load_state_dict({local[key]: tensor for key, tensor in tensors.items()}, strict=True, assign=True)
         expert.requires_grad_(False).eval()
-        stats_file = Path(norm_stats_path) if norm_stats_path is not None else default_norm_stats_path(model_file, asset_id)
         compiled = device.type == "cuda" if compiled is None else compiled
-        policy = cls(prefix, expert, action_horizon, tokenizer, stats_file, compiled)
+        policy = cls(prefix, expert, robot.action_horizon, tokenizer, robot.normalization, compiled, robot.cameras)
         policy.eval()
-        logger.info("pi0.5 policy from %s on %s in %s (expert %s%s)", model_file, device, dtype, expert_arch,
+        logger.info("pi0.5 policy from %s on %s in %s (expert %s%s)", checkpoint.describe, device, dtype, expert_arch,
                     ", compiled denoising" if compiled else "")
         return policy
 
@@ -194,7 +194,8 @@ class Pi05Policy(nn.Module):
             "max_token_len": self.tokenizer.max_len if self.tokenizer else None,
             "prompt_format": self.tokenizer.prompt_format.value if self.tokenizer else None,
             "checkpoint": str(self.prefix.model_file),
-            "norm_stats": str(self.norm_stats_file),
+            "layout": self.layout,
+            "norm_stats": str(self.normalization.source),
             "device": str(self.device),
             "dtype": str(self.prefix.compute_dtype).removeprefix("torch."),
             "lm": self.arch.model_dump(),
@@ -338,26 +339,20 @@ class Pi05Policy(nn.Module):
     # ------------------------------------------------------------------ robot side
 
     @property
-    def norm_stats(self) -> dict[str, NormStats]:
-        """Return the checkpoint's norm stats, read on first use."""
-        if self._norm_stats is None:
-            self._norm_stats = read_norm_stats(self.norm_stats_file)
-        return self._norm_stats
+    def layout(self) -> str:
+        """Return the checkpoint's layout name (`openpi` or `lerobot`)."""
+        checkpoint = self.prefix.checkpoint
+        return "openpi" if checkpoint is None else checkpoint.layout.name.value
 
     def robot_actions(self, actions: torch.Tensor | np.ndarray) -> np.ndarray:
-        """Return (..., action_horizon, 7) float32 robot actions: pi05_libero's output transform (spec 10.8).
-
-        Quantile un-normalisation of the model actions with the `actions` norm stats, then the first 7 dims.
-        """
+        """Return (..., action_horizon, 7) float32 robot actions: the checkpoint's output transform (openpi's
+        quantile un-normalisation then 7 dims, spec 10.8; lerobot's postprocessor, spec 11.4)."""
         if isinstance(actions, torch.Tensor):
             actions = actions.detach().float().cpu().numpy()
         actions = np.asarray(actions)
         if actions.ndim < 1 or actions.shape[-1] != self.action_dim:
             raise ValueError(f"actions: found shape {actions.shape}, expected (..., {self.action_dim})")
-        stats = self.norm_stats.get("actions")
-        if stats is None:
-            raise ValueError(f"{self.norm_stats_file}: no `actions` entry; found {sorted(self.norm_stats)}")
-        return quantile_unnormalize(actions, stats)[..., :ROBOT_ACTION_DIM].astype(np.float32)
+        return self.normalization.robot_actions(actions)
 
     def _require_tokenizer(self) -> PromptTokenizer:
         if self.tokenizer is None:
@@ -375,10 +370,8 @@ class Pi05Policy(nn.Module):
         """
         tokenizer = self._require_tokenizer()
         if tokenizer.prompt_format is PromptFormat.DISCRETE_STATE:
-            stats = self.norm_stats.get("state")
-            if stats is None:
-                raise ValueError(f"{self.norm_stats_file}: no `state` entry for the discrete-state prompt")
-            encoded = [tokenizer.tokenize(p, quantile_normalize(s, stats)) for p, s in zip(prompts, states)]
+            normalized = self.normalization.normalize_state(np.asarray(states))
+            encoded = [tokenizer.tokenize(p, s) for p, s in zip(prompts, normalized)]
         else:
             encoded = [tokenizer.tokenize(p) for p in prompts]
         tokens = torch.from_numpy(np.stack([e.ids for e in encoded]))
@@ -397,7 +390,7 @@ class Pi05Policy(nn.Module):
         uint8, "observation/state" (8,), "prompt" str; a leading batch dim (and a list of prompts) is allowed.
         """
         start = time.perf_counter()
-        batch = observation_batch(observation, self.arch.image_size)
+        batch = observation_batch(observation, self.arch.image_size, self.cameras)
         if noise is not None:
             noise = torch.as_tensor(noise, dtype=torch.float32)
             noise = noise if batch.batched else noise[None]
@@ -430,8 +423,8 @@ class Pi05Policy(nn.Module):
         side = self.arch.image_size
         frames = np.zeros((batch, side, side, 3), dtype=np.uint8)
         state_dim = LIBERO_STATE_DIM
-        if self._require_tokenizer().prompt_format is PromptFormat.DISCRETE_STATE and "state" in self.norm_stats:
-            state_dim = len(self.norm_stats["state"].mean)
+        if self._require_tokenizer().prompt_format is PromptFormat.DISCRETE_STATE:
+            state_dim = self.normalization.state_dim or LIBERO_STATE_DIM
         observation = {IMAGE_KEY: frames, WRIST_IMAGE_KEY: frames, STATE_KEY: np.zeros((batch, state_dim)),
                        PROMPT_KEY: ["warm up"] * batch}
         start = time.perf_counter()
@@ -439,3 +432,4 @@ class Pi05Policy(nn.Module):
         seconds = time.perf_counter() - start
         logger.info("warmed up at batch %d in %.1f s%s", batch, seconds, " (compiled denoising)" if self.compiled else "")
         return seconds
+

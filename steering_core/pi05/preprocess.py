@@ -6,6 +6,8 @@ Raw LIBERO hdf5 renders must be flipped along H and W before they reach this mod
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
@@ -89,3 +91,84 @@ def camera_slots(
     absent = torch.full_like(base, -1.0)  # to_model_range of an all-zero uint8 image
     present = torch.ones(batch, dtype=torch.bool)
     return [base, wrist, absent], [present, present.clone(), torch.zeros(batch, dtype=torch.bool)]
+
+
+# lerobot camera names (after `observation.images.`) -> the LIBERO camera feeding that slot (spec 11.3)
+LEROBOT_CAMERA_NAMES = {
+    "image": "image", "agentview_image": "image", "base_0_rgb": "image",
+    "wrist_image": "wrist_image", "image2": "wrist_image", "robot0_eye_in_hand_image": "wrist_image",
+    "left_wrist_0_rgb": "wrist_image",
+}
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """Which LIBERO camera fills each of a checkpoint's camera slots (None: absent, mask False), and whose
+    preprocessing turns frames into slots: openpi's (uint8 truncation, antialiased resize of uint8) by default, or
+    lerobot's (the float frames resized bilinearly without antialiasing, clamped, zero-padded)."""
+
+    slots: tuple[str | None, ...] = ("image", "wrist_image", None)
+    lerobot: bool = False
+
+    @classmethod
+    def of_lerobot(cls, keys: tuple[str, ...], where: str) -> Cameras:
+        """Return the cameras of a lerobot policy's VISUAL features in order (`observation.images.<name>`)."""
+        slots = []
+        for key in keys:
+            name = key.removeprefix("observation.images.")
+            if name.startswith("empty_camera_"):
+                slots.append(None)
+            elif name in LEROBOT_CAMERA_NAMES:
+                slots.append(LEROBOT_CAMERA_NAMES[name])
+            else:
+                raise ValueError(f"{where}: camera `{key}` is not one of LIBERO's two; expected observation.images."
+                                 f"<{'|'.join(LEROBOT_CAMERA_NAMES)}> or an empty camera")
+        # lerobot fills the cameras present in the batch first and appends the missing ones
+        return cls(tuple(sorted(slots, key=lambda slot: slot is None)), lerobot=True)
+
+    def worker_uint8(self, image: torch.Tensor, wrist_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return float (B, 3, H, W) frames in [0, 1] as uint8 for the trip to the device: truncated as openpi's
+        LiberoInputs does, or rounded (lossless for frames decoded from uint8) for lerobot's float path."""
+        if not self.lerobot:
+            return libero_uint8_cameras(image, wrist_image)
+        libero_uint8_cameras(image, wrist_image)  # the same checks; the values are rounded instead
+        return tuple((frames.to(torch.float32) * 255.0).round().clamp(0, 255).to(torch.uint8)
+                     for frames in (image, wrist_image))
+
+    def from_uint8(self, image: torch.Tensor, wrist_image: torch.Tensor, size: int
+                   ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Return the slots (B, 3, size, size) float32 in [-1, 1] and masks (B,) bool of uint8 (B, 3, H, W) frames."""
+        if not self.lerobot:
+            return camera_slots(image, wrist_image, size)
+        return self.from_float(image.to(torch.float32) / 255.0, wrist_image.to(torch.float32) / 255.0, size)
+
+    def from_float(self, image: torch.Tensor, wrist_image: torch.Tensor, size: int
+                   ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Return the slots and masks of float (B, 3, H, W) frames in [0, 1], as LeRobotDataset returns them."""
+        if not self.lerobot:
+            return libero_camera_slots(image, wrist_image, size)
+        libero_uint8_cameras(image, wrist_image)  # shape checks only
+        frames = {"image": _lerobot_resize(image.to(torch.float32), size),
+                  "wrist_image": _lerobot_resize(wrist_image.to(torch.float32), size)}
+        batch = image.shape[0]
+        slots, masks = [], []
+        for slot in self.slots:
+            present = slot is not None
+            slots.append(frames[slot] * 2.0 - 1.0 if present else torch.full_like(frames["image"], -1.0))
+            masks.append(torch.full((batch,), present, dtype=torch.bool, device=image.device))
+        return slots, masks
+
+
+def _lerobot_resize(frames: torch.Tensor, size: int) -> torch.Tensor:
+    """Return float frames (B, 3, size, size) in [0, 1]: lerobot's resize_with_pad_torch of float images (bilinear,
+    no antialiasing, clamped to [0, 1], centred zero padding with the odd row/column at the bottom/right)."""
+    _, _, height, width = frames.shape
+    if (height, width) == (size, size):
+        return frames
+    ratio = max(width / size, height / size)
+    new_height, new_width = int(height / ratio), int(width / ratio)
+    resized = F.interpolate(frames, size=(new_height, new_width), mode="bilinear", align_corners=False)
+    resized = resized.clamp(0.0, 1.0)
+    pad_top, pad_left = (size - new_height) // 2, (size - new_width) // 2
+    padding = (pad_left, size - new_width - pad_left, pad_top, size - new_height - pad_top)
+    return F.pad(resized, padding, value=0.0)

@@ -1,6 +1,8 @@
-"""pi0.5 prompts: PaliGemma SentencePiece tokenisation in the two formats openpi trains with (spec 4).
+"""pi0.5 prompts: PaliGemma tokenisation in the two formats openpi trains with (spec 4).
 
-`sentencepiece` is imported when a tokenizer is opened, so importing this module stays cheap.
+The tokenizer is PaliGemma's SentencePiece model (openpi reads `paligemma_tokenizer.model`) or its Hugging Face
+`tokenizer.json` (lerobot's preprocessor loads `google/paligemma-3b-pt-224`); both give the same ids (spec 11.5).
+`sentencepiece` and `tokenizers` are imported when a tokenizer is opened, so importing this module stays cheap.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ import os
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
@@ -26,6 +28,7 @@ NEWLINE = "\n"  # pi05_libero's "start of answer" token, encoded on its own
 PALIGEMMA_NEWLINE_ID = 108  # "\n" in the released 257152-piece PaliGemma vocabulary
 PALIGEMMA_VOCAB_SIZE = 257152
 WORD_BOUNDARY = "\u2581"  # SentencePiece's "▁"
+HF_TOKENIZER_FILE = "tokenizer.json"  # a Hugging Face tokenizer folder's file
 TASK_PREFIX = "Task: "
 STATE_PREFIX = ", State: "
 ACTION_SUFFIX = ";\nAction: "
@@ -59,8 +62,23 @@ def clean_instruction(task: str) -> str:
     return task.strip().replace("_", " ").replace("\n", " ")
 
 
+class Encoder(Protocol):
+    """What a prompt needs of a tokenizer file: ids without special tokens, and which of them cover a text span."""
+
+    path: Path
+
+    def vocab_size(self) -> int: ...
+
+    def encode(self, text: str) -> list[int]: ...
+
+    def encode_span(self, text: str, begin: int, end: int) -> tuple[list[int], list[int]]:
+        """Return the ids of `text` and the indices of those overlapping characters [begin, end)."""
+        ...
+
+
 class PromptTokenizer:
-    """PaliGemma SentencePiece tokenizer that builds pi0.5 prompts and finds the instruction tokens."""
+    """PaliGemma tokenizer (SentencePiece model or tokenizer.json) that builds pi0.5 prompts and finds the
+    instruction tokens."""
 
     def __init__(
         self,
@@ -73,13 +91,13 @@ class PromptTokenizer:
         self.prompt_format = PromptFormat(prompt_format)
         if max_len < 1:
             raise ValueError(f"max_len {max_len} must be at least 1")
-        self._processor = _open_processor(self.path)
-        self._newline_ids = self._processor.encode(NEWLINE)
+        self._encoder = open_encoder(self.path)
+        self._newline_ids = self._encoder.encode(NEWLINE)
 
     @property
     def vocab_size(self) -> int:
         """Return the number of pieces; every id is below it (must not exceed the model's vocab_size)."""
-        return self._processor.vocab_size()
+        return self._encoder.vocab_size()
 
     def prompt_text(self, task: str, state: np.ndarray | None = None) -> str:
         """Return the full prompt string (without BOS) for `task` in this tokenizer's format."""
@@ -106,7 +124,7 @@ class PromptTokenizer:
         text = clean_instruction(task)
         if self.prompt_format is PromptFormat.LIBERO:
             # openpi encodes the instruction and "\n" separately, so the span is exact by construction
-            body = self._processor.encode(text)
+            body = self._encoder.encode(text)
             ids = [BOS_ID, *body, *self._newline_ids]
             start, end = 1, 1 + len(body)
         else:
@@ -123,55 +141,106 @@ class PromptTokenizer:
         return TokenizedPrompt(ids=padded, mask=mask, n_valid=n_valid, instruction=span)
 
     def _encode_discrete(self, text: str, prompt: str) -> tuple[list[int], tuple[int, int]]:
-        """Return BOS + ids of the whole prompt and the span of pieces overlapping the instruction's bytes.
+        """Return BOS + ids of the whole prompt and the span of pieces overlapping the instruction's characters.
 
-        The prompt is encoded in one call, as openpi does; the instruction's first word may then tokenise
-        differently than alone, so the span comes from piece byte offsets, not from a subsequence search.
+        The prompt is encoded in one call, as openpi and lerobot do; the instruction's first word may then tokenise
+        differently than alone, so the span comes from piece offsets, not from a subsequence search.
         """
-        proto = self._processor.encode(prompt, return_type="proto")
-        begin = len(TASK_PREFIX.encode("utf-8"))
-        end = begin + len(text.encode("utf-8"))
-        pieces = list(proto.pieces)
-        inside = [i for i, piece in enumerate(pieces) if piece.begin < end and piece.end > begin]
-        ids = [BOS_ID, *(piece.id for piece in pieces)]
+        begin = len(TASK_PREFIX)
+        ids, inside = self._encoder.encode_span(prompt, begin, begin + len(text))
         # +1: language index 0 is BOS
         span = (inside[0] + 1, inside[-1] + 2) if inside else (1, 1)
-        return ids, span
+        return [BOS_ID, *ids], span
 
 
-def _open_processor(path: Path) -> Any:
-    """Return a SentencePieceProcessor for `path` after checking the PaliGemma facts marked [U] in the spec."""
+class SentencePieceEncoder:
+    """PaliGemma's SentencePiece model (`paligemma_tokenizer.model`)."""
+
+    def __init__(self, path: Path):
+        import sentencepiece  # deferred: only tokenizing needs it
+
+        self.path = path
+        self._processor = sentencepiece.SentencePieceProcessor()
+        try:
+            self._processor.load(str(path))
+        except (OSError, RuntimeError) as err:
+            raise ValueError(f"{path}: not a SentencePiece model ({err})") from None
+        processor = self._processor
+        self.special_ids = {"pad": processor.pad_id(), "eos": processor.eos_id(), "bos": processor.bos_id()}
+        self.newline_id = processor.piece_to_id(NEWLINE) if processor.encode_as_pieces(NEWLINE) == [NEWLINE] else None
+
+    def vocab_size(self) -> int:
+        return self._processor.vocab_size()
+
+    def encode(self, text: str) -> list[int]:
+        return self._processor.encode(text)
+
+    def pieces(self, text: str) -> list[str]:
+        return self._processor.encode_as_pieces(text)
+
+    def encode_span(self, text: str, begin: int, end: int) -> tuple[list[int], list[int]]:
+        proto = self._processor.encode(text, return_type="proto")
+        # SentencePiece's offsets count bytes
+        byte_begin, byte_end = len(text[:begin].encode("utf-8")), len(text[:end].encode("utf-8"))
+        pieces = list(proto.pieces)
+        inside = [i for i, piece in enumerate(pieces) if piece.begin < byte_end and piece.end > byte_begin]
+        return [piece.id for piece in pieces], inside
+
+
+class HuggingFaceEncoder:
+    """A Hugging Face `tokenizer.json` of PaliGemma (what lerobot's preprocessor loads), read with `tokenizers`."""
+
+    def __init__(self, path: Path):
+        from tokenizers import Tokenizer  # deferred: only tokenizing needs it
+
+        self.path = path
+        try:
+            self._tokenizer = Tokenizer.from_file(str(path))
+        except Exception as err:  # tokenizers raises its own Exception type for any malformed file
+            raise ValueError(f"{path}: not a Hugging Face tokenizer.json ({err})") from None
+        token_id = self._tokenizer.token_to_id
+        self.special_ids = {"pad": token_id("<pad>"), "eos": token_id("<eos>"), "bos": token_id("<bos>")}
+        self.newline_id = token_id(NEWLINE) if self.pieces(NEWLINE) == [NEWLINE] else None
+
+    def vocab_size(self) -> int:
+        return self._tokenizer.get_vocab_size(with_added_tokens=True)
+
+    def encode(self, text: str) -> list[int]:
+        return self._tokenizer.encode(text, add_special_tokens=False).ids
+
+    def pieces(self, text: str) -> list[str]:
+        return self._tokenizer.encode(text, add_special_tokens=False).tokens
+
+    def encode_span(self, text: str, begin: int, end: int) -> tuple[list[int], list[int]]:
+        encoding = self._tokenizer.encode(text, add_special_tokens=False)
+        inside = [i for i, (start, stop) in enumerate(encoding.offsets) if start < end and stop > begin]
+        return encoding.ids, inside
+
+
+def open_encoder(path: Path) -> SentencePieceEncoder | HuggingFaceEncoder:
+    """Return the tokenizer at `path` (a SentencePiece model, a tokenizer.json, or a folder holding one) after
+    checking the PaliGemma facts marked [U] in the spec."""
+    if path.is_dir():
+        path = path / HF_TOKENIZER_FILE
     if not path.is_file():
         raise FileNotFoundError(
-            f"{path}: SentencePiece tokenizer not found; pass PaliGemma's paligemma_tokenizer.model "
-            "(gs://big_vision/paligemma_tokenizer.model)"
+            f"{path}: tokenizer not found; pass PaliGemma's SentencePiece paligemma_tokenizer.model "
+            f"(gs://big_vision/paligemma_tokenizer.model) or its Hugging Face {HF_TOKENIZER_FILE} (or the folder "
+            "holding it, e.g. google/paligemma-3b-pt-224 in a local Hugging Face cache)"
         )
-    import sentencepiece  # deferred: only tokenizing needs it
-
-    processor = sentencepiece.SentencePieceProcessor()
-    try:
-        processor.load(str(path))
-    except (OSError, RuntimeError) as err:
-        raise ValueError(f"{path}: not a SentencePiece model ({err})") from None
-    problems = []
-    for name, found, expected in (
-        ("pad id", processor.pad_id(), PAD_ID),
-        ("eos id", processor.eos_id(), EOS_ID),
-        ("bos id", processor.bos_id(), BOS_ID),
-    ):
-        if found != expected:
-            problems.append(f"{name} is {found}, expected {expected}")
-    newline = processor.encode_as_pieces(NEWLINE)
-    if newline != [NEWLINE]:
-        problems.append(f"'\\n' encodes as pieces {newline}, expected the single piece '\\n'")
-    elif processor.vocab_size() == PALIGEMMA_VOCAB_SIZE and processor.piece_to_id(NEWLINE) != PALIGEMMA_NEWLINE_ID:
-        problems.append(f"'\\n' has id {processor.piece_to_id(NEWLINE)}, expected {PALIGEMMA_NEWLINE_ID}")
-    first = processor.encode_as_pieces("a")
+    encoder = HuggingFaceEncoder(path) if path.suffix == ".json" else SentencePieceEncoder(path)
+    problems = [f"{name} id is {found}, expected {expected}"
+                for (name, found), expected in zip(encoder.special_ids.items(), (PAD_ID, EOS_ID, BOS_ID))
+                if found != expected]
+    if encoder.newline_id is None:
+        problems.append(f"'\\n' encodes as pieces {encoder.pieces(NEWLINE)}, expected the single piece '\\n'")
+    elif encoder.vocab_size() == PALIGEMMA_VOCAB_SIZE and encoder.newline_id != PALIGEMMA_NEWLINE_ID:
+        problems.append(f"'\\n' has id {encoder.newline_id}, expected {PALIGEMMA_NEWLINE_ID}")
+    first = encoder.pieces("a")
     if first and first[0].startswith(WORD_BOUNDARY):
         problems.append(f"'a' encodes as {first}: the model adds a dummy-prefix '{WORD_BOUNDARY}', Gemma's does not")
     if problems:
-        raise ValueError(
-            f"{path}: not a PaliGemma-style tokenizer: " + "; ".join(problems) + "; pass paligemma_tokenizer.model"
-        )
-    logger.info("tokenizer %s: %d pieces", path, processor.vocab_size())
-    return processor
+        raise ValueError(f"{path}: not a PaliGemma-style tokenizer: " + "; ".join(problems) +
+                         f"; pass paligemma_tokenizer.model or PaliGemma's {HF_TOKENIZER_FILE}")
+    logger.info("tokenizer %s: %d pieces", path, encoder.vocab_size())
+    return encoder

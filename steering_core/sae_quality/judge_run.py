@@ -13,7 +13,6 @@ from steering_core.data.contrast import read_manifest
 from steering_core.devices import resolve_device
 from steering_core.evaluate.frames import EvalFrame, load_frames, select_frames
 from steering_core.evaluate.run import load_policy, task_prompts
-from steering_core.pi05 import PromptTokenizer
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import load_sae
 from steering_core.sae.training.heldout import heldout_split
@@ -75,7 +74,7 @@ def _action_inputs(job: JudgeJob, model: CaptureSettings, device: str) -> Action
                 task_episodes[task].add(row.episode_index)
     split = heldout_split({task: sorted(e) for task, e in task_episodes.items()}, job.heldout_episodes)
     frames = select_frames(manifest, concept_map, split, tasks, job.frames)
-    tokenizer = PromptTokenizer(model.tokenizer_path, model.max_token_len, model.prompt_format)
+    tokenizer = model.prompt_tokenizer()
 
     def load(batch: Sequence[EvalFrame]) -> dict[str, Any]:
         return load_frames(job.dataset_root, job.repo_id, batch, model.arch.image_size, model.video_backend)

@@ -110,7 +110,7 @@ class SteeredPi05Policy:
         from steering_core.pi05.observation import ObservationBatch, observation_batch
 
         start = time.perf_counter()
-        batches = [observation_batch(observation, self.policy.arch.image_size) for observation in observations]
+        batches = [observation_batch(observation, self.policy.arch.image_size, self.policy.cameras) for observation in observations]
         sizes = [len(batch.prompts) for batch in batches]
         ends = np.cumsum(sizes).tolist()
         rows = [slice(end - size, end) for size, end in zip(sizes, ends)]
