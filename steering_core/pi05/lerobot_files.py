@@ -182,8 +182,9 @@ def _feature_stats(path: Path, feature: str, width: int, needed: tuple[str, ...]
     from safetensors.numpy import load_file
 
     check_safetensors(path)
+    # every per-dimension statistic; `count` (frames seen, shape (1,)) is not one
     stored = {key.removeprefix(f"{feature}."): value for key, value in load_file(str(path)).items()
-              if key.startswith(f"{feature}.")}
+              if key.startswith(f"{feature}.") and key != f"{feature}.count"}
     if missing := [name for name in needed if name not in stored]:
         raise ValueError(f"{path}: no {', '.join(f'`{feature}.{name}`' for name in missing)}; expected them for "
                          f"its normalisation mode (found {sorted(stored)})")

@@ -199,7 +199,12 @@ class HuggingFaceEncoder:
         except Exception as err:  # tokenizers raises its own Exception type for any malformed file
             raise ValueError(f"{path}: not a Hugging Face tokenizer.json ({err})") from None
         token_id = self._tokenizer.token_to_id
-        self.special_ids = {"pad": token_id("<pad>"), "eos": token_id("<eos>"), "bos": token_id("<bos>")}
+        # BOS is what the file's post-processor prepends (lerobot tokenizes with add_special_tokens=True); the
+        # pieces are named <bos>/<eos> in PaliGemma's file and <s>/</s> in a SentencePiece conversion
+        with_bos = self._tokenizer.encode("a", add_special_tokens=True).ids
+        bos = with_bos[0] if len(with_bos) > len(self.encode("a")) else None
+        eos = token_id("<eos>") if token_id("<eos>") is not None else token_id("</s>")
+        self.special_ids = {"pad": token_id("<pad>"), "eos": eos, "bos": bos}
         self.newline_id = token_id(NEWLINE) if self.pieces(NEWLINE) == [NEWLINE] else None
 
     def vocab_size(self) -> int:
