@@ -196,10 +196,11 @@ def run_ours(inputs: Inputs, run_dir: Path, arch: Pi05Arch, layers: tuple[int, .
              device: torch.device) -> None:
     """Capture the dataset's frames into a fresh `run_dir` with the library's capture."""
     from steering_core.capture import CaptureSettings, capture
+    from steering_core.pi05.spec import ModelSpec
 
     shutil.rmtree(run_dir, ignore_errors=True)
     settings = CaptureSettings(
-        checkpoint_path=inputs.checkpoint, tokenizer_path=inputs.tokenizer, layers=layers, arch=arch,
+        model=ModelSpec(checkpoint=inputs.checkpoint, tokenizer=inputs.tokenizer, arch=arch), layers=layers,
         batch_size=batch_size, device=str(device), num_workers=NUM_WORKERS,
     )
     capture(inputs.dataset, inputs.repo_id, run_dir, settings)

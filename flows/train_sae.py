@@ -90,7 +90,7 @@ def feature_job(config: RunConfig, layer: int) -> FeatureJob:
     train, capture = config.sae_for(layer).train, config.capture_settings()
     return FeatureJob(layer=layer, run_dir=config.run_dir, sae=config.trained_sae_dir(layer),
                       output_dir=config.sae_layer_path(layer), steering_layer=config.layer_path(layer),
-                      dataset_root=config.dataset_root, repo_id=config.repo_id, tokenizer=capture.tokenizer_path,
+                      dataset_root=config.dataset_root, repo_id=config.repo_id, tokenizer=capture.model.tokenizer,
                       pair_top_k=config.steering.top_k, examples=train.feature_examples, device=train.device,
                       video_backend=capture.video_backend)
 

@@ -7,14 +7,13 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import device_option
+from latent_steering_cli.options import device_option, model_options
 from steering_core.capture import CaptureResult, CaptureSettings, capture
 from steering_core.capture.shards import StorageDtype, TokenType
 from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
 from steering_core.config import load_run_config
 from steering_core.data.split import read_split
-from steering_core.pi05 import PromptFormat
-from steering_core.pi05.arch import read_arch
+from steering_core.pi05.spec import ModelSpec
 
 _CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
 
@@ -31,21 +30,16 @@ def layer_list(value: str, flag: str = "--layers") -> tuple[int, ...]:
 
 
 @app.command("capture")
+@model_options()
 def capture_command(
     ctx: typer.Context,
     config: Path | None = typer.Option(
         None, "--config", help="Run config (YAML): capture its dataset with its model and capture settings "
         "into its run folder, exactly as the pipeline does; the other flags are then not allowed."
     ),
-    checkpoint_path: Path | None = typer.Option(
-        None, "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
-    ),
     output_dir: Path | None = typer.Option(None, "--output-dir", help="Run folder, e.g. data/residuals/open_close_run."),
     lerobot_root: Path | None = typer.Option(
         None, "--lerobot-root", help="LeRobot dataset folder (v3.0, v2.1 or v2.0; read in place)."
-    ),
-    tokenizer_path: Path | None = typer.Option(
-        None, "--tokenizer-path", help="PaliGemma SentencePiece model (paligemma_tokenizer.model)."
     ),
     repo_id: str | None = typer.Option(None, "--repo-id", help="Dataset repo id (default: the dataset folder name)."),
     layers: str = typer.Option("12", "--layers", help="Decoder layers to capture in one pass, e.g. 12 or 6,12."),
@@ -68,17 +62,6 @@ def capture_command(
         _CAPTURE_FIELDS["noise_seed"].default, "--noise-seed", min=0,
         help="decision: seed of each frame's fixed noise (with its global index).",
     ),
-    prompt_format: PromptFormat = typer.Option(
-        _CAPTURE_FIELDS["prompt_format"].default,
-        "--prompt-format",
-        help="libero (pi05_libero: no state) or discrete_state (other pi0.5 checkpoints).",
-    ),
-    norm_stats: Path | None = typer.Option(
-        None, "--norm-stats", help="norm_stats.json for discrete_state (default: the checkpoint's assets)."
-    ),
-    asset_id: str = typer.Option(
-        _CAPTURE_FIELDS["norm_stats_asset_id"].default, "--asset-id", help="Asset folder of the checkpoint norm stats."
-    ),
     skip_norm_stats: bool = typer.Option(
         False, "--skip-norm-stats", help="Never read norm stats (the libero format needs none)."
     ),
@@ -99,13 +82,11 @@ def capture_command(
     video_backend: str | None = typer.Option(
         None, "--video-backend", help="lerobot video decoder for video datasets, e.g. pyav (default: lerobot's)."
     ),
-    arch_file: Path | None = typer.Option(
-        None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
-    ),
     max_samples_per_layer: int | None = typer.Option(
         None, "--max-samples-per-layer", min=1,
         help="The seed's cap: capture only the first episodes until they hold N frames (whole episode groups).",
     ),
+    model: ModelSpec | None = None,
 ) -> None:
     """Capture pi0.5 residuals of every dataset frame at the given layers into resumable shards.
 
@@ -114,16 +95,19 @@ def capture_command(
     if config is not None:
         _capture_from_config(ctx, config)
     else:
-        _capture_from_flags(**{name: value for name, value in ctx.params.items() if name != "config"})
+        fields = {name: ctx.params[name] for name in _CAPTURE_FIELDS if name in ctx.params
+                  and name not in ("layers", "token_type")}
+        _capture_from_flags(model=model, lerobot_root=lerobot_root, output_dir=output_dir, repo_id=repo_id,
+                            layers=layers, capture_instructions=capture_instructions, token_type=token_type,
+                            max_samples_per_layer=max_samples_per_layer, **fields)
 
 
 def _capture_from_flags(
-    *, checkpoint_path: Path | None, tokenizer_path: Path | None, lerobot_root: Path | None, output_dir: Path | None,
-    repo_id: str | None, layers: str, capture_instructions: bool, token_type: TokenType | None, norm_stats: Path | None,
-    asset_id: str, arch_file: Path | None, max_samples_per_layer: int | None, **fields,
+    *, model: ModelSpec | None, lerobot_root: Path | None, output_dir: Path | None, repo_id: str | None, layers: str,
+    capture_instructions: bool, token_type: TokenType | None, max_samples_per_layer: int | None, **fields,
 ) -> None:
     """Run the capture the flags describe; `fields` are the flags named as CaptureSettings fields."""
-    missing = [flag for flag, value in (("--checkpoint-path", checkpoint_path), ("--tokenizer-path", tokenizer_path),
+    missing = [flag for flag, value in (("--checkpoint-path", model), ("--tokenizer-path", model and model.tokenizer),
                                         ("--lerobot-root", lerobot_root), ("--output-dir", output_dir))
                if value is None]
     if missing:
@@ -132,11 +116,8 @@ def _capture_from_flags(
         raise typer.BadParameter(f"--capture-instructions contradicts --token-type {token_type}; pass one of them",
                                  param_hint="--capture-instructions")
     with input_errors():
-        settings = CaptureSettings(
-            **fields, checkpoint_path=checkpoint_path, tokenizer_path=tokenizer_path, layers=layer_list(layers),
-            token_type=token_type or "instructions", norm_stats_path=norm_stats, norm_stats_asset_id=asset_id,
-            arch=read_arch(arch_file),
-        )
+        settings = CaptureSettings(**fields, model=model, layers=layer_list(layers),
+                                   token_type=token_type or "instructions")
         result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings,
                          max_frames=max_samples_per_layer)
     _echo_result(output_dir, result)
@@ -144,8 +125,8 @@ def _capture_from_flags(
 
 def _capture_from_config(ctx: typer.Context, config: Path) -> None:
     """Run the capture a run config describes; refuse other capture flags, which the config would contradict."""
-    given = [f"--{name.replace('_', '-')}" for name, value in ctx.params.items()
-             if name != "config" and ctx.get_parameter_source(name).name != "DEFAULT"]
+    given = [param.opts[0] for param in ctx.command.params
+             if param.name != "config" and ctx.get_parameter_source(param.name).name != "DEFAULT"]
     if given:
         raise typer.BadParameter(f"{', '.join(given)} cannot be combined with --config: set them in the run config",
                                  param_hint="--config")

@@ -29,6 +29,7 @@ from steering_core.evaluate.run import (
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.arch import read_arch
 from steering_core.pi05.robot_side import DEFAULT_HORIZON
+from steering_core.pi05.spec import ModelSpec
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
 from steering_core.workload import evaluation_problems
 
@@ -183,7 +184,7 @@ def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: 
     jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
     jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
     settings = EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
-    _check_work(settings, run.capture.action_horizon or DEFAULT_HORIZON)
+    _check_work(settings, run.model.action_horizon or DEFAULT_HORIZON)
     return jobs, run.capture_settings(), settings
 
 
@@ -195,9 +196,9 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
     _check_work(settings, DEFAULT_HORIZON)
     layer, data_root, lerobot_root = options.layer, options.data_root, options.lerobot_root
     model = CaptureSettings(
-        checkpoint_path=options.checkpoint_path, tokenizer_path=options.tokenizer_path,
-        layers=(layer,) if layer is not None else expert, norm_stats_path=options.norm_stats,
-        arch=read_arch(options.arch_file),
+        model=ModelSpec(checkpoint=options.checkpoint_path, tokenizer=options.tokenizer_path,
+                        norm_stats=options.norm_stats, arch=read_arch(options.arch_file)),
+        layers=(layer,) if layer is not None else expert,
     )
     names = [check_name(name, "--pair") for name in options.pair] or [
         p.name for p in read_pairs_config(options.pairs_config).pairs]

@@ -1,7 +1,8 @@
 """Options defined once: those shared by several commands, and a command's options made from a settings model.
 
 `settings_options(Model)` gives a command one option per field of `Model` (`--field-name`, the field's default,
-its description as help) and hands them on as one validated `Model`, so a setting is written once, in the model.
+its description as help) and hands them on as one validated `Model`, so a setting is written once, in the model;
+`model_options()` does so for the pi0.5 model (`ModelSpec`), the same flags in every command that loads it.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import functools
 import inspect
 import typing
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import typer
@@ -17,6 +20,8 @@ from pydantic import BaseModel
 
 from latent_steering_cli.app import input_errors
 from steering_core.devices import DEVICE_HELP
+from steering_core.pi05.arch import read_arch
+from steering_core.pi05.spec import ModelSpec
 
 
 def device_option(default: str | None = "auto", help: str = DEVICE_HELP) -> Any:
@@ -29,16 +34,51 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+@dataclass(frozen=True)
+class Flag:
+    """How one settings field appears on the command line where its own name or type does not fit."""
+
+    name: str                                    # the flag, e.g. --checkpoint-path for ModelSpec.checkpoint
+    annotation: Any = None                       # the option's type when the field's is not one (a JSON file)
+    parse: Callable[[Any], Any] | None = None    # the option's value -> the field's
+    help: str | None = None                      # default: the field's description
+
+
+# ModelSpec's options, as every model command spells them; `--device` and `--dtype` stay the commands' own
+MODEL_FLAGS = {
+    "checkpoint": Flag("--checkpoint-path"),
+    "tokenizer": Flag("--tokenizer-path"),
+    "arch": Flag("--arch-file", Path | None, read_arch,
+                 "JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."),
+}
+MODEL_SKIP = ("device", "dtype")
+
+
 def settings_options(model: type[BaseModel], parameter: str = "settings",
-                     parse: dict[str, Callable[[Any], Any]] | None = None) -> Callable[[Callable], Callable]:
+                     parse: dict[str, Callable[[Any], Any]] | None = None, *, flags: dict[str, Flag] | None = None,
+                     skip: tuple[str, ...] = (), optional: bool = False) -> Callable[[Callable], Callable]:
     """Decorate a command whose parameter `parameter` is a `model`: it takes one option per field of `model` instead
     (after its own parameters) and receives them as one `model`, validated (a bad value is an `error:` line).
-    `parse` maps a field to what turns its option's value into the field's (e.g. `none` -> None)."""
+
+    `parse` maps a field to what turns its option's value into the field's (e.g. `none` -> None); `flags` gives a
+    field another flag, type or parse (`Flag`); `skip` leaves fields out (their defaults apply). With `optional`, every
+    option defaults to None and the command receives None when none was given (it may take the model from elsewhere,
+    e.g. a run config)."""
     hints = typing.get_type_hints(model)
-    fields = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=hints[name],
-                                default=typer.Option(... if field.is_required() else field.default, flag(name),
-                                                     help=field.description))
-              for name, field in model.model_fields.items()]
+    flags = flags or {}
+    names = [name for name in model.model_fields if name not in skip]
+
+    def option(name: str) -> inspect.Parameter:
+        field, given = model.model_fields[name], flags.get(name, Flag(flag(name)))
+        default = None if optional else ... if field.is_required() else field.default
+        if given.annotation is not None:
+            default = None if optional or given.parse else default
+        annotation = given.annotation or (hints[name] | None if optional else hints[name])
+        return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
+                                 default=typer.Option(default, given.name, help=given.help or field.description))
+
+    fields = [option(name) for name in names]
+    parsers = {name: given.parse for name, given in flags.items() if given.parse} | (parse or {})
 
     def decorate(command: Callable) -> Callable:
         command_hints = typing.get_type_hints(command)
@@ -47,9 +87,15 @@ def settings_options(model: type[BaseModel], parameter: str = "settings",
 
         @functools.wraps(command)
         def run(**options: Any) -> Any:
-            values = {name: (parse or {}).get(name, lambda value: value)(options.pop(name)) for name in model.model_fields}
+            values = {name: options.pop(name) for name in names}
+            if optional and all(value is None for value in values.values()):
+                return command(**options, **{parameter: None})
+            if missing := [flags.get(name, Flag(flag(name))).name for name in names
+                           if model.model_fields[name].is_required() and values[name] is None]:
+                raise typer.BadParameter(f"{', '.join(missing)} required", param_hint=missing[0])
             with input_errors():
-                settings = model(**values)
+                settings = model(**{name: parsers.get(name, lambda value: value)(value) for name, value in values.items()
+                                    if not (optional and value is None)})
             return command(**options, **{parameter: settings})
 
         del run.__wrapped__  # typer reads the signature below, not the command's
@@ -58,3 +104,9 @@ def settings_options(model: type[BaseModel], parameter: str = "settings",
         return run
 
     return decorate
+
+
+def model_options(parameter: str = "model") -> Callable[[Callable], Callable]:
+    """Decorate a command that takes the pi0.5 model: ModelSpec's options (`MODEL_FLAGS`), all optional, handed on
+    as one `ModelSpec` (None when none was given)."""
+    return settings_options(ModelSpec, parameter, flags=MODEL_FLAGS, skip=MODEL_SKIP, optional=True)

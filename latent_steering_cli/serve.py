@@ -7,11 +7,9 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import device_option
+from latent_steering_cli.options import device_option, model_options
 from steering_core.layout import STEERING_ROOT
-from steering_core.pi05 import PromptFormat
-from steering_core.pi05.arch import read_arch
-from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
+from steering_core.pi05.spec import ModelSpec
 from steering_core.serve import (
     PolicyServer,
     SteeredPi05Policy,
@@ -34,18 +32,12 @@ from steering_core.serve.server import (
 )
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT
-TOKENIZER_FILE = "paligemma_tokenizer.model"
+TOKENIZER_FILES = ("paligemma_tokenizer.model", "tokenizer.json")
 
 
 @app.command("serve")
+@model_options()
 def serve_command(
-    checkpoint_path: Path = typer.Option(
-        ..., "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder, or its model.safetensors."
-    ),
-    tokenizer_path: Path | None = typer.Option(
-        None, "--tokenizer-path",
-        help=f"PaliGemma SentencePiece model (default: {TOKENIZER_FILE} in the checkpoint folder).",
-    ),
     vectors: Path = typer.Option(
         DEFAULT_VECTORS, "--vectors", help="The steer step's output root (layerNN/<pair>/ folders) to offer clients."
     ),
@@ -68,17 +60,6 @@ def serve_command(
         None, "--compiled/--eager", help="Run the denoising step compiled (torch.compile; CUDA graphs on CUDA), paid "
         "once at start-up before /healthz answers (default: compiled on CUDA, eager on CPU)."
     ),
-    arch_file: Path | None = typer.Option(
-        None, "--arch-file", help="JSON of Pi05Arch fields, for a checkpoint of non-standard (e.g. tiny) size."
-    ),
-    prompt_format: PromptFormat = typer.Option(
-        PromptFormat.LIBERO, "--prompt-format", help="libero (pi05_libero: no state) or discrete_state."
-    ),
-    norm_stats: Path | None = typer.Option(
-        None, "--norm-stats", help="norm_stats.json (default: the checkpoint's assets/<asset-id>/norm_stats.json)."
-    ),
-    asset_id: str = typer.Option(LIBERO_ASSET_ID, "--asset-id", help="Asset folder of the checkpoint norm stats."),
-    action_horizon: int = typer.Option(10, "--action-horizon", min=1, help="Actions per chunk (pi05_libero: 10)."),
     noise_seed: int | None = typer.Option(
         None, "--noise-seed", help="Use the same initial noise for every request (paired steered/plain comparisons); "
         "default: fresh noise per request, as openpi."
@@ -119,6 +100,7 @@ def serve_command(
         None, "--episodes-file", help="Append one JSON line per finished episode (openpi's episode_start / "
         "episode_end control messages) to this file."
     ),
+    model: ModelSpec | None = None,
 ) -> None:
     """Serve steered pi0.5 over openpi's websocket protocol until Ctrl-C or SIGTERM.
 
@@ -127,8 +109,6 @@ def serve_command(
     α times the stored vector, "direction": "random_<k>" for a norm-matched random control); the server's metadata
     lists the vectors it offers with their R and norm. openpi's episode_start / episode_end messages are recorded.
     """
-    from steering_core.pi05.policy import Pi05Policy  # deferred: loads transformers
-
     with input_errors():
         api_key, episode_log = read_api_key(api_key_file), EpisodeLog(episodes_file)
         # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
@@ -136,14 +116,13 @@ def serve_command(
         if vectors != DEFAULT_VECTORS and not len(catalog):
             raise ValueError(f"--vectors {vectors}: no steering vectors in it; pass the steer step's output root "
                              f"(holding layerNN/<pair>/ folders)")
-        arch = read_arch(arch_file)
+        if model is None:
+            raise typer.BadParameter("required", param_hint="--checkpoint-path")
+        if model.tokenizer is None:
+            model = model.model_copy(update={"tokenizer": _tokenizer_beside(model.checkpoint)})
         default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer",
-                                 limits=SteeringLimits(max_alpha, arch.depth))
-        policy = Pi05Policy.from_checkpoint(
-            checkpoint_path, arch, device=device, dtype=dtype, action_horizon=action_horizon,
-            tokenizer_path=tokenizer_path or _tokenizer_beside(checkpoint_path), prompt_format=prompt_format,
-            norm_stats_path=norm_stats, asset_id=asset_id, compiled=compiled,
-        )
+                                 limits=SteeringLimits(max_alpha, model.arch.depth))
+        policy = model.load_policy(device, dtype, compiled)
         policy.normalization.check()  # read now: a missing or broken file stops here, not at a request
         served = SteeredPi05Policy(policy, noise_seed=noise_seed)
         served.check_catalog(catalog)
@@ -156,8 +135,10 @@ def serve_command(
 
 
 def _tokenizer_beside(checkpoint_path: Path) -> Path:
+    """Return the tokenizer in the checkpoint's folder: PaliGemma's SentencePiece model, else a tokenizer.json."""
     folder = checkpoint_path if checkpoint_path.is_dir() else checkpoint_path.parent
-    path = folder / TOKENIZER_FILE
-    if not path.is_file():
-        raise typer.BadParameter(f"no {TOKENIZER_FILE} in {folder}; pass the tokenizer", param_hint="--tokenizer-path")
-    return path
+    for name in TOKENIZER_FILES:
+        if (folder / name).is_file():
+            return folder / name
+    raise typer.BadParameter(f"no {' or '.join(TOKENIZER_FILES)} in {folder}; pass the tokenizer",
+                             param_hint="--tokenizer-path")

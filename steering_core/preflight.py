@@ -27,8 +27,8 @@ from steering_core.pi05.checkpoint import (
     expert_arch_from_checkpoint,
     expert_tensor_shapes,
     prefix_tensor_shapes,
-    resolve_checkpoint,
 )
+from steering_core.pi05.tokenizer import open_encoder
 from steering_core.remote.filesystems import check_writable
 from steering_core.storage.fileio import check_output_dir
 from steering_core.storage.mirrors import url_of
@@ -64,8 +64,8 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     """Return one line per problem found in the run's inputs and output paths (empty: ready to run)."""
     capture = config.capture_settings()
     model = _failures([
-        lambda: check_prefix_layout(resolve_checkpoint(capture.checkpoint_path, capture.layout), capture.arch,
-                                    max(capture.layers)),
+        lambda: check_prefix_layout(capture.model.resolve(), capture.arch, max(capture.layers)),
+        lambda: open_encoder(capture.model.require_tokenizer()),  # named even when the checkpoint fails first
         lambda: check_model_inputs(capture),
     ])
     if config.expert_layers and not model:  # the decision capture reads the whole policy: checked when the rest is fine
@@ -79,7 +79,7 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
         lambda: resolve_device(config.steering.device),
     ]
     if capture_device:
-        checks.append(lambda: resolve_device(config.capture.device))
+        checks.append(lambda: resolve_device(config.capture_settings().run_device))
         checks += [(lambda layer=layer: resolve_device(config.train_settings(layer).device))
                    for layer in config.trained_layers]
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
@@ -90,7 +90,7 @@ def _check_checkpoint_finite(config: RunConfig) -> None:
     """Raise naming the tensor if a checkpoint tensor the run reads holds NaN or Inf (the prefix up to the deepest
     layer; the whole prefix and the action expert when the decision rows are captured)."""
     capture = config.capture_settings()
-    checkpoint = resolve_checkpoint(capture.checkpoint_path, capture.layout)
+    checkpoint = capture.model.resolve()
     if not config.expert_layers:
         check_finite(checkpoint, prefix_tensor_shapes(capture.arch, max(capture.layers)))
         return

@@ -17,6 +17,7 @@ from steering_core.data.dataset import INFO_FILE, read_meta
 from steering_core.identity import plain
 from steering_core.layout import layer_dir
 from steering_core.pi05.checkpoint import resolve_model_file
+from steering_core.pi05.tokenizer import PromptFormat
 from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json
 from tasks.artifacts import ProgressArtifact, artifact_key
@@ -40,12 +41,15 @@ _READING_ONLY = ("num_workers", "video_backend")  # how frames are read, never w
 # ----------------------------------------------------------------------------- input fingerprints
 
 def model_inputs(settings: CaptureSettings) -> dict[str, Any]:
-    """Return the capture settings that shape the rows, plus the content of the files they name."""
+    """Return the capture settings that shape the rows, plus the content of the files they name (the statistics
+    only where the prompt reads the state: openpi's norm_stats.json, lerobot's config and processor files)."""
+    robot = settings.model.robot_side()
+    reads_state = robot.prompt_format is PromptFormat.DISCRETE_STATE
     return {
         "settings": plain(settings.model_dump(mode="json", exclude=set(_READING_ONLY))),
-        "checkpoint": checkpoint_fingerprint(resolve_model_file(settings.checkpoint_path)),
-        "tokenizer": file_digest(settings.tokenizer_path),
-        "norm_stats": file_digest(settings.norm_stats_path) if settings.norm_stats_path else None,
+        "checkpoint": checkpoint_fingerprint(resolve_model_file(settings.model.checkpoint)),
+        "tokenizer": file_digest(settings.model.require_tokenizer()),
+        "norm_stats": [file_digest(path) for path in robot.normalization.files] if reads_state else None,
     }
 
 

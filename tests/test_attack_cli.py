@@ -182,7 +182,7 @@ CASES = [
     case("serve", "--api-key-file", missing),
     case("serve", "--api-key-file", empty_file),
     case("serve", "--norm-stats", missing),
-    case("serve", "--action-horizon", "0", "--action-horizon", exit_code=2),
+    case("serve", "--action-horizon", "0", "--action-horizon 0: input should be greater than or equal to 1"),
     case("serve", "--device", "tpu", "tpu"),
     case("make-demos", "--image-size", "0", "--image-size"),
     case("make-demos", "--demos-per-task", "0", "--demos-per-task", exit_code=2),

@@ -16,6 +16,7 @@ from safetensors.torch import load_file, save_file
 
 from steering_core.capture import CaptureSettings
 from steering_core.data.convert import EpisodeSource, SourcesRecord
+from steering_core.pi05.spec import ModelSpec
 from steering_core.storage.fileio import write_json
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
@@ -54,19 +55,19 @@ def capture_call(tmp_path):
     tokenizer = write_tokenizer(tmp_path / "tokenizer.model")
     dataset = tmp_path / "dataset"
     sources_record(dataset)
-    settings = CaptureSettings(checkpoint_path=checkpoint, tokenizer_path=tokenizer, layers=(1,), arch=ARCH,
+    settings = CaptureSettings(model=ModelSpec(checkpoint=checkpoint, tokenizer=tokenizer, arch=ARCH), layers=(1,),
                                device="cpu", num_workers=0)
     return dict(label="group 0", dataset_root=str(dataset), repo_id="r", run_dir=str(tmp_path / "run"),
                 settings=settings, episodes=[0])
 
 
 def _model_file(call):
-    return call["settings"].checkpoint_path / "model.safetensors"
+    return call["settings"].model.checkpoint / "model.safetensors"
 
 
 CAPTURE_CHANGES = {
     "checkpoint tensor": (lambda c: bump_tensor(_model_file(c), next(iter(load_file(_model_file(c))))), True),
-    "tokenizer": (lambda c: c["settings"].tokenizer_path.write_bytes(c["settings"].tokenizer_path.read_bytes() + b"x"),
+    "tokenizer": (lambda c: c["settings"].model.tokenizer.write_bytes(c["settings"].model.tokenizer.read_bytes() + b"x"),
                   True),
     "settings": (lambda c: c.update(settings=c["settings"].model_copy(update={"batch_size": 7, "layers": (2,)})),
                  True),

@@ -16,6 +16,7 @@ from steering_core.capture.run_identity import checkpoint_fingerprint
 from steering_core.capture.settings import select_tokens
 from steering_core.pi05 import PromptFormat, PromptTokenizer, libero_camera_slots, quantile_normalize, read_norm_stats
 from steering_core.pi05.model import Pi05Prefix
+from steering_core.pi05.spec import ModelSpec
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
 
@@ -34,11 +35,16 @@ def inputs(tmp_path_factory):
     return checkpoint, tokenizer, dataset
 
 
+MODEL_FIELDS = {"checkpoint_path": "checkpoint", "tokenizer_path": "tokenizer", "arch": "arch",
+                "prompt_format": "prompt_format"}  # settings_for's override names -> ModelSpec fields
+
+
 def settings_for(inputs, **overrides) -> CaptureSettings:
     checkpoint, tokenizer, _ = inputs
-    fields = dict(checkpoint_path=checkpoint, tokenizer_path=tokenizer, layers=(1, 3), arch=ARCH, batch_size=2,
-                  device="cpu", num_workers=0)
-    return CaptureSettings(**(fields | overrides))
+    model = {"checkpoint": checkpoint, "tokenizer": tokenizer, "arch": ARCH}
+    model |= {MODEL_FIELDS[name]: overrides.pop(name) for name in list(overrides) if name in MODEL_FIELDS}
+    fields = dict(layers=(1, 3), batch_size=2, device="cpu", num_workers=0)
+    return CaptureSettings(**(fields | overrides), model=ModelSpec(**model))
 
 
 @pytest.fixture(scope="module")

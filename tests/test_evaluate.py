@@ -361,18 +361,21 @@ def test_model_checks_name_the_problem(tmp_path):
     from steering_core.capture import CaptureSettings
     from steering_core.evaluate.run import check_model
     from steering_core.pi05 import PromptFormat
-    from steering_core.synthetic.pi05 import tiny_arch
+    from steering_core.pi05.spec import ModelSpec
+    from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 
     arch = tiny_arch()
-    model = CaptureSettings(checkpoint_path=tmp_path / "missing", tokenizer_path=tmp_path / "tok", layers=(1,), arch=arch)
+    spec = ModelSpec(checkpoint=tmp_path / "missing", tokenizer=tmp_path / "tok", arch=arch)
+    model = CaptureSettings(model=spec, layers=(1,))
     with pytest.raises(FileNotFoundError, match="missing: policy checkpoint not found"):
         check_model(model, 1)
-    (tmp_path / "ckpt").mkdir()
-    model = model.model_copy(update={"checkpoint_path": tmp_path / "ckpt"})
+    write_pi05_checkpoint(tmp_path / "ckpt", arch)
+    model = CaptureSettings(model=spec.model_copy(update={"checkpoint": tmp_path / "ckpt"}), layers=(1,))
     with pytest.raises(ValueError, match=rf"layer {arch.depth} is not a layer of the policy: it has {arch.depth}"):
         check_model(model, arch.depth)
+    discrete = spec.model_copy(update={"checkpoint": tmp_path / "ckpt", "prompt_format": PromptFormat.DISCRETE_STATE})
     with pytest.raises(ValueError, match="needs the libero format"):
-        check_model(model.model_copy(update={"prompt_format": PromptFormat.DISCRETE_STATE}), 1)
+        check_model(CaptureSettings(model=discrete, layers=(1,)), 1)
     # the last language-model layer only feeds the final norm: steering it cannot change the actions
     with pytest.raises(ValueError, match=rf"^layer {arch.depth - 1}: the last language-model layer's output only "
                                          rf"feeds the final norm.*; evaluate layers 0..{arch.depth - 2}$"):

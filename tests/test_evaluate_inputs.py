@@ -19,6 +19,7 @@ from steering_core.data.contrast import AxisSummary, ContrastManifest, Segment
 from steering_core.data.split import HoldoutSplit, TaskSplit, write_split
 from steering_core.evaluate import EvaluateSettings
 from steering_core.evaluate.run import evaluate_job, pair_job
+from steering_core.pi05.spec import ModelSpec
 from steering_core.storage.fileio import write_json
 
 OPEN, CLOSE = "open the drawer", "close the drawer"
@@ -61,7 +62,7 @@ def job(data: Path, config: Path):
 def test_evaluate_job_refuses_slices_whose_held_out_episodes_differ_from_the_split(tmp_path):
     run, data = inputs(tmp_path)
     (tmp_path / "ckpt").mkdir()
-    model = CaptureSettings(checkpoint_path=tmp_path / "ckpt", tokenizer_path=tmp_path / "tok", layers=(LAYER,))
+    model = CaptureSettings(model=ModelSpec(checkpoint=tmp_path / "ckpt", tokenizer=tmp_path / "tok"), layers=(LAYER,))
     split = data / "manifests" / "p_split.json"
     for holdout, recorded in (((), r"\[\]"), ((3,), r"\[3\]")):
         slices = tmp_path / f"slices{len(holdout)}"

@@ -17,6 +17,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from steering_core.pi05 import Pi05Policy, PromptTokenizer, Steering
+from steering_core.pi05.expert import euler_times
 from steering_core.pi05.layouts import LEROBOT, LayoutName, resolve_checkpoint
 from steering_core.synthetic.pi05 import tiny_arch
 
@@ -122,6 +123,13 @@ def test_first_denoising_velocity_matches(golden, policy):
     noise = golden["inputs.noise"]
     one_step = policy.sample_actions(*model_inputs(golden), noise=noise, num_steps=1)
     torch.testing.assert_close(noise - one_step, golden["debug.v_t_step0"], rtol=0, atol=1e-4)
+
+
+def test_flow_times_are_lerobots_not_openpis(golden, policy):
+    _, times = euler_times(10, torch.device("cpu"), policy.accumulated_time)
+    assert torch.equal(torch.stack(times), golden["debug.timesteps"])
+    _, openpi = euler_times(10, torch.device("cpu"))
+    assert not torch.equal(torch.stack(openpi), golden["debug.timesteps"])  # 0.79999995 against 0.8
 
 
 def test_robot_actions_match_lerobots_postprocessor(golden, policy):

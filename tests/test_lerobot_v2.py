@@ -30,6 +30,7 @@ from steering_core.data.convert import ConvertSettings, convert_libero
 from steering_core.data.dataset import dataset_fingerprint, read_episode_columns, read_index_columns, read_meta
 from steering_core.data.v2_frames import V2Frames
 from steering_core.data.v21_writer import V21Writer
+from steering_core.pi05.spec import ModelSpec
 from steering_core.synthetic.libero import SyntheticSettings, write_libero_file
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
@@ -254,7 +255,7 @@ def test_lerobot_converter_accepts_our_v21(datasets, tmp_path):
 def pipeline(root: Path, dataset: Path, checkpoint: Path, tokenizer: Path, sae: Path, num_workers: int) -> dict[str, Path]:
     manifest = write_manifest(build_manifest(dataset, OPEN, CLOSE, repo_id="local/libero"), root / "manifest.json")
     concept_map = write_concept_map(build_concept_map(manifest, dataset, repo_id="local/libero"), root / "map.json")
-    settings = CaptureSettings(checkpoint_path=checkpoint, tokenizer_path=tokenizer, layers=(1,), arch=ARCH,
+    settings = CaptureSettings(model=ModelSpec(checkpoint=checkpoint, tokenizer=tokenizer, arch=ARCH), layers=(1,),
                                batch_size=4, device="cpu", num_workers=num_workers)
     capture(dataset, "local/libero", root / "run", settings)
     slice_concepts(root / "run", concept_map, root / "slices", SliceSettings(layers=(1,)))

@@ -74,7 +74,7 @@ def adarms_rows(policy: Pi05Policy, batch: int, layers: Sequence[int], num_steps
     """Return layer -> (B * num_steps, W) float32: the expert's adaRMS conditioning at each step's flow time."""
     from steering_core.pi05.expert import euler_times
 
-    _, times = euler_times(num_steps, policy.device)
+    _, times = euler_times(num_steps, policy.device, policy.accumulated_time)
     cond = policy.expert.condition(torch.stack(times)).float()  # (num_steps, W)
     rows = cond.repeat(batch, 1)
     return {layer: rows for layer in layers}

@@ -220,7 +220,7 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork
     # before CUDA is initialised. The cameras are resized on the model's device, not in the workers.
     batches = frame_batches(frames, plan, keys, settings.arch.image_size, settings.num_workers,
-                            resolve_device(settings.device), camera_shapes(job.meta), job.inputs.robot.cameras)
+                            resolve_device(settings.run_device), camera_shapes(job.meta), job.inputs.robot.cameras)
     model = _load_model(settings, job.inputs)
     write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}
@@ -239,18 +239,8 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
 def _load_model(settings: CaptureSettings, inputs: CaptureInputs) -> Pi05Prefix | Pi05Policy:
     """Return the prefix up to the deepest layer, or the whole policy for the action token types."""
     if settings.token_type in ACTION_TOKEN_TYPES:
-        from steering_core.pi05.policy import Pi05Policy
-
-        return Pi05Policy.from_checkpoint(settings.checkpoint_path, settings.arch, settings.device, settings.dtype,
-                                          action_horizon=inputs.robot.action_horizon, expert_arch=inputs.expert_arch,
-                                          prompt_format=inputs.robot.prompt_format,
-                                          norm_stats_path=settings.norm_stats_path,
-                                          asset_id=settings.norm_stats_asset_id, layout=inputs.checkpoint.layout.name,
-                                          max_token_len=inputs.robot.max_token_len)
-    from steering_core.pi05.model import Pi05Prefix
-
-    return Pi05Prefix.from_checkpoint(inputs.checkpoint, settings.arch, max(settings.layers), settings.device,
-                                      settings.dtype)
+        return settings.model.load_policy(settings.run_device, settings.run_dtype, expert_arch=inputs.expert_arch)
+    return settings.model.load_prefix(max(settings.layers), settings.run_device, settings.run_dtype)
 
 
 def _prompt(job: CaptureJob, task: str, state: torch.Tensor | None, cache: dict[str, TokenizedPrompt]) -> TokenizedPrompt:

@@ -47,7 +47,7 @@ def run_spec(
         "checkpoint_fingerprint": checkpoint_fingerprint(model_file),
         "layout": inputs.checkpoint.layout.name.value,
         "arch": settings.arch.model_dump(mode="json"),
-        "compute_dtype": str(resolve_dtype(settings.dtype, resolve_device(settings.device))).removeprefix("torch."),
+        "compute_dtype": str(resolve_dtype(settings.run_dtype, resolve_device(settings.run_device))).removeprefix("torch."),
         "prompt_format": robot.prompt_format.value,
         "max_token_len": robot.max_token_len,
         "tokenizer_sha256": sha256_file(tokenizer.path),

@@ -18,10 +18,9 @@ from steering_core.pi05.checkpoint import (
     check_prefix_layout,
     expert_arch_from_checkpoint,
 )
-from steering_core.pi05.layouts import LayoutName, resolve_checkpoint
-from steering_core.pi05.norm_stats import LIBERO_ASSET_ID
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
-from steering_core.pi05.robot_side import RobotSide, robot_side
+from steering_core.pi05.robot_side import RobotSide
+from steering_core.pi05.spec import ModelSpec
 from steering_core.storage.schema import StrictModel
 
 STATE_KEY = "state"  # the dataset feature the discrete-state prompt reads
@@ -32,44 +31,39 @@ N_CAMERAS = 3  # pi0.5's camera slots: base, left wrist, right wrist (absent in 
 class CaptureSettings(StrictModel):
     """What to capture and how; the seed's `save_residuals.py` flags plus the new ones."""
 
-    checkpoint_path: Path  # pi0.5 checkpoint folder (openpi's converted or lerobot's) or its model.safetensors
-    layout: LayoutName = LayoutName.AUTO  # the checkpoint's layout: detected from the folder, or forced and checked
-    tokenizer_path: Path  # PaliGemma SentencePiece model (paligemma_tokenizer.model) or its tokenizer.json
+    model: ModelSpec  # the checkpoint, tokenizer and how they are read (prompt format, horizon, statistics, arch)
     layers: tuple[int, ...] = (12,)  # the seed's SAE layer; decision/adarms: action expert layers
     token_type: TokenType = "instructions"
     # decision / adarms only: the full sampler runs per frame from noise drawn by a generator seeded
     # with (noise_seed, the frame's global index), so re-capturing gives the same rows
     num_steps: int = Field(10, ge=1, le=1000)  # Euler denoising steps (openpi's default)
     noise_seed: int = Field(0, ge=0, lt=2**31)
-    # action tokens per chunk; None: the checkpoint's (openpi action_horizon, lerobot chunk_size), else 10
-    action_horizon: int | None = Field(None, ge=1, le=1000)
-    # None: the checkpoint's (openpi: libero, pi05_libero's; lerobot: discrete_state, its only format)
-    prompt_format: PromptFormat | None = None
-    max_token_len: int | None = Field(None, ge=1, le=8192)  # None: lerobot's tokenizer_max_length, else 200
-    norm_stats_path: Path | None = None  # openpi discrete_state only; default <checkpoint>/assets/<asset id>/norm_stats.json
-    norm_stats_asset_id: str = LIBERO_ASSET_ID
     skip_norm_stats: bool = False  # the seed's flag: never read norm stats (the libero format needs none)
-    arch: Pi05Arch = Pi05Arch()
     # frames per forward pass; the seed used 128 on a large GPU. 1024 frames of pi0.5's ~800-token prefix at width
     # 2048 are 3.4 GB of bf16 activations per layer, more than any GPU holds with the model's intermediates
     batch_size: int = Field(32, ge=1, le=1024)
-    device: str | None = None  # default CUDA when available, else CPU
-    dtype: str | None = None  # compute dtype; default openpi's bfloat16 policy on CUDA, float32 on CPU
+    device: str | None = None  # None: the model spec's, else CUDA when available, else CPU
+    dtype: str | None = None  # compute dtype; None: the model spec's, else the layout's bfloat16 policy on CUDA
     storage_dtype: StorageDtype = "float32"
     episodes_per_shard: int = Field(1, ge=1, le=100_000)  # 1: adding demos never rewrites a shard
     # DataLoader processes decoding frames; None: one per usable core less one, at most 8 (capture.frames.frame_workers)
     num_workers: int | None = Field(None, ge=0, le=256)
     video_backend: str | None = None  # lerobot's decoder for video datasets (None: lerobot's default)
 
-    def robot_side(self) -> RobotSide:
-        """Return the checkpoint's statistics, cameras, prompt format, horizon and prompt length (`robot_side`)."""
-        return robot_side(resolve_checkpoint(self.checkpoint_path, self.layout), self.arch, self.prompt_format,
-                          self.norm_stats_path, self.norm_stats_asset_id, self.action_horizon, self.max_token_len)
+    @property
+    def arch(self) -> Pi05Arch:
+        """Return the model's dimensions."""
+        return self.model.arch
 
-    def prompt_tokenizer(self) -> PromptTokenizer:
-        """Return the tokenizer in the checkpoint's prompt format and length."""
-        robot = self.robot_side()
-        return PromptTokenizer(self.tokenizer_path, robot.max_token_len, robot.prompt_format)
+    @property
+    def run_device(self) -> str | None:
+        """Return the device the capture runs on: its own setting, else the model spec's (None: auto)."""
+        return self.device or self.model.device
+
+    @property
+    def run_dtype(self) -> str | None:
+        """Return the compute dtype: its own setting, else the model spec's (None: the device's default)."""
+        return self.dtype or self.model.dtype
 
     @field_validator("layers")
     @classmethod
@@ -143,10 +137,9 @@ def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
     The checkpoint's header must hold every prefix tensor up to the deepest layer with the arch's shapes;
     the action token types need the whole prefix and the action expert, whose layers `layers` then name.
     """
-    checkpoint = resolve_checkpoint(settings.checkpoint_path, settings.layout)
-    robot = robot_side(checkpoint, settings.arch, settings.prompt_format, settings.norm_stats_path,
-                       settings.norm_stats_asset_id, settings.action_horizon, settings.max_token_len)
-    tokenizer = PromptTokenizer(settings.tokenizer_path, robot.max_token_len, robot.prompt_format)
+    checkpoint = settings.model.resolve()
+    robot = settings.model.robot_side(checkpoint)
+    tokenizer = settings.model.prompt_tokenizer(robot)
     discrete = robot.prompt_format is PromptFormat.DISCRETE_STATE
     problems = []
     expert_arch = None
@@ -163,7 +156,7 @@ def check_model_inputs(settings: CaptureSettings) -> CaptureInputs:
         )
     if tokenizer.vocab_size > settings.arch.vocab_size:
         problems.append(
-            f"{settings.tokenizer_path}: {tokenizer.vocab_size} pieces, more than the model's vocab_size "
+            f"{tokenizer.path}: {tokenizer.vocab_size} pieces, more than the model's vocab_size "
             f"{settings.arch.vocab_size}; pass the tokenizer the checkpoint was trained with"
         )
     if discrete and settings.skip_norm_stats:

@@ -33,6 +33,7 @@ from steering_core.data.convert import ConvertSettings
 from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
 from steering_core.pi05.robot_side import DEFAULT_HORIZON
+from steering_core.pi05.spec import ModelSpec
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
@@ -135,7 +136,7 @@ class RunConfig(StrictModel):
         """Return the evaluation's and the rollouts' estimated work over its limit (`steering_core.workload`)."""
         problems = rollout_problems(self)
         if self.evaluate is not None:
-            problems += evaluation_problems(self.evaluate_settings(), self.capture.action_horizon or DEFAULT_HORIZON)
+            problems += evaluation_problems(self.evaluate_settings(), self.model.action_horizon or DEFAULT_HORIZON)
         return problems
 
     # ------------------------------------------------------------------ paths (the seed's layout)
@@ -283,15 +284,7 @@ class RunConfig(StrictModel):
 
     def capture_settings(self) -> CaptureSettings:
         """Return the capture settings: the capture section plus model paths and layers."""
-        return CaptureSettings(
-            **self.capture.model_dump(),
-            checkpoint_path=self.model.checkpoint,
-            layout=self.model.layout,
-            tokenizer_path=self.model.tokenizer,
-            norm_stats_path=self.model.norm_stats,
-            arch=self.model.arch,
-            layers=self.layers,
-        )
+        return CaptureSettings(**self.capture.model_dump(), model=ModelSpec(**self.model.model_dump()), layers=self.layers)
 
     def decision_capture_settings(self) -> CaptureSettings:
         """Return the settings of the `decision` capture: the main capture's at the expert layers."""

@@ -28,8 +28,7 @@ from steering_core.data.filtering import FilterSettings
 from steering_core.evaluate import EvaluateSettings
 from steering_core.layout import check_name
 from steering_core.pairs import same_text
-from steering_core.pi05 import Pi05Arch
-from steering_core.pi05.layouts import LayoutName
+from steering_core.pi05.spec import ModelSpec
 from steering_core.remote.publish import pull
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
 from steering_core.sae.training.settings import TrainSettings
@@ -41,8 +40,7 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 MAX_NAME_CHARS = 100  # a name becomes a path component with suffixes added (the file system allows 255 bytes)
 # Step settings the run config supplies itself, and where to set them instead.
 SUPPLIED = {
-    "capture": {"checkpoint_path": "model.checkpoint", "layout": "model.layout", "tokenizer_path": "model.tokenizer",
-                "norm_stats_path": "model.norm_stats", "arch": "model.arch", "layers": "layers"},
+    "capture": {"model": "model", "layers": "layers"},
     "slicing": {"layers": "layers", "token_type": "capture.token_type", "holdout_episodes": "evaluate.holdout_fraction"},
     "steering": {"pairs_config": "pairs", "output_root": "output_root", "layer": "layers", "sae": "sae.<layer>",
                  "sae_id": "sae.<layer>.sae_id", "sae_dir": "sae.<layer>.local_dir",
@@ -52,6 +50,11 @@ SUPPLIED = {
 
 # Former key names still read, section -> former -> current; given beside the current one, a former name is refused.
 FORMER_NAMES = {"orchestration": {"capture": "mode"}}
+# Keys that moved to another section, section -> key -> where it is set now (named when an old config gives one).
+MOVED = {"capture": {"checkpoint_path": "model.checkpoint", "tokenizer_path": "model.tokenizer",
+                     "norm_stats_path": "model.norm_stats", "norm_stats_asset_id": "model.asset_id",
+                     "arch": "model.arch", "prompt_format": "model.prompt_format",
+                     "max_token_len": "model.max_token_len", "action_horizon": "model.action_horizon"}}
 
 
 def _resolve_path(value: Path, info: ValidationInfo) -> Path:
@@ -182,14 +185,12 @@ class PairSection(StrictModel):
         return self.rename.get(task, task)
 
 
-class ModelSection(StrictModel):
-    """The pi0.5 checkpoint and what reads it."""
+class ModelSection(ModelSpec):
+    """The run's pi0.5 model (`ModelSpec`), its paths relative to the config file; the tokenizer is required."""
 
-    checkpoint: ConfigPath                 # pi0.5 checkpoint folder (openpi's converted or lerobot's) or its model.safetensors
-    layout: LayoutName = LayoutName.AUTO   # the checkpoint's layout: detected from the folder, or forced and checked
-    tokenizer: ConfigPath                  # PaliGemma SentencePiece model or its tokenizer.json
-    norm_stats: ConfigPath | None = None   # openpi discrete-state prompts only; default: the checkpoint's assets
-    arch: Pi05Arch = Pi05Arch()            # real pi0.5 dimensions; tiny models pass theirs
+    checkpoint: ConfigPath
+    tokenizer: ConfigPath
+    norm_stats: ConfigPath | None = None
 
 
 class SaeTrainSection(TrainSettings):

@@ -12,7 +12,7 @@ import yaml
 from pydantic import ValidationError
 
 from steering_core.config.run import RunConfig
-from steering_core.config.sections import FORMER_NAMES, SUPPLIED
+from steering_core.config.sections import FORMER_NAMES, MOVED, SUPPLIED
 from steering_core.remote.filesystems import object_path, temporary_copy
 from steering_core.storage.fileio import atomic_path, read_text
 from steering_core.storage.mirrors import is_url, portable, url_of
@@ -104,7 +104,8 @@ def format_errors(err: ValidationError, data: Any = None) -> list[str]:
         message = message[:1].lower() + message[1:]
         if error["type"] == "extra_forbidden":
             section, _, field = key.partition(".")
-            instead, current = SUPPLIED.get(section, {}).get(field), FORMER_NAMES.get(section, {}).get(field)
+            instead = SUPPLIED.get(section, {}).get(field) or MOVED.get(section, {}).get(field)
+            current = FORMER_NAMES.get(section, {}).get(field)
             message = (f"set by the run config: use `{instead}`" if instead
                        else f"the former name of `{current}`, given beside it; keep only `{current}`" if current
                        else "unknown key (check its spelling and section)")

@@ -30,6 +30,7 @@ from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.evaluate.sweep import Prompt
 from steering_core.pairs import SIDES
 from steering_core.pi05 import PromptFormat, PromptTokenizer
+from steering_core.pi05.spec import ModelSpec
 from steering_core.pi05.steering import LAST_LM_LAYER, Stream
 from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import ProgressCallback
@@ -157,8 +158,8 @@ def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> No
 
     The action expert has as many layers as the language model (spec 10.1).
     """
-    if not Path(model.checkpoint_path).exists():
-        raise FileNotFoundError(f"{model.checkpoint_path}: policy checkpoint not found; the evaluation runs the "
+    if not Path(model.model.checkpoint).exists():
+        raise FileNotFoundError(f"{model.model.checkpoint}: policy checkpoint not found; the evaluation runs the "
                                 "policy, set model.checkpoint (or --checkpoint-path) to a converted pi0.5 checkpoint")
     if not 0 <= layer < model.arch.depth:
         what = "action-expert layer" if stream == "expert" else "layer"
@@ -166,9 +167,16 @@ def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> No
                          f"(0..{model.arch.depth - 1})")
     if stream == "lm" and layer == model.arch.depth - 1:
         raise ValueError(f"layer {layer}: {LAST_LM_LAYER}; evaluate layers 0..{layer - 1}")
-    if (prompt_format := model.robot_side().prompt_format) is not PromptFormat.LIBERO:
+    if model.model.prompt_format not in (None, PromptFormat.LIBERO):
+        check_prompt_format(model.model.prompt_format)
+
+
+def check_prompt_format(prompt_format: PromptFormat) -> None:
+    """Raise unless the checkpoint reads prompts without the state (one prompt per task: the libero format)."""
+    if prompt_format is not PromptFormat.LIBERO:
         raise ValueError(f"prompt_format {prompt_format.value!r}: the evaluation steers one prompt per task, "
-                         "which needs the libero format (the state stays out of the prompt)")
+                         "which needs the libero format (the state stays out of the prompt; lerobot's pi0.5 always "
+                         "reads it)")
 
 
 def check_slices_split(slices: Sequence[Path], holdout: Sequence[int], split_path: Path) -> None:
@@ -192,10 +200,10 @@ def check_decision_run(run_dir: Path, layers: Sequence[int], model: CaptureSetti
                        where: str = "--decision-run") -> None:
     """Raise ValueError (one line naming `where`) unless `run_dir` holds `decision` rows of `layers` whose
     width is the checkpoint's action-expert width and whose sampler had `num_steps` steps. Reads headers only."""
-    from steering_core.pi05.checkpoint import expert_arch_from_checkpoint, resolve_checkpoint
+    from steering_core.pi05.checkpoint import expert_arch_from_checkpoint
 
     run = read_run_metadata(run_dir).run
-    expert = expert_arch_from_checkpoint(resolve_checkpoint(model.checkpoint_path, model.layout), model.arch)
+    expert = expert_arch_from_checkpoint(model.model.resolve(), model.arch)
     problems = []
     if run.token_type != "decision":
         problems.append(f"it holds `{run.token_type}` rows, expected `decision` rows (capture --token-type decision)")
@@ -224,16 +232,10 @@ def slice_decision_run(run_dir: Path, pair: str, layers: Sequence[int], *, data_
 
 
 @functools.lru_cache(maxsize=1)
-def load_policy(model: CaptureSettings, device: str, dtype: str | None, compiled: bool | None = None) -> Any:
+def load_policy(model: ModelSpec, device: str, dtype: str | None, compiled: bool | None = None) -> Any:
     """Return the Pi05Policy of `model` (cached: one policy per process and model); `compiled`: its denoising step's
     setting (`Pi05Policy.from_checkpoint`)."""
-    from steering_core.pi05.policy import Pi05Policy
-
-    return Pi05Policy.from_checkpoint(
-        model.checkpoint_path, arch=model.arch, device=device, dtype=dtype, tokenizer_path=model.tokenizer_path,
-        prompt_format=model.prompt_format, norm_stats_path=model.norm_stats_path, asset_id=model.norm_stats_asset_id,
-        compiled=compiled, layout=model.layout, action_horizon=model.action_horizon, max_token_len=model.max_token_len,
-    )
+    return model.load_policy(device, dtype, compiled)
 
 
 def task_prompts(tokenizer: PromptTokenizer, positive: str, negative: str) -> dict[str, Prompt]:
@@ -290,15 +292,18 @@ def _evaluate(
         slices=(job.positive_slice, job.negative_slice),
     )
     check_slices_split(pair.slices, pair.split.holdout_episodes, job.split)
+    robot = model.model.robot_side()  # the checkpoint folder's prompt format (lerobot's carries the state)
+    check_prompt_format(robot.prompt_format)
     if job.stream == "expert":
         directions = decision_directions(pair.slices)
     else:
         directions = pair_directions(job.directions, sae, top_k=settings.top_k)
-    policy = policy if policy is not None else load_policy(model, settings.device, settings.dtype, settings.compiled)
+    policy = policy if policy is not None else load_policy(model.model, settings.device, settings.dtype,
+                                                           settings.compiled)
     width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
     from steering_core.pi05.steering import Steering
 
-    tokenizer = model.prompt_tokenizer()
+    tokenizer = model.model.prompt_tokenizer(robot)
 
     def load(frames: Sequence[EvalFrame]) -> dict[str, Any]:
         return load_frames(job.dataset_root, job.repo_id, frames, model.arch.image_size, model.video_backend)

@@ -43,15 +43,19 @@ def time_embedding(time: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([torch.sin(angle), torch.cos(angle)], dim=1).to(time.dtype)
 
 
-def euler_times(num_steps: int, device: torch.device) -> tuple[torch.Tensor, list[torch.Tensor]]:
-    """Return the step dt = -1/num_steps and the flow times openpi evaluates, float32 0-d tensors.
+def euler_times(num_steps: int, device: torch.device, accumulate: bool = True) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """Return the step dt = -1/num_steps and the flow times the checkpoint's library evaluates, float32 0-d tensors.
 
-    From 1.0, `t += dt` accumulated in float32 while t >= -dt/2 (1.0, 0.9, 0.79999995, ... for 10 steps;
-    not 1 - k/num_steps, spec 10.4).
+    openpi (`accumulate`): from 1.0, `t += dt` accumulated in float32 while t >= -dt/2 (1.0, 0.9, 0.79999995, ... for
+    10 steps; not 1 - k/num_steps, spec 10.4). lerobot: t = 1 + k * dt computed in float64, then rounded to float32
+    (1.0, 0.9, 0.8, ...; spec 17.7).
     """
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
         raise ValueError(f"num_steps {num_steps!r} must be a positive integer")
     dt = torch.tensor(-1.0 / num_steps, dtype=torch.float32, device=device)
+    if not accumulate:
+        return dt, [torch.tensor(1.0 + k * (-1.0 / num_steps), dtype=torch.float32, device=device)
+                    for k in range(num_steps)]
     time = torch.tensor(1.0, dtype=torch.float32, device=device)
     times = []
     while time >= -dt / 2:

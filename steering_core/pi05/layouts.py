@@ -1,6 +1,6 @@
 """pi0.5 checkpoint layouts: openpi's converted PyTorch folder and lerobot's `PI05Policy` folder.
 
-Both hold the same module tree under different key names (spec 1.2, 11.1). The rest of the package names every
+Both hold the same module tree under different key names (spec 1.2, 17.1). The rest of the package names every
 tensor by openpi's key (the *canonical* name); a `Checkpoint` maps it to the name stored in its file, so the key
 mapping of each layout lives here and nowhere else. The token embedding is the one tensor whose *source* differs:
 openpi's file keeps the tied table once, as `lm_head`; lerobot's stores `embed_tokens` and `lm_head` as two
@@ -55,6 +55,7 @@ class CheckpointLayout:
     prefix: str
     embedding_keys: tuple[str, ...]  # canonical names; the first one the file holds is the embedding table
     float32_selectors: tuple[str, ...]  # substrings of canonical names kept float32 when computing in bfloat16
+    accumulated_time: bool  # the sampler's flow times: t += dt in float32 (openpi) or 1 + k*dt in float64 (lerobot)
     marks: str  # what a folder of this layout holds, for error messages
 
     def stored(self, canonical: str) -> str:
@@ -72,6 +73,7 @@ OPENPI = CheckpointLayout(
     float32_selectors=("embeddings.patch_embedding.weight", "embeddings.patch_embedding.bias",
                        "embeddings.position_embedding.weight", "input_layernorm", "post_attention_layernorm",
                        *_ADARMS_AND_HEADS),
+    accumulated_time=True,
     marks=f"{MODEL_FILE} with bare openpi keys, {CONFIG_FILE} (action_dim, variants) and "
           f"{ASSETS_DIR}/<asset_id>/norm_stats.json",
 )
@@ -80,9 +82,10 @@ LEROBOT = CheckpointLayout(
     prefix="model.",
     embedding_keys=(EMBED_TOKENS_KEY, LM_HEAD_KEY),
     # lerobot's PaliGemmaWithExpertModel.to_bfloat16_for_selected_params keeps the whole vision path, the norms and
-    # the expert's final norm in float32; the heads sit outside it and are never cast (spec 11.6)
+    # the expert's final norm in float32; the heads sit outside it and are never cast (spec 17.6)
     float32_selectors=("vision_tower", "multi_modal_projector", "input_layernorm", "post_attention_layernorm",
                        "model.norm", *_ADARMS_AND_HEADS),
+    accumulated_time=False,
     marks=f"{MODEL_FILE} with every key prefixed 'model.', {CONFIG_FILE} (type: pi05), {LEROBOT_PREPROCESSOR} "
           f"and {LEROBOT_POSTPROCESSOR}",
 )

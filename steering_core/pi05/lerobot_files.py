@@ -1,7 +1,7 @@
 """lerobot's pi0.5 folder besides the weights: `config.json` (its `PI05Config`) and the processor pipelines
 (`policy_preprocessor.json`, `policy_postprocessor.json` and the normalizer statistics they name), checked on read.
 
-Spec 11.2-11.4: the camera features in `input_features` order (present ones first, then `empty_cameras`), the
+Spec 17.2-17.4: the camera features in `input_features` order (present ones first, then `empty_cameras`), the
 state and action widths, the chunk size, the tokenizer's length, and per feature type the normalisation mode the
 processors apply with their statistics and epsilon.
 """

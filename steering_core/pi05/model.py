@@ -105,7 +105,7 @@ def siglip_config(arch: Pi05Arch) -> SiglipVisionConfig:
 
 def parameter_dtype(key: str, dtype: torch.dtype, layout: CheckpointLayout = OPENPI) -> torch.dtype:
     """Return the run-time dtype of canonical tensor `key` under compute dtype `dtype`: the layout's library keeps
-    some parameters in float32 under a half-precision policy (spec 1.4, 11.6)."""
+    some parameters in float32 under a half-precision policy (spec 1.4, 17.6)."""
     half = dtype in (torch.bfloat16, torch.float16)
     return torch.float32 if half and any(selector in key for selector in layout.float32_selectors) else dtype
 

@@ -2,7 +2,7 @@
 
 openpi's folders carry `assets/<asset_id>/norm_stats.json` and normalise with quantiles (+1e-6, spec 4.4, 10.8);
 lerobot's carry processor statistics and normalise each feature type with the mode its processors name, in
-float32, as lerobot's `NormalizerProcessorStep` computes it (spec 11.4). Both are read on first use.
+float32, as lerobot's `NormalizerProcessorStep` computes it (spec 17.4). Both are read on first use.
 """
 
 from __future__ import annotations

@@ -272,7 +272,7 @@ class Pi05Policy(nn.Module):
                         len(images))
         if splice is not None:
             splice.check(self.arch, batch, n_tokens)
-        dt, times = euler_times(num_steps, self.device)
+        dt, times = euler_times(num_steps, self.device, self.accumulated_time)
         noise = self._noise(noise, batch, generator)
         images, image_masks, tokens, token_mask = self.prefix.on_device(images, image_masks, tokens, token_mask)
         entries = [[item.to(self.device) for item in entry] for entry in entries]
@@ -339,6 +339,12 @@ class Pi05Policy(nn.Module):
     # ------------------------------------------------------------------ robot side
 
     @property
+    def accumulated_time(self) -> bool:
+        """Return whether the sampler accumulates its flow times in float32 (openpi) or not (lerobot)."""
+        checkpoint = self.prefix.checkpoint
+        return checkpoint is None or checkpoint.layout.accumulated_time
+
+    @property
     def layout(self) -> str:
         """Return the checkpoint's layout name (`openpi` or `lerobot`)."""
         checkpoint = self.prefix.checkpoint
@@ -346,7 +352,7 @@ class Pi05Policy(nn.Module):
 
     def robot_actions(self, actions: torch.Tensor | np.ndarray) -> np.ndarray:
         """Return (..., action_horizon, 7) float32 robot actions: the checkpoint's output transform (openpi's
-        quantile un-normalisation then 7 dims, spec 10.8; lerobot's postprocessor, spec 11.4)."""
+        quantile un-normalisation then 7 dims, spec 10.8; lerobot's postprocessor, spec 17.4)."""
         if isinstance(actions, torch.Tensor):
             actions = actions.detach().float().cpu().numpy()
         actions = np.asarray(actions)

@@ -93,7 +93,7 @@ def camera_slots(
     return [base, wrist, absent], [present, present.clone(), torch.zeros(batch, dtype=torch.bool)]
 
 
-# lerobot camera names (after `observation.images.`) -> the LIBERO camera feeding that slot (spec 11.3)
+# lerobot camera names (after `observation.images.`) -> the LIBERO camera feeding that slot (spec 17.3)
 LEROBOT_CAMERA_NAMES = {
     "image": "image", "agentview_image": "image", "base_0_rgb": "image",
     "wrist_image": "wrist_image", "image2": "wrist_image", "robot0_eye_in_hand_image": "wrist_image",

@@ -1,7 +1,7 @@
 """pi0.5 prompts: PaliGemma tokenisation in the two formats openpi trains with (spec 4).
 
 The tokenizer is PaliGemma's SentencePiece model (openpi reads `paligemma_tokenizer.model`) or its Hugging Face
-`tokenizer.json` (lerobot's preprocessor loads `google/paligemma-3b-pt-224`); both give the same ids (spec 11.5).
+`tokenizer.json` (lerobot's preprocessor loads `google/paligemma-3b-pt-224`); both give the same ids (spec 17.5).
 `sentencepiece` and `tokenizers` are imported when a tokenizer is opened, so importing this module stays cheap.
 """
 

@@ -62,7 +62,7 @@ def make_policy(job: RolloutJob, model: CaptureSettings, settings: RolloutSettin
     from steering_core.evaluate.run import load_policy
     from steering_core.serve import SteeredPi05Policy, SteeringLimits, VectorCatalog, parse_steering
 
-    policy = load_policy(model, settings.device, settings.dtype, settings.compiled)
+    policy = load_policy(model.model, settings.device, settings.dtype, settings.compiled)
     catalog = VectorCatalog.scan(job.vectors_root) if entries else VectorCatalog()
     steering = parse_steering(entries, catalog, key="rollout", limits=SteeringLimits(float("inf"), model.arch.depth))
     return LocalPolicy(SteeredPi05Policy(policy, noise_seed=settings.noise_seed), steering)

@@ -74,10 +74,10 @@ def _action_inputs(job: JudgeJob, model: CaptureSettings, device: str) -> Action
                 task_episodes[task].add(row.episode_index)
     split = heldout_split({task: sorted(e) for task, e in task_episodes.items()}, job.heldout_episodes)
     frames = select_frames(manifest, concept_map, split, tasks, job.frames)
-    tokenizer = model.prompt_tokenizer()
+    tokenizer = model.model.prompt_tokenizer()
 
     def load(batch: Sequence[EvalFrame]) -> dict[str, Any]:
         return load_frames(job.dataset_root, job.repo_id, batch, model.arch.image_size, model.video_backend)
 
-    return ActionInputs(policy=load_policy(model, device, None), frames=frames, load=load,
+    return ActionInputs(policy=load_policy(model.model, device, None), frames=frames, load=load,
                         prompts=task_prompts(tokenizer, *tasks))
