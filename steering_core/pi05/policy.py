@@ -52,7 +52,7 @@ from steering_core.pi05.steering import (
     lm_additions,
     stack_entries,
 )
-from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer
+from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer, TokenizedPrompt
 
 logger = logging.getLogger(__name__)
 
@@ -365,23 +365,34 @@ class Pi05Policy(nn.Module):
             raise ValueError("this policy has no tokenizer: pass tokenizer_path= to Pi05Policy.from_checkpoint")
         return self.tokenizer
 
-    def instruction_mask(self, prompt: str) -> torch.Tensor:
-        """Return (1, T) bool: True at the language positions of the prompt's instruction tokens."""
-        return torch.from_numpy(self._require_tokenizer().tokenize(prompt).instruction_mask())[None]
+    def instruction_mask(self, prompt: str, state: np.ndarray | None = None) -> torch.Tensor:
+        """Return (1, T) bool: True at the language positions of the prompt's instruction tokens (the state (D,) is
+        needed by the discrete-state format, whose prompt carries it)."""
+        return self.instruction_masks([prompt], None if state is None else np.asarray(state)[None])
+
+    def instruction_masks(self, prompts: Sequence[str], states: np.ndarray | None) -> torch.Tensor:
+        """Return (B, T) bool: each prompt's instruction tokens, tokenised as `tokenize` does."""
+        return torch.from_numpy(np.stack([e.instruction_mask() for e in self._encode(prompts, states)]))
 
     def tokenize(self, prompts: Sequence[str], states: np.ndarray | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Return tokens (B, T) int64 and token_mask (B, T) bool of the prompts, as capture builds them.
 
-        The state (B, D) enters the prompt only in the discrete-state format (quantile-normalised, binned).
+        The state (B, D) enters the prompt only in the discrete-state format (normalised by the checkpoint's
+        statistics, binned).
         """
-        tokenizer = self._require_tokenizer()
-        if tokenizer.prompt_format is PromptFormat.DISCRETE_STATE:
-            normalized = self.normalization.normalize_state(np.asarray(states))
-            encoded = [tokenizer.tokenize(p, s) for p, s in zip(prompts, normalized)]
-        else:
-            encoded = [tokenizer.tokenize(p) for p in prompts]
+        encoded = self._encode(prompts, states)
         tokens = torch.from_numpy(np.stack([e.ids for e in encoded]))
         return tokens, torch.from_numpy(np.stack([e.mask for e in encoded]))
+
+    def _encode(self, prompts: Sequence[str], states: np.ndarray | None) -> list[TokenizedPrompt]:
+        """Return each prompt tokenised in the checkpoint's format (with its state in the discrete-state one)."""
+        tokenizer = self._require_tokenizer()
+        if tokenizer.prompt_format is not PromptFormat.DISCRETE_STATE:
+            return [tokenizer.tokenize(p) for p in prompts]
+        if states is None:
+            raise ValueError("the discrete-state prompt carries the state: pass the states with the prompts")
+        normalized = self.normalization.normalize_state(np.asarray(states))
+        return [tokenizer.tokenize(p, s) for p, s in zip(prompts, normalized)]
 
     def infer(
         self,

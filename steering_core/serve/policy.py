@@ -69,7 +69,7 @@ class SteeredPi05Policy:
         generator = torch.Generator().manual_seed(self.noise_seed)
         return torch.randn(self.policy.action_horizon, self.policy.action_dim, generator=generator)
 
-    def steerings(self, prompts: Sequence[str], rows: Sequence[slice],
+    def steerings(self, prompts: Sequence[str], states: np.ndarray, rows: Sequence[slice],
                   steering: Sequence[Sequence[AppliedSteering]]) -> list:
         """Return the `Steering`s of a batch of requests: request r's vectors, each times its `vector_alpha`, added at
         the instruction tokens of its own rows `rows[r]` of `prompts` (the other rows' masks are all False)."""
@@ -77,7 +77,7 @@ class SteeredPi05Policy:
 
         if not any(steering):
             return []
-        masks = torch.cat([self.policy.instruction_mask(prompt) for prompt in prompts])
+        masks = self.policy.instruction_masks(prompts, states)
         steerings = []
         for where, entries in zip(rows, steering, strict=True):
             mine = torch.zeros_like(masks)
@@ -116,7 +116,7 @@ class SteeredPi05Policy:
         rows = [slice(end - size, end) for size, end in zip(sizes, ends)]
         joined = ObservationBatch.concat(batches)
         noise = self.noise()
-        robot = self.policy.infer_rows(joined, self.steerings(joined.prompts, rows, steering) or None,
+        robot = self.policy.infer_rows(joined, self.steerings(joined.prompts, joined.states, rows, steering) or None,
                                        None if noise is None else noise.expand(ends[-1], -1, -1))
         timing = {"infer_ms": (time.perf_counter() - start) * 1000.0, "batch_rows": ends[-1]}
         return [{"actions": robot[where] if batch.batched else robot[where][0], "policy_timing": dict(timing)}
