@@ -110,7 +110,7 @@ def frame_inputs(arch: Pi05Arch, frames: int) -> dict[str, Any]:
     return {"images": images, "image_masks": masks}
 
 
-def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prompts: dict[str, Any],
+def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prompts: Any,
               directions: dict[str, torch.Tensor], layer: int, alphas: tuple[float, ...], seeds: int) -> torch.Tensor:
     """Return robot actions (directions, alphas, frames, seeds, H, 7): one full sample_actions each, plus swaps."""
     from steering_core.pi05.steering import Steering
@@ -118,7 +118,7 @@ def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prom
     out = torch.zeros(len(directions), len(alphas), len(frames), seeds, policy.action_horizon, 7, dtype=torch.float64)
     device = policy.device
     for f, frame in enumerate(frames):
-        own, other = prompts[frame.side], prompts["positive" if frame.side == "negative" else "negative"]
+        own, other = prompts.prompts[frame.side], prompts.prompts["positive" if frame.side == "negative" else "negative"]
         toward = toward_sign(frame.side)
         images = [t[f : f + 1].to(device) for t in inputs["images"]]
         masks = [t[f : f + 1].to(device) for t in inputs["image_masks"]]

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from steering_core.evaluate.frames import EvalFrame
-from steering_core.evaluate.sweep import Prompt
+from steering_core.evaluate.sweep import Prompt, TaskPrompts
 
 HORIZON, ACTION_DIM, T = 4, 32, 6
 # robot actions = model actions[:7] * 2 + 0.5; the norm stats' std per robot dimension (the efficacy's unit)
@@ -110,10 +110,10 @@ class FakePolicy:
         return np.asarray(actions, dtype=np.float64)[..., :7] * 2.0 + 0.5
 
 
-def prompts() -> dict[str, Prompt]:
+def prompts() -> TaskPrompts:
     mask = torch.ones(1, T, dtype=torch.bool)
-    return {"positive": Prompt(torch.tensor([POSITIVE_IDS]), mask, INSTRUCTION),
-            "negative": Prompt(torch.tensor([NEGATIVE_IDS]), mask, INSTRUCTION)}
+    return TaskPrompts({"positive": Prompt(torch.tensor([POSITIVE_IDS]), mask, INSTRUCTION),
+                        "negative": Prompt(torch.tensor([NEGATIVE_IDS]), mask, INSTRUCTION)})
 
 
 def load(frames: Sequence[EvalFrame]) -> dict:

@@ -373,9 +373,9 @@ def test_model_checks_name_the_problem(tmp_path):
     model = CaptureSettings(model=spec.model_copy(update={"checkpoint": tmp_path / "ckpt"}), layers=(1,))
     with pytest.raises(ValueError, match=rf"layer {arch.depth} is not a layer of the policy: it has {arch.depth}"):
         check_model(model, arch.depth)
+    # a prompt carrying the state is evaluated frame by frame (tests/test_lerobot_layout.py): no refusal
     discrete = spec.model_copy(update={"checkpoint": tmp_path / "ckpt", "prompt_format": PromptFormat.DISCRETE_STATE})
-    with pytest.raises(ValueError, match="needs the libero format"):
-        check_model(CaptureSettings(model=discrete, layers=(1,)), 1)
+    check_model(CaptureSettings(model=discrete, layers=(1,)), 1)
     # the last language-model layer only feeds the final norm: steering it cannot change the actions
     with pytest.raises(ValueError, match=rf"^layer {arch.depth - 1}: the last language-model layer's output only "
                                          rf"feeds the final norm.*; evaluate layers 0..{arch.depth - 2}$"):

@@ -155,3 +155,37 @@ def test_a_libero_episode_of_the_lerobot_policy_runs_through_rollout(tmp_path):
         [episode] = record["episodes"]
         assert episode["init_index"] == 0 and arrays["lengths"][0] > 0
         assert np.isfinite(arrays["actions"][0, : arrays["lengths"][0]]).all()
+
+
+def test_the_evaluation_prompts_each_frame_with_its_own_state(tmp_path):
+    """lerobot's prompt carries the state: the sweep's unsteered and swapped actions of each frame are the policy's
+    own on that frame's prompt (its task and state), and two frames of one task get different tokens."""
+    from steering_core.evaluate.frames import EvalFrame
+    from steering_core.evaluate.run import PolicyPrompts
+    from steering_core.evaluate.sweep import frame_noise, run_sweep
+    from steering_core.pi05.steering import Steering
+
+    policy = Pi05Policy.from_checkpoint(MODEL, ARCH, device="cpu", tokenizer_path=TOKENIZER_JSON)
+    tasks = {"positive": "open the top drawer", "negative": "close the top drawer"}
+    frames = [EvalFrame("negative", 0, t, t) for t in range(2)] + [EvalFrame("positive", 1, 0, 2)]
+    generator = torch.Generator().manual_seed(0)
+    images = [torch.rand(3, 3, 28, 28, generator=generator) * 2 - 1 for _ in range(2)] + [torch.full((3, 3, 28, 28), -1.0)]
+    masks = [torch.ones(3, dtype=torch.bool)] * 2 + [torch.zeros(3, dtype=torch.bool)]
+    states = np.random.default_rng(0).uniform(-1, 1, (3, 8))
+    prompts = PolicyPrompts(policy, tasks)
+    negative = prompts.of("negative", states[:2], 2)
+    assert not torch.equal(negative.tokens[0], negative.tokens[1])  # each frame's state bins
+    assert torch.equal(negative.instruction_mask[0], negative.instruction_mask[1])
+    actions = run_sweep(policy, Steering, frames, lambda _: {"images": images, "image_masks": masks, "states": states},
+                        prompts, {"d": torch.randn(ARCH.width, generator=generator)}, layer=1, alphas=(0.0, 2.0),
+                        mean_residual_norm=1.0, noise_seeds=1, seed=0, num_steps=2, batch_size=2, entries_per_call=4)
+    for i, frame in enumerate(frames):
+        noise = frame_noise(frame, 0, 0, policy.action_horizon, policy.action_dim)[None]
+        for side, expected in ((frame.side, actions.own[i, 0]),
+                               ("positive" if frame.side == "negative" else "negative",
+                                actions.own[i, 0] + actions.swap[i, 0])):
+            tokens, token_mask = policy.tokenize([tasks[side]], states[i : i + 1])
+            alone = policy.sample_actions([t[i : i + 1] for t in images], [m[i : i + 1] for m in masks], tokens,
+                                          token_mask, noise=noise, num_steps=2)
+            np.testing.assert_allclose(policy.robot_actions(alone)[0], expected.numpy(), rtol=0, atol=1e-4)
+    assert (actions.steered[0, 1] - actions.own).abs().max() > 1e-3  # the steering moves them

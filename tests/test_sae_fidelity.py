@@ -229,7 +229,7 @@ def by_hand_delta(policy, prompts, replace, layer, num_steps):
     std = torch.tensor(policy.normalization.stats["actions"].std[:7], dtype=torch.float64)
     total = 0.0
     for frame in FRAMES:
-        inputs, prompt = load([frame]), prompts[frame.side]
+        inputs, prompt = load([frame]), prompts.prompts[frame.side]
         noise = frame_noise(frame, 0, 0, 10, 32)[None]
         run = lambda splice: torch.from_numpy(policy.robot_actions(policy.sample_actions(  # noqa: E731
             inputs["images"], inputs["image_masks"], prompt.tokens, prompt.token_mask, noise=noise,

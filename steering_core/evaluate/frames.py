@@ -7,12 +7,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from steering_core.data.concept_map import ConceptMap
 from steering_core.data.contrast import ContrastManifest
 from steering_core.data.split import HoldoutSplit
 from steering_core.pairs import SIDES
+from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
 
 
 @dataclass(frozen=True)
@@ -84,16 +86,17 @@ def frame_halves(frames: Sequence[EvalFrame]) -> tuple[list[int], str]:
 
 
 def load_frames(
-    dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], image_size: int, video_backend: str | None = None
+    dataset_root: Path, repo_id: str, frames: Sequence[EvalFrame], image_size: int, video_backend: str | None = None,
+    cameras: Cameras = Cameras(),
 ) -> dict[str, Any]:
-    """Return the frames' cameras in pi0.5's three slots: {"images": [...], "image_masks": [...]} in `frames` order.
+    """Return the frames' cameras in the checkpoint's slots and their states, in `frames` order: {"images": [...],
+    "image_masks": [...], "states": (F, D) float64 or None (a dataset without `state`)}.
 
-    Reads only the frames' episodes; cameras are preprocessed exactly as capture does (libero_camera_slots).
+    Reads only the frames' episodes; cameras are preprocessed exactly as capture does (`cameras`, default openpi's).
     """
     from steering_core.capture.frames import frame_source, position_columns
+    from steering_core.capture.settings import STATE_KEY
     from steering_core.data.dataset import read_meta
-    from steering_core.pi05 import libero_camera_slots
-    from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS
 
     episodes = sorted({f.episode_index for f in frames})
     dataset = frame_source(read_meta(dataset_root), repo_id, episodes, video_backend)  # v3.0, v2.1 or v2.0
@@ -104,6 +107,8 @@ def load_frames(
         raise ValueError(f"{dataset_root}: frames with index {missing[:5]} are not in the dataset; the concept map "
                          "belongs to another dataset")
     items = [dataset[position[f.index]] for f in frames]
-    cameras = [torch.stack([item[key] for item in items]) for key in LIBERO_IMAGE_KEYS]
-    images, image_masks = libero_camera_slots(cameras[0], cameras[1], image_size)
-    return {"images": images, "image_masks": image_masks}
+    image, wrist = (torch.stack([item[key] for item in items]) for key in LIBERO_IMAGE_KEYS)
+    images, image_masks = cameras.from_float(image, wrist, image_size)
+    states = np.stack([np.asarray(item[STATE_KEY], dtype=np.float64) for item in items]) \
+        if items and STATE_KEY in items[0] else None
+    return {"images": images, "image_masks": image_masks, "states": states}

@@ -27,7 +27,7 @@ from steering_core.evaluate.nulls import null_directions
 from steering_core.evaluate.positions import check_positions
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.evaluate.sweep import Prompt, SweepPolicy, run_sweep
+from steering_core.evaluate.sweep import Prompts, SweepPolicy, run_sweep
 from steering_core.pairs import SIDES, toward_sign
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.storage.fileio import atomic_dir
@@ -79,7 +79,7 @@ def evaluate_pair(
     policy: SweepPolicy,
     make_steering: Callable[..., Any],
     load: Callable[[Sequence[EvalFrame]], dict[str, Any]],
-    prompts: dict[str, Prompt],
+    prompts: Prompts,
     *,
     layer: int,
     width: int,

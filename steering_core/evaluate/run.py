@@ -2,8 +2,8 @@
 
 A job steers the language model (`stream="lm"`, phase 3's directions of layer L) or the action expert
 (`stream="expert"`, the mean difference of the pair's `decision` slices at expert layer K). Frames are
-read from the LeRobot dataset and preprocessed exactly as capture does (`libero_camera_slots`,
-`PromptTokenizer`); the policy is loaded once per process and model (`load_policy`).
+read from the LeRobot dataset and preprocessed exactly as capture does (the checkpoint's cameras and prompt, the
+state in it where the checkpoint's prompt carries it); the policy is loaded once per process and model (`load_policy`).
 """
 
 from __future__ import annotations
@@ -11,9 +11,11 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from steering_core import layout
@@ -27,9 +29,9 @@ from steering_core.evaluate.frames import EvalFrame, load_frames
 from steering_core.evaluate.pair import PairInputs, evaluate_pair
 from steering_core.evaluate.report import layer_label
 from steering_core.evaluate.settings import EvaluateSettings
-from steering_core.evaluate.sweep import Prompt
+from steering_core.evaluate.sweep import Prompt, TaskPrompts
 from steering_core.pairs import SIDES
-from steering_core.pi05 import PromptFormat, PromptTokenizer
+from steering_core.pi05 import PromptTokenizer
 from steering_core.pi05.spec import ModelSpec
 from steering_core.pi05.steering import LAST_LM_LAYER, Stream
 from steering_core.remote.locks import output_lock
@@ -154,7 +156,7 @@ def run_config_job(config: RunConfig, pair: str, layer: int, stream: Stream = "l
 
 def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> None:
     """Raise ValueError for a model the evaluation cannot run: no checkpoint, a layer it lacks (or the last
-    language-model layer, whose steering cannot change actions), per-frame prompts.
+    language-model layer, whose steering cannot change actions).
 
     The action expert has as many layers as the language model (spec 10.1).
     """
@@ -167,16 +169,9 @@ def check_model(model: CaptureSettings, layer: int, stream: Stream = "lm") -> No
                          f"(0..{model.arch.depth - 1})")
     if stream == "lm" and layer == model.arch.depth - 1:
         raise ValueError(f"layer {layer}: {LAST_LM_LAYER}; evaluate layers 0..{layer - 1}")
-    if model.model.prompt_format not in (None, PromptFormat.LIBERO):
-        check_prompt_format(model.model.prompt_format)
 
 
-def check_prompt_format(prompt_format: PromptFormat) -> None:
-    """Raise unless the checkpoint reads prompts without the state (one prompt per task: the libero format)."""
-    if prompt_format is not PromptFormat.LIBERO:
-        raise ValueError(f"prompt_format {prompt_format.value!r}: the evaluation steers one prompt per task, "
-                         "which needs the libero format (the state stays out of the prompt; lerobot's pi0.5 always "
-                         "reads it)")
+
 
 
 def check_slices_split(slices: Sequence[Path], holdout: Sequence[int], split_path: Path) -> None:
@@ -238,13 +233,27 @@ def load_policy(model: ModelSpec, device: str, dtype: str | None, compiled: bool
     return model.load_policy(device, dtype, compiled)
 
 
-def task_prompts(tokenizer: PromptTokenizer, positive: str, negative: str) -> dict[str, Prompt]:
+def task_prompts(tokenizer: PromptTokenizer, positive: str, negative: str) -> TaskPrompts:
     """Return each side's prompt (1, T) tensors with the mask of its instruction tokens (where steering adds)."""
     prompts = {}
     for side, task in zip(SIDES, (positive, negative), strict=True):
         prompt = tokenizer.tokenize(task)
         prompts[side] = Prompt(*(torch.from_numpy(a)[None] for a in (prompt.ids, prompt.mask, prompt.instruction_mask())))
-    return prompts
+    return TaskPrompts(prompts)
+
+
+@dataclass(frozen=True)
+class PolicyPrompts:
+    """Each side's task tokenised by the policy for a batch of frames: with each frame's state where the checkpoint's
+    prompt carries it (lerobot's pi0.5), else the same prompt for every frame."""
+
+    policy: Any  # Pi05Policy: `tokenize`, `instruction_masks`
+    tasks: dict[str, str]  # side -> task text
+
+    def of(self, side: str, states: np.ndarray | None, count: int) -> Prompt:
+        texts = [self.tasks[side]] * count
+        tokens, token_mask = self.policy.tokenize(texts, states)
+        return Prompt(tokens, token_mask, self.policy.instruction_masks(texts, states))
 
 
 def evaluate_job(
@@ -292,8 +301,6 @@ def _evaluate(
         slices=(job.positive_slice, job.negative_slice),
     )
     check_slices_split(pair.slices, pair.split.holdout_episodes, job.split)
-    robot = model.model.robot_side()  # the checkpoint folder's prompt format (lerobot's carries the state)
-    check_prompt_format(robot.prompt_format)
     if job.stream == "expert":
         directions = decision_directions(pair.slices)
     else:
@@ -303,13 +310,12 @@ def _evaluate(
     width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
     from steering_core.pi05.steering import Steering
 
-    tokenizer = model.model.prompt_tokenizer(robot)
-
     def load(frames: Sequence[EvalFrame]) -> dict[str, Any]:
-        return load_frames(job.dataset_root, job.repo_id, frames, model.arch.image_size, model.video_backend)
+        return load_frames(job.dataset_root, job.repo_id, frames, model.arch.image_size, model.video_backend,
+                           policy.cameras)
 
     return evaluate_pair(
-        pair, directions, policy, Steering, load, task_prompts(tokenizer, job.positive, job.negative),
+        pair, directions, policy, Steering, load, PolicyPrompts(policy, dict(zip(SIDES, pair.tasks, strict=True))),
         layer=job.layer, width=width, settings=settings, output_dir=job.output_dir,
         metadata=policy.metadata if identity is None else {**policy.metadata, "inputs": identity},
         progress=progress, stream=job.stream,

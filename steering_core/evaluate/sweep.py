@@ -49,11 +49,34 @@ class SweepPolicy(Protocol):
 
 @dataclass(frozen=True)
 class Prompt:
-    """One task's tokenised prompt: tokens (1, T) int64, token_mask (1, T) bool, instruction_mask (1, T) bool."""
+    """A tokenised prompt per row: tokens (B, T) int64, token_mask (B, T) bool, instruction_mask (B, T) bool."""
 
     tokens: torch.Tensor
     token_mask: torch.Tensor
     instruction_mask: torch.Tensor
+
+    def to(self, device: torch.device) -> Prompt:
+        return Prompt(*(t.to(device) for t in (self.tokens, self.token_mask, self.instruction_mask)))
+
+
+class Prompts(Protocol):
+    """Each side's task prompt for a batch of frames (`of`): the same tokens for every frame, or each frame's own
+    where the checkpoint's prompt carries the state (lerobot's pi0.5, openpi's discrete-state format)."""
+
+    def of(self, side: str, states: np.ndarray | None, count: int) -> Prompt:
+        """Return the prompt (count, T) of `side`'s task for `count` frames of `states` (count, D), or None."""
+        ...
+
+
+@dataclass(frozen=True)
+class TaskPrompts:
+    """One tokenised prompt (1, T) per side, shared by every frame: the state stays out of the prompt."""
+
+    prompts: dict[str, Prompt]
+
+    def of(self, side: str, states: np.ndarray | None, count: int) -> Prompt:
+        prompt = self.prompts[side]
+        return Prompt(*(t.expand(count, -1) for t in (prompt.tokens, prompt.token_mask, prompt.instruction_mask)))
 
 
 @dataclass
@@ -78,7 +101,7 @@ def run_sweep(
     make_steering: Callable[..., Any],
     frames: Sequence[EvalFrame],
     load: Callable[[Sequence[EvalFrame]], dict[str, Any]],
-    prompts: dict[str, Prompt],
+    prompts: Prompts,
     directions: dict[str, torch.Tensor],
     *,
     layer: int,
@@ -97,8 +120,9 @@ def run_sweep(
 
     `make_steering(layer=, vector=, alpha=, token_mask=)` builds one `Steering` of the language model
     (`make_steering(layer=, vector=, alpha=, stream="expert")` of the action expert); `load(frames)` returns
-    {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device); `prompts` maps
-    "positive"/"negative" to their prompt. At most `entries_per_call` steered entries go into one sweep call.
+    {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device) and their "states" (or
+    None); `prompts.of(side, states, count)` gives a batch's prompts under the "positive"/"negative" task. At most
+    `entries_per_call` steered entries go into one sweep call.
     A direction is added as α · R · push · d/‖d‖ (R = `mean_residual_norm`; `push` 1 unless given).
     """
     names = list(directions)
@@ -117,18 +141,19 @@ def run_sweep(
     chunks = [nonzero[i : i + entries_per_call] for i in range(0, len(nonzero), entries_per_call)] or [[]]
     device = getattr(policy, "device", torch.device("cpu"))
     everything = load(frames)
+    states = everything.get("states")
     total, done = len(batches) * noise_seeds * len(chunks), 0
     for side, members in batches:
         batch_frames = [frames[i] for i in members]
         index = torch.tensor(members)
-        inputs = {key: [t[index].to(device) for t in tensors] for key, tensors in everything.items()}
-        mine, theirs = prompts[side], prompts[other_side(side)]
+        inputs = {key: [t[index].to(device) for t in everything[key]] for key in ("images", "image_masks")}
         size = len(members)
-        tokens, token_mask = mine.tokens.expand(size, -1).to(device), mine.token_mask.expand(size, -1).to(device)
+        batch_states = None if states is None else states[members]
+        mine = prompts.of(side, batch_states, size).to(device)
+        theirs = prompts.of(other_side(side), batch_states, size).to(device)
+        tokens, token_mask = mine.tokens, mine.token_mask
         # where the steering adds: the instruction tokens, or (expert) every action token, which takes no mask
-        where = ({"stream": "expert"} if stream == "expert" else
-                 {"token_mask": mine.instruction_mask.expand(size, -1).to(device)})
-        theirs = Prompt(*(t.to(device) for t in (theirs.tokens, theirs.token_mask, theirs.instruction_mask)))
+        where = {"stream": "expert"} if stream == "expert" else {"token_mask": mine.instruction_mask}
         toward = toward_sign(side)
         for s in range(noise_seeds):
             noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
@@ -148,8 +173,8 @@ def run_sweep(
                 done += 1
                 if progress is not None:
                     progress(done, total)
-            swapped = policy.sample_actions(inputs["images"], inputs["image_masks"], theirs.tokens.expand(size, -1),
-                                            theirs.token_mask.expand(size, -1), noise=noise, num_steps=num_steps)
+            swapped = policy.sample_actions(inputs["images"], inputs["image_masks"], theirs.tokens, theirs.token_mask,
+                                            noise=noise, num_steps=num_steps)
             other[index, s] = _robot(policy, swapped)
     logger.info("sweep: %d frames x %d seeds x %d entries", len(frames), noise_seeds, 1 + len(nonzero))
     return SweepActions(steered=steered, swap=other - own, own=own)

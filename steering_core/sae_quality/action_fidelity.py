@@ -20,7 +20,7 @@ import torch
 
 from steering_core.evaluate.frames import EvalFrame
 from steering_core.evaluate.pair import action_scale
-from steering_core.evaluate.sweep import Prompt, frame_noise
+from steering_core.evaluate.sweep import Prompts, frame_noise
 from steering_core.pi05.steering import Splice
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
@@ -74,7 +74,7 @@ def action_fidelity(
     reconstructions: Mapping[str, Reconstruction],
     frames: Sequence[EvalFrame],
     load: FrameLoader,
-    prompts: Mapping[str, Prompt],
+    prompts: Prompts,
     *,
     seed: int = 0,
     num_steps: int = 10,
@@ -83,14 +83,13 @@ def action_fidelity(
 ) -> dict[str, ActionFidelity]:
     """Return {name: ActionFidelity} of each reconstruction spliced into language-model layer `layer`.
 
-    `load(frames)` returns the frames' cameras ({"images", "image_masks"}, CPU, as `load_frames`); `prompts`
-    maps each frame's `side` to its prompt, whose `instruction_mask` picks the spliced positions. A frame's
+    `load(frames)` returns the frames' cameras and states ({"images", "image_masks", "states"}, CPU, as
+    `load_frames`); `prompts.of(side, ...)` gives each frame's prompt under its own side's task, whose
+    `instruction_mask` picks the spliced positions. A frame's
     noise is `frame_noise(frame, 0, seed, ...)`: the same for the unchanged, zeroed and reconstructed runs.
     """
     if not frames:
         raise ValueError("action_fidelity: no frames; hold out episodes with frames of the pair's tasks")
-    if missing := sorted({f.side for f in frames} - set(prompts)):
-        raise ValueError(f"action_fidelity: no prompt for frame side(s) {missing}; prompts has {sorted(prompts)}")
     std = action_scale(policy)
     device = getattr(policy, "device", torch.device("cpu"))
     names = list(reconstructions)
@@ -98,9 +97,12 @@ def action_fidelity(
     batches = [frames[i : i + batch_size] for i in range(0, len(frames), batch_size)]
     total, done = len(batches) * (2 + len(names)), 0
     for batch in batches:
-        inputs = {key: [t.to(device) for t in tensors] for key, tensors in load(batch).items()}
+        loaded = load(batch)
+        inputs = {key: [t.to(device) for t in loaded[key]] for key in ("images", "image_masks")}
+        states = loaded.get("states")
+        rows = [prompts.of(f.side, None if states is None else states[i : i + 1], 1) for i, f in enumerate(batch)]
         tokens, token_mask, instruction_mask = (
-            torch.cat([getattr(prompts[f.side], field) for f in batch]).to(device)
+            torch.cat([getattr(row, field) for row in rows]).to(device)
             for field in ("tokens", "token_mask", "instruction_mask"))
         noise = torch.stack([frame_noise(f, 0, seed, policy.action_horizon, policy.action_dim) for f in batch])
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from steering_core.evaluate.frames import EvalFrame
-from steering_core.evaluate.sweep import Prompt
+from steering_core.evaluate.sweep import Prompts
 from steering_core.reporting.plots import figure, save_png
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.fidelity_table import FIDELITY_JSON, FIDELITY_MD, FIDELITY_PNG, TABLE_HEADER, number, table_rows
@@ -40,13 +40,13 @@ class ActionInputs:
     """What the action-change measurement reads: the policy, held-out frames, their cameras and prompts.
 
     `load(frames)` -> {"images", "image_masks"} (e.g. `evaluate.frames.load_frames` bound to the dataset);
-    `prompts` maps each frame's `side` to its tokenised prompt (`evaluate.run.task_prompts`).
+    `prompts` gives each frame's tokenised prompt under its side's task (`evaluate.run.PolicyPrompts`).
     """
 
     policy: SplicePolicy
     frames: Sequence[EvalFrame]
     load: FrameLoader
-    prompts: Mapping[str, Prompt]
+    prompts: Prompts
     seed: int = 0
     num_steps: int = 10
     batch_size: int = 8

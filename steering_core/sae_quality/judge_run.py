@@ -12,7 +12,8 @@ from steering_core.data.concept_map import read_concept_map
 from steering_core.data.contrast import read_manifest
 from steering_core.devices import resolve_device
 from steering_core.evaluate.frames import EvalFrame, load_frames, select_frames
-from steering_core.evaluate.run import load_policy, task_prompts
+from steering_core.evaluate.run import PolicyPrompts, load_policy
+from steering_core.pairs import SIDES
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import load_sae
 from steering_core.sae.training.heldout import heldout_split
@@ -74,10 +75,11 @@ def _action_inputs(job: JudgeJob, model: CaptureSettings, device: str) -> Action
                 task_episodes[task].add(row.episode_index)
     split = heldout_split({task: sorted(e) for task, e in task_episodes.items()}, job.heldout_episodes)
     frames = select_frames(manifest, concept_map, split, tasks, job.frames)
-    tokenizer = model.model.prompt_tokenizer()
+    policy = load_policy(model.model, device, None)
 
     def load(batch: Sequence[EvalFrame]) -> dict[str, Any]:
-        return load_frames(job.dataset_root, job.repo_id, batch, model.arch.image_size, model.video_backend)
+        return load_frames(job.dataset_root, job.repo_id, batch, model.arch.image_size, model.video_backend,
+                           policy.cameras)
 
-    return ActionInputs(policy=load_policy(model.model, device, None), frames=frames, load=load,
-                        prompts=task_prompts(tokenizer, *tasks))
+    return ActionInputs(policy=policy, frames=frames, load=load,
+                        prompts=PolicyPrompts(policy, dict(zip(SIDES, tasks, strict=True))))
