@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import typer
 
 from latent_steering_cli.app import app, input_errors
 from latent_steering_cli.capture import layer_list
-from latent_steering_cli.options import device_option
+from latent_steering_cli.options import Flag, model_options, settings_options
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
@@ -27,13 +27,13 @@ from steering_core.evaluate.run import (
     slice_decision_run,
 )
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
-from steering_core.pi05.arch import read_arch
 from steering_core.pi05.robot_side import DEFAULT_HORIZON
 from steering_core.pi05.spec import ModelSpec
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
 from steering_core.workload import evaluation_problems
 
 _DEFAULTS = EvaluateSettings()
+_STEERING_FIELDS = SteeringSettings.model_fields  # --paths-relative-to: the steer step's default and help
 NO_SAE = "none"
 
 
@@ -61,12 +61,22 @@ def _parse_floats(value: str) -> tuple[float, ...]:
         raise typer.BadParameter(f"{value!r} is not a list of numbers like -4,-2,0,2,4", param_hint="--alphas") from None
 
 
+# EvaluateSettings' options where a field's own flag or type does not fit the command line
+EVALUATE_FLAGS = {
+    "alphas": Flag("--alphas", str | None, _parse_floats, "α grid in units of the mean residual norm / ||d||, with 0 "
+                   f"(default {','.join(f'{a:g}' for a in _DEFAULTS.alphas)})."),
+    "compiled": Flag("--compiled/--eager", bool | None),
+}
+
+
 @app.command("evaluate")
+@model_options()
+@settings_options(EvaluateSettings, "overrides", flags=EVALUATE_FLAGS, skip=("holdout_fraction",), optional=True)
 def evaluate_command(
     ctx: typer.Context,
     config: Path | None = typer.Option(
         None, "--config", help="Run config (YAML): evaluate its pairs and layers with its model, SAE and evaluate "
-        "settings (the flags below then override the evaluate section; path flags are not allowed)."),
+        "settings (the evaluation flags then override the evaluate section; model and path flags are not allowed)."),
     pairs_config: Path | None = typer.Option(None, "--pairs-config", help="Pairs JSON, e.g. data/latent_steering/layer12_pairs.json."),
     layer: int | None = typer.Option(None, "--layer", min=0, help="Decoder layer of the vectors (--config: one of its layers)."),
     pair: list[str] = typer.Option([], "--pair", help="Evaluate only this pair (repeatable; default all)."),
@@ -76,10 +86,6 @@ def evaluate_command(
     output_root: Path | None = typer.Option(None, "--output-root", help=f"Outputs (default <data-root>/{STEERING_EVAL_ROOT})."),
     lerobot_root: Path | None = typer.Option(None, "--lerobot-root", help="LeRobot dataset the frames come from."),
     repo_id: str | None = typer.Option(None, "--repo-id", help="Dataset repo id (default: the dataset folder name)."),
-    checkpoint_path: Path | None = typer.Option(None, "--checkpoint-path", help="openpi PyTorch pi0.5 checkpoint folder."),
-    tokenizer_path: Path | None = typer.Option(None, "--tokenizer-path", help="PaliGemma SentencePiece model."),
-    norm_stats: Path | None = typer.Option(None, "--norm-stats", help="norm_stats.json (default: the checkpoint's assets)."),
-    arch_file: Path | None = typer.Option(None, "--arch-file", help="JSON of Pi05Arch fields, for a non-standard (tiny) checkpoint."),
     decision_run: Path | None = typer.Option(
         None, "--decision-run", help="Residual run of `capture --token-type decision` (the action expert's rows, same "
         "checkpoint): also evaluate each pair's expert direction at --expert-layers (sliced here, held-out episodes "
@@ -90,19 +96,11 @@ def evaluate_command(
     sae: str = typer.Option("gemma-2b-it-res-jb", "--sae", help=f"SAE of the layer (for the top-k direction); '{NO_SAE}': none."),
     sae_id: str | None = typer.Option(None, "--sae-id", help="SAE within the release (default blocks.<layer>.hook_resid_post)."),
     sae_dir: Path | None = typer.Option(None, "--sae-dir", help="Folder holding downloaded SAE release folders."),
-    paths_relative_to: PathsRelativeTo = typer.Option("cwd", "--paths-relative-to",
-                                                      help="Resolve the pairs config's slice paths against cwd or its folder."),
-    alphas: str | None = typer.Option(None, "--alphas", help="α grid in units of the mean residual norm / ||d||, with 0 "
-                                      f"(default {','.join(f'{a:g}' for a in _DEFAULTS.alphas)})."),
-    max_frames: int | None = typer.Option(None, "--max-frames", min=2, help=f"Frames per pair (default {_DEFAULTS.max_frames})."),
-    noise_seeds: int | None = typer.Option(None, "--noise-seeds", min=1, help=f"Noise draws per frame (default {_DEFAULTS.noise_seeds})."),
-    random_directions: int | None = typer.Option(None, "--random-directions", min=8, help=f"Random directions of the null (default {_DEFAULTS.random_directions})."),
-    top_k: int | None = typer.Option(None, "--top-k", min=1, help=f"SAE latents of the top-k direction (default {_DEFAULTS.top_k})."),
-    batch_size: int | None = typer.Option(None, "--batch-size", min=1, help="Frames per policy call."),
-    device: str | None = device_option(None),
-    dtype: str | None = typer.Option(None, "--dtype", help="Compute dtype (default bfloat16 on CUDA, float32 on CPU)."),
-    compiled: bool | None = typer.Option(None, "--compiled/--eager", help="Run the policy's denoising step compiled "
-                                         "(default: on CUDA only; batches over 16 rows run eagerly)."),
+    paths_relative_to: PathsRelativeTo = typer.Option(
+        _STEERING_FIELDS["paths_relative_to"].default, "--paths-relative-to",
+        help=_STEERING_FIELDS["paths_relative_to"].description),
+    model: ModelSpec | None = None,
+    overrides: EvaluateSettings | None = None,
 ) -> None:
     """Dose-response of each pair's steering vectors on held-out frames: efficacy vs α, against random directions.
 
@@ -112,16 +110,19 @@ def evaluate_command(
     pairs); with --config, its evaluate.expert_layers are evaluated too (--layer or --expert-layers alone
     select one pathway).
     """
-    options = EvaluateOptions(**ctx.params)
+    own = {name: ctx.params[name] for name in EvaluateOptions.__dataclass_fields__ if name in ctx.params}
+    options = EvaluateOptions(**own, model=model, model_flags=_given_model_flags(ctx))
     expert = layer_list(expert_layers, "--expert-layers") if expert_layers is not None else None
+    given = {} if overrides is None else overrides.model_dump(include=overrides.model_fields_set)
     with input_errors():
         plan = _config_plan if config is not None else _flags_plan
-        _run(*plan(options, expert, _setting_overrides(options)))
+        _run(*plan(options, expert, given))
 
 
 @dataclass(frozen=True)
 class EvaluateOptions:
-    """The options of `latent-steering evaluate`, as given (None: not given)."""
+    """What `latent-steering evaluate` evaluates and where: its own options (the model's and the evaluation settings'
+    come from `ModelSpec` and `EvaluateSettings`)."""
 
     config: Path | None
     pairs_config: Path | None
@@ -132,46 +133,31 @@ class EvaluateOptions:
     output_root: Path | None
     lerobot_root: Path | None
     repo_id: str | None
-    checkpoint_path: Path | None
-    tokenizer_path: Path | None
-    norm_stats: Path | None
-    arch_file: Path | None
     decision_run: Path | None
-    expert_layers: str | None
     sae: str
     sae_id: str | None
     sae_dir: Path | None
     paths_relative_to: PathsRelativeTo
-    alphas: str | None
-    max_frames: int | None
-    noise_seeds: int | None
-    random_directions: int | None
-    top_k: int | None
-    batch_size: int | None
-    device: str | None
-    dtype: str | None
-    compiled: bool | None
+    model: ModelSpec | None = None
+    model_flags: tuple[str, ...] = ()  # the model options given (refused beside --config)
+
+
+def _given_model_flags(ctx: typer.Context) -> tuple[str, ...]:
+    """Return the flags of the ModelSpec options given on the command line."""
+    return tuple(param.opts[0] for param in ctx.command.params
+                 if param.name in ModelSpec.model_fields and ctx.get_parameter_source(param.name).name != "DEFAULT")
 
 
 Plan = tuple[list[tuple[EvaluateJob, SteeringSettings | None]], CaptureSettings, EvaluateSettings]
-
-
-def _setting_overrides(options: EvaluateOptions) -> dict:
-    """Return the evaluation settings the options give: each given option named as an EvaluateSettings field (the
-    rest keep the run config's or the defaults)."""
-    overrides = {name: value for name, value in asdict(options).items()
-                 if name in EvaluateSettings.model_fields and value is not None}
-    return overrides | ({"alphas": _parse_floats(options.alphas)} if options.alphas else {})
 
 
 def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: dict) -> Plan:
     """Return the jobs of a run config: its pairs (or --pair) at its layers and expert layers (or --layer,
     --expert-layers), with its model and evaluate settings."""
     path_flags = {"--pairs-config": options.pairs_config, "--lerobot-root": options.lerobot_root,
-                  "--checkpoint-path": options.checkpoint_path, "--tokenizer-path": options.tokenizer_path,
                   "--steering-root": options.steering_root, "--output-root": options.output_root,
                   "--decision-run": options.decision_run}
-    if given := [flag for flag, value in path_flags.items() if value is not None]:
+    if given := [flag for flag, value in path_flags.items() if value is not None] + list(options.model_flags):
         raise typer.BadParameter(f"{', '.join(given)} cannot be combined with --config", param_hint="--config")
     run = load_run_config(options.config)
     if stray := sorted(set(expert or ()) - set(run.expert_layers)):
@@ -193,13 +179,9 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
     of a --decision-run at --expert-layers."""
     _require_flags(options, expert)
     settings = EvaluateSettings(**overrides)
-    _check_work(settings, DEFAULT_HORIZON)
+    _check_work(settings, options.model.action_horizon or DEFAULT_HORIZON)
     layer, data_root, lerobot_root = options.layer, options.data_root, options.lerobot_root
-    model = CaptureSettings(
-        model=ModelSpec(checkpoint=options.checkpoint_path, tokenizer=options.tokenizer_path,
-                        norm_stats=options.norm_stats, arch=read_arch(options.arch_file)),
-        layers=(layer,) if layer is not None else expert,
-    )
+    model = CaptureSettings(model=options.model, layers=(layer,) if layer is not None else expert)
     names = [check_name(name, "--pair") for name in options.pair] or [
         p.name for p in read_pairs_config(options.pairs_config).pairs]
     places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=options.repo_id or lerobot_root.name,
@@ -219,8 +201,8 @@ def _check_work(settings: EvaluateSettings, action_horizon: int) -> None:
 def _require_flags(options: EvaluateOptions, expert: list[int] | None) -> None:
     """Refuse a flag set that names no complete job (--config missing)."""
     decision_run = options.decision_run
-    needed = {"--lerobot-root": options.lerobot_root, "--checkpoint-path": options.checkpoint_path,
-              "--tokenizer-path": options.tokenizer_path}
+    needed = {"--lerobot-root": options.lerobot_root, "--checkpoint-path": options.model,
+              "--tokenizer-path": options.model and options.model.tokenizer}
     if options.layer is not None or decision_run is None:
         needed = {"--pairs-config": options.pairs_config, "--layer": options.layer} | needed
     missing = [flag for flag, value in needed.items() if value is None]
@@ -241,9 +223,9 @@ def _layer_jobs(options: EvaluateOptions, names: list[str], places: dict, settin
     steering = SteeringSettings(pairs_config=pairs_config, layer=options.layer, device=settings.device,
                                 sae=None if sae.lower() == NO_SAE else sae, sae_id=options.sae_id,
                                 sae_dir=options.sae_dir)
-    base_dir = Path.cwd() if options.paths_relative_to == "cwd" else pairs_config.parent
     steering_root = options.steering_root or data_root / STEERING_ROOT
-    return [(pair_job(pairs_config, name, options.layer, base_dir=base_dir, steering_root=steering_root, **places),
+    return [(pair_job(pairs_config, name, options.layer, relative_to=options.paths_relative_to,
+                      steering_root=steering_root, **places),
              steering) for name in names]
 
 

@@ -73,7 +73,7 @@ def test_each_step_gets_its_own_full_settings(tmp_path):
     config = load_run_config(write_yaml(tmp_path, VALID))
     capture = config.capture_settings()
     assert isinstance(capture, CaptureSettings)
-    assert (capture.checkpoint_path, capture.tokenizer_path) == (tmp_path / "ckpt", tmp_path / "tok/tokenizer.model")
+    assert (capture.model.checkpoint, capture.model.tokenizer) == (tmp_path / "ckpt", tmp_path / "tok/tokenizer.model")
     assert capture.layers == (1, 2) and capture.batch_size == 8 and capture.storage_dtype == "bfloat16"
     assert capture.arch.width == 64
 

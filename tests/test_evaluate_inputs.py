@@ -55,7 +55,7 @@ def pairs_config(data: Path, slices: Path) -> Path:
 
 
 def job(data: Path, config: Path):
-    return pair_job(config, "p", LAYER, base_dir=Path("/"), data_root=data, steering_root=data / "latent_steering",
+    return pair_job(config, "p", LAYER, relative_to="config", data_root=data, steering_root=data / "latent_steering",
                     dataset_root=data / "lerobot", repo_id="r", output_root=data / "steering_eval")
 
 
@@ -103,7 +103,7 @@ def test_evaluation_refuses_a_pairs_config_reversed_against_its_manifest(tmp_pat
     (data / "manifests").mkdir(parents=True)
     shutil.copy(FORMATS / "open_vs_close.json", data / "manifests" / "open_drawer_main.json")
     shutil.copy(FORMATS / "open_vs_close_concept_map.json", data / "manifests" / "open_drawer_main_concept_map.json")
-    places = dict(base_dir=tmp_path, data_root=data, steering_root=data / "latent_steering", dataset_root=tmp_path,
+    places = dict(relative_to="config", data_root=data, steering_root=data / "latent_steering", dataset_root=tmp_path,
                   repo_id="r", output_root=data / "steering_eval")
     config = json.loads((FORMATS / "layer12_pairs.json").read_text())
     assert pair_job(FORMATS / "layer12_pairs.json", "open_drawer_main", 12, **places).positive == \

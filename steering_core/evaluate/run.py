@@ -39,7 +39,7 @@ from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.model import Sae
 from steering_core.storage.fileio import read_json
 from steering_core.storage.schema import StrictModel
-from steering_core.vectors.directions import read_pairs_config
+from steering_core.vectors.directions import PathsRelativeTo, read_pairs_config, resolve_concept_path
 from steering_core.vectors.pair_order import check_pair_order, manifest_concepts, task_concepts
 from steering_core.vectors.pair_slices import check_pair_slices
 
@@ -74,19 +74,21 @@ class EvaluateJob(StrictModel):
 
 
 def pair_job(
-    pairs_config: Path, pair: str, layer: int, *, base_dir: Path, data_root: Path, steering_root: Path,
-    dataset_root: Path, repo_id: str, output_root: Path,
+    pairs_config: Path, pair: str, layer: int, *, relative_to: PathsRelativeTo = "auto", data_root: Path,
+    steering_root: Path, dataset_root: Path, repo_id: str, output_root: Path,
 ) -> EvaluateJob:
     """Return the job of one pair of a seed-style pairs config, with the seed's layout under `data_root`.
 
-    Slice paths of the pairs config resolve against `base_dir`; task texts come from the pair's manifest.
+    Slice paths of the pairs config resolve as the steer step resolves them (`resolve_concept_path`: `relative_to`
+    cwd, config or auto); task texts come from the pair's manifest.
     """
     spec = next((p for p in read_pairs_config(pairs_config).pairs if p.name == pair), None)
     if spec is None:
         raise ValueError(f"{pairs_config}: no pair {pair!r}; run the SAE phase for layer {layer} first")
     job = _job(
         pair, layer, "lm", data_root, dataset_root, repo_id, output_root,
-        slices=(base_dir / spec.positive_path, base_dir / spec.negative_path),
+        slices=tuple(resolve_concept_path(path, pairs_config, relative_to)
+                     for path in (spec.positive_path, spec.negative_path)),
         directions=steering_root / layout.layer_dir(layer) / pair,
     )
     labels = spec.positive_label, spec.negative_label
@@ -148,7 +150,7 @@ def run_config_job(config: RunConfig, pair: str, layer: int, stream: Stream = "l
                           slices_root=config.decision_slices_dir(config.pair(pair)),
                           dataset_root=config.dataset_root, repo_id=config.repo_id, output_root=config.eval_root)
     pairs_config = config.pairs_config_path(layer)
-    return pair_job(pairs_config, config.pair(pair).name, layer, base_dir=pairs_config.parent,
+    return pair_job(pairs_config, config.pair(pair).name, layer, relative_to="config",
                     data_root=config.output_root, steering_root=config.steering_root,
                     dataset_root=config.dataset_root, repo_id=config.repo_id,
                     output_root=config.eval_root)

@@ -7,6 +7,7 @@ from typing import Annotated
 
 from pydantic import AfterValidator, Field
 
+from steering_core.devices import DEVICE_HELP
 from steering_core.storage.schema import StrictModel
 
 # α in units of R, the mean residual norm of the training rows at the steered positions: α = 1 adds a vector as
@@ -44,23 +45,30 @@ AlphaGrid = Annotated[tuple[float, ...], AfterValidator(_grid_with_zero)]
 class EvaluateSettings(StrictModel):
     """How each (pair, layer) is evaluated; defaults are the issue's method."""
 
-    holdout_fraction: float = Field(0.2, ge=0, lt=1)  # episodes per task held out of slicing (at least one)
-    max_frames: int = Field(32, ge=2, le=10_000)  # evaluation frames per pair, shared by both tasks
-    alphas: AlphaGrid = DEFAULT_ALPHA_GRID       # must hold 0 (the unsteered reference)
-    noise_seeds: int = Field(4, gt=0, le=256)  # flow-matching noise draws per frame, the same across α
+    holdout_fraction: float = Field(0.2, ge=0, lt=1, description=(
+        "Share of each task's episodes held out of slicing for the evaluation (at least one; 0: none)."))
+    max_frames: int = Field(32, ge=2, le=10_000, description="Evaluation frames per pair, shared by both tasks.")
+    alphas: AlphaGrid = Field(DEFAULT_ALPHA_GRID, description=(
+        "α grid in units of the mean residual norm / ||d||; must hold 0 (the unsteered reference)."))
+    noise_seeds: int = Field(4, gt=0, le=256, description="Flow-matching noise draws per frame, the same across α.")
     # null: directions drawn from the rows' covariance; each is a policy sweep per frame, so thousands would take days
-    random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS, le=4096)
-    permutations: int = Field(8, ge=0, le=10_000)  # null: mean differences with episode labels shuffled between tasks
-    top_k: int = Field(20, gt=0, le=4096)    # SAE latents kept for the top-k direction
-    num_steps: int = Field(10, gt=0, le=1000)  # denoising steps of sample_actions
-    bootstrap: int = Field(1000, gt=0, le=1_000_000)  # resamples of the episodes (frames nested) for 95% intervals
-    seed: int = 0                              # random directions, noise and bootstrap
-    batch_size: int = Field(8, gt=0, le=1024)  # frames per policy sweep call (capture's bound)
-    entries_per_call: int = Field(40, gt=0, le=1024)  # steered (direction, α) entries per sweep call (bounds GPU memory)
-    device: str = "auto"
-    dtype: str | None = None                   # None: bfloat16 on CUDA, float32 on CPU (as openpi)
-    compiled: bool | None = None               # the compiled denoising step (None: on CUDA); rounding only: no identity
-    note: str | None = None                    # printed at the top of the summary (e.g. "tiny random model")
+    random_directions: int = Field(32, ge=MIN_RANDOM_DIRECTIONS, le=4096, description=(
+        "Random directions of the null (drawn from the rows' covariance, norm-matched)."))
+    permutations: int = Field(8, ge=0, le=10_000, description=(
+        "Null: mean differences with episode labels shuffled between the tasks."))
+    top_k: int = Field(20, gt=0, le=4096, description="SAE latents of the top-k direction.")
+    num_steps: int = Field(10, gt=0, le=1000, description="Denoising steps of sample_actions.")
+    bootstrap: int = Field(1000, gt=0, le=1_000_000, description=(
+        "Resamples of the episodes (frames nested) for the 95% intervals."))
+    seed: int = Field(0, description="Seed of the random directions, the noise and the bootstrap.")
+    batch_size: int = Field(8, gt=0, le=1024, description="Frames per policy call.")
+    entries_per_call: int = Field(40, gt=0, le=1024, description=(
+        "Steered (direction, α) entries per sweep call (bounds GPU memory)."))
+    device: str = Field("auto", description=DEVICE_HELP)
+    dtype: str | None = Field(None, description="Compute dtype (default bfloat16 on CUDA, float32 on CPU).")
+    compiled: bool | None = Field(None, description=(  # rounding only: not part of the identity
+        "Run the policy's denoising step compiled (default: on CUDA only; batches over 16 rows run eagerly)."))
+    note: str | None = Field(None, description="Printed at the top of the summary (e.g. \"tiny random model\").")
 
     @property
     def zero_index(self) -> int:
