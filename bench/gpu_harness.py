@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,6 +18,8 @@ from bench.common import cache_dir, median, repeat_timed
 from bench.real_size import checkpoint_folder
 from steering_core.devices import resolve_device, resolve_dtype
 from steering_core.pi05 import Pi05Arch, Pi05Policy
+from steering_core.pi05.arch import read_arch
+from steering_core.pi05.layouts import Checkpoint, LayoutName, resolve_checkpoint
 from steering_core.synthetic.pi05 import tiny_arch
 
 # ----------------------------------------------------------------------------- settings
@@ -90,15 +93,35 @@ class Section:
         self.measures.append({"measure": measure, "value": value, "against": against, "ratio": ratio})
 
 
+def given_sizes(sizes: Sizes, arch: Pi05Arch) -> Sizes:
+    """Return `sizes` for a given checkpoint of `arch`: its policy, and the layer two thirds deep (the seed's 12 of
+    18, 2 of the tiny model's 4) captured and steered."""
+    return dataclasses.replace(sizes, arch=arch, layer=arch.depth * 2 // 3)
+
+
 class Context:
-    """The run's device, sizes and generated inputs; the real-size policy loaded once for the sections using it."""
+    """The run's device, sizes and generated inputs; the real-size policy loaded once for the sections using it.
+
+    The policy sections read `checkpoint` (with `layout`) and `tokenizer`: the random checkpoint generated into the
+    cache (`write_checkpoint`), or the user's checkpoint given with --checkpoint (`given` is then its resolved
+    `Checkpoint`, and `sizes.arch` the --arch-file's dimensions).
+    """
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.device = resolve_device(args.device)
         self.sizes = QUICK if args.quick else REAL
         self.folder = cache_dir(args) / "gpu_check"
-        self.checkpoint = checkpoint_folder(args)  # shared with bench.real_size and bench.policy_real_size
-        self.tokenizer = self.checkpoint.parent / "pi05-tokenizer.model"
+        self.given: Checkpoint | None = None
+        self.layout = LayoutName.AUTO
+        if getattr(args, "checkpoint", None) is None:
+            self.checkpoint = checkpoint_folder(args)  # shared with bench.real_size and bench.policy_real_size
+            self.tokenizer = self.checkpoint.parent / "pi05-tokenizer.model"
+        else:
+            self.layout = LayoutName(args.layout)
+            self.given = resolve_checkpoint(args.checkpoint, self.layout)  # refuses a folder of the wrong layout
+            self.checkpoint, self.tokenizer = Path(args.checkpoint), Path(args.tokenizer)
+            arch = self.sizes.arch if args.arch_file is None else read_arch(args.arch_file)
+            self.sizes = given_sizes(self.sizes, arch)
         self._peak: float | None = None
         self._policy: tuple[Pi05Policy, float] | None = None
 
@@ -108,10 +131,12 @@ class Context:
         return resolve_dtype(None, self.device)
 
     def write_checkpoint(self) -> None:
-        """Write the random bf16 checkpoint and the tokenizer unless cached."""
+        """Write the random bf16 checkpoint and the tokenizer unless cached (nothing when one was given)."""
         from steering_core.synthetic.pi05 import write_pi05_checkpoint
         from steering_core.synthetic.tokenizer import write_tokenizer
 
+        if self.given is not None:
+            return
         if not (self.checkpoint / "model.safetensors").is_file():
             write_pi05_checkpoint(self.checkpoint, self.sizes.arch, dtype=torch.bfloat16, overwrite=True)
         if not self.tokenizer.is_file():
@@ -133,7 +158,7 @@ class Context:
         if self._policy is None:
             start = time.perf_counter()
             policy = Pi05Policy.from_checkpoint(self.checkpoint, self.sizes.arch, device=self.device,
-                                                tokenizer_path=self.tokenizer)
+                                                tokenizer_path=self.tokenizer, layout=self.layout)
             self._policy = policy, time.perf_counter() - start
         return self._policy
 

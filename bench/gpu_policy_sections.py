@@ -81,12 +81,12 @@ def noise(policy: Pi05Policy, batch: int) -> torch.Tensor:
 
 def capture(ctx: Context) -> Section:
     """Capture's forward (selected rows) against the seed's whole inference call with a hook, same rows."""
-    from bench.seed_pi05 import SeedPi05
+    from bench.seed_pi05 import SeedPi05, expert_arch
     from steering_core.capture.selected_rows import selected_residuals
 
     section = Section()
     arch, layer, device = ctx.sizes.arch, ctx.sizes.layer, ctx.device
-    model = SeedPi05.from_checkpoint(ctx.checkpoint, arch, device)
+    model = SeedPi05.from_checkpoint(ctx.checkpoint, arch, device, layout=ctx.layout)
     ours_flops = ours_flops_selected_queries(arch, layer, PROMPT_TOKENS)
     peak_flops = ctx.peak_flops()
     instruction = torch.arange(1, PROMPT_TOKENS - 1)  # BOS and "\n" are not instruction tokens
@@ -123,6 +123,13 @@ def capture(ctx: Context) -> Section:
         f"capture: {PROMPT_TOKENS}-token prompts in 200 slots, two cameras and the masked third, inputs on the "
         f"device; analytic FLOPs per frame (matrix products): ours {ours_flops / 1e9:.3g} G, the seed's "
         f"{seed_flops(arch, 1) / 1e9:.3g} G; medians of {ctx.sizes.repeats} calls after a warm-up.")
+    shaped, expert = expert_arch(arch), model.gemma_expert.model.layers[0].mlp
+    if (model.action_in_proj.out_features, expert.intermediate_size) != (shaped.width, shaped.mlp_dim):
+        section.notes.append(
+            f"capture: the checkpoint's action expert ({model.action_in_proj.out_features} wide, MLP "
+            f"{expert.intermediate_size}) is not gemma_300m-shaped beside its language model ({shaped.width}, "
+            f"{shaped.mlp_dim}): the timed seed runs the checkpoint's expert, its analytic FLOPs count the "
+            "gemma_300m-shaped one.")
     return section
 
 

@@ -10,7 +10,9 @@ and per requested layer.
 This module does the same amount and kind of work. The prefix is the library's `Pi05Prefix` with its
 savings turned off (every camera, no trimming) driven through a KV cache with eager attention; the action
 expert is built here from transformers' Gemma attention and MLP blocks and the adaRMS norm openpi adds,
-and every weight is read from the same checkpoint. It is a benchmark baseline, not a policy: the action
+and every weight is read from the same checkpoint, in either layout (openpi's converted folder or lerobot's
+PI05Policy folder: each tensor is named by openpi's key and read under the name its file stores,
+`steering_core.pi05.layouts.Checkpoint.stored`). It is a benchmark baseline, not a policy: the action
 outputs are never checked.
 """
 
@@ -32,7 +34,9 @@ from transformers.models.gemma.modeling_gemma import (
 )
 
 from steering_core.pi05 import Pi05Arch
-from steering_core.pi05.checkpoint import EXPERT_PREFIX, LM_PREFIX, resolve_model_file
+from steering_core.pi05.arch import ExpertArch
+from steering_core.pi05.checkpoint import EXPERT_PREFIX, LM_PREFIX, expert_arch_from_checkpoint
+from steering_core.pi05.layouts import Checkpoint, LayoutName, resolve_checkpoint
 from steering_core.pi05.model import MASKED_LOGIT, NORM_EPS, Pi05Prefix, attention_mask, gemma_config
 
 DENOISE_STEPS = 10  # sample_actions' default number of Euler steps
@@ -42,9 +46,13 @@ TIME_PERIODS = (4e-3, 4.0)  # min and max period of openpi's sinusoidal time emb
 FINAL_NORM_KEY = LM_PREFIX + "norm.weight"
 
 
-def expert_arch(arch: Pi05Arch) -> Pi05Arch:
-    """Return the action expert's dimensions: half the LM width, a quarter of its MLP (gemma_300m vs gemma_2b)."""
-    return arch.model_copy(update={"width": arch.width // 2, "mlp_dim": arch.mlp_dim // 4})
+def expert_arch(arch: Pi05Arch, expert: ExpertArch | None = None) -> Pi05Arch:
+    """Return the action expert's dimensions as a Gemma `Pi05Arch`: `expert`'s width and MLP size, or by default
+    half the LM width and a quarter of its MLP (gemma_300m vs gemma_2b); depth and attention are the LM's."""
+    if expert is None:
+        return arch.model_copy(update={"width": arch.width // 2, "mlp_dim": arch.mlp_dim // 4})
+    expert.check_pairs_with(arch)
+    return arch.model_copy(update={"width": expert.width, "mlp_dim": expert.mlp_dim})
 
 
 class AdaRMSNorm(nn.Module):
@@ -100,9 +108,9 @@ class ExpertLayer(nn.Module):
 class ExpertModel(nn.Module):
     """The action expert's decoder stack and final adaRMS norm (checkpoint names under `gemma_expert.model.`)."""
 
-    def __init__(self, arch: Pi05Arch):
+    def __init__(self, arch: Pi05Arch, expert: ExpertArch | None = None):
         super().__init__()
-        config = gemma_config(expert_arch(arch))
+        config = gemma_config(expert_arch(arch, expert))
         config._attn_implementation = "eager"  # openpi sets eager for the denoising steps
         self.layers = nn.ModuleList(ExpertLayer(config, index) for index in range(arch.depth))
         self.norm = AdaRMSNorm(config.hidden_size)
@@ -111,32 +119,44 @@ class ExpertModel(nn.Module):
 class SeedPi05(nn.Module):
     """Everything one openpi `sample_actions` call runs, with the prefix's decoder layers hookable as in the seed."""
 
-    def __init__(self, prefix: Pi05Prefix):
+    def __init__(self, prefix: Pi05Prefix, expert: ExpertArch | None = None):
+        """`expert`: the action expert's dimensions (default gemma_300m-shaped beside `prefix.arch`, actions of
+        ACTION_DIM)."""
         super().__init__()
         arch = prefix.arch
-        width = expert_arch(arch).width
+        width = expert_arch(arch, expert).width
+        self.action_dim = ACTION_DIM if expert is None else expert.action_dim
         self.prefix = prefix
         self.final_norm = GemmaRMSNorm(arch.width, eps=NORM_EPS)
         self.gemma_expert = nn.Module()
-        self.gemma_expert.model = ExpertModel(arch)
-        self.action_in_proj = nn.Linear(ACTION_DIM, width)
-        self.action_out_proj = nn.Linear(width, ACTION_DIM)
+        self.gemma_expert.model = ExpertModel(arch, expert)
+        self.action_in_proj = nn.Linear(self.action_dim, width)
+        self.action_out_proj = nn.Linear(width, self.action_dim)
         self.time_mlp_in = nn.Linear(width, width)
         self.time_mlp_out = nn.Linear(width, width)
 
     @classmethod
     def from_checkpoint(
-        cls, path: str | os.PathLike, arch: Pi05Arch, device: torch.device, dtype: torch.dtype | None = None
+        cls,
+        path: str | os.PathLike | Checkpoint,
+        arch: Pi05Arch,
+        device: torch.device,
+        dtype: torch.dtype | None = None,
+        layout: LayoutName | str = LayoutName.AUTO,
     ) -> SeedPi05:
-        """Return the whole policy from a pi0.5 checkpoint: every prefix layer plus the expert and heads."""
-        prefix = Pi05Prefix.from_checkpoint(path, arch, arch.depth - 1, device, dtype)
-        model = cls(prefix)
+        """Return the whole policy from a pi0.5 checkpoint (a folder or model.safetensors in openpi's or lerobot's
+        layout, detected or `layout` forced; or a resolved `Checkpoint`): every prefix layer plus the expert
+        (its dimensions read from the file) and heads."""
+        checkpoint = path if isinstance(path, Checkpoint) else resolve_checkpoint(path, layout)
+        prefix = Pi05Prefix.from_checkpoint(checkpoint, arch, arch.depth - 1, device, dtype)
+        model = cls(prefix, expert_arch_from_checkpoint(checkpoint, arch))
         own = {name: tensor for name, tensor in model.state_dict().items() if not name.startswith("prefix.")}
-        keys = {name: _checkpoint_key(name) for name in own}
+        keys = {name: _checkpoint_key(name) for name in own}  # canonical (openpi) names
         compute = prefix.compute_dtype
-        with safe_open(str(resolve_model_file(path)), framework="pt", device="cpu") as handle:
+        with safe_open(str(checkpoint.model_file), framework="pt", device="cpu") as handle:
             weights = {
-                name: handle.get_tensor(key).to(device, torch.float32 if _kept_float32(key) else compute)
+                name: handle.get_tensor(checkpoint.stored(key)).to(
+                    device, torch.float32 if _kept_float32(key) else compute)
                 for name, key in keys.items()
             }
         model.load_state_dict(weights | {f"prefix.{k}": v for k, v in prefix.state_dict().items()}, assign=True)
@@ -151,10 +171,10 @@ class SeedPi05(nn.Module):
         token_mask: torch.Tensor,
         steps: int = DENOISE_STEPS,
     ) -> torch.Tensor:
-        """Return actions (B, ACTION_HORIZON, ACTION_DIM) float32 after `steps` Euler steps from Gaussian noise."""
+        """Return actions (B, ACTION_HORIZON, action_dim) float32 after `steps` Euler steps from Gaussian noise."""
         pad, cache = self._prefix_cache(images, image_masks, tokens, token_mask)
         batch = tokens.shape[0]
-        x_t = torch.randn(batch, ACTION_HORIZON, ACTION_DIM, device=pad.device)
+        x_t = torch.randn(batch, ACTION_HORIZON, self.action_dim, device=pad.device)
         dt = -1.0 / steps
         for step in range(steps):
             time = torch.full((batch,), 1.0 + step * dt, device=pad.device)
@@ -191,7 +211,7 @@ class SeedPi05(nn.Module):
     def _denoise_step(
         self, pad: torch.Tensor, cache: DynamicCache, x_t: torch.Tensor, time: torch.Tensor
     ) -> torch.Tensor:
-        """Return the velocity (B, H, ACTION_DIM) float32 of one denoising step at times (B,)."""
+        """Return the velocity (B, H, action_dim) float32 of one denoising step at times (B,)."""
         expert = self.gemma_expert.model
         batch, horizon = x_t.shape[:2]
         dtype = self.action_in_proj.weight.dtype
@@ -219,7 +239,7 @@ def _time_embedding(time: torch.Tensor, width: int) -> torch.Tensor:
 
 
 def _checkpoint_key(name: str) -> str:
-    """Return the checkpoint key of a SeedPi05 parameter outside the prefix."""
+    """Return the canonical (openpi) checkpoint key of a SeedPi05 parameter outside the prefix."""
     if name.startswith("final_norm."):
         return FINAL_NORM_KEY
     if name.startswith("gemma_expert."):
@@ -228,5 +248,6 @@ def _checkpoint_key(name: str) -> str:
 
 
 def _kept_float32(key: str) -> bool:
-    """Return whether openpi keeps this tensor in float32 under a bfloat16 policy (norms and the four heads)."""
+    """Return whether openpi keeps this tensor (canonical key) in float32 under a bfloat16 policy (norms and the
+    four heads)."""
     return "norm" in key or not key.startswith("paligemma_with_expert.")

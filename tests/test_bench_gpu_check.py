@@ -34,6 +34,8 @@ def test_quick_check_runs_every_section_and_every_comparison_passes(tmp_path):
     payload = json.loads(output.read_text())
     assert Result.from_json(payload) == result
     assert payload["met"] and payload["checks"]["passed"] and payload["checks"]["failed"] == []
+    assert "checkpoint" not in payload["checks"]  # recorded only for a --checkpoint run
+    assert not any(note.startswith("checkpoint: ") for note in payload["notes"])
     sections = payload["checks"]["sections"]
     assert list(sections) == SECTIONS
     for name, section in sections.items():
