@@ -63,3 +63,22 @@ def make_batch(
     tokens = torch.from_numpy(np.stack([p.ids for p in encoded]))
     token_mask = torch.from_numpy(np.stack([p.mask for p in encoded]))
     return Batch(images, masks, tokens, token_mask)
+
+
+def golden_steering(golden: dict, case: str, prefix_len: int) -> list:
+    """Return the Steering list of a golden case (openpi's or lerobot's fixture, README there): forward hooks at fixed
+    prefix positions of every row (`prefix_len` columns), or at every action token for the expert case."""
+    from steering_core.pi05 import Steering
+
+    steerings, index = [], 0
+    while f"steer.{case}.{index}.vector" in golden:
+        get = lambda name: golden[f"steer.{case}.{index}.{name}"]  # noqa: E731
+        layer, vector, alpha = int(get("layer")), get("vector"), float(get("alpha"))
+        if case == "c_expert_layer":
+            steerings.append(Steering(layer, vector, alpha, stream="expert"))
+        else:
+            prefix_mask = torch.zeros(2, prefix_len, dtype=torch.bool)
+            prefix_mask[:, get("positions")] = True
+            steerings.append(Steering(layer, vector, alpha, prefix_mask=prefix_mask))
+        index += 1
+    return steerings

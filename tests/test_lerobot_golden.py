@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers_pi05 import golden_steering
 from safetensors.torch import load_file, save_file
 
-from steering_core.pi05 import Pi05Policy, PromptTokenizer, Steering
+from steering_core.pi05 import Pi05Policy, PromptTokenizer
 from steering_core.pi05.expert import euler_times
 from steering_core.pi05.layouts import LEROBOT, LayoutName, resolve_checkpoint
 from steering_core.synthetic.pi05 import tiny_arch
@@ -53,22 +54,6 @@ def model_inputs(golden):
     return images, masks, golden["preprocessed.tokens"], golden["preprocessed.attention_mask"]
 
 
-def golden_steering(golden, case):
-    """Return the Steering list of a golden case: hooks at fixed prefix positions in every row (the README)."""
-    steerings, index = [], 0
-    while f"steer.{case}.{index}.vector" in golden:
-        get = lambda name: golden[f"steer.{case}.{index}.{name}"]  # noqa: E731
-        layer, vector, alpha = int(get("layer")), get("vector"), float(get("alpha"))
-        if case == "c_expert_layer":
-            steerings.append(Steering(layer, vector, alpha, stream="expert"))
-        else:
-            prefix_mask = torch.zeros(2, PREFIX_LEN, dtype=torch.bool)
-            prefix_mask[:, get("positions")] = True
-            steerings.append(Steering(layer, vector, alpha, prefix_mask=prefix_mask))
-        index += 1
-    return steerings
-
-
 def folder_copy(tmp_path, name="model"):
     """Return a writable copy of the fixture's lerobot folder."""
     return Path(shutil.copytree(MODEL, tmp_path / name))
@@ -101,7 +86,7 @@ def test_dimensions_come_from_the_tensors_not_the_variant_names(policy):
 def test_matches_lerobot_sample_actions(golden, policy, case, attention):
     policy.attention = attention
     try:
-        steering = golden_steering(golden, case) if case else None
+        steering = golden_steering(golden, case, PREFIX_LEN) if case else None
         actions = policy.sample_actions(*model_inputs(golden), noise=golden["inputs.noise"], steering=steering)
     finally:
         policy.attention = "sdpa"
@@ -115,7 +100,8 @@ def test_last_lm_layer_is_a_no_op_in_lerobot_too_and_refused(golden, policy):
     case = "d_lm_last_layer_noop"
     assert torch.equal(golden[f"steer.{case}.actions"], golden["actions"])
     with pytest.raises(ValueError, match="the last language-model layer's output only feeds the final norm"):
-        policy.sample_actions(*model_inputs(golden), noise=golden["inputs.noise"], steering=golden_steering(golden, case))
+        policy.sample_actions(*model_inputs(golden), noise=golden["inputs.noise"],
+                              steering=golden_steering(golden, case, PREFIX_LEN))
 
 
 def test_first_denoising_velocity_matches(golden, policy):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers_pi05 import make_batch
+from helpers_pi05 import golden_steering, make_batch
 from reference_policy import reference_actions
 from safetensors.torch import load_file, save_file
 
@@ -48,22 +48,6 @@ def golden_inputs(golden):
     images = [golden[f"inputs.image.{slot}"] for slot in SLOTS]
     masks = [golden[f"inputs.image_mask.{slot}"] for slot in SLOTS]
     return images, masks, golden["inputs.tokenized_prompt"], golden["inputs.tokenized_prompt_mask"]
-
-
-def golden_steering(golden, case):
-    """Return the Steering list of a golden case: hooks at fixed prefix positions in every row (README)."""
-    steerings, index = [], 0
-    while f"steer.{case}.{index}.vector" in golden:
-        get = lambda name: golden[f"steer.{case}.{index}.{name}"]  # noqa: E731
-        layer, vector, alpha = int(get("layer")), get("vector"), float(get("alpha"))
-        if case == "c_expert_layer":
-            steerings.append(Steering(layer, vector, alpha, stream="expert"))
-        else:
-            prefix_mask = torch.zeros(2, 28, dtype=torch.bool)
-            prefix_mask[:, get("positions")] = True
-            steerings.append(Steering(layer, vector, alpha, prefix_mask=prefix_mask))
-        index += 1
-    return steerings
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +92,7 @@ def prompt_columns(token_mask):
 def test_matches_openpi_sample_actions(golden, golden_policy, case, attention):
     golden_policy.attention = attention
     try:
-        steering = golden_steering(golden, case) if case else None
+        steering = golden_steering(golden, case, 28) if case else None
         actions = golden_policy.sample_actions(*golden_inputs(golden), noise=golden["inputs.noise"], steering=steering)
     finally:
         golden_policy.attention = "sdpa"
@@ -124,7 +108,7 @@ def test_last_lm_layer_is_refused_as_openpi_shows_it_changes_nothing(golden, gol
     assert torch.equal(golden[f"steer.{case}.actions"], golden["actions"])  # openpi's own policy: a no-op
     with pytest.raises(ValueError, match="the last language-model layer's output only feeds the final norm"):
         golden_policy.sample_actions(*golden_inputs(golden), noise=golden["inputs.noise"],
-                                     steering=golden_steering(golden, case))
+                                     steering=golden_steering(golden, case, 28))
 
 
 def test_robot_actions_match_openpi_output_transform(golden, golden_policy):
