@@ -68,11 +68,13 @@ def settings_options(model: type[BaseModel], parameter: str = "settings",
     flags = flags or {}
     names = [name for name in model.model_fields if name not in skip]
 
+    # None given for these means "not given": the field's default applies (an option of another type than its field
+    # cannot show the field's default)
+    unset_if_none = set(names) if optional else {name for name in names if name in flags and flags[name].annotation}
+
     def option(name: str) -> inspect.Parameter:
         field, given = model.model_fields[name], flags.get(name, Flag(flag(name)))
-        default = None if optional else ... if field.is_required() else field.default
-        if given.annotation is not None:
-            default = None if optional or given.parse else default
+        default = None if name in unset_if_none else ... if field.is_required() else field.default
         annotation = given.annotation or (hints[name] | None if optional else hints[name])
         return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
                                  default=typer.Option(default, given.name, help=given.help or field.description))
@@ -95,7 +97,7 @@ def settings_options(model: type[BaseModel], parameter: str = "settings",
                 raise typer.BadParameter(f"{', '.join(missing)} required", param_hint=missing[0])
             with input_errors():
                 settings = model(**{name: parsers.get(name, lambda value: value)(value) for name, value in values.items()
-                                    if not (optional and value is None)})
+                                    if not (value is None and name in unset_if_none)})
             return command(**options, **{parameter: settings})
 
         del run.__wrapped__  # typer reads the signature below, not the command's
