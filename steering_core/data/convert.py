@@ -238,6 +238,16 @@ def _lerobot_class() -> type[LeRobotDataset]:
     return LeRobotDataset
 
 
+def open_for_append(repo_id: str, root: Path) -> LeRobotDataset:
+    """Open the finalized LeRobot v3.0 dataset at `root` for appending episodes (then `finalize()` it again).
+
+    lerobot 0.4 appends to a dataset opened with `LeRobotDataset(repo_id, root=...)`; lerobot 0.5 and later open
+    those read-only and append only through `LeRobotDataset.resume(repo_id, root=...)`.
+    """
+    cls = _lerobot_class()
+    return getattr(cls, "resume", cls)(repo_id, root=root)
+
+
 def _create(
     output_dir: Path,
     planned: list[tuple[Path, EpisodeSource]],
@@ -275,7 +285,7 @@ def _append(
         if settings.codebase_version == "v2.1":
             dataset = V21Writer.open(tmp)
         else:
-            dataset = _lerobot_class()(settings.repo_id, root=tmp)
+            dataset = open_for_append(settings.repo_id, tmp)
         _write_episodes(dataset, planned[done:], settings, progress)
         write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
 
