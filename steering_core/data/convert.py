@@ -37,6 +37,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from steering_core import layout
+from steering_core.data.dataset import NO_VIDEO_BACKEND
 from steering_core.data.frames_prep import Orientation, ResizeFilter, prepare_frames
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
@@ -245,7 +246,7 @@ def open_for_append(repo_id: str, root: Path) -> LeRobotDataset:
     those read-only and append only through `LeRobotDataset.resume(repo_id, root=...)`.
     """
     cls = _lerobot_class()
-    return getattr(cls, "resume", cls)(repo_id, root=root)
+    return getattr(cls, "resume", cls)(repo_id, root=root, video_backend=NO_VIDEO_BACKEND)
 
 
 def _create(
@@ -267,6 +268,7 @@ def _create(
                 robot_type=settings.robot_type,
                 features=features,
                 use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
+                video_backend=NO_VIDEO_BACKEND,
             )
         _write_episodes(dataset, planned, settings, progress)
         write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
