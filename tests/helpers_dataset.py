@@ -80,13 +80,15 @@ def write_dataset(
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    from steering_core.data.convert import open_for_append
+
     dataset = LeRobotDataset.create(
         repo_id=repo_id, root=root, fps=10, robot_type="panda", features=FEATURES, use_videos=False
     )
     for number, (task, states) in enumerate(episodes):
         if reopen_after is not None and number == reopen_after:
             dataset.finalize()
-            dataset = LeRobotDataset(repo_id, root=root)
+            dataset = open_for_append(repo_id, root)
         for frame, state in enumerate(states):
             shade = (number * 37 + frame * 11) % 256
             dataset.add_frame(

@@ -235,16 +235,33 @@ def test_unsupported_versions_are_named(datasets, tmp_path):
         read_meta(bad)
 
 
-def test_lerobot_converter_accepts_our_v21(datasets, tmp_path):
-    """A second, independent reader: lerobot 0.4.4's v2.1 -> v3.0 converter, then LeRobotDataset."""
-    from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
+def lerobot_convert_v21(repo_id: str, parent: Path) -> None:
+    """Convert the v2.1 dataset at `parent / repo_id` to v3.0 in place with lerobot's own converter, offline.
 
+    lerobot 0.4 has it in `lerobot.datasets.v30` and reads `root` as the folder above the dataset (the dataset at
+    `root / repo_id`); lerobot 0.5.0 reads `root` as the dataset folder itself, and 0.5.1 moved the module to
+    `lerobot.scripts`.
+    """
+    from importlib.metadata import version
+
+    from packaging.version import Version
+
+    try:
+        from lerobot.scripts.convert_dataset_v21_to_v30 import convert_dataset
+    except ModuleNotFoundError:
+        from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
+    root = parent / repo_id if Version(version("lerobot")) >= Version("0.5") else parent
+    convert_dataset(repo_id=repo_id, root=str(root), push_to_hub=False)
+
+
+def test_lerobot_converter_accepts_our_v21(datasets, tmp_path):
+    """A second, independent reader: lerobot's v2.1 -> v3.0 converter, then LeRobotDataset."""
     v30, v21 = datasets
     target = tmp_path / "local" / "ours"
     shutil.copytree(v21, target)
     make_writable(target)
     assert not (tmp_path / "local" / "ours_old").exists()  # the converter would restore a stale copy from it
-    convert_dataset(repo_id="local/ours", root=str(tmp_path), push_to_hub=False)
+    lerobot_convert_v21("local/ours", tmp_path)
     assert json.loads((target / "meta/info.json").read_text())["codebase_version"] == "v3.0"
     assert_items_equal(lerobot_items(target, "local/ours"), lerobot_items(v30))
 
@@ -302,8 +319,6 @@ def test_pipeline_on_v21_equals_v30(datasets, tmp_path):
 
 def test_video_frames_equal_lerobot_s(tmp_path):
     """A v2.1 video dataset lerobot wrote (AV1, 64x96, 2 x 15 frames; make_lerobot_v21.py): our frames are lerobot's."""
-    from lerobot.datasets.v30.convert_dataset_v21_to_v30 import convert_dataset
-
     fixture = Path(__file__).parent / "fixtures" / "lerobot_v21_video"
     ours = V2Frames(read_meta(fixture), [0, 1], video_backend="pyav")
     items = [ours[i] for i in range(len(ours))]
@@ -311,7 +326,7 @@ def test_video_frames_equal_lerobot_s(tmp_path):
     assert items[17][camera].shape == (3, 64, 96) and items[17][camera].dtype == torch.float32
     assert [int(item["frame_index"]) for item in items[13:17]] == [13, 14, 0, 1]
     shutil.copytree(fixture, tmp_path / "u" / "vid")
-    convert_dataset(repo_id="u/vid", root=str(tmp_path), push_to_hub=False)
+    lerobot_convert_v21("u/vid", tmp_path)
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     theirs = LeRobotDataset("u/vid", root=tmp_path / "u" / "vid", video_backend="pyav")

@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 from torch.utils.data import DataLoader, Dataset, default_collate
 
-from steering_core.data.dataset import DatasetMeta
+from steering_core.data.dataset import NO_VIDEO_BACKEND, DatasetMeta
 from steering_core.data.image_cells import check_image_cells
 from steering_core.data.v2_frames import V2Frames
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
@@ -83,6 +83,8 @@ def frame_source(meta: DatasetMeta, repo_id: str, episodes: Sequence[int], video
     from lerobot.datasets.lerobot_dataset import LeRobotDataset  # slow import (torchvision, datasets)
 
     check_image_cells(meta, episodes)  # lerobot would open a path a cell names
+    if video_backend is None and not meta.has_videos:
+        video_backend = NO_VIDEO_BACKEND
     return LeRobotDataset(repo_id, root=meta.root, episodes=list(episodes), video_backend=video_backend)
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from steering_core import layout
+from steering_core.data.dataset import NO_VIDEO_BACKEND
 from steering_core.data.frames_prep import Orientation, ResizeFilter, prepare_frames
 from steering_core.data.libero import LiberoDemo, iter_demos, validate_file
 from steering_core.data.parquet_fingerprint import content_fingerprint
@@ -238,6 +239,16 @@ def _lerobot_class() -> type[LeRobotDataset]:
     return LeRobotDataset
 
 
+def open_for_append(repo_id: str, root: Path) -> LeRobotDataset:
+    """Open the finalized LeRobot v3.0 dataset at `root` for appending episodes (then `finalize()` it again).
+
+    lerobot 0.4 appends to a dataset opened with `LeRobotDataset(repo_id, root=...)`; lerobot 0.5 and later open
+    those read-only and append only through `LeRobotDataset.resume(repo_id, root=...)`.
+    """
+    cls = _lerobot_class()
+    return getattr(cls, "resume", cls)(repo_id, root=root, video_backend=NO_VIDEO_BACKEND)
+
+
 def _create(
     output_dir: Path,
     planned: list[tuple[Path, EpisodeSource]],
@@ -257,6 +268,7 @@ def _create(
                 robot_type=settings.robot_type,
                 features=features,
                 use_videos=False,  # PNG frames: lossless, and reading needs no FFmpeg
+                video_backend=NO_VIDEO_BACKEND,
             )
         _write_episodes(dataset, planned, settings, progress)
         write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
@@ -275,7 +287,7 @@ def _append(
         if settings.codebase_version == "v2.1":
             dataset = V21Writer.open(tmp)
         else:
-            dataset = _lerobot_class()(settings.repo_id, root=tmp)
+            dataset = open_for_append(settings.repo_id, tmp)
         _write_episodes(dataset, planned[done:], settings, progress)
         write_json(tmp / SOURCES_FILE, _record(settings, [s for _, s in planned]).model_dump(mode="json"))
 

@@ -48,6 +48,9 @@ _CLOSEST_TASKS = 5
 # info.json's path templates and the fields lerobot formats into them (v3.0 files and chunks, v2.x episodes)
 PATH_TEMPLATES = ("data_path", "video_path")
 TEMPLATE_FIELDS = frozenset({"chunk_index", "file_index", "episode_chunk", "episode_index", "video_key"})
+# The video backend named to lerobot where a dataset has no video to decode: left to choose (lerobot 0.5 and later),
+# lerobot loads torchcodec at every dataset open, which without the system FFmpeg logs a 100-line warning each time.
+NO_VIDEO_BACKEND = "pyav"
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,11 @@ class DatasetMeta:
     def episodes_source(self) -> str:
         """Return where the episode rows were read from, relative to the root."""
         return lerobot_v2.EPISODES_JSONL if self.is_v2 else EPISODES_DIR
+
+    @property
+    def has_videos(self) -> bool:
+        """Return True when a feature of info.json is stored as video (what a video backend decodes)."""
+        return any(feature.get("dtype") == "video" for feature in self.info.get("features", {}).values())
 
     @property
     def total_frames(self) -> int:
