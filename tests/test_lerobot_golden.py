@@ -168,8 +168,12 @@ def test_sentencepiece_and_tokenizer_json_give_the_same_ids(meta, prompt_index):
         assert np.array_equal(libero_json.tokenize(text).ids, libero_model.tokenize(text).ids), text
 
 
-def test_a_tokenizer_folder_reads_its_tokenizer_json():
-    assert PromptTokenizer(TOKENIZER_JSON.parent, MAX_LEN).path == TOKENIZER_JSON.parent
+def test_a_tokenizer_folder_reads_its_tokenizer_json(meta):
+    folder, file = (PromptTokenizer(path, MAX_LEN, "discrete_state") for path in (TOKENIZER_JSON.parent, TOKENIZER_JSON))
+    state = np.linspace(-1.0, 1.0, 8)
+    assert np.array_equal(folder.tokenize(meta["tasks"][0], state).ids, file.tokenize(meta["tasks"][0], state).ids)
+    with pytest.raises(FileNotFoundError, match="tokenizer.json: tokenizer not found"):
+        PromptTokenizer(SENTENCEPIECE.parent.parent, MAX_LEN)  # a folder without one
 
 
 # ----------------------------------------------------------------------------- the embedding table

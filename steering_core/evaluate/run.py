@@ -249,13 +249,11 @@ class PolicyPrompts:
     """Each side's task tokenised by the policy for a batch of frames: with each frame's state where the checkpoint's
     prompt carries it (lerobot's pi0.5), else the same prompt for every frame."""
 
-    policy: Any  # Pi05Policy: `tokenize`, `instruction_masks`
+    policy: Any  # Pi05Policy: `prompt_rows`
     tasks: dict[str, str]  # side -> task text
 
     def of(self, side: str, states: np.ndarray | None, count: int) -> Prompt:
-        texts = [self.tasks[side]] * count
-        tokens, token_mask = self.policy.tokenize(texts, states)
-        return Prompt(tokens, token_mask, self.policy.instruction_masks(texts, states))
+        return Prompt(*self.policy.prompt_rows([self.tasks[side]] * count, states))
 
 
 def evaluate_job(

@@ -372,7 +372,7 @@ class Pi05Policy(nn.Module):
 
     def instruction_masks(self, prompts: Sequence[str], states: np.ndarray | None) -> torch.Tensor:
         """Return (B, T) bool: each prompt's instruction tokens, tokenised as `tokenize` does."""
-        return torch.from_numpy(np.stack([e.instruction_mask() for e in self._encode(prompts, states)]))
+        return self.prompt_rows(prompts, states)[2]
 
     def tokenize(self, prompts: Sequence[str], states: np.ndarray | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Return tokens (B, T) int64 and token_mask (B, T) bool of the prompts, as capture builds them.
@@ -380,9 +380,14 @@ class Pi05Policy(nn.Module):
         The state (B, D) enters the prompt only in the discrete-state format (normalised by the checkpoint's
         statistics, binned).
         """
+        return self.prompt_rows(prompts, states)[:2]
+
+    def prompt_rows(self, prompts: Sequence[str], states: np.ndarray | None
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Return tokens (B, T) int64, token_mask and instruction mask (B, T) bool, each prompt encoded once."""
         encoded = self._encode(prompts, states)
-        tokens = torch.from_numpy(np.stack([e.ids for e in encoded]))
-        return tokens, torch.from_numpy(np.stack([e.mask for e in encoded]))
+        return tuple(torch.from_numpy(np.stack([field(e) for e in encoded]))
+                     for field in (lambda e: e.ids, lambda e: e.mask, lambda e: e.instruction_mask()))
 
     def _encode(self, prompts: Sequence[str], states: np.ndarray | None) -> list[TokenizedPrompt]:
         """Return each prompt tokenised in the checkpoint's format (with its state in the discrete-state one)."""

@@ -70,6 +70,12 @@ def libero_uint8_cameras(image: torch.Tensor, wrist_image: torch.Tensor) -> tupl
     The first half of `libero_camera_slots`: capture runs it in its frame workers and `camera_slots` on the
     model's device, a quarter of the float32 bytes copied there.
     """
+    check_cameras(image, wrist_image)
+    return to_uint8(image), to_uint8(wrist_image)
+
+
+def check_cameras(image: torch.Tensor, wrist_image: torch.Tensor) -> None:
+    """Raise one ValueError naming every camera that is not float (B, 3, H, W), or batch sizes that differ."""
     problems = []
     for name, frames in zip(LIBERO_IMAGE_KEYS, (image, wrist_image)):
         if frames.ndim != 4 or frames.shape[1] != 3 or not frames.dtype.is_floating_point:
@@ -78,7 +84,6 @@ def libero_uint8_cameras(image: torch.Tensor, wrist_image: torch.Tensor) -> tupl
         problems.append(f"batch sizes differ: image {image.shape[0]}, wrist_image {wrist_image.shape[0]}")
     if problems:
         raise ValueError("libero_camera_slots: " + "; ".join(problems))
-    return to_uint8(image), to_uint8(wrist_image)
 
 
 def camera_slots(
@@ -131,7 +136,7 @@ class Cameras:
         LiberoInputs does, or rounded (lossless for frames decoded from uint8) for lerobot's float path."""
         if not self.lerobot:
             return libero_uint8_cameras(image, wrist_image)
-        libero_uint8_cameras(image, wrist_image)  # the same checks; the values are rounded instead
+        check_cameras(image, wrist_image)  # the same checks; the values are rounded, not truncated
         return tuple((frames.to(torch.float32) * 255.0).round().clamp(0, 255).to(torch.uint8)
                      for frames in (image, wrist_image))
 
@@ -147,7 +152,7 @@ class Cameras:
         """Return the slots and masks of float (B, 3, H, W) frames in [0, 1], as LeRobotDataset returns them."""
         if not self.lerobot:
             return libero_camera_slots(image, wrist_image, size)
-        libero_uint8_cameras(image, wrist_image)  # shape checks only
+        check_cameras(image, wrist_image)
         frames = {"image": _lerobot_resize(image.to(torch.float32), size),
                   "wrist_image": _lerobot_resize(wrist_image.to(torch.float32), size)}
         batch = image.shape[0]
