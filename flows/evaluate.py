@@ -47,9 +47,7 @@ def evaluate_flow(config_path: str, targets: list[tuple[str, int, str]] | None =
 
 def evaluation_arguments(config: RunConfig, name: str, layer: int, stream: str) -> tuple:
     """Return the arguments of `evaluate_pair` for one (pair, layer, stream)."""
-    steering = config.steering_settings(layer) if stream == "lm" else None  # the expert has no SAE
-    return (run_config_job(config, name, layer, stream), config.capture_settings(), steering,
-            config.evaluate_settings())
+    return run_config_job(config, name, layer, stream), config.capture_settings(), config.evaluate_settings()
 
 
 def run_evaluation(config: RunConfig, config_path: str | Path) -> dict[str, str]:

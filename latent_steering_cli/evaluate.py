@@ -29,12 +29,11 @@ from steering_core.evaluate.run import (
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.robot_side import DEFAULT_HORIZON
 from steering_core.pi05.spec import ModelSpec
-from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, load_steering_sae, read_pairs_config
+from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, read_pairs_config
 from steering_core.workload import evaluation_problems
 
 _DEFAULTS = EvaluateSettings()
 _STEERING_FIELDS = SteeringSettings.model_fields  # --paths-relative-to: the steer step's default and help
-NO_SAE = "none"
 
 
 @app.command("split")
@@ -93,9 +92,6 @@ def evaluate_command(
     expert_layers: str | None = typer.Option(
         None, "--expert-layers", help="Action-expert layers to evaluate, e.g. 9 or 3,9 (with --decision-run, or "
         "--config: some of its evaluate.expert_layers)."),
-    sae: str = typer.Option("gemma-2b-it-res-jb", "--sae", help=f"SAE of the layer (for the top-k direction); '{NO_SAE}': none."),
-    sae_id: str | None = typer.Option(None, "--sae-id", help="SAE within the release (default blocks.<layer>.hook_resid_post)."),
-    sae_dir: Path | None = typer.Option(None, "--sae-dir", help="Folder holding downloaded SAE release folders."),
     paths_relative_to: PathsRelativeTo = typer.Option(
         _STEERING_FIELDS["paths_relative_to"].default, "--paths-relative-to",
         help=_STEERING_FIELDS["paths_relative_to"].description),
@@ -134,9 +130,6 @@ class EvaluateOptions:
     lerobot_root: Path | None
     repo_id: str | None
     decision_run: Path | None
-    sae: str
-    sae_id: str | None
-    sae_dir: Path | None
     paths_relative_to: PathsRelativeTo
     model: ModelSpec | None = None
     model_flags: tuple[str, ...] = ()  # the model options given (refused beside --config)
@@ -148,7 +141,7 @@ def _given_model_flags(ctx: typer.Context) -> tuple[str, ...]:
                  if param.name in ModelSpec.model_fields and ctx.get_parameter_source(param.name).name != "DEFAULT")
 
 
-Plan = tuple[list[tuple[EvaluateJob, SteeringSettings | None]], CaptureSettings, EvaluateSettings]
+Plan = tuple[list[EvaluateJob], CaptureSettings, EvaluateSettings]
 
 
 def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: dict) -> Plan:
@@ -167,8 +160,8 @@ def _config_plan(options: EvaluateOptions, expert: list[int] | None, overrides: 
     layers = [layer] if layer is not None else [] if expert is not None else list(run.layers)
     expert = expert if expert is not None else [] if layer is not None else run.expert_layers
     names = options.pair or [p.name for p in run.pairs]
-    jobs = [(run_config_job(run, name, lay), run.steering_settings(lay)) for lay in layers for name in names]
-    jobs += [(run_config_job(run, name, lay, "expert"), None) for lay in expert for name in names]
+    jobs = [run_config_job(run, name, lay) for lay in layers for name in names]
+    jobs += [run_config_job(run, name, lay, "expert") for lay in expert for name in names]
     settings = EvaluateSettings(**(run.evaluate_settings().model_dump() | overrides))
     _check_work(settings, run.model.action_horizon or DEFAULT_HORIZON)
     return jobs, run.capture_settings(), settings
@@ -186,7 +179,7 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
         p.name for p in read_pairs_config(options.pairs_config).pairs]
     places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=options.repo_id or lerobot_root.name,
                   output_root=options.output_root or data_root / STEERING_EVAL_ROOT)
-    jobs = _layer_jobs(options, names, places, settings) if layer is not None else []
+    jobs = _layer_jobs(options, names, places) if layer is not None else []
     if options.decision_run is not None:
         jobs += _expert_jobs(options.decision_run, expert, names, places, model, settings)
     return jobs, model, settings
@@ -217,16 +210,11 @@ def _require_flags(options: EvaluateOptions, expert: list[int] | None) -> None:
                                  param_hint="--expert-layers")
 
 
-def _layer_jobs(options: EvaluateOptions, names: list[str], places: dict, settings: EvaluateSettings) -> list:
+def _layer_jobs(options: EvaluateOptions, names: list[str], places: dict) -> list[EvaluateJob]:
     """Return the language-model jobs of each named pair of --pairs-config at --layer."""
-    sae, pairs_config, data_root = options.sae, options.pairs_config, options.data_root
-    steering = SteeringSettings(pairs_config=pairs_config, layer=options.layer, device=settings.device,
-                                sae=None if sae.lower() == NO_SAE else sae, sae_id=options.sae_id,
-                                sae_dir=options.sae_dir)
-    steering_root = options.steering_root or data_root / STEERING_ROOT
-    return [(pair_job(pairs_config, name, options.layer, relative_to=options.paths_relative_to,
-                      steering_root=steering_root, **places),
-             steering) for name in names]
+    steering_root = options.steering_root or options.data_root / STEERING_ROOT
+    return [pair_job(options.pairs_config, name, options.layer, relative_to=options.paths_relative_to,
+                     steering_root=steering_root, **places) for name in names]
 
 
 def _expert_jobs(decision_run: Path, expert: list[int], names: list[str], places: dict, model: CaptureSettings,
@@ -236,23 +224,22 @@ def _expert_jobs(decision_run: Path, expert: list[int], names: list[str], places
         check_model(model, layer, "expert")
     check_decision_run(decision_run, expert, model, settings.num_steps)  # before anything is written
     slices = {name: slice_decision_run(decision_run, name, expert, data_root=places["data_root"]) for name in names}
-    return [(expert_job(name, layer, slices_root=slices[name], **places), None) for layer in expert for name in names]
+    return [expert_job(name, layer, slices_root=slices[name], **places) for layer in expert for name in names]
 
 
-def _run(jobs: list[tuple[EvaluateJob, SteeringSettings | None]], model: CaptureSettings,
-         settings: EvaluateSettings) -> None:
+def _run(jobs: list[EvaluateJob], model: CaptureSettings, settings: EvaluateSettings) -> None:
     """Evaluate every job (one policy for all), then write each layer's summary (and, with both pathways,
     the pathways table)."""
     layers: dict[Path, list[str]] = {}
-    for job, steering in jobs:
-        folder = evaluate_job(job, model, settings, load_steering_sae(steering) if steering is not None else None)
+    for job in jobs:
+        folder = evaluate_job(job, model, settings)
         typer.echo(f"{job.pair} {job.label}: {folder}")
         layers.setdefault(folder.parent, []).append(job.pair)
     for layer_path, names in layers.items():
         typer.echo(f"summary: {write_layer_summary(layer_path, names)}")
     if not jobs:
         typer.echo(f"nothing to evaluate; see {SUMMARY_MD} files under the output root")
-    elif any(job.stream == "expert" for job, _ in jobs):
-        evaluated = list(dict.fromkeys((job.layer, job.stream) for job, _ in jobs))
-        names = list(dict.fromkeys(job.pair for job, _ in jobs))
-        typer.echo(f"pathways: {write_pathways(jobs[0][0].output_dir.parent.parent, evaluated, names)}")
+    elif any(job.stream == "expert" for job in jobs):
+        evaluated = list(dict.fromkeys((job.layer, job.stream) for job in jobs))
+        names = list(dict.fromkeys(job.pair for job in jobs))
+        typer.echo(f"pathways: {write_pathways(jobs[0].output_dir.parent.parent, evaluated, names)}")

@@ -32,7 +32,7 @@ from steering_core.pi05.tokenizer import open_encoder
 from steering_core.remote.filesystems import check_writable
 from steering_core.storage.fileio import check_output_dir
 from steering_core.storage.mirrors import url_of
-from steering_core.vectors.directions import load_steering_sae
+from steering_core.vectors.directions import check_methods, load_steering_sae
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +76,7 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
     checks: list[Callable[[], object]] = [
         *[(lambda layer=layer: _check_sae(config, layer, check_width=layout_ok)) for layer in config.layers
           if config.sae_for(layer) is not None],
+        *[(lambda layer=layer: _check_methods(config, layer, check_width=layout_ok)) for layer in config.layers],
         lambda: resolve_device(config.steering.device),
     ]
     if capture_device:
@@ -108,6 +109,15 @@ def _check_sae(config: RunConfig, layer: int, *, check_width: bool) -> None:
     if check_width and sae is not None and sae.cfg.d_in != width:
         raise ValueError(f"{sae.cfg.source}: SAE of layer {layer} has d_in {sae.cfg.d_in}, but the model's residual "
                          f"width (model.arch.width) is {width}; pass the SAE trained on this model's layer {layer}")
+
+
+def _check_methods(config: RunConfig, layer: int, *, check_width: bool) -> None:
+    """Raise for a layer's steering methods that cannot run (`check_methods`); supplied files are read only when
+    the checkpoint matches model.arch (its width is then the layer's)."""
+    settings = config.steering_settings(layer)
+    names = settings.method_list(config.sae_for(layer) is not None)
+    if check_width and "file" in names:
+        check_methods(settings, [pair.name for pair in config.pairs], config.model.arch.width, True)
 
 
 def _rollout_problems(config: RunConfig) -> list[str]:

@@ -19,15 +19,12 @@ from steering_core.evaluate.settings import EvaluateSettings
 from steering_core.identity import code_version, plain
 from steering_core.storage.digests import file_digest
 from steering_core.storage.fileio import read_json, sha256_json
-from steering_core.vectors import directions
-from steering_core.vectors.directions import SteeringSettings
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache_keys import content_key
 from tasks.cache_records import OUTPUTS
 from tasks.capture import GPU_TAG, concept_rows, episode_sources, model_inputs
 from tasks.results import RESULTS
 from tasks.retries import GPU_RETRIES, GPU_RETRY_DELAYS, retry_if, transient_gpu
-from tasks.sae import sae_inputs
 
 _PAIR_OUTPUTS = (f"{layout.DOSE_RESPONSE_FILE}.json", f"{layout.DOSE_RESPONSE_FILE}.safetensors",
                  layout.EFFICACY_PLOT, layout.SHIFT_PLOT, layout.TRAJECTORY_PLOT)
@@ -75,10 +72,7 @@ def settings_inputs(settings: EvaluateSettings) -> dict[str, Any]:
     return plain(settings.model_dump(mode="json", exclude={"compiled"}))
 
 
-def evaluation_identity(
-    job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings | None,
-    settings: EvaluateSettings,
-) -> str:
+def evaluation_identity(job: evaluate_run.EvaluateJob, model: CaptureSettings, settings: EvaluateSettings) -> str:
     """Return the digest of what one evaluation reads and how (the task's cache key without its output folder).
 
     Recorded with the outputs: a second run that missed the cache (it started before the first one finished)
@@ -87,7 +81,6 @@ def evaluation_identity(
     inputs = job_inputs(job)
     inputs["job"].pop("output_dir")
     return sha256_json({"code": code_version("steering_core.evaluate.run"), "job": inputs, "model": model_inputs(model),
-                        "steering": sae_inputs(steering_settings) if steering_settings is not None else None,
                         "settings": settings_inputs(settings)})
 
 
@@ -95,24 +88,17 @@ def evaluation_identity(
     name="evaluate-steering",
     task_run_name="evaluate {job.pair} {job.label}",
     tags=[GPU_TAG],
-    cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs, steering=sae_inputs,
+    cache_policy=content_key("steering_core.evaluate.run", job=job_inputs, model=model_inputs,
                              settings=settings_inputs),
     retries=GPU_RETRIES, retry_delay_seconds=GPU_RETRY_DELAYS, retry_condition_fn=retry_if(transient_gpu),
     **RESULTS,
 )
-def evaluate_pair(
-    job: evaluate_run.EvaluateJob, model: CaptureSettings, steering_settings: SteeringSettings | None,
-    settings: EvaluateSettings,
-) -> dict:
-    """Run one pair's dose-response on the policy at one layer; return its output files.
-
-    `steering_settings` (the SAE of the top-k direction) is None for the action expert.
-    """
+def evaluate_pair(job: evaluate_run.EvaluateJob, model: CaptureSettings, settings: EvaluateSettings) -> dict:
+    """Run one pair's dose-response on the policy at one layer; return its output files."""
     progress = ProgressArtifact(artifact_key("evaluate", job.pair, job.output_dir.parent.name), "policy calls",
                                 f"evaluate {job.pair} at {job.label}")
-    sae = directions.load_steering_sae(steering_settings) if steering_settings is not None else None
-    folder = evaluate_run.evaluate_job(job, model, settings, sae, progress=progress,
-                                       identity=evaluation_identity(job, model, steering_settings, settings))
+    folder = evaluate_run.evaluate_job(job, model, settings, progress=progress,
+                                       identity=evaluation_identity(job, model, settings))
     progress.finish()
     get_run_logger().info("%s %s: %s", job.pair, job.label, folder)
     return {OUTPUTS: [str(folder / name) for name in _PAIR_OUTPUTS], "folder": str(folder)}

@@ -12,9 +12,10 @@ from steering_core.layout import layer_dir
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.registry import resolve_release
 from steering_core.storage.digests import file_digest
-from steering_core.storage.fileio import write_json
+from steering_core.storage.fileio import read_json, write_json
 from steering_core.vectors import concept_stats, directions
 from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
+from steering_core.vectors.methods.supplied import supplied_path
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache_keys import content_key
 from tasks.cache_records import OUTPUTS
@@ -47,15 +48,29 @@ def sae_inputs(settings: SteeringSettings) -> dict[str, Any]:
     }
 
 
+_METHOD_FIELDS = ("include_decoder_bias", "methods", "top_k", "probe_folds", "probe_c", "effect_min_episodes",
+                  "direction_file")
+
+
 def direction_inputs(settings: SteeringSettings) -> dict[str, Any]:
-    """Return what pair directions depend on besides the statistics: the SAE and the decoder-bias option."""
-    return {**sae_inputs(settings), "include_decoder_bias": settings.include_decoder_bias}
+    """Return what pair directions depend on besides the statistics: the SAE, the method settings and the supplied
+    direction files (`file`) of the layer's pairs."""
+    supplied = None
+    if settings.direction_file and "file" in (settings.methods or ()):
+        pairs = directions.read_pairs_config(settings.pairs_config).pairs
+        files = [supplied_path(settings.direction_file, pair.name, settings.layer) for pair in pairs]
+        supplied = {str(path): file_digest(path) if path.is_file() else None for path in files}
+    return {**sae_inputs(settings), **{name: getattr(settings, name) for name in _METHOD_FIELDS},
+            "supplied": supplied}
 
 
 def stats_files(path: str) -> dict[str, str]:
-    """Return the digests of a concept statistics file (.json) and its tensors (.safetensors)."""
+    """Return the digests of a concept statistics file (.json), its tensors (.safetensors) and of the slice's
+    safetensors copy it was made from (the rows and episodes the probe and sae_effect methods read)."""
     json_path = Path(path)
-    return {"json": file_digest(json_path), "tensors": file_digest(json_path.with_suffix(".safetensors"))}
+    digests = {"json": file_digest(json_path), "tensors": file_digest(json_path.with_suffix(".safetensors"))}
+    slice_copy = Path(read_json(json_path)["identity"]["path"]).with_suffix(".safetensors")
+    return digests | ({"slice": file_digest(slice_copy)} if slice_copy.is_file() else {})
 
 
 @task(
@@ -100,7 +115,6 @@ def pair_directions(pair: PairSpec, layer: int, positive_stats: str, negative_st
     """Write one pair's latent and residual directions; return the pair folder's summary file."""
     sae = directions.load_steering_sae(settings)
     layer_path = settings.output_root / layer_dir(settings.layer)
-    folder = directions.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae,
-                                   include_decoder_bias=settings.include_decoder_bias)
+    folder = directions.compute_pair(pair, Path(positive_stats), Path(negative_stats), layer_path, sae, settings)
     summary = folder / layout.PAIR_SUMMARY_FILE
     return {OUTPUTS: [str(summary)], "folder": str(folder)}

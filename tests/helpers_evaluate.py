@@ -37,6 +37,8 @@ class FakeSteering:
     alpha: float = 1.0
     token_mask: torch.Tensor | None = None
     stream: str = "lm"
+    mode: str = "add"
+    levels: tuple[float, float] | None = None
 
 
 class FakePolicy:
@@ -83,7 +85,8 @@ class FakePolicy:
     def _actions(self, images, tokens, noise, steering) -> torch.Tensor:
         batch = tokens.shape[0]
         key = (tuple(int(images[0][b, 0, 0, 0]) for b in range(batch)), tuple(tokens[:, 1].tolist()),
-               float(noise.sum()), None if steering is None else (steering.alpha, float(steering.vector.sum())))
+               float(noise.sum()), None if steering is None else (steering.alpha, float(steering.vector.sum()),
+                                                                  steering.mode, steering.levels))
         assert key not in self.seen, "the same inputs ran twice"
         self.seen.add(key)
         instruction = INSTRUCTION.expand(batch, -1)
@@ -94,7 +97,12 @@ class FakePolicy:
                 assert torch.equal(steering.token_mask, instruction)
             else:
                 assert steering.token_mask is None
-            r = r + steering.alpha * steering.vector.double()
+            if steering.mode == "clamp":  # the mean of per-token clamps is the clamp of the mean (a linear map)
+                unit = steering.vector.double() / steering.vector.double().norm()
+                start, end = steering.levels
+                r = r + ((start + steering.alpha * (end - start)) - r @ unit)[:, None] * unit
+            else:
+                r = r + steering.alpha * steering.vector.double()
         if self.saturate:  # the two instructions' projections sit at midpoint ± gap / 2: both on a plateau
             midpoint = float(self.embed[1:4].mean(0) @ self.u) - self.gap / 2
             return (torch.tanh((r @ self.u - midpoint) * 6 / self.gap)[:, None, None] * self.pattern

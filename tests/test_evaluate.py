@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers_evaluate import FakePolicy, FakeSteering, load, prompts
+from helpers_evaluate import INSTRUCTION, NEGATIVE_IDS, POSITIVE_IDS, FakePolicy, FakeSteering, load, prompts
 from safetensors.torch import load_file, save_file
 
 from steering_core.data.concept_map import ConceptMap, ConceptRow
@@ -83,10 +83,10 @@ def run(tmp_path: Path, out: Path, *, fraction: float = 0.4, saturate: bool = Fa
     pair = PairInputs(name="open_vs_close", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
                       split=split_episodes(m, fraction), slices=slices(tmp_path / "slices"))
     u = planted()
-    directions = {"residual_direction": sign * u * 3.0, "mean_difference_direction": sign * u + 0.01 * torch.ones(WIDTH)}
+    directions = {"sae": sign * u * 3.0, "mean_difference": sign * u + 0.01 * torch.ones(WIDTH)}
     policy = FakePolicy(WIDTH, u, GAP, saturate=saturate)
     settings = EvaluateSettings(**{"max_frames": 8, "noise_seeds": 2, "bootstrap": 200, "batch_size": 3,
-                                   "device": "cpu", "random_directions": 8, "permutations": 4} | overrides)
+                                   "device": "cpu", "random_directions": 8, "permutations": 4, "modes": ("add",)} | overrides)
     evaluate_pair(pair, directions, policy, FakeSteering, load, prompts(), layer=LAYER, width=WIDTH,
                   settings=settings, output_dir=out, metadata={"policy": "fake"},
                   include_decoder_bias=include_decoder_bias)
@@ -98,7 +98,7 @@ def test_planted_direction_reproduces_the_swap_and_random_ones_do_not(tmp_path):
     record = json.loads((out / "dose_response.json").read_text())
     alphas = record["alphas"]
     at = alphas.index(2.0)
-    planted_entry = record["directions"]["residual_direction"]
+    planted_entry = record["directions"]["sae"]
     for side in ("", "_positive", "_negative"):
         assert planted_entry[f"efficacy{side}"][at] == pytest.approx(1.0, abs=0.05)
         low, high = planted_entry[f"efficacy{side}_ci"][at]
@@ -114,7 +114,7 @@ def test_planted_direction_reproduces_the_swap_and_random_ones_do_not(tmp_path):
     norm = 3.0 * float(planted().norm())
     assert planted_entry["alphas_vector_units"][at] == pytest.approx(2.0 * NORM / norm, rel=1e-5)
     assert best["alpha_vector"] == pytest.approx(2.0 * NORM / norm, rel=1e-5)
-    assert best["request"] == {"pair": "open_vs_close", "layer": LAYER, "direction": "residual",
+    assert best["request"] == {"pair": "open_vs_close", "layer": LAYER, "direction": "sae",
                                "alpha": best["alpha_vector"], "alpha_units": "vector"}
     assert record["mean_residual_norm"] == pytest.approx(NORM, rel=1e-6)
     assert len(record["random"]["names"]) == 8 and len(record["random"]["permuted"]) == 4
@@ -147,7 +147,7 @@ def test_saturating_policy_scores_one_on_both_sides(tmp_path):
     while pushing a frame past its own instruction (+α on positive-task frames) would change nothing (≈ 0.5)."""
     out, _ = run(tmp_path, tmp_path / "eval" / "p", saturate=True)
     record = json.loads((out / "dose_response.json").read_text())
-    entry, at = record["directions"]["residual_direction"], record["alphas"].index(2.0)
+    entry, at = record["directions"]["sae"], record["alphas"].index(2.0)
     assert entry["efficacy_negative"][at] == pytest.approx(1.0, abs=0.02)
     assert entry["efficacy_positive"][at] == pytest.approx(1.0, abs=0.02)
     assert entry["efficacy"][at] == pytest.approx(1.0, abs=0.02)
@@ -183,7 +183,7 @@ def test_in_sample_evaluation_says_so(tmp_path):
     assert {f["episode_index"] for f in record["frames"]} <= set(EPISODES[POS] + EPISODES[NEG])
     md = write_layer_summary(out.parent, ["p"]).read_text()
     assert "in-sample" in md and "tiny model: numbers mean nothing" in md
-    assert "| p | residual_direction | 2 / " in md
+    assert "| p | sae | add | 2 / " in md
 
 
 def test_efficacy_plot_takes_an_interval_that_misses_its_estimate_by_rounding(tmp_path):
@@ -191,7 +191,7 @@ def test_efficacy_plot_takes_an_interval_that_misses_its_estimate_by_rounding(tm
 
     out, _ = run(tmp_path, tmp_path / "eval" / "p")
     record = json.loads((out / "dose_response.json").read_text())
-    entry = record["directions"]["residual_direction"]
+    entry = record["directions"]["sae"]
     entry["efficacy_ci"] = [[v + 1e-12, v + 1e-12] for v in entry["efficacy"]]  # one episode per side, rounded
     plot_efficacy(tmp_path / "efficacy.png", record)
     assert (tmp_path / "efficacy.png").read_bytes()[:4] == b"\x89PNG"
@@ -349,9 +349,9 @@ def test_bad_input(tmp_path):
     m = manifest(EPISODES)
     pair = PairInputs(name="p", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
                       split=split_episodes(m, 0.2), slices=slices(tmp_path / "s"))
-    wrong = {"residual_direction": torch.ones(WIDTH + 1), "random_00": torch.ones(WIDTH)}
+    wrong = {"sae": torch.ones(WIDTH + 1), "random_00": torch.ones(WIDTH)}
     out = tmp_path / "eval" / "p"
-    with pytest.raises(ValueError, match=r"residual_direction.*\(257,\).*\(256,\)"):
+    with pytest.raises(ValueError, match=r"sae.*\(257,\).*\(256,\)"):
         evaluate_pair(pair, wrong, FakePolicy(WIDTH, planted(), GAP), FakeSteering, load, prompts(), layer=LAYER,
                       width=WIDTH, settings=EvaluateSettings(), output_dir=out)
     assert not out.exists()
@@ -409,10 +409,10 @@ def run_expert(tmp_path: Path, out: Path, *, width: int = EXPERT_WIDTH) -> tuple
     u = expert_planted()
     pair = PairInputs(name="open_vs_close", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
                       split=split_episodes(m, 0.4), slices=decision_slices(tmp_path / "decision", u))
-    directions = decision_directions(pair.slices)
+    directions = {name: d.direction for name, d in decision_directions(pair.slices, "open_vs_close", EXPERT_LAYER).items()}
     policy = FakePolicy(EXPERT_WIDTH, u, GAP, stream="expert")
     settings = EvaluateSettings(max_frames=8, noise_seeds=2, bootstrap=200, batch_size=3, device="cpu",
-                                random_directions=8, permutations=4)
+                                random_directions=8, permutations=4, modes=("add",))
     evaluate_pair(pair, directions, policy, FakeSteering, load, prompts(), layer=EXPERT_LAYER, width=width,
                   settings=settings, output_dir=out, metadata={"policy": "fake"}, stream="expert")
     return out, policy
@@ -423,11 +423,11 @@ def test_planted_expert_direction_reproduces_the_swap_and_random_ones_do_not(tmp
     record = json.loads((out / "dose_response.json").read_text())
     assert record["stream"] == "expert" and record["layer"] == EXPERT_LAYER
     assert record["alpha_units"]["alphas"].startswith("R, the mean residual norm of the training rows")
-    assert list(record["directions"]) == (["decision_mean_difference"] + [f"random_{i:02d}" for i in range(8)]
+    assert list(record["directions"]) == (["mean_difference"] + [f"random_{i:02d}" for i in range(8)]
                                           + [f"permuted_{i:02d}" for i in range(4)])
     alphas = record["alphas"]
     at = alphas.index(2.0)  # the swap moves the expert residual by GAP = 2 R along the planted direction
-    entry = record["directions"]["decision_mean_difference"]
+    entry = record["directions"]["mean_difference"]
     assert entry["efficacy"][at] == pytest.approx(1.0, abs=0.05)
     low, high = entry["efficacy_ci"][at]
     assert low - 1e-6 <= 1.0 <= high + 1e-6 and high - low < 0.2
@@ -435,24 +435,23 @@ def test_planted_expert_direction_reproduces_the_swap_and_random_ones_do_not(tmp
     assert entry["efficacy"][alphas.index(-2.0)] == pytest.approx(-1.0, abs=0.05)
     for name in record["random"]["names"]:
         assert abs(record["directions"][name]["efficacy"][at]) < 0.25
-    # α unit: the decision rows' mean norm; in vector units α R / ||d|| with d = 2 HALF_GAP û
+    # α unit: the decision rows' mean norm; the direction is the unit mean difference û, so vector units are α R
     assert record["mean_residual_norm"] == pytest.approx(NORM, rel=1e-5)
-    assert record["direction_norms"]["decision_mean_difference"] == pytest.approx(2 * HALF_GAP, rel=1e-5)
-    assert entry["alphas_vector_units"][at] == pytest.approx(2.0 * NORM / (2 * HALF_GAP), rel=1e-5)
+    assert record["direction_norms"]["mean_difference"] == pytest.approx(1.0, rel=1e-5)
+    assert entry["alphas_vector_units"][at] == pytest.approx(2.0 * NORM, rel=1e-5)
     # random directions of equal norm, in expert width; the direction itself is kept with the outputs
     norms = record["direction_norms"]
-    assert all(norms[n] == pytest.approx(2 * HALF_GAP, rel=1e-5)
-               for n in record["random"]["names"] + record["random"]["permuted"])
+    assert all(norms[n] == pytest.approx(1.0, rel=1e-5) for n in record["random"]["names"])
     tensors = load_file(out / "dose_response.safetensors")
     unit = expert_planted().double() / expert_planted().double().norm()
     assert tensors["directions"].shape == (13, EXPERT_WIDTH)
-    torch.testing.assert_close(tensors["directions"][0].double(), 2 * HALF_GAP * unit, rtol=0, atol=1e-5)
+    torch.testing.assert_close(tensors["directions"][0].double(), unit, rtol=0, atol=1e-6)
     # one sweep per (batch, seed) and chunk of 40, α = 0 shared: 1 + 13 directions x 8 nonzero α entries
     batches = sum(-(-sum(f["side"] == s for f in record["frames"]) // 3) for s in ("positive", "negative"))
     assert policy.calls == {"sweep_calls": batches * 2 * 3, "sweep_entries": batches * 2 * (1 + 13 * 8),
                             "sample_actions": batches * 2}
     md = write_layer_summary(out.parent, ["open_vs_close"]).read_text()
-    assert md.startswith("# Steering evaluation, expert_layer01") and "| open_vs_close | decision_mean_difference | 2 / " in md
+    assert md.startswith("# Steering evaluation, expert_layer01") and "| open_vs_close | mean_difference | add | 2 / " in md
 
 
 def test_expert_outputs_are_byte_identical_and_the_width_is_checked(tmp_path):
@@ -463,7 +462,7 @@ def test_expert_outputs_are_byte_identical_and_the_width_is_checked(tmp_path):
     for name in names:
         assert (first / name).read_bytes() == (second / name).read_bytes(), name
     out = tmp_path / "c" / "p"
-    with pytest.raises(ValueError, match=r"decision_mean_difference.*\(128,\).*action expert.s residual width \(129,\)"):
+    with pytest.raises(ValueError, match=r"mean_difference.*\(128,\).*action expert.s residual width \(129,\)"):
         run_expert(tmp_path, out, width=EXPERT_WIDTH + 1)
     assert not out.exists()
 
@@ -479,25 +478,25 @@ def test_pathways_table_puts_the_best_lm_direction_beside_the_expert(tmp_path):
     # naive reference: every (direction, α ≠ 0) of the LM layer, chosen on one half, read on the other
     for half in (0, 1):
         options = [(abs(lm["directions"][n]["efficacy_half"][half][a] - 1), n, a)
-                   for n in ("residual_direction", "mean_difference_direction", "top_k_latents")
+                   for n in ("sae", "mean_difference", "sae_top_k")
                    if n in lm["directions"] for a, alpha in enumerate(lm["alphas"]) if alpha != 0]
         _, name, a = min(options)
         assert row["lm"]["chosen"][half] == {"layer": 2, "direction": name, "alpha": lm["alphas"][a],
                                              "alpha_vector": lm["directions"][name]["alphas_vector_units"][a]}
         assert row["lm"]["efficacy_reads"][half] == lm["directions"][name]["efficacy_half"][1 - half][a]
     assert row["lm"]["efficacy"] == pytest.approx(sum(row["lm"]["efficacy_reads"]) / 2)
-    assert [c["direction"] for c in row["expert"]["chosen"]] == ["decision_mean_difference"] * 2
+    assert [c["direction"] for c in row["expert"]["chosen"]] == ["mean_difference"] * 2
     assert row["expert"]["efficacy"] == pytest.approx(1.0, abs=0.05)
-    assert "| decision_mean_difference, layer 1, α = 2 R (" in md
+    assert "| mean_difference, layer 1, α = 2 R (" in md
 
 
 def test_a_reversed_direction_is_flagged(tmp_path):
     out, _ = run(tmp_path, tmp_path / "eval" / "p", sign=-1.0)
     record = json.loads((out / "dose_response.json").read_text())
-    best = record["directions"]["residual_direction"]["best"]
+    best = record["directions"]["sae"]["best"]
     assert best["alpha"] == -2.0 and best["reversed"] is True and best["request"]["alpha"] < 0
     row = next(line for line in write_layer_summary(out.parent, ["p"]).read_text().splitlines()
-             if line.startswith("| p | residual_direction |"))
+             if line.startswith("| p | sae | add |"))
     assert f"| -2 / {best['alpha_vector']:.4g} reversed? |" in row
 
 
@@ -558,7 +557,7 @@ def test_slices_of_other_positions_are_refused(tmp_path):
                           split=split_episodes(m, 0.4), slices=paths)
         out = tmp_path / "eval" / "p"
         with pytest.raises(ValueError, match=found):
-            evaluate_pair(pair, {"residual_direction": planted()}, FakePolicy(WIDTH, planted(), GAP), FakeSteering,
+            evaluate_pair(pair, {"sae": planted()}, FakePolicy(WIDTH, planted(), GAP), FakeSteering,
                           load, prompts(), layer=LAYER, width=WIDTH, settings=EvaluateSettings(), output_dir=out)
         assert not out.exists()
 
@@ -585,3 +584,96 @@ def test_evaluation_identity_leaves_out_whether_the_policy_runs_compiled():
     assert settings_inputs(base.model_copy(update={"compiled": False})) == settings_inputs(base)
     assert settings_inputs(base.model_copy(update={"num_steps": 5})) != settings_inputs(base)
 
+
+
+def fake_levels(policy: FakePolicy, vector: torch.Tensor) -> tuple[float, float]:
+    """Return (m₋, m₊): each instruction's mean token embedding projected on the unit vector, the levels of the fake
+    world (its steering acts on that mean)."""
+    unit = vector.double() / vector.double().norm()
+    positive, negative = (policy.embed[torch.tensor(ids)[INSTRUCTION[0]]].mean(0) @ unit
+                          for ids in (POSITIVE_IDS, NEGATIVE_IDS))
+    return float(negative), float(positive)
+
+
+def test_clamp_reaches_the_other_level_at_one_where_add_needs_the_gap(tmp_path):
+    """The swap moves the instruction residual by GAP = 2 R along u: add reproduces it at α = 2, clamp at α = 1 (the
+    other instruction's level), whatever each frame's starting point; at α = 2 clamp overshoots to twice the swap."""
+    m = manifest(EPISODES)
+    pair = PairInputs(name="open_vs_close", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
+                      split=split_episodes(m, 0.4), slices=slices(tmp_path / "slices"))
+    u = planted()
+    policy = FakePolicy(WIDTH, u, GAP)
+    directions = {"sae": u * 3.0, "mean_difference": u + 0.3 * torch.randn(WIDTH, generator=torch.Generator().manual_seed(5))}
+    levels = {name: fake_levels(policy, v) for name, v in directions.items()}
+    settings = EvaluateSettings(max_frames=8, noise_seeds=2, bootstrap=200, batch_size=3, device="cpu",
+                                random_directions=8, permutations=4, alphas=(-1.0, 0.0, 0.5, 1.0, 2.0))
+    out = tmp_path / "eval" / "open_vs_close"
+    evaluate_pair(pair, directions, policy, FakeSteering, load, prompts(), layer=LAYER, width=WIDTH, settings=settings,
+                  output_dir=out, levels=levels)
+    record = json.loads((out / "dose_response.json").read_text())
+    alphas = record["alphas"]
+    assert [n for n in record["directions"] if not n.startswith(("random_", "permuted_"))] == [
+        "sae", "sae:clamp", "mean_difference", "mean_difference:clamp"]
+    add, clamp = record["directions"]["sae"], record["directions"]["sae:clamp"]
+    assert (add["mode"], clamp["mode"], clamp["method"]) == ("add", "clamp", "sae")
+    assert clamp["efficacy"][alphas.index(1.0)] == pytest.approx(1.0, abs=0.05)
+    assert clamp["efficacy"][alphas.index(2.0)] == pytest.approx(2.0, abs=0.1)
+    assert clamp["efficacy"][alphas.index(0.5)] == pytest.approx(0.5, abs=0.05)
+    assert add["efficacy"][alphas.index(1.0)] == pytest.approx(0.5, abs=0.05)  # add: α = 1 is half the gap
+    assert clamp["best"]["alpha"] == 1.0 and add["best"]["alpha"] == 2.0
+    # the mean-difference direction is off u: added, only its u part moves the actions; clamped, its level still
+    # reaches the other instruction's projection on it, so it does better than added at the same α
+    off_add, off_clamp = record["directions"]["mean_difference"], record["directions"]["mean_difference:clamp"]
+    assert off_clamp["efficacy"][alphas.index(1.0)] > off_add["efficacy"][alphas.index(1.0)]
+    assert clamp["best"]["request"] == {"pair": "open_vs_close", "layer": LAYER, "direction": "sae", "alpha": 1.0,
+                                        "mode": "clamp"}
+    assert record["levels"] == {f"{name}:clamp": list(levels[name]) for name in directions}
+    # paired difference from the reference method in the same mode, and Holm over methods x modes x α ≠ 0
+    for name in ("sae", "sae:clamp"):
+        versus = record["directions"][name]["best"]["vs_reference"]
+        reference = record["directions"]["mean_difference" + name[3:]]["best"]["efficacy"]
+        assert versus["reference"] == "mean_difference" + name[3:]
+        assert versus["difference"] == pytest.approx(record["directions"][name]["best"]["efficacy"] - reference)
+        assert versus["ci"][0] <= versus["difference"] <= versus["ci"][1]
+    p = [record["directions"][n]["p_random"][a] for n in ("sae", "sae:clamp", "mean_difference",
+                                                           "mean_difference:clamp")
+         for a, alpha in enumerate(alphas) if alpha != 0]
+    holm_p = [record["directions"][n]["p_random_holm"][a] for n in ("sae", "sae:clamp", "mean_difference",
+                                                                     "mean_difference:clamp")
+              for a, alpha in enumerate(alphas) if alpha != 0]
+    assert holm_p == pytest.approx(naive_holm(p))
+    assert record["directions"]["sae"]["p_random_holm"][alphas.index(0.0)] is None
+    md = write_layer_summary(out.parent, ["open_vs_close"]).read_text()
+    assert "| open_vs_close | sae | clamp | 1 / 1 |" in md and "p random, Holm" in md
+
+
+def naive_holm(p: list[float]) -> list[float]:
+    """Holm's adjustment written out: sort, multiply the i-th smallest by (m − i), running maximum, cap at 1."""
+    m = len(p)
+    order = sorted(range(m), key=lambda i: (p[i], i))
+    out, running = [0.0] * m, 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out
+
+
+def test_holm_matches_a_hand_computation():
+    from steering_core.evaluate.metrics import holm
+
+    p = torch.tensor([0.01, 0.04, 0.03, 0.005, 0.5], dtype=torch.float64)
+    # sorted: 0.005 x5 = 0.025, 0.01 x4 = 0.04, 0.03 x3 = 0.09, 0.04 x2 = 0.08 -> 0.09 (monotone), 0.5 x1 = 0.5
+    assert holm(p).tolist() == pytest.approx([0.04, 0.09, 0.09, 0.025, 0.5])
+    assert holm(torch.tensor([0.6, 0.7], dtype=torch.float64)).tolist() == [1.0, 1.0]
+
+
+def test_clamp_with_equal_or_missing_levels_is_refused_before_anything_runs(tmp_path):
+    m = manifest(EPISODES)
+    pair = PairInputs(name="p", tasks=(POS, NEG), manifest=m, concept_map=concept_map(m),
+                      split=split_episodes(m, 0.4), slices=slices(tmp_path / "s"))
+    policy, out = FakePolicy(WIDTH, planted(), GAP), tmp_path / "eval" / "p"
+    for levels, found in (({"sae": (0.5, 0.5)}, "equal levels m₋ = m₊ = 0.5"), ({}, "no clamp levels")):
+        with pytest.raises(ValueError, match=f"pair 'p', layer 2, evaluate.modes clamp: method 'sae' has {found}"):
+            evaluate_pair(pair, {"sae": planted()}, policy, FakeSteering, load, prompts(), layer=LAYER, width=WIDTH,
+                          settings=EvaluateSettings(), output_dir=out, levels=levels)
+        assert not out.exists() and policy.calls["sweep_calls"] == 0

@@ -20,7 +20,7 @@ capture: {batch_size: 64, storage_dtype: bfloat16}   # CaptureSettings without m
 slicing: {reduce: token}                             # SliceSettings without layers and token type
 sae: {12: {release: gemma-2b-it-res-jb}}             # per layer; absent or null: residual space only
 steering: {batch_size: 512, top_k: 20}               # SteeringSettings without paths, layer and SAE
-evaluate: {holdout_fraction: 0.2, max_frames: 32}    # EvaluateSettings without top_k; null: no phase 4
+evaluate: {holdout_fraction: 0.2, max_frames: 32}    # EvaluateSettings; null: no phase 4
 # evaluate: {expert_layers: [9]}   # also capture `decision` rows at these action-expert layers and evaluate them
 ```
 

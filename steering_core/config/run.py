@@ -346,10 +346,10 @@ class RunConfig(StrictModel):
         )
 
     def evaluate_settings(self) -> EvaluateSettings:
-        """Return the evaluation settings (top-k from the steering section); raise when evaluation is off."""
+        """Return the evaluation settings; raise when evaluation is off."""
         if self.evaluate is None:
             raise ValueError("the run config has `evaluate: null`; add an evaluate section to evaluate the vectors")
-        return EvaluateSettings(**self.evaluate.model_dump(exclude={"expert_layers"}), top_k=self.steering.top_k)
+        return EvaluateSettings(**self.evaluate.model_dump(exclude={"expert_layers"}))
 
     def pairs_config(
         self, layer: int, tasks: Mapping[str, tuple[str, str]], slices: Mapping[str, Mapping[str, str]]

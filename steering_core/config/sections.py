@@ -45,7 +45,6 @@ SUPPLIED = {
     "steering": {"pairs_config": "pairs", "output_root": "output_root", "layer": "layers", "sae": "sae.<layer>",
                  "sae_id": "sae.<layer>.sae_id", "sae_dir": "sae.<layer>.local_dir",
                  "sae_cfg_from": "sae.<layer>.cfg_from", "paths_relative_to": "output_root"},
-    "evaluate": {"top_k": "steering.top_k"},
 }
 
 # Former key names still read, section -> former -> current; given beside the current one, a former name is refused.
@@ -54,7 +53,8 @@ FORMER_NAMES = {"orchestration": {"capture": "mode"}}
 MOVED = {"capture": {"checkpoint_path": "model.checkpoint", "tokenizer_path": "model.tokenizer",
                      "norm_stats_path": "model.norm_stats", "norm_stats_asset_id": "model.asset_id",
                      "arch": "model.arch", "prompt_format": "model.prompt_format",
-                     "max_token_len": "model.max_token_len", "action_horizon": "model.action_horizon"}}
+                     "max_token_len": "model.max_token_len", "action_horizon": "model.action_horizon"},
+         "evaluate": {"top_k": "steering.top_k"}, "rollout": {"direction": "rollout.methods"}}
 
 
 def _resolve_path(value: Path, info: ValidationInfo) -> Path:
@@ -118,7 +118,7 @@ def _expert_layers(layers: tuple[int, ...]) -> tuple[int, ...]:
 # The evaluation settings plus the run-level choice of action-expert layers: capturing their `decision` rows is
 # a second capture run, so the list belongs to the run config, not to each (pair, layer) evaluation.
 EvaluateSection = options_model(
-    EvaluateSettings, tuple(SUPPLIED["evaluate"]), "EvaluateSection",
+    EvaluateSettings, (), "EvaluateSection",
     expert_layers=(Annotated[tuple[int, ...], AfterValidator(_expert_layers)], ()),
 )
 

@@ -161,6 +161,25 @@ def _crossfit(inner: torch.Tensor, swap_sq: torch.Tensor, masks: dict[str, torch
         boot = sum(reads[1 - h][1].gather(1, chosen_boot[h][:, None])[:, 0] for h in (0, 1)) / 2
         key = "crossfit" + ("" if side == "pooled" else f"_{side}")
         out[key], out[f"{key}_ci"] = value, _interval(boot)
+        if side == "pooled":
+            out["crossfit_boot"] = boot  # (D, B): the same resamples for every direction, so differences pair
+    return out
+
+
+def paired_difference(values: torch.Tensor, boot: torch.Tensor, row: int, reference: int) -> tuple[float, list[float]]:
+    """Return values[row] − values[reference] and the 95% interval of that difference over the shared bootstrap
+    resamples `boot` (D, B) (paired: each resample draws the same episodes for both)."""
+    return float(values[row] - values[reference]), _interval(boot[row] - boot[reference]).tolist()
+
+
+def holm(p: torch.Tensor) -> torch.Tensor:
+    """Return Holm's step-down adjusted p-values of a 1-D family (same order), each capped at 1."""
+    order = torch.argsort(p, stable=True)
+    m = len(p)
+    steps = (m - torch.arange(m, dtype=p.dtype)) * p[order]
+    adjusted = torch.cummax(steps, 0).values.clamp(max=1.0)
+    out = torch.empty_like(p)
+    out[order] = adjusted
     return out
 
 

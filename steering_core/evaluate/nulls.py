@@ -21,7 +21,8 @@ from pathlib import Path
 
 import torch
 
-from steering_core.evaluate.directions import PERMUTED, RANDOM, read_slice_episodes, read_slice_rows
+from steering_core.evaluate.directions import PERMUTED, RANDOM
+from steering_core.vectors.slice_rows import read_slice_episodes, read_slice_rows
 
 
 def covariance_directions(groups: list[torch.Tensor], norm: float, count: int, seed: int) -> list[torch.Tensor]:

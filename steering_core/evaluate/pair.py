@@ -13,7 +13,7 @@ import torch
 from steering_core.data.concept_map import ConceptMap
 from steering_core.data.contrast import ContrastManifest
 from steering_core.data.split import HoldoutSplit
-from steering_core.evaluate.directions import check_width, is_null, read_slice_rows
+from steering_core.evaluate.directions import check_width, entry_name, is_null
 from steering_core.evaluate.frames import EvalFrame, frame_halves, select_frames
 from steering_core.evaluate.metrics import (
     LIBERO_ORIENTATION,
@@ -24,6 +24,7 @@ from steering_core.evaluate.metrics import (
     state_axis_weights,
 )
 from steering_core.evaluate.nulls import null_directions
+from steering_core.evaluate.plots import layer_label
 from steering_core.evaluate.positions import check_positions
 from steering_core.evaluate.report import pair_record, write_pair_outputs
 from steering_core.evaluate.settings import EvaluateSettings
@@ -31,6 +32,7 @@ from steering_core.evaluate.sweep import Prompts, SweepPolicy, run_sweep
 from steering_core.pairs import SIDES, toward_sign
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.storage.fileio import atomic_dir
+from steering_core.vectors.slice_rows import read_slice_rows
 
 logger = logging.getLogger(__name__)
 
@@ -89,20 +91,27 @@ def evaluate_pair(
     progress: ProgressCallback | None = None,
     stream: str = "lm",
     include_decoder_bias: bool = False,
+    levels: dict[str, tuple[float, float]] | None = None,
 ) -> Path:
-    """Run the dose-response of every direction for one pair and write `output_dir` atomically; return it.
+    """Run the dose-response of every direction in every mode for one pair and write `output_dir` atomically;
+    return it.
 
-    `directions` maps a name to a (width,) residual direction of `layer` of `stream` ("lm": the language
+    `directions` maps a method to a (width,) residual direction of `layer` of `stream` ("lm": the language
     model, steered at the instruction tokens; "expert": the action expert, at every action token), the first
-    one the reference whose norm the null directions take (they are built here from `pair.slices`);
+    one the reference whose norm the null directions take (they are built here from `pair.slices`); each is
+    evaluated in every mode of `settings.modes` (entries `<method>` and `<method>:clamp`, `directions.entry_name`),
+    clamp at the method's `levels` (m₋, m₊);
     `metadata` (the policy's description, input digests) is recorded as is; `include_decoder_bias` marks a
     phase-3 residual direction that carries the SAE's b_dec (recorded, and noted in the layer summary).
     """
     check_width(directions, width, f"pair {pair.name!r}", stream)
-    reserved = [name for name in directions if is_null(name)]
+    reserved = [name for name in directions if is_null(name) or ":" in name]
     if reserved:
-        raise ValueError(f"pair {pair.name!r}: direction names {reserved} are reserved for the null directions")
+        raise ValueError(f"pair {pair.name!r}: direction names {reserved} are reserved for the null directions "
+                         "and the modes")
     positions_note = check_positions(pair.slices, stream)
+    clamps = clamp_levels(directions, levels or {}, settings.modes, f"pair {pair.name!r}, {layer_label(layer, stream)}")
+    directions = {entry_name(method, mode): vector for method, vector in directions.items() for mode in settings.modes}
     scale = action_scale(policy)
     frames = select_frames(pair.manifest, pair.concept_map, pair.split, pair.tasks, settings.max_frames)
     residual_norm = mean_residual_norm(pair.slices)  # R: the α unit
@@ -115,7 +124,7 @@ def evaluate_pair(
         policy, make_steering, frames, load, prompts, directions, layer=layer, alphas=settings.alphas,
         mean_residual_norm=residual_norm, noise_seeds=settings.noise_seeds, seed=settings.seed,
         num_steps=settings.num_steps, batch_size=settings.batch_size, entries_per_call=settings.entries_per_call,
-        progress=progress, stream=stream, push=push,
+        progress=progress, stream=stream, push=push, clamps=clamps,
     )
     axis = pair.manifest.axis
     means = axis.mean_delta_per_task
@@ -131,7 +140,9 @@ def evaluate_pair(
     )
     metrics |= null_metrics(metrics, names)
     norms = torch.stack([directions[n].double().norm() / push.get(n, 1.0) for n in names])
-    vector_scale = torch.tensor(settings.alphas, dtype=torch.float64)[None] * residual_norm / norms[:, None]
+    grid = torch.tensor(settings.alphas, dtype=torch.float64)[None]
+    vector_scale = torch.where(torch.tensor([n in clamps for n in names])[:, None], grid,  # clamp: α is the level
+                               grid * residual_norm / norms[:, None])
     head = {
         "pair": pair.name, "layer": layer, "stream": stream, "positive": pair.tasks[0], "negative": pair.tasks[1],
         "mean_residual_norm": residual_norm, "direction_norms": dict(zip(names, norms.tolist(), strict=True)),
@@ -148,6 +159,7 @@ def evaluate_pair(
         "split": pair.split.model_dump(mode="json"), "in_sample": pair.split.in_sample,
         "in_sample_note": IN_SAMPLE_NOTE if pair.split.in_sample else None, "note": settings.note,
         "include_decoder_bias": include_decoder_bias,
+        "modes": list(settings.modes), "levels": {name: list(value) for name, value in clamps.items()},
         "positions_note": positions_note,
         "settings": settings.model_dump(mode="json", exclude={"device", "compiled"}),
         "frames": [f.as_json() for f in frames], "model": metadata or {},
@@ -162,6 +174,25 @@ def evaluate_pair(
     logger.info("%s %s layer %d: dose-response of %d directions on %d frames in %s", pair.name, stream, layer,
                 len(names), len(frames), output_dir)
     return output_dir
+
+
+def clamp_levels(directions: dict[str, torch.Tensor], levels: dict[str, tuple[float, float]], modes: tuple[str, ...],
+                 where: str) -> dict[str, tuple[float, float]]:
+    """Return clamp entry name -> (m₋, m₊) for every method when `modes` holds clamp; ValueError naming `where`
+    and evaluate.modes for a method without levels or with equal ones (nothing to clamp between)."""
+    if "clamp" not in modes:
+        return {}
+    problems = []
+    for method in directions:
+        pair_levels = levels.get(method)
+        if pair_levels is None:
+            problems.append(f"method {method!r} has no clamp levels")
+        elif not pair_levels[0] != pair_levels[1]:
+            problems.append(f"method {method!r} has equal levels m₋ = m₊ = {pair_levels[0]:.6g}: the concepts do not "
+                            "differ along it")
+    if problems:
+        raise ValueError(f"{where}, evaluate.modes clamp: " + "; ".join(problems) + "; drop clamp from evaluate.modes")
+    return {entry_name(method, "clamp"): levels[method] for method in directions}
 
 
 def null_metrics(metrics: dict[str, torch.Tensor], names: list[str]) -> dict[str, torch.Tensor]:

@@ -19,8 +19,8 @@ from typing import Any
 import torch
 from safetensors.torch import save_file
 
-from steering_core.evaluate.directions import MEAN_DIFFERENCE, RESIDUAL
-from steering_core.evaluate.metrics import ACTION_GROUPS
+from steering_core.evaluate.directions import entry_name, entry_parts, is_null
+from steering_core.evaluate.metrics import ACTION_GROUPS, holm, paired_difference
 from steering_core.evaluate.plots import layer_label, named, plot_efficacy, plot_shift, plot_trajectory
 from steering_core.evaluate.settings import MIN_EPISODES_PER_SIDE
 from steering_core.layout import (
@@ -37,7 +37,7 @@ from steering_core.storage.fileio import read_json, write_json, write_text
 
 __all__ = ["layer_label", "pair_record", "write_layer_summary", "write_pair_outputs", "write_pathways"]
 
-EVAL_FORMAT_VERSION = 2
+EVAL_FORMAT_VERSION = 3
 _CURVES = tuple(f"{metric}{ci}" for metric in ("efficacy", "efficacy_positive", "efficacy_negative", "efficacy_raw",
                                                 "efficacy_positive_raw", "efficacy_negative_raw", "cosine",
                                                 "contrast_shift") for ci in ("", "_ci"))  # (dirs, alphas[, 2])
@@ -45,10 +45,10 @@ ALPHA_UNITS = {
     "alphas": "R, the mean residual norm of the training rows at the steered positions (instruction tokens; "
               "action tokens in the expert): α = 1 adds a vector of length R",
     "alphas_vector_units": "multiples of the stored direction d, α·R/‖d‖: what the server's `alpha` multiplies "
-                           "(`\"alpha_units\": \"vector\"`)",
+                           "(`\"alpha_units\": \"vector\"`); clamp entries: α itself, the level between the "
+                           "frame's own concept's mean projection (0) and the other's (1)",
 }
-# phase 3's files the server offers, by the evaluation's direction name (the language model only)
-SERVED = {RESIDUAL: "residual", MEAN_DIFFERENCE: "mean_difference"}
+REFERENCE_METHOD = "mean_difference"  # every method is compared with it, paired, in the same mode
 
 
 def _json_floats(tensor: torch.Tensor) -> Any:
@@ -62,21 +62,27 @@ def _json_floats(tensor: torch.Tensor) -> Any:
 
 def request_entry(head: dict[str, Any], name: str, alpha_vector: float) -> dict[str, Any] | None:
     """Return the server request's `steering` entry that pushes a negative-task frame as the evaluation did,
-    or None for a direction the server does not offer."""
-    if head["stream"] != "lm" or name not in SERVED:
+    or None for the action expert (the server steers the language model)."""
+    if head["stream"] != "lm":
         return None
-    return {"pair": head["pair"], "layer": head["layer"], "direction": SERVED[name], "alpha": alpha_vector,
-            "alpha_units": "vector"}
+    method, mode = entry_parts(name)
+    entry = {"pair": head["pair"], "layer": head["layer"], "direction": method, "alpha": alpha_vector}
+    return entry | ({"alpha_units": "vector"} if mode == "add" else {"mode": mode})
 
 
 def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[float, ...],
-                     metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
-    """Return one direction's curves and its `best` entry (cross-fitted efficacy, p-values, request)."""
+                     metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor, names: list[str],
+                     holm_p: torch.Tensor | None) -> dict[str, Any]:
+    """Return one direction's curves and its `best` entry (cross-fitted efficacy, p-values, the paired difference
+    from the reference method in the same mode, request)."""
     groups = list(ACTION_GROUPS)
-    entry = {key: _json_floats(metrics[key][d]) for key in _CURVES}
+    method, mode = entry_parts(name)
+    entry = {"method": method, "mode": mode, **{key: _json_floats(metrics[key][d]) for key in _CURVES}}
     entry |= {key: _json_floats(metrics[key][d]) for key in ("z", "p_random", "p_permuted") if key in metrics}
     entry["efficacy_half"] = _json_floats(metrics["efficacy_half"][:, d])
     entry["alphas_vector_units"] = _json_floats(vector_scale[d])
+    if holm_p is not None:
+        entry["p_random_holm"] = _json_floats(holm_p[d])
     for key in ("shift", "shift_ci", "shift_raw"):
         entry[key] = {g: _json_floats(metrics[key][d, :, i]) for i, g in enumerate(groups)}
     best = int(metrics["best_alpha_index"][d])
@@ -95,14 +101,36 @@ def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[floa
         "contrast_shift": entry["contrast_shift"][best],
         "request": request_entry(head, name, alpha_vector),
     }
+    if holm_p is not None:
+        entry["best"]["p_random_holm"] = entry["p_random_holm"][best]
+    reference = entry_name(REFERENCE_METHOD, mode)
+    if not is_null(name) and reference in names and reference != name:
+        difference, ci = paired_difference(metrics["crossfit"], metrics["crossfit_boot"], d, names.index(reference))
+        entry["best"]["vs_reference"] = {"reference": reference, "difference": difference, "ci": _json_floats(
+            torch.tensor(ci))}
     return entry
+
+
+def holm_family(names: list[str], metrics: dict[str, torch.Tensor], zero_index: int) -> torch.Tensor | None:
+    """Return (D, A) Holm-adjusted p against the random null over the family of every tested entry (method × mode)
+    at every α ≠ 0; NaN at α = 0 and for the nulls. None without a random null."""
+    if "p_random" not in metrics:
+        return None
+    p = metrics["p_random"].double()
+    family = torch.zeros_like(p, dtype=torch.bool)
+    family[[i for i, n in enumerate(names) if not is_null(n)]] = True
+    family[:, zero_index] = False
+    out = torch.full_like(p, math.nan)
+    out[family] = holm(p[family])
+    return out
 
 
 def pair_record(head: dict[str, Any], names: list[str], alphas: tuple[float, ...],
                 metrics: dict[str, torch.Tensor], vector_scale: torch.Tensor) -> dict[str, Any]:
     """Return the JSON of one pair's dose-response (`head` holds pair, layer, stream, split, frames, selection...)."""
     groups = list(ACTION_GROUPS)
-    directions = {name: _direction_entry(d, name, head, alphas, metrics, vector_scale)
+    holm_p = holm_family(names, metrics, alphas.index(0.0))
+    directions = {name: _direction_entry(d, name, head, alphas, metrics, vector_scale, names, holm_p)
                   for d, name in enumerate(names)}
     return {
         "format_version": EVAL_FORMAT_VERSION,
@@ -161,7 +189,9 @@ def write_layer_summary(layer_path: Path, pair_names: list[str]) -> Path:
         notes += [n for n in record_warnings(record) if n not in notes]
         plots[pair] = f"{pair}/{EFFICACY_PLOT}"
         for name in named(record):
-            rows.append({"pair": pair, "direction": name, **record["directions"][name]["best"]})
+            entry = record["directions"][name]
+            rows.append({"pair": pair, "direction": name, "method": entry["method"], "mode": entry["mode"],
+                         **entry["best"]})
     summary = {"format_version": EVAL_FORMAT_VERSION, "layer": layer_path.name, "notes": notes, "rows": rows,
                "plots": plots}
     write_json(layer_path / SUMMARY_JSON, summary)
@@ -194,7 +224,13 @@ SELECTION_TEXT = (
     "task; `positive`/`negative` are the frames of that task. 95% intervals resample episodes. p: rank among the "
     "null directions, (1 + #null ≥ observed) / (1 + N): random ones with the training rows' covariance, each "
     "through the same selection; mean differences of episode labels permuted, at their own (smaller) size and "
-    "the row's α.")
+    "the row's α. The nulls are added (not clamped) and shared by every method: a clamp row is ranked against "
+    "them at the same α. Holm: the per-α p against the random null, adjusted over every method × mode × α ≠ 0 "
+    "of the pair, read at the row's α. Δ vs mean_difference: the row's cross-fitted efficacy minus the "
+    "mean difference's in the same mode, with a paired interval (the same resampled episodes for both).\n\n"
+    "Modes: add puts h + α·R·d̂ at the steered tokens; clamp sets each steered token's projection on d̂ to "
+    "m_own + α·(m_other − m_own), the two concepts' mean projections (α = 1: the other concept's level, no "
+    "overshoot whatever the token's start).")
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:
@@ -202,14 +238,17 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     groups = list(ACTION_GROUPS)
     lines = [f"# Steering evaluation, {summary['layer']}", ""]
     lines += [f"**{note}**" for note in summary["notes"]] + ([""] if summary["notes"] else [])
-    lines += [SELECTION_TEXT, "", "| pair | direction | α (R / vector) | efficacy [95% CI] | positive-task frames | "
-              "negative-task frames | p random | p permuted |", "|---|---|---|---|---|---|---|---|"]
+    lines += [SELECTION_TEXT, "", "| pair | method | mode | α (R / vector) | efficacy [95% CI] | "
+              "Δ vs mean_difference [95% CI] | positive-task frames | negative-task frames | p random | "
+              "p random, Holm | p permuted |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
-        lines.append(f"| {row['pair']} | {row['direction']} | {alpha_text(row)} | "
+        versus = row.get("vs_reference")
+        lines.append(f"| {row['pair']} | {row['method']} | {row['mode']} | {alpha_text(row)} | "
                      f"{with_ci(row['efficacy'], row['efficacy_ci'])} | "
+                     f"{with_ci(versus['difference'], versus['ci']) if versus else '–'} | "
                      f"{with_ci(row['efficacy_positive'], row['efficacy_positive_ci'])} | "
                      f"{with_ci(row['efficacy_negative'], row['efficacy_negative_ci'])} | "
-                     f"{fmt(row.get('p_random'))} | {fmt(row.get('p_permuted'))} |")
+                     f"{fmt(row.get('p_random'))} | {fmt(row.get('p_random_holm'))} | {fmt(row.get('p_permuted'))} |")
     requests = [row for row in summary["rows"] if row["request"] is not None]
     if requests:
         lines += ["", "Server request entry of each row (`steering`: pushes a negative-task frame toward the "

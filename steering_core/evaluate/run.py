@@ -36,7 +36,6 @@ from steering_core.pi05.spec import ModelSpec
 from steering_core.pi05.steering import LAST_LM_LAYER, Stream
 from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import ProgressCallback
-from steering_core.sae.model import Sae
 from steering_core.storage.fileio import read_json
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import PathsRelativeTo, read_pairs_config, resolve_concept_path
@@ -260,7 +259,6 @@ def evaluate_job(
     job: EvaluateJob,
     model: CaptureSettings,
     settings: EvaluateSettings,
-    sae: Sae | None,
     *,
     policy: Any = None,
     progress: ProgressCallback | None = None,
@@ -276,7 +274,7 @@ def evaluate_job(
         if identity is not None and evaluated_identity(job.output_dir) == identity:
             logger.info("%s %s: %s already holds this evaluation; reused", job.pair, job.label, job.output_dir)
             return job.output_dir
-        return _evaluate(job, model, settings, sae, policy, progress, identity)
+        return _evaluate(job, model, settings, policy, progress, identity)
 
 
 def evaluated_identity(folder: Path) -> str | None:
@@ -290,7 +288,7 @@ def evaluated_identity(folder: Path) -> str | None:
 
 
 def _evaluate(
-    job: EvaluateJob, model: CaptureSettings, settings: EvaluateSettings, sae: Sae | None, policy: Any,
+    job: EvaluateJob, model: CaptureSettings, settings: EvaluateSettings, policy: Any,
     progress: ProgressCallback | None, identity: str | None,
 ) -> Path:
     """Run the evaluation of `job` and write its output folder (`evaluate_job`, under its lock)."""
@@ -302,9 +300,9 @@ def _evaluate(
     )
     check_slices_split(pair.slices, pair.split.holdout_episodes, job.split)
     if job.stream == "expert":
-        directions = decision_directions(pair.slices)
+        directions = decision_directions(pair.slices, job.pair, job.layer)
     else:
-        directions = pair_directions(job.directions, sae, top_k=settings.top_k)
+        directions = pair_directions(job.directions, settings.methods)
     policy = policy if policy is not None else load_policy(model.model, settings.device, settings.dtype,
                                                            settings.compiled)
     width = policy.expert_arch.width if job.stream == "expert" else model.arch.width
@@ -315,10 +313,12 @@ def _evaluate(
                            policy.cameras)
 
     return evaluate_pair(
-        pair, directions, policy, Steering, load, PolicyPrompts(policy, dict(zip(SIDES, pair.tasks, strict=True))),
+        pair, {name: d.direction for name, d in directions.items()}, policy, Steering, load,
+        PolicyPrompts(policy, dict(zip(SIDES, pair.tasks, strict=True))),
         layer=job.layer, width=width, settings=settings, output_dir=job.output_dir,
         metadata=policy.metadata if identity is None else {**policy.metadata, "inputs": identity},
         progress=progress, stream=job.stream,
         include_decoder_bias=job.stream == "lm" and bool(
             read_json(job.directions / layout.PAIR_SUMMARY_FILE).get("include_decoder_bias")),
+        levels={name: d.levels for name, d in directions.items()},
     )

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field
+from pydantic import AfterValidator, Field, ValidationInfo, field_validator
 
 from steering_core.devices import DEVICE_HELP
 from steering_core.storage.schema import StrictModel
@@ -56,7 +56,11 @@ class EvaluateSettings(StrictModel):
         "Random directions of the null (drawn from the rows' covariance, norm-matched)."))
     permutations: int = Field(8, ge=0, le=10_000, description=(
         "Null: mean differences with episode labels shuffled between the tasks."))
-    top_k: int = Field(20, gt=0, le=4096, description="SAE latents of the top-k direction.")
+    methods: tuple[str, ...] | None = Field(None, description=(
+        "Direction methods evaluated (default: every one phase 3 wrote, steering.methods)."))
+    modes: tuple[Literal["add", "clamp"], ...] = Field(("add", "clamp"), min_length=1, description=(
+        "Strength modes: add (h + α·R·d̂) and clamp (each steered token's projection on d̂ set to m_own + "
+        "α·(m_other − m_own), the concepts' mean levels)."))
     num_steps: int = Field(10, gt=0, le=1000, description="Denoising steps of sample_actions.")
     bootstrap: int = Field(1000, gt=0, le=1_000_000, description=(
         "Resamples of the episodes (frames nested) for the 95% intervals."))
@@ -69,6 +73,13 @@ class EvaluateSettings(StrictModel):
     compiled: bool | None = Field(None, description=(  # rounding only: not part of the identity
         "Run the policy's denoising step compiled (default: on CUDA only; batches over 16 rows run eagerly)."))
     note: str | None = Field(None, description="Printed at the top of the summary (e.g. \"tiny random model\").")
+
+    @field_validator("methods", "modes")
+    @classmethod
+    def _each_once(cls, names: tuple[str, ...] | None, info: ValidationInfo) -> tuple[str, ...] | None:
+        if names is not None and (not names or len(set(names)) != len(names)):
+            raise ValueError(f"{info.field_name} {list(names)}: give at least one, each once")
+        return names
 
     @property
     def zero_index(self) -> int:

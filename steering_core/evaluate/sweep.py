@@ -115,6 +115,7 @@ def run_sweep(
     progress: ProgressCallback | None = None,  # (policy calls done, in total)
     stream: str = "lm",
     push: dict[str, float] | None = None,
+    clamps: dict[str, tuple[float, float]] | None = None,
 ) -> SweepActions:
     """Return the robot actions of every (direction, α, frame, seed) and the instruction-swap reference.
 
@@ -123,10 +124,13 @@ def run_sweep(
     {"images", "image_masks"} of all frames (CPU; each batch moves to the policy's device) and their "states" (or
     None); `prompts.of(side, states, count)` gives a batch's prompts under the "positive"/"negative" task. At most
     `entries_per_call` steered entries go into one sweep call.
-    A direction is added as α · R · push · d/‖d‖ (R = `mean_residual_norm`; `push` 1 unless given).
+    A direction is added as α · R · push · d/‖d‖ (R = `mean_residual_norm`; `push` 1 unless given); a direction
+    named in `clamps` (name -> (m₋, m₊), its concepts' mean levels) is clamped instead
+    (`make_steering(..., mode="clamp", levels=(m_own, m_other))`): each steered token's projection on d/‖d‖ is set to
+    m_own + α · (m_other − m_own), the frame's own task's level at α = 0 and the other task's at α = 1.
     """
     names = list(directions)
-    push = push or {}
+    push, clamps = push or {}, clamps or {}
     unit = {name: directions[name].float() / directions[name].float().norm() * mean_residual_norm * push.get(name, 1.0)
             for name in names}
     nonzero = [(d, a) for d, name in enumerate(names) for a, alpha in enumerate(alphas) if alpha != 0.0]
@@ -155,13 +159,20 @@ def run_sweep(
         # where the steering adds: the instruction tokens, or (expert) every action token, which takes no mask
         where = {"stream": "expert"} if stream == "expert" else {"token_mask": mine.instruction_mask}
         toward = toward_sign(side)
+
+        def steering(name: str, alpha: float) -> Any:
+            vector = unit[name].to(device)
+            if name not in clamps:
+                return make_steering(layer=layer, vector=vector, alpha=toward * alpha, **where)
+            negative, positive = clamps[name]
+            levels = (negative, positive) if side == "negative" else (positive, negative)  # (own, other)
+            return make_steering(layer=layer, vector=vector, alpha=alpha, mode="clamp", levels=levels, **where)
+
         for s in range(noise_seeds):
             noise = torch.stack([frame_noise(f, s, seed, horizon, dim) for f in batch_frames]).to(device)
             for number, chunk in enumerate(chunks):
                 # the unsteered entry rides with the first chunk only: it is shared by every direction
-                entries = ([None] if number == 0 else []) + [
-                    make_steering(layer=layer, vector=unit[names[d]].to(device), alpha=toward * alphas[a], **where)
-                    for d, a in chunk]
+                entries = ([None] if number == 0 else []) + [steering(names[d], alphas[a]) for d, a in chunk]
                 actions = policy.sample_actions_sweep(inputs["images"], inputs["image_masks"], tokens, token_mask,
                                                       entries, noise=noise, num_steps=num_steps)  # (E, B, H, 32)
                 robot = _robot(policy, actions)

@@ -4,15 +4,16 @@ Per concept, `concept_stats.encode_concept` streams the rows through the SAE onc
 `latent_direction = mean_pos - mean_neg` and `residual_direction` is its image under the decoder's
 linear map, `latent_direction @ W_dec`: b_dec cancels in a difference of
 decodes, so it is not part of a direction. The seed's script returned `decode(delta)`, which adds
-b_dec; `include_decoder_bias=True` reproduces it. The plain residual-space difference of means is
-written beside it, with its cosine to the decoded direction. Without an SAE only that difference
-is computed (written as `residual_direction.pt`).
+b_dec; `include_decoder_bias=True` reproduces it. Without an SAE `residual_direction.pt` is the plain
+residual-space difference of means. Besides the seed's files, every configured direction method
+(`steering_core.vectors.methods`: `sae`, `mean_difference`, `sae_top_k`, `probe`, `sae_effect`, `file`) writes
+its unit direction with the concepts' mean levels on it (`methods.direction_file`).
 
 Outputs (the seed's layout and keys, plus safetensors/JSON copies):
 
     <output-root>/layerNN/concepts/<concept>-<hash>.safetensors|.json   streaming statistics per concept file
     <output-root>/layerNN/<pair>/positive_latent_mean.pt, negative_latent_mean.pt, latent_direction.pt,
-        residual_direction.pt, mean_difference_direction.pt (each also .safetensors), directions.json
+        residual_direction.pt (each also .safetensors), <method>_direction.safetensors, directions.json
     <output-root>/layerNN/pairwise_stats.pt, pairwise_stats.json
 
 Every direction file and directions.json record `mean_residual_norm` (R, the mean L2 norm of both concepts'
@@ -58,6 +59,14 @@ from steering_core.vectors.concept_stats import (
     encode_concept,
     read_concept_stats,
 )
+from steering_core.vectors.methods import METHODS, PairData
+from steering_core.vectors.methods.direction_file import (
+    MethodDirection,
+    method_direction,
+    read_method_direction,
+    write_method_direction,
+)
+from steering_core.vectors.methods.supplied import read_supplied
 from steering_core.vectors.pair_order import check_slices_order
 from steering_core.vectors.pair_slices import check_pair_slices
 from steering_core.vectors.report import write_report
@@ -68,6 +77,8 @@ LATENT_DIRECTION_FILE = "latent_direction"
 RESIDUAL_DIRECTION_FILE = "residual_direction"
 MEAN_DIFFERENCE_FILE = "mean_difference_direction"
 PAIR_KEY = "{a}__{b}"  # the seed's key of two pairs in pairwise_stats.pt
+# the methods written by default: every one that reads only the concepts' statistics and training slices
+DEFAULT_METHODS = ("sae", "mean_difference", "sae_top_k", "probe")
 
 class PairSpec(StrictModel):
     """One concept pair of the seed's pairs config (`layer12_pairs.json`)."""
@@ -121,9 +132,50 @@ class SteeringSettings(StrictModel):
     include_decoder_bias: bool = Field(False, description=(
         "Seed compatibility: residual_direction = decode(delta) = delta @ W_dec + b_dec (default: without b_dec)."))
     top_k: int = Field(20, gt=0, le=4096, description="Latents listed per direction in the report.")
+    methods: tuple[str, ...] | None = Field(None, description=(
+        "Direction methods written per pair (registered in steering_core.vectors.methods); default: "
+        + ", ".join(DEFAULT_METHODS) + " (those needing an SAE only when there is one)."))
+    direction_file: str | None = Field(None, description=(
+        "Method `file`: a safetensors file of one direction per pair and layer ({pair} and {layer} filled in)."))
+    probe_folds: int = Field(5, ge=2, le=50, description=(
+        "Method `probe`: cross-validation folds, grouped by episode (fewer when fewer training episodes)."))
+    probe_c: float | None = Field(None, gt=0, description=(
+        "Method `probe`: the inverse L2 strength C (scikit-learn's); default: chosen by cross-validation."))
+    effect_min_episodes: int = Field(2, ge=1, le=10_000, description=(
+        "Method `sae_effect`: a latent must fire in this many training episodes (1: no vetting; fewer: memorised)."))
     paths_relative_to: PathsRelativeTo = Field("auto", description=(
         "Base of relative concept paths: auto (the current directory when the file exists there, as the seed's "
         "pairs files expect, else the pairs file's folder, as the pipeline writes them), cwd or config."))
+
+    @field_validator("methods")
+    @classmethod
+    def _registered_methods(cls, methods: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        if methods is None:
+            return None
+        unknown = [name for name in methods if name not in METHODS]
+        if unknown:
+            raise ValueError(f"methods {list(methods)}: {unknown} not registered; registered: {sorted(METHODS)}")
+        if not methods or len(set(methods)) != len(methods):
+            raise ValueError(f"methods {list(methods)}: give at least one method, each once")
+        return methods
+
+    @model_validator(mode="after")
+    def _file_method_has_a_file(self) -> SteeringSettings:
+        if self.methods is not None and "file" in self.methods and not self.direction_file:
+            raise ValueError("methods include `file` but direction_file is not set: name the safetensors file of "
+                             "each (pair, layer) direction, e.g. vectors/{pair}_layer{layer}.safetensors")
+        return self
+
+    def method_list(self, has_sae: bool) -> tuple[str, ...]:
+        """Return the methods to write: the configured ones (ValueError for one needing an absent SAE), or the
+        defaults, without the SAE's when there is none."""
+        if self.methods is None:
+            return tuple(name for name in DEFAULT_METHODS if has_sae or not METHODS[name].needs_sae)
+        missing = [name for name in self.methods if METHODS[name].needs_sae and not has_sae]
+        if missing:
+            raise ValueError(f"layer {self.layer}: steering.methods {list(self.methods)}: {missing} need an SAE and "
+                             "sae is none; drop them or name an SAE")
+        return self.methods
 
 
 def read_pairs_config(path: str | os.PathLike) -> PairsConfig:
@@ -229,16 +281,22 @@ def compute_pair(
     negative_stats: Path,
     layer_path: Path,
     sae: Sae | None,
-    *,
-    include_decoder_bias: bool = False,
+    settings: SteeringSettings,
 ) -> Path:
-    """Write one pair's direction files from its two concept statistics; return the pair folder."""
+    """Write one pair's direction files from its two concept statistics; return the pair folder.
+
+    Besides the seed's files, every method of `settings.method_list` writes `<method>_direction.safetensors`
+    (`methods.direction_file`), listed under `methods` in directions.json; all are computed before anything is
+    written, so a method that fails leaves the pair folder as it was.
+    """
+    include_decoder_bias = settings.include_decoder_bias
     stats = dict(zip(SIDES, (read_concept_stats(positive_stats), read_concept_stats(negative_stats)), strict=True))
     counts = {side: stats[side].count for side in SIDES}
     head = {"pair": pair.name, "positive_concept": pair.positive_label, "negative_concept": pair.negative_label,
             "reduce": {side: slice_reduction(stats[side].path) for side in SIDES},
             "mean_residual_norm": mean_residual_norm(stats.values())}
     bias = include_decoder_bias and sae is not None
+    methods = pair_methods(pair.name, stats, sae, settings, head["mean_residual_norm"])
     mean_difference = (stats["positive"].residual_mean - stats["negative"].residual_mean).float()
     summary: dict[str, Any] = {
         "format_version": FORMAT_VERSION,
@@ -279,18 +337,44 @@ def compute_pair(
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",
                   {**head, "residual_direction": residual, "residual_norm": float(residual.norm()), "counts": counts,
                    "include_decoder_bias": bias})
-            write(MEAN_DIFFERENCE_FILE, "mean_difference_direction",
-                  {**head, "mean_difference_direction": mean_difference,
-                   "mean_difference_norm": float(mean_difference.norm()),
-                   "counts": counts})
             summary |= {
                 "latent_norm": float(latent.norm()),
                 "residual_norm": float(residual.norm()),
                 "decoded_vs_mean_difference_cosine": cosine(residual, mean_difference),
             }
+        summary["methods"] = {direction.method: direction.entry(write_method_direction(staging, direction))
+                              for direction in methods}
         write_json(staging / PAIR_SUMMARY_FILE, summary)
-    logger.info("%s: wrote %s", pair.name, ", ".join(sorted(summary["files"])))
+    logger.info("%s: wrote %s and the methods %s", pair.name, ", ".join(sorted(summary["files"])),
+                ", ".join(summary["methods"]))
     return layer_path / pair.name
+
+
+def check_methods(settings: SteeringSettings, pairs: Iterable[str], width: int, has_sae: bool) -> None:
+    """Raise one ValueError for methods that cannot run: one needing an absent SAE, or a supplied `file` direction
+    of a pair that is missing, unreadable, of another width than `width`, non-finite or zero."""
+    names = settings.method_list(has_sae)
+    if "file" not in names:
+        return
+    problems = []
+    for pair in pairs:
+        try:
+            read_supplied(settings.direction_file, pair, settings.layer, width)
+        except ValueError as err:
+            problems.append(str(err))
+    if problems:
+        raise ValueError("; ".join(problems))
+
+
+def pair_methods(pair: str, stats: dict[str, ConceptStats], sae: Sae | None, settings: SteeringSettings,
+                 residual_norm: float | None) -> list[MethodDirection]:
+    """Return the unit direction of every method of `settings` for one pair (nothing written)."""
+    data = PairData(pair, settings.layer, stats, (stats["positive"].path, stats["negative"].path), sae, settings)
+    out = []
+    for name in settings.method_list(sae is not None):
+        result = METHODS[name].compute(data)
+        out.append(method_direction(name, pair, settings.layer, result.direction, stats, residual_norm, result.record))
+    return out
 
 
 def mean_residual_norm(stats: Iterable[ConceptStats]) -> float | None:
@@ -331,6 +415,7 @@ def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
             entry["residual_cosine"] = cosine(va["residual"], vb["residual"])
             if sae_used:
                 entry |= {"latent_norm_a": float(va["latent"].norm()), "latent_norm_b": float(vb["latent"].norm())}
+            if sae_used and "mean" in va and "mean" in vb:
                 extras[PAIR_KEY.format(a=a, b=b)] = {"mean_difference_cosine": cosine(va["mean"], vb["mean"])}
             entry |= {"residual_norm_a": float(va["residual"].norm()), "residual_norm_b": float(vb["residual"].norm())}
             entries[PAIR_KEY.format(a=a, b=b)] = entry
@@ -400,6 +485,7 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
     else:
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
+    check_methods(settings, pairs, next(iter(readers.values())).width, sae is not None)
     layer_path = settings.output_root / layer_dir(settings.layer)
     with output_lock(layer_path):  # a second run waits, then reuses the concept statistics written here
         rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
@@ -417,8 +503,7 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
             advance(0, total, before=done)
         for pair in config.pairs:
             positive, negative = pairs[pair.name]
-            compute_pair(pair, stats_files[positive], stats_files[negative], layer_path, sae,
-                         include_decoder_bias=settings.include_decoder_bias)
+            compute_pair(pair, stats_files[positive], stats_files[negative], layer_path, sae, settings)
         compute_pairwise_stats(layer_path, [pair.name for pair in config.pairs])
         write_report(layer_path, top_k=settings.top_k)
     return layer_path
@@ -461,5 +546,8 @@ def read_pair_vectors(pair_path: Path) -> dict[str, torch.Tensor]:
 
     vectors = {"residual": vector(RESIDUAL_DIRECTION_FILE)}
     if LATENT_DIRECTION_FILE in files:
-        vectors |= {"latent": vector(LATENT_DIRECTION_FILE), "mean": vector(MEAN_DIFFERENCE_FILE)}
+        vectors["latent"] = vector(LATENT_DIRECTION_FILE)
+    methods = read_json(pair_path / PAIR_SUMMARY_FILE).get("methods") or {}
+    if "mean_difference" in methods:
+        vectors["mean"] = read_method_direction(pair_path / methods["mean_difference"]["file"]).direction
     return vectors

@@ -106,6 +106,8 @@ def _pair_summary(pair_path: Path, top_k: int) -> dict[str, Any]:
         "decoded_vs_mean_difference_cosine", "sae",
     )}
     entry["fidelity"] = {side: {"fvu": c["fvu"], "mean_l0": c["mean_l0"]} for side, c in info["concepts"].items()}
+    effect = (info.get("methods") or {}).get("sae_effect")  # older outputs list no methods
+    entry["sae_effect"] = effect["record"] if effect else None
     entry["top_latents"] = []
     if info["sae"] is None:
         entry["residual_norm"] = info["mean_difference_norm"]
@@ -243,17 +245,35 @@ def _markdown(summary: dict[str, Any]) -> str:
             lines.append(f"| {key.replace('__', ' vs ')} | {_number(entry['residual_cosine'])} | "
                          f"{_number(entry.get('latent_cosine'))} | {_number(entry.get('mean_difference_cosine'))} |")
         lines += ["", f"![pairwise cosines]({summary['plots']['pairwise_cosine']})"]
+    feature_page = summary["trained_sae"]["feature_page"] if summary["trained_sae"] else None
     for pair in summary["pairs"]:
-        if not pair["top_latents"]:
-            continue
-        lines += ["", f"## {pair['pair']}: top latents", "",
-                  "| latent | value | fires + | fires - | mean + | mean - |", "|---|---|---|---|---|---|"]
-        for item in pair["top_latents"]:
-            index = f"[{item['index']}]({item['neuronpedia']})" if item["neuronpedia"] else str(item["index"])
-            lines.append(
-                f"| {index} | {item['value']:+.4f} | {item['firing_rate_positive']:.1%} | "
-                f"{item['firing_rate_negative']:.1%} | {item['mean_positive']:.4f} | {item['mean_negative']:.4f} |"
-            )
-        plot = summary["plots"][f"top_latents/{pair['pair']}"]
-        lines += ["", f"![top latents of {pair['pair']}]({plot})"]
+        if pair["top_latents"]:
+            lines += ["", f"## {pair['pair']}: top latents", "",
+                      "| latent | value | fires + | fires - | mean + | mean - |", "|---|---|---|---|---|---|"]
+            for item in pair["top_latents"]:
+                index = f"[{item['index']}]({item['neuronpedia']})" if item["neuronpedia"] else str(item["index"])
+                lines.append(
+                    f"| {index} | {item['value']:+.4f} | {item['firing_rate_positive']:.1%} | "
+                    f"{item['firing_rate_negative']:.1%} | {item['mean_positive']:.4f} | {item['mean_negative']:.4f} |"
+                )
+            plot = summary["plots"][f"top_latents/{pair['pair']}"]
+            lines += ["", f"![top latents of {pair['pair']}]({plot})"]
+        if pair["sae_effect"]:
+            lines += ["", *_effect_lines(pair["pair"], pair["sae_effect"], feature_page)]
     return "\n".join(lines) + "\n"
+
+
+def _effect_lines(pair: str, record: dict[str, Any], feature_page: str | None) -> list[str]:
+    """Return the markdown of one pair's `sae_effect` latents, each linked to its section of the trained SAE's
+    feature page when the layer steers through that SAE."""
+    excluded = record["excluded"]
+    lines = [f"## {pair}: sae_effect latents", "",
+             f"By |Cohen's d|, among latents firing in at least {record['min_episodes']} training episodes "
+             f"(excluded: {excluded['memorised']} memorised, {excluded['never_fire']} never fire, "
+             f"{excluded['zero_effect']} zero effect, {excluded['zero_variance']} zero variance).", "",
+             "| latent | Cohen's d | mean diff | episodes | fires |", "|---|---|---|---|---|"]
+    for item in record["latents"]:
+        latent = f"[{item['latent']}]({feature_page}#latent-{item['latent']})" if feature_page else str(item["latent"])
+        lines.append(f"| {latent} | {item['cohen_d']:+.3f} | {item['mean_difference']:+.4f} | {item['episodes']} | "
+                     f"{item['frequency']:.1%} |")
+    return lines
