@@ -9,8 +9,10 @@ cost little.
 The step's shapes would vary with the computed prefix length (a camera masked for the whole batch is
 skipped, language padding after the longest prompt is trimmed) and with which expert layers are steered.
 The compiled step therefore sees the cache and mask padded to the untrimmed prefix length with masked zero
-columns (their softmax weight is exactly 0, so the valid outputs are unchanged) and the expert additions as
-one dense (depth, rows, 1, width) tensor, zero at unsteered layers (x + 0 = x). A policy compiles one
+columns (their softmax weight is exactly 0, so the valid outputs are unchanged), the expert additions as
+one dense (depth, rows, 1, width) tensor, zero at unsteered layers (x + 0 = x), and the expert clamps as dense
+unit vectors (depth, rows, 1, width) and targets (depth, rows, 1, 1), zero units at unclamped layers and rows
+(h + (t - 0) * 0 = h): one compiled graph serves every steering, clamped or not. A policy compiles one
 variant per (row bucket, untrimmed prefix length): rows are padded with zero rows up to 1, 2, 4, 8 or 16
 (`ROW_BUCKETS`), so a server batching up to 16 requests compiles five variants, all at its warm-up. At most
 `max_variants` are compiled, each of at most `max_rows` rows (larger batches are bound by arithmetic, not
@@ -29,6 +31,7 @@ import torch.nn.functional as F
 
 from steering_core.pi05.expert import ActionExpert, KeyValues
 from steering_core.pi05.model import MASKED_LOGIT
+from steering_core.pi05.steering import Clamp
 
 logger = logging.getLogger(__name__)
 
@@ -81,8 +84,8 @@ def dense_additions(
     additions: Mapping[int, torch.Tensor], depth: int, rows: int, width: int, dtype: torch.dtype,
     device: torch.device,
 ) -> torch.Tensor:
-    """Return (depth, rows, 1, width): each steered layer's addition (broadcast from (1 or rows, 1, width)),
-    zeros at the others."""
+    """Return (depth, rows, 1, width): each steered layer's addition (or a clamp's unit vectors or targets,
+    width 1) broadcast from (1 or rows, 1, width), zeros at the others."""
     dense = torch.zeros(depth, rows, 1, width, dtype=dtype, device=device)
     for layer, addition in additions.items():
         dense[layer] = addition
@@ -98,10 +101,13 @@ def has_hooks(module: torch.nn.Module) -> bool:
 
 
 def compile_step(expert: ActionExpert, mode: str | None) -> Step:
-    """Return `expert.euler_step` compiled for fixed shapes, taking the additions as one dense tensor."""
+    """Return `expert.euler_step` compiled for fixed shapes, taking the additions, the clamps' unit vectors and
+    their targets as dense tensors (`dense_additions`)."""
 
-    def step(actions, time, dt, rotary, keys_values, mask, additions):
-        return expert.euler_step(actions, time, dt, rotary, keys_values, mask, dict(enumerate(additions.unbind(0))))
+    def step(actions, time, dt, rotary, keys_values, mask, additions, units, targets):
+        clamps = dict(enumerate(map(Clamp, units.unbind(0), targets.unbind(0))))
+        return expert.euler_step(actions, time, dt, rotary, keys_values, mask, dict(enumerate(additions.unbind(0))),
+                                 clamps)
 
     return torch.compile(step, mode=mode, dynamic=False, fullgraph=True)
 
@@ -128,13 +134,15 @@ class Denoiser:
         keys_values: KeyValues,
         mask: torch.Tensor,
         additions: Mapping[int, torch.Tensor],
+        clamps: Mapping[int, Clamp],
         prefix_length: int,
     ) -> torch.Tensor:
         """Return the actions (rows, H, action_dim) float32 after one Euler step per flow time in `times`.
 
         actions: the noise (rows, H, action_dim) float32; rotary, keys_values, mask: as `ActionExpert.velocity`;
-        additions: {expert layer: (rows, 1, width)} steering; prefix_length: the untrimmed prefix length the
-        compiled step pads the cache to.
+        additions: {expert layer: (rows, 1, width)} steering; clamps: {expert layer: `Clamp` of (rows, 1, width)
+        units and (rows, 1, 1) targets}; prefix_length: the untrimmed prefix length the compiled step pads the
+        cache to.
         """
         bucket = row_bucket(actions.shape[0], self.max_rows)
         variant = (bucket, prefix_length)
@@ -147,12 +155,13 @@ class Denoiser:
                                "most per policy", variant, self.max_variants)
         elif compiled:
             self.variants.add(variant)
-            return self._run_compiled(actions, times, dt, rotary, keys_values, mask, additions, prefix_length, bucket)
+            return self._run_compiled(actions, times, dt, rotary, keys_values, mask, additions, clamps, prefix_length,
+                                      bucket)
         for time in times:
-            actions = self.expert.euler_step(actions, time, dt, rotary, keys_values, mask, additions)
+            actions = self.expert.euler_step(actions, time, dt, rotary, keys_values, mask, additions, clamps)
         return actions
 
-    def _run_compiled(self, actions, times, dt, rotary, keys_values, mask, additions, prefix_length, bucket):
+    def _run_compiled(self, actions, times, dt, rotary, keys_values, mask, additions, clamps, prefix_length, bucket):
         if self._step is None:
             self._step = compile_step(self.expert, CUDA_COMPILE_MODE if actions.device.type == "cuda" else None)
         rows = actions.shape[0]
@@ -160,11 +169,15 @@ class Denoiser:
         keys_values = [tuple(pad_rows(tensor, bucket) for tensor in layer) for layer in keys_values]
         mask, rotary = pad_rows(mask, bucket), tuple(pad_rows(tensor, bucket) for tensor in rotary)
         arch = self.expert.expert_arch
-        dense = dense_additions(additions, arch.depth, rows, arch.width, self.expert.compute_dtype, actions.device)
-        dense = pad_rows(dense.transpose(0, 1), bucket).transpose(0, 1).contiguous()  # (depth, bucket, 1, width)
+        dense = [dense_additions(layers, arch.depth, rows, width, dtype, actions.device) for layers, width, dtype in (
+            (additions, arch.width, self.expert.compute_dtype),
+            ({layer: clamp.unit for layer, clamp in clamps.items()}, arch.width, torch.float32),
+            ({layer: clamp.target for layer, clamp in clamps.items()}, 1, torch.float32))]
+        # each (depth, bucket, 1, width or 1)
+        dense = [pad_rows(tensor.transpose(0, 1), bucket).transpose(0, 1).contiguous() for tensor in dense]
         actions = pad_rows(actions, bucket)
         for time in times:
             # a CUDA graph's outputs are overwritten by its next replay: start a new step, keep a copy
             torch.compiler.cudagraph_mark_step_begin()
-            actions = self._step(actions, time, dt, rotary, keys_values, mask, dense).clone()
+            actions = self._step(actions, time, dt, rotary, keys_values, mask, *dense).clone()
         return actions[:rows]

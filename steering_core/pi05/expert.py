@@ -19,6 +19,7 @@ from transformers.models.gemma.modeling_gemma import apply_rotary_pos_emb
 from steering_core.pi05.arch import ExpertArch
 from steering_core.pi05.checkpoint import EXPERT_PREFIX
 from steering_core.pi05.model import NORM_EPS
+from steering_core.pi05.steering import Clamp, apply_clamp
 
 TIME_MIN_PERIOD, TIME_MAX_PERIOD = 4e-3, 4.0  # openpi's sinusoidal time embedding (spec 10.3)
 
@@ -185,14 +186,18 @@ class ActionExpert(nn.Module):
         prefix: KeyValues,
         mask: torch.Tensor,
         additions: Mapping[int, torch.Tensor] | None = None,
+        clamps: Mapping[int, Clamp] | None = None,
     ) -> torch.Tensor:
         """Return the flow velocity (B, H, action_dim) float32 for noisy actions (B, H, action_dim) float32.
 
-        additions: {layer: tensor broadcastable to (B, H, W)} added to that layer's output (steering).
+        additions: {layer: tensor broadcastable to (B, H, W)} added to that layer's output (steering);
+        clamps: {layer: `Clamp`} of that layer's output, applied before its addition.
         """
         hidden = self.action_in_proj(actions.to(self.action_in_proj.weight.dtype)).to(self.compute_dtype)
         for index, layer in enumerate(self.layers):
             hidden = layer(hidden, cond, rotary, prefix[index], mask)
+            if clamps and index in clamps:
+                hidden = apply_clamp(hidden, clamps[index])
             if additions and index in additions:
                 hidden = hidden + additions[index]
         hidden, _ = self.norm(hidden, cond)  # the final norm's gate is unused
@@ -207,7 +212,8 @@ class ActionExpert(nn.Module):
         prefix: KeyValues,
         mask: torch.Tensor,
         additions: Mapping[int, torch.Tensor] | None = None,
+        clamps: Mapping[int, Clamp] | None = None,
     ) -> torch.Tensor:
         """Return actions + dt * velocity (B, H, action_dim) float32 at flow time `time` (0-d float32, spec 10.4)."""
         cond = self.condition(time.expand(actions.shape[0]))
-        return actions + dt * self.velocity(actions, cond, rotary, prefix, mask, additions)
+        return actions + dt * self.velocity(actions, cond, rotary, prefix, mask, additions, clamps)

@@ -35,6 +35,7 @@ from steering_core.pi05.checkpoint import (
     read_prefix_tensors,
 )
 from steering_core.pi05.layouts import OPENPI, Checkpoint, CheckpointLayout, LayoutName, resolve_checkpoint
+from steering_core.pi05.steering import Clamp, apply_clamp
 
 logger = logging.getLogger(__name__)
 
@@ -318,6 +319,7 @@ class Pi05Prefix(nn.Module):
         cache: KeyValueRecorder | None = None,
         additions: Mapping[int, torch.Tensor] | None = None,
         replace: Mapping[int, Callable[[torch.Tensor], torch.Tensor]] | None = None,
+        clamps: Mapping[int, Clamp] | None = None,
     ) -> dict[int, torch.Tensor]:
         """Return {layer: residual stream (B, S, width) after that decoder layer} for prefix embeddings.
 
@@ -330,7 +332,8 @@ class Pi05Prefix(nn.Module):
             cache: records every run layer's post-RoPE keys and values (the action expert's KV cache).
             additions: {layer: tensor broadcastable to (B, S, width)} added to that layer's output (steering).
             replace: {layer: function of that layer's output (B, S, width) returning its replacement}, applied
-                before the layer's addition (a splice, e.g. an SAE's reconstruction at chosen positions).
+                before the layer's clamp and addition (a splice, e.g. an SAE's reconstruction at chosen positions).
+            clamps: {layer: `Clamp`} of that layer's output (steering), applied before its addition.
         """
         wanted = set(layers)
         deepest = max(wanted)
@@ -346,6 +349,8 @@ class Pi05Prefix(nn.Module):
             )
             if replace and index in replace:
                 hidden = replace[index](hidden)
+            if clamps and index in clamps:
+                hidden = apply_clamp(hidden, clamps[index])
             if additions and index in additions:
                 hidden = hidden + additions[index]
             if index in wanted:

@@ -43,13 +43,18 @@ from steering_core.pi05.observation import (
 from steering_core.pi05.preprocess import Cameras
 from steering_core.pi05.robot_side import Normalization, robot_side
 from steering_core.pi05.steering import (
+    Clamp,
     Splice,
     Steering,
     SteeringArg,
+    apply_clamp,
     as_list,
     check_steerings,
     expert_additions,
+    expert_clamps,
     lm_additions,
+    lm_clamps,
+    stack_clamps,
     stack_entries,
 )
 from steering_core.pi05.tokenizer import PromptFormat, PromptTokenizer, TokenizedPrompt
@@ -224,8 +229,10 @@ class Pi05Policy(nn.Module):
 
         images / image_masks: per camera slot (B, 3, S, S) float in [-1, 1] and (B,) bool, in openpi's
         order (`libero_camera_slots`); tokens (B, T) int64, token_mask (B, T) bool. noise: (B, H, A) float32,
-        default N(0, 1) from `generator`. steering: one Steering, a list applied together, or None.
-        splice: a language-model layer's residuals at chosen prompt positions replaced (before its steering).
+        default N(0, 1) from `generator`. steering: one Steering, a list applied together, or None; each adds
+        (mode "add") or clamps its projection to a level (mode "clamp"; at one layer clamps first, then additions,
+        at most one clamp a layer). splice: a language-model layer's residuals at chosen prompt positions replaced
+        (before its steering).
         """
         entries = [as_list(steering)]
         return self._sample(images, image_masks, tokens, token_mask, entries, noise, num_steps, generator, splice)[0]
@@ -268,8 +275,7 @@ class Pi05Policy(nn.Module):
         the splice (if any) to every copy."""
         self.prefix.check_inputs(images, image_masks, tokens, token_mask)
         batch, n_tokens = tokens.shape
-        check_steerings([s for entry in entries for s in entry], self.arch, self.expert_arch, batch, n_tokens,
-                        len(images))
+        check_steerings(entries, self.arch, self.expert_arch, batch, n_tokens, len(images))
         if splice is not None:
             splice.check(self.arch, batch, n_tokens)
         dt, times = euler_times(num_steps, self.device, self.accumulated_time)
@@ -283,8 +289,9 @@ class Pi05Policy(nn.Module):
         image_columns = len(images) * self.arch.tokens_per_image
         dtype = self.prefix.compute_dtype
         lm = [lm_additions(entry, token_mask, columns, image_columns, dtype) for entry in entries]
+        lm_clamped = [lm_clamps(entry, token_mask, columns, image_columns) for entry in entries]
         replace = {} if splice is None else {splice.layer: splice.layer_function(token_mask, columns, image_columns)}
-        keys_values = self._prefix_cache(hidden, pad, lm, batch, replace)
+        keys_values = self._prefix_cache(hidden, pad, lm, lm_clamped, batch, replace)
 
         # action tokens: positions continue after the valid prefix tokens; they see every valid prefix key
         # and each other (one bidirectional block, spec 10.4)
@@ -295,33 +302,39 @@ class Pi05Policy(nn.Module):
         mask = torch.where(allowed, 0.0, MASKED_LOGIT).to(torch.float32)[:, None, None, :]
         steer = stack_entries([expert_additions(entry, self.expert.compute_dtype) for entry in entries],
                               batch)
+        clamps = stack_clamps([expert_clamps(entry) for entry in entries], batch)
         full = self.arch.prefix_length(len(images), n_tokens)
-        actions = self.denoiser.run(noise.repeat(n, 1, 1), times, dt, rotary, keys_values, mask, steer, full)
+        actions = self.denoiser.run(noise.repeat(n, 1, 1), times, dt, rotary, keys_values, mask, steer, clamps,
+                                    full)
         return actions.view(n, batch, horizon, self.action_dim)
 
     def _prefix_cache(
-        self, hidden: torch.Tensor, pad: torch.Tensor, lm: list[dict[int, torch.Tensor]], batch: int,
+        self, hidden: torch.Tensor, pad: torch.Tensor, lm: list[dict[int, torch.Tensor]],
+        lm_clamped: list[dict[int, Clamp]], batch: int,
         replace: Mapping[int, Callable[[torch.Tensor], torch.Tensor]] | None = None,
     ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Return each language-model layer's keys and values for the entries stacked along the batch.
 
-        Layers up to the shallowest steered one run once for the batch: steering a layer's output leaves
-        its own keys and values unchanged. The deeper layers run once over all entries together. `replace`
-        (splices, shared by every entry) applies wherever its layer runs.
+        Layers up to the shallowest steered one (added to or clamped) run once for the batch: steering a
+        layer's output leaves its own keys and values unchanged. The deeper layers run once over all entries
+        together. `replace` (splices, shared by every entry) applies wherever its layer runs.
         """
         last = self.arch.depth - 1
-        steered = [layer for entry in lm for layer in entry]
+        steered = [layer for entry in [*lm, *lm_clamped] for layer in entry]
         split = min(steered) if steered else last
         n = len(lm)
         shared = KeyValueRecorder()
         out = self.prefix.decode(hidden, pad, [split], self.attention, cache=shared, replace=replace)[split]
         keys_values = [tuple(t.repeat(n, 1, 1, 1) for t in shared.layers[i]) for i in range(split + 1)]
         if split < last:
-            additions = stack_entries(lm, batch)
-            out = out.repeat(n, 1, 1) + additions.pop(split, 0)
+            additions, clamps = stack_entries(lm, batch), stack_clamps(lm_clamped, batch)
+            out = out.repeat(n, 1, 1)
+            if split in clamps:
+                out = apply_clamp(out, clamps.pop(split))
+            out = out + additions.pop(split, 0)
             rest = KeyValueRecorder()
             self.prefix.decode(out, pad.repeat(n, 1), [last], self.attention, start=split + 1, cache=rest,
-                               additions=additions, replace=replace)
+                               additions=additions, replace=replace, clamps=clamps)
             keys_values += [rest.layers[i] for i in range(split + 1, last + 1)]
         return keys_values
 

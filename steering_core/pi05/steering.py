@@ -1,4 +1,9 @@
-"""Residual-stream steering of pi0.5: `alpha * vector` added to one layer's output at chosen positions.
+"""Residual-stream steering of pi0.5: one layer's output at chosen positions moved along a vector.
+
+Two modes: "add" adds `alpha * vector`; "clamp" sets the output's projection on the unit vector v̂ to the
+target t = start + alpha * (end - start) of `levels = (start, end)`, h' = h + (t - <h, v̂>) v̂ (alpha 0
+puts every steered token at `start`, 1 at `end`, wherever it was). At one layer clamps apply first, then
+additions.
 
 Two streams (spec 10.7): "lm", PaliGemma's language model, whose layer outputs exist only in the prefix
 forward and reach the actions through deeper layers' keys and values; "expert", the action expert, whose
@@ -7,24 +12,29 @@ layer outputs are steered at every action token in every denoising step.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 
 from steering_core.pi05.arch import ExpertArch, Pi05Arch
 
 Stream = Literal["lm", "expert"]
+Mode = Literal["add", "clamp"]
 LAST_LM_LAYER = ("the last language-model layer's output only feeds the final norm, which no action reads, "
                  "so steering it cannot change the actions")
 STREAMS: tuple[Stream, ...] = ("lm", "expert")
+MODES: tuple[Mode, ...] = ("add", "clamp")
 
 
 @dataclass(frozen=True, eq=False)
 class Steering:
-    """Add `alpha * vector` to the output (resid_post) of decoder layer `layer` of `stream`.
+    """Steer the output (resid_post) of decoder layer `layer` of `stream` along `vector`.
 
+    mode "add": add `alpha * vector`. mode "clamp": set the projection on vector/|vector| to
+    `start + alpha * (end - start)` of `levels = (start, end)` (module docstring).
     lm: at the prompt positions where `token_mask` (B, T) is True, or the prefix positions where
     `prefix_mask` (B, n_images * tokens_per_image + T) is True; neither = every valid prompt token.
     expert: at every action token in every denoising step (no masks).
@@ -36,6 +46,8 @@ class Steering:
     token_mask: torch.Tensor | None = None
     prefix_mask: torch.Tensor | None = None
     stream: Stream = "lm"
+    mode: Mode = "add"
+    levels: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         problems = []
@@ -57,8 +69,31 @@ class Steering:
             problems.append("give token_mask or prefix_mask, not both")
         if self.stream == "expert" and (self.token_mask is not None or self.prefix_mask is not None):
             problems.append("expert steering applies at every action token; it takes no token_mask or prefix_mask")
+        if self.mode not in MODES:
+            problems.append(f"mode {self.mode!r} unknown; expected one of {MODES}")
+        elif self.mode == "add" and self.levels is not None:
+            problems.append(f"levels apply to mode 'clamp' only; mode 'add' takes none, found {self.levels!r}")
+        elif self.mode == "clamp":
+            problems += self._clamp_problems()
         if problems:
             raise ValueError("Steering: " + "; ".join(problems))
+
+    def _clamp_problems(self) -> list[str]:
+        """Return what keeps this steering from clamping: its levels or a vector without a direction."""
+        problems = []
+        levels = self.levels
+        numbers = isinstance(levels, (tuple, list)) and len(levels) == 2 and all(
+            isinstance(level, (int, float)) and not isinstance(level, bool) and math.isfinite(level) for level in levels)
+        if not numbers:
+            problems.append(f"clamp needs levels (m₋, m₊), two finite numbers; found {levels!r}")
+        elif levels[0] == levels[1]:
+            problems.append(f"clamp needs two different levels (m₋, m₊); found equal levels {levels[0]!r}: the "
+                            "concepts do not differ along this direction")
+        if isinstance(self.vector, torch.Tensor) and self.vector.ndim == 1 and self.vector.is_floating_point():
+            norm = float(self.vector.float().norm())
+            if not (math.isfinite(norm) and norm > 0):
+                problems.append(f"clamp needs a vector with a direction; found norm {norm}")
+        return problems
 
     def to(self, device: torch.device) -> Steering:
         """Return this steering with its vector and masks on `device` (the model's entry points call it)."""
@@ -69,6 +104,40 @@ class Steering:
     def delta(self, dtype: torch.dtype) -> torch.Tensor:
         """Return alpha * vector (W,) computed in float32, then cast to the stream's dtype."""
         return (self.alpha * self.vector.float()).to(dtype)
+
+    def clamp(self, where: torch.Tensor | None = None) -> Clamp:
+        """Return this clamp as a `Clamp`: unit vector (1, 1, W) and target (1, 1, 1) float32, acting where
+        `where` is 1 (None = everywhere)."""
+        vector = self.vector.float()
+        unit = vector / vector.norm()
+        return Clamp(unit[None, None], unit.new_full((1, 1, 1), self.target), where)
+
+    @property
+    def target(self) -> float:
+        """Return the projection a clamp sets: start + alpha * (end - start)."""
+        start, end = self.levels
+        return start + self.alpha * (end - start)
+
+
+class Clamp(NamedTuple):
+    """Per layer, each row's projection on its unit vector set to its target where `where` is 1:
+    h' = h + where * (target - <h, unit>) * unit, in float32, cast back. A zero unit leaves its row unchanged.
+
+    unit (rows, 1, W) float32; target (rows, 1, 1) float32; where (rows, S, 1) float32, None = every position.
+    """
+
+    unit: torch.Tensor
+    target: torch.Tensor
+    where: torch.Tensor | None = None
+
+
+def apply_clamp(hidden: torch.Tensor, clamp: Clamp) -> torch.Tensor:
+    """Return `hidden` (rows, S, W) with `clamp` applied (its docstring), in hidden's dtype."""
+    wide = hidden.float()
+    shift = clamp.target - (wide * clamp.unit).sum(dim=-1, keepdim=True)
+    if clamp.where is not None:
+        shift = shift * clamp.where
+    return (wide + shift * clamp.unit).to(hidden.dtype)
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,15 +220,24 @@ def as_list(steering: SteeringArg) -> list[Steering]:
 
 
 def check_steerings(
-    steerings: Sequence[Steering], arch: Pi05Arch, expert: ExpertArch, batch: int, n_tokens: int, n_images: int
+    entries: Sequence[Sequence[Steering]], arch: Pi05Arch, expert: ExpertArch, batch: int, n_tokens: int,
+    n_images: int,
 ) -> None:
-    """Raise one ValueError naming every steering whose layer, vector width or mask shape does not fit, or that
-    steers the last language-model layer (it cannot change the actions)."""
+    """Raise one ValueError naming every steering whose layer, vector width or mask shape does not fit, that
+    steers the last language-model layer (it cannot change the actions), or that is an entry's second clamp
+    of one layer. Steerings are numbered across the entries in order."""
     widths = {"lm": arch.width, "expert": expert.width}
     depths = {"lm": arch.depth, "expert": expert.depth}
     prefix_len = arch.prefix_length(n_images, n_tokens)
     problems = []
-    for index, item in enumerate(steerings):
+    clamped: dict[tuple[int, Stream, int], int] = {}  # (entry, stream, layer) -> the index of its clamp
+    numbered = [(entry, item) for entry, items in enumerate(entries) for item in items]
+    for index, (entry, item) in enumerate(numbered):
+        if item.mode == "clamp":
+            first = clamped.setdefault((entry, item.stream, item.layer), index)
+            if first != index:
+                problems.append(f"steering[{first}] and steering[{index}] ({item.stream} layer {item.layer}): two "
+                                "clamps of one layer in one entry; give at most one")
         where = f"steering[{index}] ({item.stream} layer {item.layer})"
         if item.layer >= depths[item.stream]:
             problems.append(
@@ -183,6 +261,23 @@ def check_steerings(
         raise ValueError("; ".join(problems))
 
 
+def lm_positions(
+    item: Steering, token_mask: torch.Tensor, columns: torch.Tensor, n_image_columns: int
+) -> torch.Tensor:
+    """Return (B, S, 1) float32: 1 at the computed prefix columns an lm steering acts on.
+
+    columns: (S,) index of each computed column in the full prefix (`Pi05Prefix.embed_prefix`); positions
+    that were not computed (a skipped camera, trimmed padding) are invalid and need no steering. Every
+    tensor is on the model's device (`Steering.to`).
+    """
+    if item.prefix_mask is not None:
+        where = item.prefix_mask
+    else:
+        prompt = token_mask if item.token_mask is None else item.token_mask
+        where = torch.cat([prompt.new_zeros(prompt.shape[0], n_image_columns), prompt], dim=1)
+    return where[:, columns, None].float()
+
+
 def lm_additions(
     steerings: Sequence[Steering],
     token_mask: torch.Tensor,
@@ -190,23 +285,13 @@ def lm_additions(
     n_image_columns: int,
     dtype: torch.dtype,
 ) -> dict[int, torch.Tensor]:
-    """Return {lm layer: (B, S, width) tensor to add to that layer's output} over the computed prefix columns.
-
-    columns: (S,) index of each computed column in the full prefix (`Pi05Prefix.embed_prefix`); positions
-    that were not computed (a skipped camera, trimmed padding) are invalid and need no steering. Every
-    tensor is on the model's device (`Steering.to`).
-    """
+    """Return {lm layer: (B, S, width) tensor to add to that layer's output} over the computed prefix columns
+    (`lm_positions`), summed over the entry's "add" steerings."""
     additions: dict[int, torch.Tensor] = {}
     for item in steerings:
-        if item.stream != "lm":
-            continue
-        if item.prefix_mask is not None:
-            where = item.prefix_mask
-        else:
-            prompt = token_mask if item.token_mask is None else item.token_mask
-            where = torch.cat([prompt.new_zeros(prompt.shape[0], n_image_columns), prompt], dim=1)
-        delta = where[:, columns, None].to(dtype) * item.delta(dtype)
-        additions[item.layer] = additions[item.layer] + delta if item.layer in additions else delta
+        if item.stream == "lm" and item.mode == "add":
+            delta = lm_positions(item, token_mask, columns, n_image_columns).to(dtype) * item.delta(dtype)
+            additions[item.layer] = additions[item.layer] + delta if item.layer in additions else delta
     return additions
 
 
@@ -214,10 +299,24 @@ def expert_additions(steerings: Sequence[Steering], dtype: torch.dtype) -> dict[
     """Return {expert layer: (1, 1, width) tensor added to that layer's output at every action token}."""
     additions: dict[int, torch.Tensor] = {}
     for item in steerings:
-        if item.stream == "expert":
+        if item.stream == "expert" and item.mode == "add":
             delta = item.delta(dtype)[None, None]
             additions[item.layer] = additions[item.layer] + delta if item.layer in additions else delta
     return additions
+
+
+def lm_clamps(
+    steerings: Sequence[Steering], token_mask: torch.Tensor, columns: torch.Tensor, n_image_columns: int
+) -> dict[int, Clamp]:
+    """Return {lm layer: Clamp (unit (1, 1, W), target (1, 1, 1), where (B, S, 1))} of an entry's clamps."""
+    return {item.layer: item.clamp(lm_positions(item, token_mask, columns, n_image_columns))
+            for item in steerings if item.stream == "lm" and item.mode == "clamp"}
+
+
+def expert_clamps(steerings: Sequence[Steering]) -> dict[int, Clamp]:
+    """Return {expert layer: Clamp (unit (1, 1, W), target (1, 1, 1)) at every action token} of an entry's
+    clamps."""
+    return {item.layer: item.clamp() for item in steerings if item.stream == "expert" and item.mode == "clamp"}
 
 
 def stack_entries(entries: Sequence[Mapping[int, torch.Tensor]], batch: int) -> dict[int, torch.Tensor]:
@@ -233,3 +332,11 @@ def stack_entries(entries: Sequence[Mapping[int, torch.Tensor]], batch: int) -> 
         blocks = [entry[layer].expand(shape) if layer in entry else template.new_zeros(shape) for entry in entries]
         stacked[layer] = torch.cat(blocks)
     return stacked
+
+
+def stack_clamps(entries: Sequence[Mapping[int, Clamp]], batch: int) -> dict[int, Clamp]:
+    """Return per-layer clamps for entries stacked along the batch as `stack_entries` stacks additions: an
+    entry without a clamp at a layer gets a zero unit there (its rows unchanged)."""
+    fields = [stack_entries([{layer: clamp[field] for layer, clamp in entry.items() if clamp[field] is not None}
+                             for entry in entries], batch) for field in range(len(Clamp._fields))]
+    return {layer: Clamp(*(stacked.get(layer) for stacked in fields)) for layer in fields[0]}
