@@ -9,7 +9,7 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from latent_steering_cli.capture import layer_list
-from latent_steering_cli.options import Flag, model_options, settings_options
+from latent_steering_cli.options import Flag, model_options, names_flag, settings_options
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
@@ -65,6 +65,9 @@ EVALUATE_FLAGS = {
     "alphas": Flag("--alphas", str | None, _parse_floats, "α grid in units of the mean residual norm / ||d||, with 0 "
                    f"(default {','.join(f'{a:g}' for a in _DEFAULTS.alphas)})."),
     "compiled": Flag("--compiled/--eager", bool | None),
+    "methods": names_flag("methods", "Direction methods to evaluate, comma-separated (default: every one phase 3 "
+                          "wrote)."),
+    "modes": names_flag("modes", "Strength modes, comma-separated: add, clamp (default both)."),
 }
 
 

@@ -44,6 +44,16 @@ class Flag:
     help: str | None = None                      # default: the field's description
 
 
+def names(value: str | None) -> tuple[str, ...] | None:
+    """Return a comma-separated option (`sae,probe`) as a tuple of names (None when not given)."""
+    return None if value is None else tuple(part.strip() for part in value.split(",") if part.strip())
+
+
+def names_flag(field: str, help_text: str) -> Flag:
+    """Return the flag of a tuple-of-names field, given comma-separated on the command line."""
+    return Flag(flag(field), str | None, names, help_text)
+
+
 # ModelSpec's options, as every model command spells them; `--device` and `--dtype` stay the commands' own
 MODEL_FLAGS = {
     "checkpoint": Flag("--checkpoint-path"),

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import settings_options
+from latent_steering_cli.options import names_flag, settings_options
 from steering_core.layout import SUMMARY_MD
 from steering_core.vectors.directions import SteeringSettings, compute_steering
 
@@ -15,7 +15,10 @@ NO_SAE = "none"  # --sae value for residual-space directions only
 
 
 @app.command("steer")
-@settings_options(SteeringSettings, parse={"sae": lambda sae: None if sae is None or sae.lower() == NO_SAE else sae})
+@settings_options(SteeringSettings, parse={"sae": lambda sae: None if sae is None or sae.lower() == NO_SAE else sae},
+                  flags={"methods": names_flag("methods", "Direction methods written per pair, comma-separated "
+                                               "(steering_core.vectors.methods; default: sae, mean_difference, "
+                                               "sae_top_k, probe, the SAE ones only with an SAE).")})
 def steer_command(
     save_pairwise_stats: bool = typer.Option(
         True, "--save-pairwise-stats", hidden=True,

@@ -169,7 +169,7 @@ def good(world: World, tmp: Path) -> dict[str, list[str]]:
         "steer": ["--pairs-config", data / "layer1_pairs.json", "--output-root", tmp / "steering", "--layer", "1",
                   "--device", "cpu", "--sae", world.sae(1)],
         "evaluate": ["--pairs-config", data / "layer1_pairs.json", "--layer", "1", "--data-root", data,
-                     "--output-root", tmp / "eval", "--lerobot-root", world.dataset, *model, "--sae", world.sae(1),
+                     "--output-root", tmp / "eval", "--lerobot-root", world.dataset, *model,
                      "--max-frames", "2", "--noise-seeds", "1"],
         "rollout": ["--config", world.config],
         "run": ["--config", world.config],

@@ -85,8 +85,7 @@ def run_cli_steps(config: RunConfig, out: Path) -> None:
               "--arch-file", str(arch_file), "--max-frames", str(evaluate.max_frames),
               "--noise-seeds", str(evaluate.noise_seeds), "--batch-size", str(evaluate.batch_size), "--device", "cpu"]
     result = runner.invoke(app, [
-        "evaluate", "--pairs-config", str(out / f"layer{layer}_pairs.json"), "--layer", str(layer),
-        "--sae", saes[layer], "--top-k", str(config.steering.top_k), *common])
+        "evaluate", "--pairs-config", str(out / f"layer{layer}_pairs.json"), "--layer", str(layer), *common])
     assert result.exit_code == 0, (result.output, result.exception)
     if not evaluate.expert_layers:
         return

@@ -95,7 +95,7 @@ INPUT_FOLDERS = {  # options naming a folder the step reads
     "capture": ["--checkpoint-path", "--lerobot-root"],
     "slice": ["--run-dir"],
     "steer": ["--sae"],
-    "evaluate": ["--lerobot-root", "--checkpoint-path", "--data-root", "--sae"],
+    "evaluate": ["--lerobot-root", "--checkpoint-path", "--data-root"],
     "serve": ["--checkpoint-path", "--vectors"],
 }
 

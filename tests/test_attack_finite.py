@@ -386,11 +386,11 @@ def test_served_and_evaluated_vectors_are_checked_finite(attack_world, tmp_path)
 
     root = tmp_path / "latent_steering"
     shutil.copytree(attack_world.data / "latent_steering", root)
-    direction = poison_safetensors(root / "layer02" / "on_vs_off" / "residual_direction.safetensors",
-                                   "residual_direction", math.nan, at=4)
-    expected = f"{direction}: tensor `residual_direction` holds NaN or Inf (nan at 4)"
+    direction = poison_safetensors(root / "layer02" / "on_vs_off" / "mean_difference_direction.safetensors",
+                                   "direction", math.nan, at=4)
+    expected = f"{direction}: tensor `direction` holds NaN or Inf (nan at 4)"
     with pytest.raises(ValueError, match=re.escape(expected)):
         VectorCatalog.scan(root)
     with pytest.raises(ValueError, match=re.escape(expected)):
-        pair_directions(direction.parent, None, top_k=3)
+        pair_directions(direction.parent)
     assert len(VectorCatalog.scan(attack_world.data / "latent_steering")) > 0

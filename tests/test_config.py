@@ -216,10 +216,14 @@ def test_documented_example_is_valid(tmp_path):
     assert config.pairs[1].concept("turn on the stove") == "stove_on"
 
 
-def test_evaluate_section_holds_out_episodes_and_takes_top_k_from_steering(tmp_path):
-    config = load_run_config(write_yaml(tmp_path, VALID + "evaluate: {holdout_fraction: 0.25, max_frames: 6, alphas: [0, 2, -2]}\n"))
+def test_evaluate_section_holds_out_episodes_and_names_methods_and_modes(tmp_path):
+    config = load_run_config(write_yaml(tmp_path, VALID + "evaluate: {holdout_fraction: 0.25, max_frames: 6, alphas: "
+                                        "[0, 2, -2], methods: [probe, sae], modes: [clamp]}\n"))
     settings = config.evaluate_settings()
-    assert (settings.holdout_fraction, settings.max_frames, settings.alphas, settings.top_k) == (0.25, 6, (-2.0, 0.0, 2.0), 7)
+    assert (settings.holdout_fraction, settings.max_frames, settings.alphas) == (0.25, 6, (-2.0, 0.0, 2.0))
+    assert (settings.methods, settings.modes) == (("probe", "sae"), ("clamp",))
+    assert load_error(tmp_path, VALID + "evaluate: {modes: [add, add]}\n") == [
+        "evaluate.modes: ['add', 'add']: give at least one, each once"]
     assert config.holdout_fraction == 0.25
     assert config.slice_settings(2, (5, 3)).holdout_episodes == (3, 5)
     assert config.slice_settings(2).holdout_episodes == ()

@@ -70,12 +70,12 @@ def test_evaluate_job_refuses_slices_whose_held_out_episodes_differ_from_the_spl
                        SliceSettings(layers=(LAYER,), holdout_episodes=holdout))
         with pytest.raises(ValueError, match=rf"index.json: slices cut holding out episodes {recorded}, but the split "
                                              rf"{split} holds out episodes \[2, 3\]; re-slice with `slice --split"):
-            evaluate_job(job(data, pairs_config(data, slices)), model, EvaluateSettings(device="cpu"), None)
+            evaluate_job(job(data, pairs_config(data, slices)), model, EvaluateSettings(device="cpu"))
     # slices without an index.json (the seed's) record nothing: refused while the split holds episodes out
     slices = tmp_path / "slices0"
     (slices / f"layer{LAYER:02d}" / "index.json").unlink()
     with pytest.raises(ValueError, match=r"record no held-out episodes .* holds out episodes \[2, 3\]"):
-        evaluate_job(job(data, pairs_config(data, slices)), model, EvaluateSettings(device="cpu"), None)
+        evaluate_job(job(data, pairs_config(data, slices)), model, EvaluateSettings(device="cpu"))
 
 
 def test_evaluate_cli_refuses_slices_cut_without_the_split(tmp_path):

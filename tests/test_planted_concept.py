@@ -46,31 +46,44 @@ def test_the_mean_difference_is_the_planted_direction(planted):
     planted_direction = (embedding[positive] - embedding[negative]) * config.model.arch.width ** 0.5
     pair = out / "latent_steering" / f"layer{PLANTED_LAYER:02d}" / PAIR
     summary = read_json(pair / "directions.json")
-    stem = summary["files"]["mean_difference_direction"]
-    found = load_file(pair / stem["safetensors"])[stem["tensor"]]
-    torch.testing.assert_close(found.double(), planted_direction, rtol=0, atol=1e-5)
+    found = load_file(pair / summary["methods"]["mean_difference"]["file"])["direction"]
+    torch.testing.assert_close(found.double(), planted_direction / planted_direction.norm(), rtol=0, atol=1e-6)
     assert summary["mean_residual_norm"] == pytest.approx(float(planted_direction.norm()), rel=1e-5)  # ‖d‖ = R
 
 
 def test_evaluation_finds_the_planted_concept_and_nothing_else(planted):
+    """mean_difference at α = 1 reproduces the swap in both modes (added: ‖d‖ = R; clamped: the other task's level),
+    above every random direction; no other method is significantly above it, and each is reported with its nulls."""
     out, _ = planted
     record = read_json(out / "steering_eval" / f"layer{PLANTED_LAYER:02d}" / PAIR / "dose_response.json")
     assert min(record["episodes"].values()) >= 2  # selection and report halves are different episodes
     at_one = record["alphas"].index(1.0)
-    planted_entry = record["directions"]["mean_difference_direction"]
-    for curve in ("efficacy", "efficacy_positive", "efficacy_negative"):  # both sides reproduce their swap
-        assert planted_entry[curve][at_one] == pytest.approx(1.0, abs=0.02), curve
-    best = planted_entry["best"]
-    assert best["alpha"] == 1.0 and not best["reversed"]
-    assert best["alpha_vector"] == pytest.approx(1.0, rel=1e-4)  # ‖d‖ = R: the same push in both units
-    assert best["efficacy"] == pytest.approx(1.0, abs=0.02)      # cross-fitted: chosen and read on other halves
-    low, high = best["efficacy_ci"]
-    assert low > 0.9 and high < 1.1
     n_random, n_permuted = len(record["random"]["names"]), len(record["random"]["permuted"])
     assert n_random >= 32
-    assert best["p_random"] == pytest.approx(1 / (n_random + 1)) and best["p_random"] < 0.05
-    if n_permuted:  # every relabelling of the episodes mixes the tasks, so none reaches the planted direction
-        assert best["p_permuted"] == pytest.approx(1 / (n_permuted + 1))
+    for name in ("mean_difference", "mean_difference:clamp"):
+        planted_entry = record["directions"][name]
+        for curve in ("efficacy", "efficacy_positive", "efficacy_negative"):  # both sides reproduce their swap
+            assert planted_entry[curve][at_one] == pytest.approx(1.0, abs=0.02), (name, curve)
+        best = planted_entry["best"]
+        assert best["alpha"] == 1.0 and not best["reversed"]
+        assert best["efficacy"] == pytest.approx(1.0, abs=0.02)      # cross-fitted: chosen and read on other halves
+        low, high = best["efficacy_ci"]
+        assert low > 0.9 and high < 1.1
+        assert best["p_random"] == pytest.approx(1 / (n_random + 1)) and best["p_random"] < 0.05
+        if n_permuted:  # every relabelling of the episodes mixes the tasks, so none reaches the planted direction
+            assert best["p_permuted"] == pytest.approx(1 / (n_permuted + 1))
+    # the stored direction is unit: vector units are α R
+    assert record["directions"]["mean_difference"]["best"]["alpha_vector"] == pytest.approx(
+        record["mean_residual_norm"], rel=1e-4)
+    tested = [name for name in record["directions"] if not name.startswith(("random_", "permuted_"))]
+    assert {"sae", "sae:clamp", "probe", "probe:clamp"} <= set(tested)
+    for name in tested:
+        best = record["directions"][name]["best"]
+        assert "p_random" in best and "p_random_holm" in best
+        if not name.startswith("mean_difference"):  # its paired difference from the mean difference, same mode
+            versus = best["vs_reference"]
+            assert versus["reference"] == "mean_difference" + name.partition(":")[1] + name.partition(":")[2]
+            assert versus["ci"][0] is None or versus["ci"][0] <= 1e-9, name
     randoms = [record["directions"][name]["efficacy"][at_one] for name in record["random"]["names"]]
     assert abs(sum(randoms) / len(randoms)) < 0.2 and max(abs(value) for value in randoms) < 0.75  # near 0
 

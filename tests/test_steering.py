@@ -157,10 +157,8 @@ def test_outputs_have_the_seed_keys_and_values(project, sae_folder):
     np.testing.assert_allclose(residual["residual_direction"].numpy(), expected, rtol=1e-5, atol=1e-5)
     assert residual["residual_norm"] == pytest.approx(float(np.linalg.norm(expected)), rel=1e-5)
 
-    mean_diff = torch.load(pair_dir / "mean_difference_direction.pt", weights_only=True)
-    assert mean_diff["mean_difference_norm"] == pytest.approx(float(np.linalg.norm(pos_x.mean(0) - neg_x.mean(0))), rel=1e-5)
-    np.testing.assert_allclose(mean_diff["mean_difference_direction"].numpy(), pos_x.mean(0) - neg_x.mean(0), rtol=1e-5, atol=1e-6)
     summary = json.loads((pair_dir / "directions.json").read_text())
+    assert summary["mean_difference_norm"] == pytest.approx(float(np.linalg.norm(pos_x.mean(0) - neg_x.mean(0))), rel=1e-5)
     cos = expected @ (pos_x.mean(0) - neg_x.mean(0)) / np.linalg.norm(expected) / np.linalg.norm(pos_x.mean(0) - neg_x.mean(0))
     assert summary["decoded_vs_mean_difference_cosine"] == pytest.approx(cos, rel=1e-5)
     assert summary["method"] == "sae_decoder" and summary["sae"]["neuronpedia_id"] == "toy/12-res"
@@ -192,10 +190,13 @@ def test_every_direction_records_the_mean_residual_norm_of_both_concepts_rows(pr
     expected = float(torch.cat(rows).norm(dim=-1).mean())
     pair_dir = layer_path / "on_stove"
     assert json.loads((pair_dir / "directions.json").read_text())["mean_residual_norm"] == pytest.approx(expected)
-    for stem in ("residual_direction", "mean_difference_direction", "latent_direction"):
+    for stem in ("residual_direction", "latent_direction"):
         with safe_open(pair_dir / f"{stem}.safetensors", framework="pt") as handle:
             assert json.loads(handle.metadata()["mean_residual_norm"]) == pytest.approx(expected)
         assert torch.load(pair_dir / f"{stem}.pt", weights_only=True)["mean_residual_norm"] == pytest.approx(expected)
+    for name in ("sae", "mean_difference"):
+        with safe_open(pair_dir / f"{name}_direction.safetensors", framework="pt") as handle:
+            assert json.loads(handle.metadata()["mean_residual_norm"]) == pytest.approx(expected)
 
 
 def test_statistics_without_the_row_norm_sum_are_recomputed(project, sae_folder):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field, ValidationInfo, field_validator
+from pydantic import AfterValidator, Field
 
 from steering_core.devices import DEVICE_HELP
 from steering_core.storage.schema import StrictModel
@@ -38,8 +38,16 @@ def _grid_with_zero(alphas: tuple[float, ...]) -> tuple[float, ...]:
     return grid
 
 
-# a field-level validator (not a model method), so that the run config's evaluate section checks it too
+def _each_once(names: tuple[str, ...]) -> tuple[str, ...]:
+    """Return `names`; refuse an empty list or a repeated name."""
+    if not names or len(set(names)) != len(names):
+        raise ValueError(f"{list(names)}: give at least one, each once")
+    return names
+
+
+# field-level validators (not model methods), so that the run config's evaluate section checks them too
 AlphaGrid = Annotated[tuple[float, ...], AfterValidator(_grid_with_zero)]
+Names = Annotated[tuple[str, ...], AfterValidator(_each_once)]
 
 
 class EvaluateSettings(StrictModel):
@@ -56,9 +64,9 @@ class EvaluateSettings(StrictModel):
         "Random directions of the null (drawn from the rows' covariance, norm-matched)."))
     permutations: int = Field(8, ge=0, le=10_000, description=(
         "Null: mean differences with episode labels shuffled between the tasks."))
-    methods: tuple[str, ...] | None = Field(None, description=(
+    methods: Names | None = Field(None, description=(
         "Direction methods evaluated (default: every one phase 3 wrote, steering.methods)."))
-    modes: tuple[Literal["add", "clamp"], ...] = Field(("add", "clamp"), min_length=1, description=(
+    modes: Annotated[tuple[Literal["add", "clamp"], ...], AfterValidator(_each_once)] = Field(("add", "clamp"), description=(
         "Strength modes: add (h + α·R·d̂) and clamp (each steered token's projection on d̂ set to m_own + "
         "α·(m_other − m_own), the concepts' mean levels)."))
     num_steps: int = Field(10, gt=0, le=1000, description="Denoising steps of sample_actions.")
@@ -73,13 +81,6 @@ class EvaluateSettings(StrictModel):
     compiled: bool | None = Field(None, description=(  # rounding only: not part of the identity
         "Run the policy's denoising step compiled (default: on CUDA only; batches over 16 rows run eagerly)."))
     note: str | None = Field(None, description="Printed at the top of the summary (e.g. \"tiny random model\").")
-
-    @field_validator("methods", "modes")
-    @classmethod
-    def _each_once(cls, names: tuple[str, ...] | None, info: ValidationInfo) -> tuple[str, ...] | None:
-        if names is not None and (not names or len(set(names)) != len(names)):
-            raise ValueError(f"{info.field_name} {list(names)}: give at least one, each once")
-        return names
 
     @property
     def zero_index(self) -> int:
