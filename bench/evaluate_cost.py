@@ -12,6 +12,11 @@ directions, and must give the same actions.
 Next to the measured ratio: the analytic FLOPs (matrix products) and H100 time of one pair at one layer
 at the real size with the default evaluate settings, for both.
 
+Methods head to head: the same sweep with `METHODS` methods in both modes (add and clamp) beside the 32 random
+null directions, against one method (add) with the same null, timed on the same policy and frames. Evaluated one
+at a time, each method × mode would carry its own sweep and null: the comparison's cost is read against that
+(`METHODS` × 2 times the single run), target at most half of it.
+
     uv run python -m bench.evaluate_cost [--device cuda] [--quick]
 """
 
@@ -54,6 +59,9 @@ DIRECTIONS = 3 + 32             # residual, mean difference, top-k and the 32 ra
 ALPHAS = (-4.0, -2.0, 0.0, 2.0, 4.0)
 NUM_STEPS = 10                  # openpi's denoising steps
 NAIVE_DIRECTIONS = 4            # directions the naive loop is timed on (its calls all cost the same)
+METHODS = 4                     # the default methods: sae, mean_difference, sae_top_k, probe
+NULLS = 32                      # the random null every method shares
+METHODS_TARGET = 0.5            # all methods x modes together / (methods x modes) separate runs, at most
 ROUNDS = 2                      # alternating ours/naive rounds, best kept (load from other jobs hits both)
 TARGET = 0.4                    # ours / naive wall time at most
 POSITIVE, NEGATIVE = "open the top drawer of the cabinet", "close the top drawer of the cabinet"
@@ -137,6 +145,21 @@ def run_naive(policy: Any, inputs: dict[str, Any], frames: list[EvalFrame], prom
     return out
 
 
+def methods_cost(sweep: Any, width: int, nulls: int) -> dict[str, float]:
+    """Return the seconds of one sweep with METHODS methods in both modes plus `nulls` null directions, of one
+    method (add) plus the same nulls, and their ratio to METHODS × 2 separate runs. `sweep(directions, clamps)`
+    runs `run_sweep`."""
+    generator = torch.Generator().manual_seed(2)
+    null = {f"random_{i:02d}": torch.randn(width, generator=generator) for i in range(nulls)}
+    methods = {f"m{i}": torch.randn(width, generator=generator) for i in range(METHODS)}
+    both = {f"{name}{suffix}": vector for name, vector in methods.items() for suffix in ("", ":clamp")}
+    clamps = {f"{name}:clamp": (-1.0, 1.0) for name in methods}
+    sweep(both | null, clamps)  # warm-up
+    _, together = timed(lambda: sweep(both | null, clamps), torch.device("cpu"))
+    _, single = timed(lambda: sweep({"m0": methods["m0"]} | null, {}), torch.device("cpu"))
+    return {"together": together, "single": single, "ratio": together / (len(both) * single)}
+
+
 def main(argv: list[str] | None = None) -> Result:
     """Run the benchmark; return (and print) its result."""
     from steering_core.evaluate.run import task_prompts
@@ -155,10 +178,14 @@ def main(argv: list[str] | None = None) -> Result:
     generator = torch.Generator().manual_seed(1)
     directions = {f"d{i}": torch.randn(arch.width, generator=generator) for i in range(n_directions)}
 
-    def ours() -> torch.Tensor:
-        return run_sweep(policy, Steering, frames, lambda _: inputs, prompts, directions, layer=layer, alphas=alphas,
+    def sweep(chosen: dict[str, torch.Tensor], clamps: dict[str, tuple[float, float]]) -> torch.Tensor:
+        return run_sweep(policy, Steering, frames, lambda _: inputs, prompts, chosen, layer=layer, alphas=alphas,
                          mean_residual_norm=1.0, noise_seeds=NOISE_SEEDS, seed=0, num_steps=NUM_STEPS,
-                         batch_size=n_frames, entries_per_call=EvaluateSettings().entries_per_call).steered
+                         batch_size=n_frames, entries_per_call=EvaluateSettings().entries_per_call,
+                         clamps=clamps).steered
+
+    def ours() -> torch.Tensor:
+        return sweep(directions, {})
 
     step = max(1, n_directions // NAIVE_DIRECTIONS)
     sampled = list(directions)[::step][:NAIVE_DIRECTIONS]
@@ -180,8 +207,9 @@ def main(argv: list[str] | None = None) -> Result:
     timed_calls = n_frames * NOISE_SEEDS * (len(sampled) * len(alphas) + 1)
     naive_seconds = min(naive_times) * calls / timed_calls
     ratio = min(ours_times) / naive_seconds
+    methods = methods_cost(sweep, arch.width, 4 if args.quick else NULLS)
     defaults = EvaluateSettings()
-    real_directions = 3 + defaults.random_directions + defaults.permutations
+    real_directions = METHODS * len(defaults.modes) + defaults.random_directions + defaults.permutations
     real = pair_layer_flops(REAL_ARCH, LAYER, defaults, real_directions)
     rows = [
         {"case": f"measured {device.type}, layer {layer}", "frames x seeds": f"{n_frames} x {NOISE_SEEDS}",
@@ -194,6 +222,12 @@ def main(argv: list[str] | None = None) -> Result:
          "ours s": "", "naive s": "", "ratio": real["ours"] / real["naive"], "ours TFLOP": real["ours"] / 1e12,
          "naive TFLOP": real["naive"] / 1e12, "H100 ours s": h100_seconds(real["ours"]),
          "H100 naive s": h100_seconds(real["naive"])},
+        {"case": f"methods: {METHODS} x 2 modes + null vs 1 method + null, layer {layer}",
+         "frames x seeds": f"{n_frames} x {NOISE_SEEDS}",
+         "directions x alphas": f"{METHODS * 2}+{4 if args.quick else NULLS} vs 1+{4 if args.quick else NULLS} x "
+                                f"{len(alphas)}",
+         "ours s": methods["together"], "naive s": METHODS * 2 * methods["single"], "ratio": methods["ratio"],
+         "ours TFLOP": "", "naive TFLOP": "", "H100 ours s": "", "H100 naive s": ""},
     ]
     result = Result(
         name="evaluate",
@@ -205,7 +239,8 @@ def main(argv: list[str] | None = None) -> Result:
         target=f"<= {TARGET}x (layer {layer})",
         met=ratio <= TARGET,
         table=rows,
-        checks={"max_abs_difference": max(differences), "naive_calls": calls, "naive_calls_timed": timed_calls},
+        checks={"max_abs_difference": max(differences), "naive_calls": calls, "naive_calls_timed": timed_calls,
+                "methods_ratio": methods["ratio"], "methods_target_met": methods["ratio"] <= METHODS_TARGET},
         notes=[
             f"model{'' if args.quick else ' (the capture benchmark mid-size pi0.5)'}: LM width {arch.width} x depth {arch.depth}, SigLIP width "
             f"{arch.vision_width} x depth {arch.vision_depth}; {NUM_STEPS} denoising steps; naive: {calls} full "
@@ -213,7 +248,11 @@ def main(argv: list[str] | None = None) -> Result:
             f"{min(naive_times):.1f} s) and scaled; best of {ROUNDS} round(s) after a warm-up.",
             f"same actions on both sides: max |ours - naive| over every robot action of the {len(sampled)} "
             f"timed directions = {max(differences):.2e}.",
-            f"real size: the default evaluate settings (3 named + {defaults.random_directions} random + "
+            f"methods: {METHODS} methods x 2 modes with the shared null in one sweep took {methods['together']:.1f} s, "
+            f"one method with the same null {methods['single']:.1f} s: {methods['ratio']:.2f}x of {METHODS * 2} "
+            f"separate runs (target <= {METHODS_TARGET}x: "
+            f"{'met' if methods['ratio'] <= METHODS_TARGET else 'not met'}).",
+            f"real size: the default evaluate settings ({METHODS} methods x 2 modes + {defaults.random_directions} random + "
             f"{defaults.permutations} permuted directions, 9 alphas, 32 frames, 4 seeds, "
             f"{EvaluateSettings().entries_per_call} entries per sweep call) and {LANGUAGE_SLOTS} language slots; "
             f"FLOPs count matrix products only; H100 at {MFU:.0%} of {H100_BF16_DENSE_TFLOPS:.0f} TFLOP/s dense bf16.",

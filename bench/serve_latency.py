@@ -69,8 +69,8 @@ def steered(policy: Any, checkpoint: Path) -> tuple[Any, Any]:
     from steering_core.serve import SteeredPi05Policy, SteeringVector, VectorCatalog
 
     vector = torch.randn(policy.arch.width, generator=torch.Generator().manual_seed(2))
-    catalog = VectorCatalog([SteeringVector(PAIR, LAYER, "residual", vector, float(vector.norm()), checkpoint,
-                                            "residual")])
+    catalog = VectorCatalog([SteeringVector(PAIR, LAYER, "mean_difference", vector / vector.norm(),
+                                            float(vector.norm()), checkpoint, "residual")])
     served = SteeredPi05Policy(policy, noise_seed=NOISE_SEED)
     served.check_catalog(catalog)
     return served, catalog

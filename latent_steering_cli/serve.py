@@ -43,8 +43,9 @@ def serve_command(
     ),
     steer: list[str] = typer.Option(
         [], "--steer", help="Default steering for requests without a `steering` entry: "
-        "pair:layer:alpha[:direction[:alpha_units]], e.g. open_vs_close:12:2.0 (α in residual_norm units, the "
-        "evaluation's; :residual:vector for vector units; repeat to combine)."
+        "pair:layer:alpha[:direction[:alpha_units|mode]], e.g. open_vs_close:12:2.0 (α in residual_norm units, the "
+        "evaluation's; :sae:vector for vector units; :sae:clamp to clamp to level fraction α, 0 the negative "
+        "concept's mean, 1 the positive's; repeat to combine)."
     ),
     max_alpha: float = typer.Option(
         DEFAULT_MAX_ALPHA, "--max-alpha", min=0.0, help="Refuse steering with |α| above this, in residual_norm units "
@@ -106,8 +107,10 @@ def serve_command(
 
     Clients add an optional `steering` entry to the observation, e.g. {"pair": "open_vs_close", "layer": 12,
     "alpha": 2.0} (α in residual_norm units by default, as the evaluation's tables; "alpha_units": "vector" for
-    α times the stored vector, "direction": "random_<k>" for a norm-matched random control); the server's metadata
-    lists the vectors it offers with their R and norm. openpi's episode_start / episode_end messages are recorded.
+    α times the method's vector; "direction": a method, e.g. "mean_difference" (default "sae"), or "random_<k>"
+    for a norm-matched random control; "mode": "clamp" to set the projection to level fraction α); the server's
+    metadata lists the vectors it offers with their R, norm and levels. openpi's episode_start / episode_end
+    messages are recorded.
     """
     with input_errors():
         api_key, episode_log = read_api_key(api_key_file), EpisodeLog(episodes_file)

@@ -27,6 +27,8 @@ from steering_core.vectors.directions import SteeringSettings, compute_steering
 CLIENT_SCRIPT = Path(__file__).with_name("openpi_client_script.py")
 OPENPI_CLIENT = ("--with", "openpi-client==0.1.2", "--with", "typing_extensions")  # 0.1.2 omits typing_extensions
 PAIRS = ("open_vs_close", "on_vs_off")
+# the direction methods write_vectors asks the steer step for, at its SAE layer and at its plain layer
+SAE_METHODS, PLAIN_METHODS = ("sae", "mean_difference", "sae_top_k"), ("mean_difference",)
 
 # Equal results across processes need equal kernels. The intra-op thread count changes how gemm and sum split
 # their work (so the last bits of float32 results), and oneMKL's default MKL_DYNAMIC=TRUE lets it use fewer
@@ -43,8 +45,8 @@ ACTION_ROUNDING_EPS = 64
 
 def write_vectors(root: Path, width: int, *, sae_layer: int = 1, plain_layer: int = 2,
                   include_decoder_bias: bool = False) -> Path:
-    """Run the real steer step on random concept rows: an SAE at `sae_layer` (residual, mean_difference and
-    latent directions), none at `plain_layer` (residual only). Return the output root."""
+    """Run the real steer step on random concept rows: an SAE at `sae_layer` (methods SAE_METHODS), none at
+    `plain_layer` (PLAIN_METHODS). Return the output root."""
     work = root.parent / f"{root.name}_inputs"
     pairs = []
     for i, pair in enumerate(PAIRS):
@@ -59,9 +61,9 @@ def write_vectors(root: Path, width: int, *, sae_layer: int = 1, plain_layer: in
     config = work / "pairs.json"
     config.write_text(json.dumps({"pairs": pairs}))
     sae = write_sae_folder(work / "sae", d_in=width, d_sae=3 * width, hook_layer=sae_layer)
-    for layer, sae_path in ((sae_layer, sae), (plain_layer, None)):
+    for layer, sae_path, methods in ((sae_layer, sae, SAE_METHODS), (plain_layer, None, PLAIN_METHODS)):
         compute_steering(SteeringSettings(pairs_config=config, output_root=root, layer=layer, device="cpu",
-                                          sae=str(sae_path) if sae_path else None,
+                                          sae=str(sae_path) if sae_path else None, methods=methods,
                                           include_decoder_bias=include_decoder_bias))
     return root
 
@@ -105,11 +107,20 @@ class FakePolicy:
             self.max_concurrent = max(self.max_concurrent, self._running)
         try:
             time.sleep(self.delay_s)
-            return {"actions": fake_actions(observation, [(s.vector.vector, s.vector_alpha) for s in steering]),
+            return {"actions": fake_actions(observation, [steering_term(s) for s in steering]),
                     "policy_timing": {"infer_ms": 0.0}}
         finally:
             with self._lock:
                 self._running -= 1
+
+
+def steering_term(applied) -> tuple[torch.Tensor, float]:
+    """The fake policy's (vector, factor) of one applied steering: an add entry's unit vector and `vector_alpha`;
+    a clamp entry's negated unit vector and its target m₋ + α(m₊ − m₋) (unlike an add of the same number)."""
+    if applied.mode == "clamp":
+        start, end = applied.vector.levels
+        return -applied.vector.vector, start + applied.alpha * (end - start)
+    return applied.vector.vector, applied.vector_alpha
 
 
 def fake_actions(observation: dict, steering: list[tuple[torch.Tensor, float]]) -> np.ndarray:

@@ -9,6 +9,7 @@ import torch
 from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.sae import write_sae_folder
 from steering_core.synthetic.tokenizer import write_tokenizer
+from steering_core.vectors.methods.direction_file import MethodDirection, write_method_direction
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 GUIDES = (DOCS / "python_api.md", DOCS / "serving.md")
@@ -58,7 +59,10 @@ def test_policy_example_runs(tmp_path, monkeypatch):
     arch = tiny_arch()
     checkpoint = write_pi05_checkpoint(tmp_path / "pi05_libero_pytorch", arch, seed=0)
     tokenizer = write_tokenizer(tmp_path / "paligemma_tokenizer.model")
-    torch.save({"residual_direction": torch.randn(arch.width)}, tmp_path / "residual_direction.pt")
+    folder = tmp_path / "data" / "latent_steering" / "layer12" / "open_vs_close"
+    folder.mkdir(parents=True)
+    unit = torch.nn.functional.normalize(torch.randn(arch.width), dim=0)
+    write_method_direction(folder, MethodDirection("sae", "open_vs_close", 12, unit, 3.0, (-1.0, 1.0), 40.0, {}))
     substitutions = {
         '"pi05_libero_pytorch", tokenizer_path': f"{str(checkpoint)!r}, arch=ARCH, device='cpu', tokenizer_path",
         '"paligemma_tokenizer.model"': repr(str(tokenizer)),

@@ -25,7 +25,7 @@ from steering_core.synthetic.pi05 import tiny_arch, write_pi05_checkpoint
 from steering_core.synthetic.tokenizer import write_tokenizer
 
 ACTIONS = np.arange(70, dtype=np.float32).reshape(10, 7)
-STEER = [{"pair": "open_vs_close", "layer": 1, "alpha": 2.0, "direction": "residual", "alpha_units": "residual_norm"}]
+STEER = [{"pair": "open_vs_close", "layer": 1, "alpha": 2.0, "direction": "sae", "alpha_units": "residual_norm"}]
 
 
 class RecordingServer:
@@ -140,8 +140,8 @@ def test_local_policy_steers_and_alpha_zero_is_the_plain_policy(tmp_path):
     policy = Pi05Policy.from_checkpoint(checkpoint, arch, device="cpu", tokenizer_path=tokenizer)
     served = SteeredPi05Policy(policy, noise_seed=7)
     direction = torch.randn(arch.width, generator=torch.Generator().manual_seed(0))
-    vector = SteeringVector("open_vs_close", 1, "residual", direction, float(direction.norm()),
-                            Path("residual.safetensors"), "residual", mean_residual_norm=5.0)
+    vector = SteeringVector("open_vs_close", 1, "sae", direction / direction.norm(), float(direction.norm()),
+                            Path("sae_direction.safetensors"), "residual", mean_residual_norm=5.0)
     obs = libero_observations(tmp_path / "demo", frames=1, image_size=32)[0]
     with fixed_threads():
         plain = LocalPolicy(served).infer(obs)

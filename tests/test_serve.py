@@ -4,10 +4,12 @@ request, errors that keep the connection, concurrency, health check, keepalive d
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -21,6 +23,9 @@ import numpy as np
 import pytest
 import torch
 from helpers_serve import (
+    PAIRS,
+    PLAIN_METHODS,
+    SAE_METHODS,
     FakePolicy,
     fake_actions,
     libero_observations,
@@ -32,6 +37,7 @@ from helpers_serve import (
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from steering_core.pi05.preprocess import Cameras
 from steering_core.serve import (
     PolicyServer,
     RequestError,
@@ -45,6 +51,9 @@ from steering_core.serve.auth import API_KEY_ENV, authorized, read_api_key
 from steering_core.serve.catalog import random_control, random_direction
 from steering_core.serve.codec import pack, unpack
 from steering_core.serve.episodes import EpisodeLog
+from steering_core.synthetic.pi05 import tiny_arch
+from steering_core.vectors.methods import METHODS
+from steering_core.vectors.methods.direction_file import read_method_direction, write_method_direction
 
 WIDTH = 64
 
@@ -61,48 +70,137 @@ def observations(tmp_path_factory) -> list[dict]:
 
 def expected(catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
     """The fake policy's actions computed directly, steering entries given as (pair, layer, alpha[, direction[,
-    alpha_units]]): α in residual_norm units (the default) adds α·R/‖d‖ times the vector."""
+    alpha_units | "clamp"]]): α in residual_norm units (the default) adds α·R times the unit vector, in vector
+    units α·‖d‖ times it; a clamp sets the level m₋ + α(m₊ − m₋) (helpers_serve.steering_term)."""
     return fake_actions(observation, [vector_term(catalog, *entry) for entry in entries])
 
 
-def vector_term(catalog: VectorCatalog, pair: str, layer: int, alpha: float, direction: str = "residual",
+def vector_term(catalog: VectorCatalog, pair: str, layer: int, alpha: float, direction: str | None = None,
                 units: str = "residual_norm") -> tuple:
     vector = catalog.get(pair, layer, direction)
-    return vector.vector, alpha if units == "vector" else alpha * vector.mean_residual_norm / vector.norm
+    if units == "clamp":
+        start, end = vector.levels
+        return -vector.vector, start + alpha * (end - start)
+    return vector.vector, alpha * (vector.norm if units == "vector" else vector.mean_residual_norm)
+
+
+def pair_folder(catalog: VectorCatalog, pair: str, layer: int) -> Path:
+    return catalog.get(pair, layer).path.parent
 
 
 # ---------------------------------------------------------------- catalog and request parsing (no sockets)
 
-def test_catalog_offers_the_residual_space_directions_the_steer_step_wrote(catalog, tmp_path):
-    from safetensors.torch import load_file
-
+def test_catalog_offers_every_method_the_steer_step_wrote(catalog):
     keys = {(e["pair"], e["layer"], e["direction"]) for e in catalog.describe()}
-    pairs = ("open_vs_close", "on_vs_off")
-    assert keys == {(pair, 1, kind) for pair in pairs for kind in ("residual", "mean_difference")} \
-        | {(pair, 2, "residual") for pair in pairs}  # latent directions are not residuals: not offered
-    vector = catalog.get("open_vs_close", 1, "mean_difference")
-    stored = load_file(vector.path)["mean_difference_direction"]
-    assert vector.vector.dtype == stored.dtype and bool((vector.vector == stored).all())
-    assert vector.norm == pytest.approx(float(np.linalg.norm(stored.double().numpy())), rel=1e-6)
+    written = {(pair, layer, method) for pair in PAIRS for layer in (1, 2) for method in json.loads(
+        (pair_folder(catalog, pair, layer) / "directions.json").read_text())["methods"]}
+    assert keys == written == {(pair, 1, m) for pair in PAIRS for m in SAE_METHODS} | \
+        {(pair, 2, m) for pair in PAIRS for m in PLAIN_METHODS}
+    assert {e["description"] for e in catalog.describe()} == {METHODS[m].description for m in SAE_METHODS}
+    for pair, layer, method in keys:
+        vector, stored = catalog.get(pair, layer, method), read_method_direction(
+            pair_folder(catalog, pair, layer) / f"{method}_direction.safetensors")
+        assert vector.vector.dtype == torch.float32 and torch.equal(vector.vector, stored.direction)
+        assert float(vector.vector.double().norm()) == pytest.approx(1.0, abs=1e-6)
+        assert (vector.norm, vector.levels, vector.mean_residual_norm) == \
+            (stored.norm, stored.levels, stored.mean_residual_norm)
+    # the default direction: sae where an SAE was used, else mean_difference
+    assert catalog.get("open_vs_close", 1).direction == "sae" and catalog.get("open_vs_close", 2).direction \
+        == "mean_difference"
+
+
+def test_catalog_refuses_a_missing_root_and_a_pair_folder_without_methods(catalog, tmp_path):
     with pytest.raises(FileNotFoundError, match="--vectors"):
         VectorCatalog.scan(tmp_path / "absent")
+    old = tmp_path / "old"
+    shutil.copytree(pair_folder(catalog, "on_vs_off", 2).parents[1], old)
+    summary_path = old / "layer02" / "on_vs_off" / "directions.json"
+    summary = json.loads(summary_path.read_text())
+    del summary["methods"]  # written before the direction methods
+    summary_path.write_text(json.dumps(summary))
+    with pytest.raises(ValueError, match=re.escape(f"{summary_path}: no `methods` table") + ".*re-run steer"):
+        VectorCatalog.scan(old)
 
 
 def test_steering_entry_forms(catalog):
     one = parse_steering({"pair": "open_vs_close", "layer": 2, "alpha": 4}, catalog)
-    assert [(s.vector.pair, s.vector.layer, s.vector.direction, s.alpha) for s in one] == \
-        [("open_vs_close", 2, "residual", 4.0)]
+    assert [(s.vector.pair, s.vector.layer, s.vector.direction, s.alpha, s.mode) for s in one] == \
+        [("open_vs_close", 2, "mean_difference", 4.0, "add")]
     two = parse_steering([{"pair": "on_vs_off", "layer": np.int64(1), "alpha": np.float32(-0.5),
                            "direction": "mean_difference"}, {"pair": "open_vs_close", "layer": 1, "alpha": 1.0}],
                          catalog)
     assert [(s.vector.pair, s.vector.direction, s.alpha) for s in two] == \
-        [("on_vs_off", "mean_difference", -0.5), ("open_vs_close", "residual", 1.0)]
+        [("on_vs_off", "mean_difference", -0.5), ("open_vs_close", "sae", 1.0)]
     assert parse_steering(None, catalog) == () and parse_steering([], catalog) == ()
     assert parse_steering_option("open_vs_close:12:4.0") == {"pair": "open_vs_close", "layer": 12, "alpha": 4.0}
     assert parse_steering_option("a:3:-1:mean_difference")["direction"] == "mean_difference"
-    assert parse_steering_option("a:3:-1:residual:vector")["alpha_units"] == "vector"
-    with pytest.raises(ValueError, match="pair:layer:alpha"):
+    assert parse_steering_option("a:3:-1:sae:vector") == {"pair": "a", "layer": 3, "alpha": -1.0,
+                                                          "direction": "sae", "alpha_units": "vector"}
+    assert parse_steering_option("a:12:0.5:probe:clamp") == {"pair": "a", "layer": 12, "alpha": 0.5,
+                                                             "direction": "probe", "mode": "clamp"}
+    with pytest.raises(ValueError, match=r"pair:layer:alpha\[:direction\[:alpha_units\|mode\]\]"):
         parse_steering_option("open_vs_close:12")
+
+
+def test_a_clamp_entry_sets_the_level_fraction_between_the_concepts(catalog):
+    [clamp] = parse_steering(parse_steering_option("open_vs_close:1:0.25:mean_difference:clamp"), catalog)
+    vector = catalog.get("open_vs_close", 1, "mean_difference")
+    assert (clamp.mode, clamp.alpha, clamp.alpha_units, clamp.vector_alpha) == ("clamp", 0.25, None, None)
+    assert clamp.describe() == {
+        "pair": "open_vs_close", "layer": 1, "direction": "mean_difference", "mode": "clamp", "alpha": 0.25,
+        "alpha_units": None, "vector_alpha": None, "levels": list(vector.levels), "norm": vector.norm,
+        "mean_residual_norm": vector.mean_residual_norm}
+    # mean_difference: the positive concept's mean level lies above the negative's by ‖d‖
+    assert vector.levels[1] - vector.levels[0] == pytest.approx(vector.norm, rel=1e-5)
+    # clamps are bounded each, and do not count toward the add entries' sum
+    mixed = [{"pair": "open_vs_close", "layer": 1, "alpha": 90.0, "mode": "clamp"},
+             {"pair": "on_vs_off", "layer": 2, "alpha": 90.0}]
+    assert [s.mode for s in parse_steering(mixed, catalog)] == ["clamp", "add"]
+
+
+def test_a_clamp_entry_reaches_the_policy_as_a_clamp_steering(catalog):
+    """SteeredPi05Policy turns a clamp entry into Steering(mode="clamp", levels=(m₋, m₊)) with alpha as given,
+    an add entry into Steering(alpha=vector_alpha); requests clamping one layer go to separate calls."""
+    inner = RecordingPi05()
+    served = SteeredPi05Policy(inner)
+    clamp = {"pair": "open_vs_close", "layer": 1, "alpha": 0.75, "mode": "clamp"}
+    add = {"pair": "on_vs_off", "layer": 2, "alpha": -2.0}
+    requests = [parse_steering(value, catalog) for value in ([clamp, add], [clamp | {"alpha": 0.1}], [add], [])]
+    frame = {"observation/image": np.zeros((8, 8, 3), np.uint8), "observation/wrist_image": np.zeros((8, 8, 3), np.uint8),
+             "observation/state": np.zeros(8), "prompt": "open the drawer"}
+    results = served.infer_batch([frame] * 4, requests)
+    assert [r["policy_timing"]["batch_rows"] for r in results] == [3, 1, 3, 3]  # the second clamp: its own call
+    first, second = inner.calls
+    vector = catalog.get("open_vs_close", 1)
+    [clamped, added, added_again] = first
+    assert (clamped.mode, clamped.levels, clamped.alpha, clamped.layer) == ("clamp", vector.levels, 0.75, 1)
+    assert torch.equal(clamped.vector, vector.vector)
+    assert clamped.token_mask.tolist() == [[True] * 4, [False] * 4, [False] * 4]  # request 0's row only
+    other = catalog.get("on_vs_off", 2)
+    assert (added.mode, added.levels, added.alpha) == ("add", None, -2.0 * other.mean_residual_norm)
+    assert added_again.token_mask.tolist() == [[False] * 4, [True] * 4, [False] * 4]  # request 2's row
+    [alone] = second
+    assert (alone.mode, alone.alpha, alone.token_mask.tolist()) == ("clamp", pytest.approx(0.1), [[True] * 4])
+
+
+class RecordingPi05:
+    """A stand-in for Pi05Policy under SteeredPi05Policy: every prompt token is an instruction token; records the
+    steerings of each call and answers zeros."""
+
+    arch = tiny_arch()
+    cameras = Cameras()
+    device = torch.device("cpu")
+    action_horizon, action_dim = 10, 32
+
+    def __init__(self) -> None:
+        self.calls: list[list] = []
+
+    def instruction_masks(self, prompts, states) -> torch.Tensor:
+        return torch.ones(len(prompts), 4, dtype=torch.bool)
+
+    def infer_rows(self, batch, steering, noise) -> np.ndarray:
+        self.calls.append(list(steering or []))
+        return np.zeros((len(batch.prompts), self.action_horizon, 7), np.float32)
 
 
 def test_alpha_is_in_residual_norm_units_unless_the_entry_says_vector(catalog):
@@ -110,58 +208,59 @@ def test_alpha_is_in_residual_norm_units_unless_the_entry_says_vector(catalog):
     [default] = parse_steering({"pair": "open_vs_close", "layer": 1, "alpha": 2.0}, catalog)
     [raw] = parse_steering({"pair": "open_vs_close", "layer": 1, "alpha": 2.0, "alpha_units": "vector"}, catalog)
     assert default.alpha_units == "residual_norm" and raw.alpha_units == "vector"
-    # the shift added has norm α·R in residual_norm units, α·‖d‖ in vector units
-    assert default.vector_alpha * vector.norm == pytest.approx(2.0 * vector.mean_residual_norm)
-    assert raw.vector_alpha == 2.0
+    # the shift added to the unit vector has norm α·R in residual_norm units, α·‖d‖ in vector units
+    assert default.vector_alpha == pytest.approx(2.0 * vector.mean_residual_norm)
+    assert raw.vector_alpha == pytest.approx(2.0 * vector.norm)
     assert default.describe() | {"vector_alpha": None} == {
-        "pair": "open_vs_close", "layer": 1, "direction": "residual", "alpha": 2.0, "alpha_units": "residual_norm",
-        "vector_alpha": None, "norm": vector.norm, "mean_residual_norm": vector.mean_residual_norm}
+        "pair": "open_vs_close", "layer": 1, "direction": "sae", "mode": "add", "alpha": 2.0,
+        "alpha_units": "residual_norm", "vector_alpha": None, "levels": list(vector.levels), "norm": vector.norm,
+        "mean_residual_norm": vector.mean_residual_norm}
 
 
-def test_metadata_lists_r_norm_and_decoder_bias_per_vector(catalog, tmp_path):
+def test_metadata_lists_r_norm_levels_and_decoder_bias_per_vector(catalog, tmp_path):
     entries = catalog.describe()
     for entry in entries:
-        summary = json.loads((catalog.get(entry["pair"], entry["layer"], entry["direction"]).path.parent
-                              / "directions.json").read_text())
-        assert entry["mean_residual_norm"] == summary["mean_residual_norm"] > 0 and entry["norm"] > 0
+        summary = json.loads((pair_folder(catalog, entry["pair"], entry["layer"]) / "directions.json").read_text())
+        listed = summary["methods"][entry["direction"]]
+        assert entry["mean_residual_norm"] == summary["mean_residual_norm"] > 0
+        assert (entry["norm"], entry["levels"]) == (listed["norm"], [listed["negative_level"],
+                                                                     listed["positive_level"]])
         assert entry["include_decoder_bias"] is False
     biased = VectorCatalog.scan(write_vectors(tmp_path / "biased", WIDTH, include_decoder_bias=True))
     assert {(e["direction"], e["include_decoder_bias"]) for e in biased.describe() if e["layer"] == 1} == \
-        {("residual", True), ("mean_difference", False)}
+        {("sae", True), ("mean_difference", False), ("sae_top_k", False)}
 
 
 def test_vectors_without_a_recorded_r_take_vector_units_only(catalog, tmp_path):
-    folder = catalog.get("on_vs_off", 2).path.parents[2]
     old = tmp_path / "old"
-    shutil.copytree(folder, old)
-    summary_path = old / "layer02" / "on_vs_off" / "directions.json"
-    summary = json.loads(summary_path.read_text())
-    del summary["mean_residual_norm"]  # a phase-3 output older than the record
-    summary_path.write_text(json.dumps(summary))
+    shutil.copytree(pair_folder(catalog, "on_vs_off", 2).parents[1], old)
+    path = old / "layer02" / "on_vs_off" / "mean_difference_direction.safetensors"
+    # statistics older than the norm record: the steer step writes no R
+    write_method_direction(path.parent, dataclasses.replace(read_method_direction(path), mean_residual_norm=None))
     older = VectorCatalog.scan(old)
     assert older.get("on_vs_off", 2).describe()["mean_residual_norm"] is None
     with pytest.raises(RequestError, match=r"no recorded mean_residual_norm.*send \"alpha_units\": \"vector\"") as err:
         parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.0}, older)
     assert err.value.key == "steering.alpha_units" and "\n" not in str(err.value)
     [entry] = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.5, "alpha_units": "vector"}, older)
-    assert entry.vector_alpha == 1.5
+    assert entry.vector_alpha == pytest.approx(1.5 * entry.vector.norm)
 
 
 def test_random_controls_are_norm_matched_seeded_by_name_and_the_same_in_any_process(catalog):
-    residual = catalog.get("open_vs_close", 1)
+    default = catalog.get("open_vs_close", 1)
     control = catalog.get("open_vs_close", 1, "random_3")
     assert (control.pair, control.layer, control.direction, control.vector.dtype, control.vector.shape) == \
-        ("open_vs_close", 1, "random_3", torch.float32, residual.vector.shape)
-    assert control.mean_residual_norm == residual.mean_residual_norm and not control.include_decoder_bias
-    assert float(control.vector.double().norm()) == pytest.approx(residual.norm, rel=1e-6)
-    assert control.norm == pytest.approx(residual.norm, rel=1e-6)
+        ("open_vs_close", 1, "random_3", torch.float32, default.vector.shape)
+    assert (control.norm, control.mean_residual_norm, control.levels, control.include_decoder_bias) == \
+        (default.norm, default.mean_residual_norm, None, False)
+    assert float(control.vector.double().norm()) == pytest.approx(1.0, rel=1e-6)
     assert torch.equal(catalog.get("open_vs_close", 1, "random_3").vector, control.vector)
     others = [catalog.get(*key).vector for key in (("open_vs_close", 1, "random_4"), ("on_vs_off", 1, "random_3"),
                                                    ("open_vs_close", 2, "random_3"))]
     assert all(not torch.equal(other, control.vector) for other in others)
     # another process drawing with ATen's scalar kernels (as a CPU without AVX2, where float32 draws differ)
     script = ("from steering_core.serve.catalog import random_direction; "
-              f"print(random_direction('open_vs_close', 1, 3, {WIDTH}, {residual.norm!r}).numpy().tobytes().hex())")
+              f"print(random_direction('open_vs_close', 1, 3, {WIDTH}, 1.0).numpy().tobytes().hex())")
     other = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                            env={**os.environ, "ATEN_CPU_CAPABILITY": "default", "OMP_NUM_THREADS": "2"})
     assert other.stdout.strip() == control.vector.numpy().tobytes().hex()
@@ -172,23 +271,25 @@ def test_random_controls_are_norm_matched_seeded_by_name_and_the_same_in_any_pro
 
 def test_random_controls_are_nearly_orthogonal_in_pi05_width():
     # a unit vector uniform on the sphere in d dimensions has P(|cos| > t) <= 2 exp(-d t^2 / 2) against any fixed
-    # direction: under 1e-5 at t = 5 / sqrt(d). Controls against three residuals (all ones: the mean) and each other.
+    # direction: under 1e-5 at t = 5 / sqrt(d). Controls against three directions (all ones: the mean) and each other.
     width = 2048
-    residuals = [SteeringVector("p", 3, "residual", v, float(v.norm()), Path("p"), "residual", 40.0)
-                 for v in (torch.ones(width), torch.arange(width, dtype=torch.float32), torch.eye(width)[7] * 5)]
-    controls = [random_control(residuals[0], k).vector for k in range(8)]
-    assert all(c.norm() == pytest.approx(residuals[0].norm, rel=1e-6) for c in controls)
-    pairs = [(c, r.vector) for c in controls for r in residuals] + \
-        [(a, b) for i, a in enumerate(controls) for b in controls[i + 1:]]
+    defaults = [SteeringVector("p", 3, "sae", v / v.norm(), float(v.norm()), Path("p"), "residual", 40.0)
+                for v in (torch.ones(width), torch.arange(width, dtype=torch.float32), torch.eye(width)[7] * 5)]
+    controls = [random_control(defaults[0], k) for k in range(8)]
+    assert all(c.norm == defaults[0].norm and float(c.vector.norm()) == pytest.approx(1.0) for c in controls)
+    vectors = [c.vector for c in controls]
+    pairs = [(c, d.vector) for c in vectors for d in defaults] + \
+        [(a, b) for i, a in enumerate(vectors) for b in vectors[i + 1:]]
     assert max(abs(float(a @ b / (a.norm() * b.norm()))) for a, b in pairs) < 5 / math.sqrt(width)
 
 
 def test_random_controls_in_requests(catalog):
     [entry] = parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 3.0, "direction": "random_0"}, catalog)
     assert entry.vector.direction == "random_0" and entry.describe()["direction"] == "random_0"
-    assert entry.vector_alpha * entry.vector.norm == pytest.approx(3.0 * catalog.get("on_vs_off", 2).mean_residual_norm)
-    for name in ("random_1000", "random_01", "random_", "random_-1", "Random_0", "random_0x", "random"):
-        with pytest.raises(RequestError, match=r"has \['residual'\] and random_0..random_999") as err:
+    assert entry.vector_alpha == pytest.approx(3.0 * catalog.get("on_vs_off", 2).mean_residual_norm)
+    for name in ("random_1000", "random_01", "random_", "random_-1", "Random_0", "random_0x", "random", "residual",
+                 ""):
+        with pytest.raises(RequestError, match=r"has \['mean_difference'\] and random_0..random_999") as err:
             parse_steering({"pair": "on_vs_off", "layer": 2, "alpha": 1.0, "direction": name}, catalog)
         assert err.value.key == "steering.direction"
 
@@ -201,8 +302,8 @@ def test_random_controls_in_requests(catalog):
     ({"pair": "open_vs_close", "layer": 1, "alpha": float("nan")}, "steering.alpha", "finite number"),
     ({"pair": "open_vs_close", "layer": 1, "alpha": True}, "steering.alpha", "finite number, got bool"),
     ({"pair": "open_vs_close", "layer": 1}, "steering.alpha", "missing"),
-    ({"pair": "open_vs_close", "layer": 2, "alpha": 1, "direction": "mean_difference"}, "steering.direction",
-     r"has \['residual'\]"),
+    ({"pair": "open_vs_close", "layer": 2, "alpha": 1, "direction": "sae"}, "steering.direction",
+     r"has no 'sae' direction; it has \['mean_difference'\]"),
     ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "scale": 2}, "steering", r"unknown key\(s\) \['scale'\]"),
     ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "alpha_units": "R"}, "steering.alpha_units",
      r"expected one of \['residual_norm', 'vector'\], got str 'R'"),
@@ -211,6 +312,21 @@ def test_random_controls_in_requests(catalog):
     ({"pair": "open_vs_close", "layer": 1, "alpha": -101.0}, "steering.alpha", "above the server's bound 100"),
     ([{"pair": "open_vs_close", "layer": 1, "alpha": 1}, 3], "steering[1]", "expected a dict"),
     ("open_vs_close", "steering", "expected a dict"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "mode": "set"}, "steering.mode",
+     r"expected one of \['add', 'clamp'\], got str 'set'"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 1, "mode": ["clamp"]}, "steering.mode", "got list"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 0.5, "mode": "clamp", "alpha_units": "vector"},
+     "steering.alpha_units", "mode 'clamp' takes alpha as the level fraction"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": 0.5, "mode": "clamp", "direction": "random_2"}, "steering.mode",
+     r"'random_2' is a random control, with no concept levels to clamp to; use mode 'add', or clamp one of "
+     r"\['mean_difference', 'sae', 'sae_top_k'\]"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": "0.5", "mode": "clamp"}, "steering.alpha",
+     "finite number, got str"),
+    ({"pair": "open_vs_close", "layer": 1, "alpha": -101.0, "mode": "clamp"}, "steering.alpha",
+     r"\|alpha\| is 101 in level-fraction units, above the server's bound 100"),
+    ([{"pair": "open_vs_close", "layer": 1, "alpha": 0.0, "mode": "clamp"},
+      {"pair": "on_vs_off", "layer": 1, "alpha": 1.0, "mode": "clamp", "direction": "mean_difference"}],
+     "steering[1].layer", r"layer 1 is clamped by steering\[0\] too"),
 ])
 def test_bad_steering_entries_name_the_key(catalog, value, key, problem):
     with pytest.raises(RequestError, match=problem) as err:
@@ -223,20 +339,23 @@ def test_bad_steering_entries_name_the_key(catalog, value, key, problem):
 def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, tmp_path):
     steer = {"pair": "open_vs_close", "layer": 1, "alpha": 4.0}
     both = [steer, {"pair": "on_vs_off", "layer": 2, "alpha": -2.5, "alpha_units": "vector"}]
+    clamp = {"pair": "open_vs_close", "layer": 1, "alpha": 0.75, "direction": "sae_top_k", "mode": "clamp"}
     requests = [{"obs": obs} for obs in observations] + [
         {"obs": observations[0] | {"steering": steer}},
         {"obs": observations[1] | {"steering": both}},
         {"obs": observations[2] | {"steering": {**steer, "direction": "mean_difference"}}},
         {"obs": observations[3] | {"steering": {**steer, "direction": "random_2"}}},
+        {"obs": observations[0] | {"steering": clamp}},
     ]
     with running(PolicyServer(FakePolicy(), catalog)) as server:
         [client] = run_openpi_client(tmp_path, server.port, [requests])
     replies = [result["reply"] for result in client["results"]]
     wanted = [expected(catalog, obs) for obs in observations] + [
         expected(catalog, observations[0], ("open_vs_close", 1, 4.0)),
-        expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5, "residual", "vector")),
+        expected(catalog, observations[1], ("open_vs_close", 1, 4.0), ("on_vs_off", 2, -2.5, None, "vector")),
         expected(catalog, observations[2], ("open_vs_close", 1, 4.0, "mean_difference")),
         expected(catalog, observations[3], ("open_vs_close", 1, 4.0, "random_2")),
+        expected(catalog, observations[0], ("open_vs_close", 1, 0.75, "sae_top_k", "clamp")),
     ]
     for reply, actions in zip(replies, wanted, strict=True):
         assert reply["actions"].dtype == np.float32 and reply["actions"].shape == (10, 7)
@@ -244,11 +363,14 @@ def test_openpi_client_round_trip_steering_and_metadata(catalog, observations, t
     assert not np.array_equal(replies[4]["actions"], replies[0]["actions"])  # steering changes the actions
     assert replies[0]["steering"] == []
     assert [(s["pair"], s["layer"], s["direction"], s["alpha"], s["alpha_units"]) for s in replies[5]["steering"]] \
-        == [("open_vs_close", 1, "residual", 4.0, "residual_norm"), ("on_vs_off", 2, "residual", -2.5, "vector")]
-    vector = catalog.get("open_vs_close", 1)
+        == [("open_vs_close", 1, "sae", 4.0, "residual_norm"), ("on_vs_off", 2, "mean_difference", -2.5, "vector")]
+    vector, other = catalog.get("open_vs_close", 1), catalog.get("on_vs_off", 2)
     assert replies[5]["steering"][0]["norm"] == pytest.approx(vector.norm)
-    assert replies[5]["steering"][0]["vector_alpha"] == pytest.approx(4.0 * vector.mean_residual_norm / vector.norm)
-    assert replies[5]["steering"][1]["vector_alpha"] == -2.5
+    assert replies[5]["steering"][0]["vector_alpha"] == pytest.approx(4.0 * vector.mean_residual_norm)
+    assert replies[5]["steering"][1]["vector_alpha"] == pytest.approx(-2.5 * other.norm)
+    assert [(s["direction"], s["mode"], s["alpha"], s["alpha_units"]) for s in replies[8]["steering"]] == \
+        [("sae_top_k", "clamp", 0.75, None)]
+    assert not np.array_equal(replies[8]["actions"], replies[0]["actions"])
     # prev_total_ms from the 2nd request on
     assert set(replies[0]["server_timing"]) == {"infer_ms", "queue_ms", "batch_rows", "batch_requests"}
     assert (replies[0]["server_timing"]["batch_rows"], replies[0]["server_timing"]["batch_requests"]) == (1, 1)

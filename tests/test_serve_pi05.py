@@ -65,13 +65,17 @@ def observations(tmp_path_factory):
 
 
 def direct(policy: Pi05Policy, catalog: VectorCatalog, observation: dict, *entries: tuple) -> np.ndarray:
-    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha[, direction]) at the
-    instruction tokens, α in residual_norm units: the vector times α·R/‖d‖."""
+    """`Pi05Policy.infer` with the server's fixed noise and each (pair, layer, alpha[, direction[, "clamp"]]) at
+    the instruction tokens: α in residual_norm units, the unit vector times α·R; a clamp sets the projection to
+    level fraction α of the vector's levels (m₋, m₊)."""
     noise = torch.randn(policy.action_horizon, policy.action_dim, generator=torch.Generator().manual_seed(SEED))
     mask = policy.instruction_mask(observation["prompt"])
-    vectors = [(catalog.get(pair, layer, *direction), alpha) for pair, layer, alpha, *direction in entries]
-    steering = [Steering(v.layer, v.vector, alpha * v.mean_residual_norm / v.norm, token_mask=mask)
-                for v, alpha in vectors]
+    steering = []
+    for pair, layer, alpha, *rest in entries:
+        v = catalog.get(pair, layer, *rest[:1])
+        steering.append(Steering(v.layer, v.vector, alpha, token_mask=mask, mode="clamp", levels=v.levels)
+                        if rest[1:] == ["clamp"] else Steering(v.layer, v.vector, alpha * v.mean_residual_norm,
+                                                               token_mask=mask))
     return policy.infer(observation, steering=steering or None, noise=noise)["actions"]
 
 
@@ -80,8 +84,10 @@ def test_openpi_client_gets_pi05_infer_bit_for_bit(model, observations, tmp_path
     catalog = VectorCatalog.scan(vectors)
     steer = [{"pair": "open_vs_close", "layer": 1, "alpha": 6.0}, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}]
     control = {"pair": "open_vs_close", "layer": 1, "alpha": 6.0, "direction": "random_1"}
+    clamp = [{"pair": "open_vs_close", "layer": 1, "alpha": 0.5, "direction": "mean_difference", "mode": "clamp"},
+             {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}]
     requests = [{"obs": obs} for obs in observations] + [{"obs": obs | {"steering": steer}} for obs in observations] \
-        + [{"obs": observations[0] | {"steering": control}}]
+        + [{"obs": observations[0] | {"steering": control}}, {"obs": observations[0] | {"steering": clamp}}]
     served = SteeredPi05Policy(policy, noise_seed=SEED)
     served.check_catalog(catalog)
     with running(PolicyServer(served, catalog)) as server:
@@ -89,13 +95,17 @@ def test_openpi_client_gets_pi05_infer_bit_for_bit(model, observations, tmp_path
     replies = [result["reply"]["actions"] for result in client["results"]]
     wanted = [direct(policy, catalog, obs) for obs in observations] + \
         [direct(policy, catalog, obs, ("open_vs_close", 1, 6.0), ("on_vs_off", 2, -3.0)) for obs in observations] \
-        + [direct(policy, catalog, observations[0], ("open_vs_close", 1, 6.0, "random_1"))]
+        + [direct(policy, catalog, observations[0], ("open_vs_close", 1, 6.0, "random_1")),
+           direct(policy, catalog, observations[0], ("open_vs_close", 1, 0.5, "mean_difference", "clamp"),
+                  ("on_vs_off", 2, -3.0))]
     for reply, actions in zip(replies, wanted, strict=True):
         assert reply.shape == (10, 7) and reply.dtype == actions.dtype
         assert reply.tobytes() == actions.tobytes()
     for plain, steered in zip(replies[:3], replies[3:6], strict=True):
         assert np.abs(plain - steered).max() > 1e-4  # steering changes the actions
     assert np.abs(replies[6] - replies[0]).max() > 1e-4  # and so does its random control
+    assert np.abs(replies[7] - direct(policy, catalog, observations[0], ("on_vs_off", 2, -3.0))).max() > 1e-4
+    assert [s["mode"] for s in client["results"][7]["reply"]["steering"]] == ["clamp", "add"]
     metadata = client["metadata"]
     assert metadata["model"] == "pi05" and metadata["noise_seed"] == SEED
     assert metadata["steering"]["vectors"] == catalog.describe()
@@ -133,15 +143,18 @@ class HeldFirstCall:
 
 
 def test_concurrent_clients_share_a_call_and_each_row_equals_its_request_alone(model, observations, tmp_path):
-    """Eight openpi clients at once, with mixed steering (pairs, layers, α units, a random control, none) and one
-    request carrying two frames: two policy calls answer them all, each row as its request alone."""
+    """Ten openpi clients at once, with mixed steering (pairs, layers, α units, a random control, two clamps of one
+    layer, none) and one request carrying two frames: two calls of the served policy answer them all (the two
+    clamps in separate calls of the model), each row as its request alone."""
     _, _, vectors, policy = model
     catalog = VectorCatalog.scan(vectors)
     open_close = {"pair": "open_vs_close", "layer": 1, "alpha": 6.0}
     entries = [None, open_close, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0},
                [open_close, {"pair": "on_vs_off", "layer": 2, "alpha": -3.0}],
                open_close | {"direction": "random_1"}, open_close | {"direction": "mean_difference"},
-               {"pair": "on_vs_off", "layer": 1, "alpha": 0.5, "alpha_units": "vector"}]
+               {"pair": "on_vs_off", "layer": 1, "alpha": 0.5, "alpha_units": "vector"},
+               open_close | {"alpha": 0.8, "mode": "clamp"},
+               {"pair": "on_vs_off", "layer": 1, "alpha": 0.2, "direction": "sae_top_k", "mode": "clamp"}]
     single = [observations[i % 3] | ({"steering": entry} if entry else {}) for i, entry in enumerate(entries)]
     batched = {key: np.stack([observations[1][key], observations[2][key]]) for key in observations[0]
                if key != "prompt"} | {"prompt": [observations[1]["prompt"], "put the bowl on the plate"],

@@ -1,14 +1,16 @@
-"""The steering vectors a server offers: every residual-space direction under the steer step's output root.
+"""The steering vectors a server offers: every direction method the steer step wrote under its output root.
 
-Layout read (steering_core.vectors.directions): `<root>/layerNN/<pair>/directions.json` lists the pair's files;
-`residual_direction.safetensors` (the SAE-decoded direction, or the mean difference when no SAE was used) and,
-with an SAE, `mean_difference_direction.safetensors`. Direction kinds served: "residual" and "mean_difference".
-`latent_direction` lives in the SAE's latent space, not the residual stream, so it cannot be added and is not
-offered. Vectors are loaded from the safetensors copies (no pickle) as float32 (width,) CPU tensors, with the
-pair's `mean_residual_norm` (R, the residual_norm α unit) and `include_decoder_bias` from directions.json.
+Layout read (steering_core.vectors.directions): the `methods` table of `<root>/layerNN/<pair>/directions.json`
+names one `<method>_direction.safetensors` per direction method (`steering_core.vectors.methods.direction_file`:
+a unit float32 (width,) vector, its length `norm` before normalising, the concepts' mean levels (m₋, m₊) on it
+and the rows' `mean_residual_norm` R). Each method is served under its registered name (`sae`, `mean_difference`,
+`sae_top_k`, `probe`, ...; the seed's "residual" is `sae`). A pair folder without a `methods` table (written
+before the registry) is refused: re-run steer.
 
-Controls: "random_<k>" (k = 0..RANDOM_CONTROLS - 1) is a norm-matched random direction of the pair's residual
-vector at that layer (`random_control`), derived on request rather than stored.
+DEFAULT_DIRECTIONS: a request naming no direction gets the pair's "sae" direction at that layer, or its
+"mean_difference" where no SAE was used. Controls: "random_<k>" (k = 0..RANDOM_CONTROLS - 1) is a random unit
+direction carrying the default direction's norm and R (`random_control`), derived on request rather than stored;
+it has no levels, so it steers by adding only.
 """
 
 from __future__ import annotations
@@ -25,30 +27,34 @@ import torch
 
 from steering_core.layout import PAIR_SUMMARY_FILE
 from steering_core.storage.fileio import read_json
-from steering_core.tensor_files import load_safetensors, require_finite
-from steering_core.vectors.directions import MEAN_DIFFERENCE_FILE, RESIDUAL_DIRECTION_FILE
+from steering_core.vectors.methods import METHODS
+from steering_core.vectors.methods.direction_file import read_method_direction
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_DIRECTION = "residual"
-DIRECTION_FILES = {"residual": RESIDUAL_DIRECTION_FILE, "mean_difference": MEAN_DIFFERENCE_FILE}
+DEFAULT_DIRECTIONS = ("sae", "mean_difference")  # a request without `direction` gets the first the pair has
 _LAYER_FOLDER = re.compile(r"layer(\d+)")
 RANDOM_CONTROLS = 1000  # random_0 .. random_999: plenty of controls, a bounded set of vectors a client can ask for
 _RANDOM = re.compile(r"random_(0|[1-9]\d*)")
+# the writer stores unit vectors; the α units (request.AppliedSteering.vector_alpha) rely on it
+UNIT_TOLERANCE = 1e-4
 RANDOM_DERIVATION = (
-    f"random_<k> (k = 0..{RANDOM_CONTROLS - 1}): an isotropic Gaussian direction scaled to the norm of the pair's "
-    "residual vector at that layer, with its mean_residual_norm; drawn in float64 by a CPU torch.Generator seeded "
-    "with zlib.crc32(b'<pair>/<layer>/random_<k>'), then rounded to float32 "
-    "(steering_core.serve.catalog.random_direction). Not the evaluation's covariance-shaped random_NN nulls."
+    f"random_<k> (k = 0..{RANDOM_CONTROLS - 1}): an isotropic Gaussian unit direction with the norm and "
+    "mean_residual_norm of the pair's default direction at that layer (sae, else mean_difference); drawn in float64 "
+    "by a CPU torch.Generator seeded with zlib.crc32(b'<pair>/<layer>/random_<k>'), normalised, then rounded to "
+    "float32 (steering_core.serve.catalog.random_direction with norm 1). Add mode only (no levels). Not the "
+    "evaluation's covariance-shaped random_NN nulls."
 )
 
 
 @dataclass(frozen=True)
 class SteeringVector:
-    """One stored direction: float32 (width,) `vector`, its L2 `norm` (‖d‖), and where it came from.
+    """One servable direction: a unit float32 (width,) `vector`, and where it came from.
 
-    `mean_residual_norm` is R, the mean norm of the rows it was computed from (None: phase-3 outputs older than
-    the record, usable in vector units only); `include_decoder_bias`: the SAE's b_dec is part of the vector.
+    `norm` is the length of the method's vector before normalising (α·norm·vector is α in "vector" units);
+    `mean_residual_norm` is R, the mean norm of the rows it was computed from (None: statistics older than the
+    record, usable in vector units only); `levels` (m₋, m₊) are the concepts' mean projections on `vector`, the
+    clamp mode's levels (None: a random control, add only); `include_decoder_bias`: the SAE's b_dec is part of it.
     """
 
     pair: str
@@ -60,12 +66,17 @@ class SteeringVector:
     direction_space: str
     mean_residual_norm: float | None = None
     include_decoder_bias: bool = False
+    levels: tuple[float, float] | None = None
 
     def describe(self) -> dict:
         """Return the JSON-ready entry a client sees in the server metadata."""
-        return {"pair": self.pair, "layer": self.layer, "direction": self.direction, "norm": self.norm,
-                "mean_residual_norm": self.mean_residual_norm, "include_decoder_bias": self.include_decoder_bias,
-                "width": int(self.vector.numel()), "direction_space": self.direction_space}
+        method = METHODS.get(self.direction)
+        return {"pair": self.pair, "layer": self.layer, "direction": self.direction,
+                "description": None if method is None else method.description, "norm": self.norm,
+                "mean_residual_norm": self.mean_residual_norm,
+                "levels": None if self.levels is None else list(self.levels),
+                "include_decoder_bias": self.include_decoder_bias, "width": int(self.vector.numel()),
+                "direction_space": self.direction_space}
 
 
 class VectorCatalog:
@@ -101,14 +112,20 @@ class VectorCatalog:
     def __iter__(self):
         return iter(self._vectors.values())
 
-    def get(self, pair: str, layer: int, direction: str = DEFAULT_DIRECTION) -> SteeringVector | None:
-        """Return the vector (for "random_<k>", the residual vector's random control), or None when the catalog
-        has no such entry."""
+    def default_direction(self, pair: str, layer: int) -> str | None:
+        """Return the direction a request naming none gets (the first of DEFAULT_DIRECTIONS stored), or None."""
+        return next((name for name in DEFAULT_DIRECTIONS if (pair, layer, name) in self._vectors), None)
+
+    def get(self, pair: str, layer: int, direction: str | None = None) -> SteeringVector | None:
+        """Return the vector (None: the default direction; "random_<k>": the default direction's random control),
+        or None when the catalog has no such entry."""
+        default = self.default_direction(pair, layer)
+        if direction is None:
+            return None if default is None else self._vectors[(pair, layer, default)]
         match = _RANDOM.fullmatch(direction)
         if match is None or int(match.group(1)) >= RANDOM_CONTROLS:
             return self._vectors.get((pair, layer, direction))
-        residual = self._vectors.get((pair, layer, DEFAULT_DIRECTION))
-        return None if residual is None else random_control(residual, int(match.group(1)))
+        return None if default is None else random_control(self._vectors[(pair, layer, default)], int(match.group(1)))
 
     @property
     def pairs(self) -> list[str]:
@@ -119,7 +136,7 @@ class VectorCatalog:
         return sorted({layer for p, layer, _ in self._vectors if p == pair})
 
     def directions(self, pair: str, layer: int) -> list[str]:
-        """Return the direction kinds stored for `pair` at `layer`."""
+        """Return the direction methods stored for `pair` at `layer`."""
         return sorted(kind for p, at, kind in self._vectors if (p, at) == (pair, layer))
 
     def describe(self) -> list[dict]:
@@ -138,39 +155,38 @@ def random_direction(pair: str, layer: int, k: int, width: int, norm: float) -> 
     return (direction * (norm / direction.norm())).float()
 
 
-def random_control(residual: SteeringVector, k: int) -> SteeringVector:
-    """Return the "random_<k>" control of a residual vector: its norm, R and width, a random direction."""
-    vector = random_direction(residual.pair, residual.layer, k, residual.vector.numel(), residual.norm)
-    return replace(residual, direction=f"random_{k}", vector=vector, norm=float(vector.norm()),
-                   include_decoder_bias=False)
+def random_control(default: SteeringVector, k: int) -> SteeringVector:
+    """Return the "random_<k>" control of a pair's default direction: a random unit vector with its norm, R and
+    width, and no levels."""
+    vector = random_direction(default.pair, default.layer, k, default.vector.numel(), 1.0)
+    return replace(default, direction=f"random_{k}", vector=vector, include_decoder_bias=False, levels=None)
 
 
 def _read_pair(pair_path: Path, layer: int) -> list[SteeringVector]:
     summary_path = pair_path / PAIR_SUMMARY_FILE
     summary = read_json(summary_path)
-    files = summary.get("files") if isinstance(summary, dict) else None
-    if not isinstance(files, dict):
-        raise ValueError(f"{summary_path}: no `files` table; expected the steer step's directions.json")
+    methods = summary.get("methods") if isinstance(summary, dict) else None
+    if not isinstance(methods, dict) or not methods:
+        raise ValueError(f"{summary_path}: no `methods` table (written before the direction methods existed); "
+                         "re-run steer to write the pair's method directions")
     vectors = []
-    for direction, stem in DIRECTION_FILES.items():
-        entry = files.get(stem)
-        if entry is None:
-            continue
-        path = pair_path / entry["safetensors"]
-        try:
-            vector = load_safetensors(path)[entry["tensor"]]
-        except (OSError, KeyError) as err:
-            raise ValueError(f"{path}: cannot read tensor {entry.get('tensor')!r} ({err})") from None
-        if vector.ndim != 1 or not vector.is_floating_point():
-            raise ValueError(f"{path}: direction is {vector.dtype} {tuple(vector.shape)}, "
-                             "expected a float (width,) vector")
-        require_finite(vector, path, entry["tensor"], "re-run steer to rewrite the pair's directions")
-        vector = vector.float()
+    for name, entry in methods.items():
+        file = entry.get("file") if isinstance(entry, dict) else None
+        if not isinstance(file, str) or not (pair_path / file).is_file():
+            raise ValueError(f"{summary_path}: methods.{name}.file is {file!r}, expected the name of a file in "
+                             f"{pair_path}; re-run steer")
+        path = pair_path / file
+        stored = read_method_direction(path)
+        length = float(stored.direction.double().norm())
+        if (stored.method, stored.layer) != (name, layer) or not abs(length - 1) <= UNIT_TOLERANCE:
+            raise ValueError(f"{path}: method {stored.method!r}, layer {stored.layer}, length {length:.6g}; expected "
+                             f"method {name!r} (as listed in {PAIR_SUMMARY_FILE}), layer {layer} and a unit vector; "
+                             "re-run steer")
         vectors.append(SteeringVector(
-            pair=summary.get("pair", pair_path.name), layer=layer, direction=direction, vector=vector,
-            norm=float(vector.norm()), path=path, direction_space=str(summary.get("direction_space", "residual")),
-            mean_residual_norm=_positive_number(summary.get("mean_residual_norm"), summary_path),
-            include_decoder_bias=direction == "residual" and summary.get("include_decoder_bias") is True,
+            pair=str(summary.get("pair", pair_path.name)), layer=layer, direction=name, vector=stored.direction,
+            norm=stored.norm, path=path, direction_space=str(summary.get("direction_space", "residual")),
+            mean_residual_norm=_positive_number(stored.mean_residual_norm, path),
+            include_decoder_bias=stored.record.get("include_decoder_bias") is True, levels=stored.levels,
         ))
     return vectors
 

@@ -2,7 +2,8 @@
 `warm_up()`, which the server runs once before it listens.
 
 `SteeredPi05Policy` adapts `Pi05Policy`: each selected vector becomes a `Steering` on the language model's
-residual stream at the prompt's instruction tokens (where the steer step measured the concepts).
+residual stream at the prompt's instruction tokens (where the steer step measured the concepts), adding to it
+(mode "add") or clamping its projection to a level between the concepts' means (mode "clamp").
 """
 
 from __future__ import annotations
@@ -71,8 +72,9 @@ class SteeredPi05Policy:
 
     def steerings(self, prompts: Sequence[str], states: np.ndarray, rows: Sequence[slice],
                   steering: Sequence[Sequence[AppliedSteering]]) -> list:
-        """Return the `Steering`s of a batch of requests: request r's vectors, each times its `vector_alpha`, added at
-        the instruction tokens of its own rows `rows[r]` of `prompts` (the other rows' masks are all False)."""
+        """Return the `Steering`s of a batch of requests at the instruction tokens of request r's own rows `rows[r]`
+        of `prompts` (the other rows' masks are all False): an add entry's unit vector times its `vector_alpha`, a
+        clamp entry's projection set to level fraction `alpha` of its vector's levels."""
         from steering_core.pi05.steering import Steering
 
         if not any(steering):
@@ -82,8 +84,14 @@ class SteeredPi05Policy:
         for where, entries in zip(rows, steering, strict=True):
             mine = torch.zeros_like(masks)
             mine[where] = masks[where]
-            steerings += [Steering(layer=s.vector.layer, vector=self._on_device(s.vector), alpha=s.vector_alpha,
-                                   token_mask=mine) for s in entries]
+            for s in entries:
+                vector = self._on_device(s.vector)
+                if s.mode == "clamp":
+                    steerings.append(Steering(layer=s.vector.layer, vector=vector, alpha=s.alpha, token_mask=mine,
+                                              mode="clamp", levels=s.vector.levels))
+                else:
+                    steerings.append(Steering(layer=s.vector.layer, vector=vector, alpha=s.vector_alpha,
+                                              token_mask=mine))
         return steerings
 
     def warm_up(self, max_rows: int = 1) -> None:
@@ -102,11 +110,21 @@ class SteeredPi05Policy:
     def infer_batch(self, observations: Sequence[dict[str, Any]],
                     steering: Sequence[Sequence[AppliedSteering]]) -> list[dict[str, Any]]:
         """Return one result per observation (one frame, or frames along a leading batch dim), each steered by its
-        own entries, from one policy call over all their rows.
+        own entries, from one policy call over all their rows, or one per group of requests clamping distinct
+        layers (a call takes one clamp per layer).
 
         Each row keeps its prompt, its steering (masked to its own instruction tokens) and its noise, so its actions
         are those of its request alone, up to float32 rounding (the batch's prompt padding and kernel blocking).
         """
+        answered: dict[int, dict[str, Any]] = {}
+        for group in clamp_groups(steering):
+            results = self._infer_call([observations[i] for i in group], [steering[i] for i in group])
+            answered |= dict(zip(group, results, strict=True))
+        return [answered[i] for i in range(len(observations))]
+
+    def _infer_call(self, observations: Sequence[dict[str, Any]],
+                    steering: Sequence[Sequence[AppliedSteering]]) -> list[dict[str, Any]]:
+        """Return one result per observation from one policy call over all their rows."""
         from steering_core.pi05.observation import ObservationBatch, observation_batch
 
         start = time.perf_counter()
@@ -127,3 +145,18 @@ class SteeredPi05Policy:
         if key not in self._vectors:
             self._vectors[key] = vector.vector.to(self.policy.device)
         return self._vectors[key]
+
+
+def clamp_groups(steering: Sequence[Sequence[AppliedSteering]]) -> list[list[int]]:
+    """Return the requests' indices in groups, in order, such that no two requests of a group clamp one layer:
+    each request joins the first group whose clamped layers it does not share."""
+    groups: list[tuple[list[int], set[int]]] = []
+    for index, entries in enumerate(steering):
+        layers = {s.vector.layer for s in entries if s.mode == "clamp"}
+        group = next((g for g in groups if not layers & g[1]), None)
+        if group is None:
+            group = ([], set())
+            groups.append(group)
+        group[0].append(index)
+        group[1].update(layers)
+    return [indices for indices, _ in groups]

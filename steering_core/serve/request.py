@@ -1,5 +1,12 @@
 """One request's contents checked before inference: the observation's LIBERO keys and the `steering` entry.
 
+A steering entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str, "mode"?: str,
+"alpha_units"?: str}`. direction: a method the steer step wrote (`sae`, `mean_difference`, `probe`, ...; the
+catalog's) or a random control `random_<k>`; none: the pair's default (`sae`, else `mean_difference`). mode "add"
+(default): α times the unit vector scaled by its `alpha_units` is added. mode "clamp": each steered token's
+projection on the unit vector is set to m₋ + α·(m₊ − m₋), α the level fraction (0: the negative concept's mean
+level, 1: the positive's); no alpha_units, no random controls.
+
 Every problem raises RequestError naming the key (`observation/image`, `steering[1].alpha`), what was found and
 what was expected; the server sends that text back and keeps the connection.
 """
@@ -14,18 +21,19 @@ from typing import Any
 import numpy as np
 
 from steering_core.pi05.observation import IMAGE_KEY, PROMPT_KEY, STATE_KEY, WRIST_IMAGE_KEY
-from steering_core.pi05.steering import LAST_LM_LAYER
-from steering_core.serve.catalog import DEFAULT_DIRECTION, RANDOM_CONTROLS, SteeringVector, VectorCatalog
+from steering_core.pi05.steering import LAST_LM_LAYER, MODES
+from steering_core.serve.catalog import DEFAULT_DIRECTIONS, RANDOM_CONTROLS, SteeringVector, VectorCatalog
 
 STEERING_KEY = "steering"
 IMAGE_KEYS = (IMAGE_KEY, WRIST_IMAGE_KEY)
-ENTRY_KEYS = ("pair", "layer", "alpha", "direction", "alpha_units")
-# residual_norm: α·R/‖d‖·d is added, a shift of norm |α|·R (R: the vector's mean residual norm), the unit of the
-# evaluation's tables; vector: α·d, the stored vector times α
+ENTRY_KEYS = ("pair", "layer", "alpha", "direction", "alpha_units", "mode")
+# add mode: residual_norm: α·R·v̂ is added, a shift of norm |α|·R (R: the vector's mean residual norm), the unit of
+# the evaluation's tables; vector: α·d = α·‖d‖·v̂, the method's vector (before normalising) times α
 ALPHA_UNITS = ("residual_norm", "vector")
 DEFAULT_ALPHA_UNITS = "residual_norm"
-# |α| in residual_norm units: a shift 100 times the typical residual norm swamps the residual stream (the
-# evaluation's grid stays within a few units); larger values only reach float overflow (NaN actions)
+DEFAULT_MODE = "add"
+# |α| in residual_norm units (add) or level fractions (clamp): a shift 100 times the typical residual norm swamps
+# the residual stream (the evaluation's grid stays within a few units); larger values only reach float overflow
 DEFAULT_MAX_ALPHA = 100.0
 # the policy resizes each image to a square (224 for pi0.5) keeping its aspect: a side shorter than 1/224 of the
 # other vanishes; LIBERO's cameras are square, and no camera is 16 times wider than high
@@ -48,24 +56,27 @@ class RequestError(ValueError):
 
 @dataclass(frozen=True)
 class AppliedSteering:
-    """One steering vector of a request: `alpha` in `alpha_units` (see ALPHA_UNITS)."""
+    """One steering vector of a request. mode "add": `alpha` in `alpha_units` (see ALPHA_UNITS); mode "clamp":
+    `alpha` is the level fraction between the vector's `levels` (`alpha_units` None)."""
 
     vector: SteeringVector
     alpha: float
-    alpha_units: str = DEFAULT_ALPHA_UNITS
+    alpha_units: str | None = DEFAULT_ALPHA_UNITS
+    mode: str = DEFAULT_MODE
 
     @property
-    def vector_alpha(self) -> float:
-        """Return the factor the stored vector is multiplied by (α in vector units)."""
-        if self.alpha_units == "vector":
-            return self.alpha
-        return self.alpha * self.vector.mean_residual_norm / self.vector.norm
+    def vector_alpha(self) -> float | None:
+        """Return the factor the unit vector is multiplied by in add mode (None in clamp mode)."""
+        if self.mode == "clamp":
+            return None
+        return self.alpha * (self.vector.norm if self.alpha_units == "vector" else self.vector.mean_residual_norm)
 
     def describe(self) -> dict:
         """Return the JSON-ready record reported back in the result's `steering` list."""
         v = self.vector
-        return {"pair": v.pair, "layer": v.layer, "direction": v.direction, "alpha": self.alpha,
-                "alpha_units": self.alpha_units, "vector_alpha": self.vector_alpha, "norm": v.norm,
+        return {"pair": v.pair, "layer": v.layer, "direction": v.direction, "mode": self.mode, "alpha": self.alpha,
+                "alpha_units": self.alpha_units, "vector_alpha": self.vector_alpha,
+                "levels": None if v.levels is None else list(v.levels), "norm": v.norm,
                 "mean_residual_norm": v.mean_residual_norm}
 
 
@@ -127,8 +138,9 @@ def _prompts(value: Any, rows: int) -> list[Any]:
 
 @dataclass(frozen=True)
 class SteeringLimits:
-    """What a server accepts beyond its catalog: |α| up to `max_alpha` (residual_norm units), and language-model
-    layers below `lm_depth - 1` (the last layer's output only feeds the final norm, which no action reads)."""
+    """What a server accepts beyond its catalog: |α| up to `max_alpha` (residual_norm units; clamps: level
+    fractions), and language-model layers below `lm_depth - 1` (the last layer's output only feeds the final norm,
+    which no action reads)."""
 
     max_alpha: float = DEFAULT_MAX_ALPHA
     lm_depth: int | None = None  # None: the model's depth is unknown, every catalog layer passes
@@ -139,9 +151,8 @@ def parse_steering(
 ) -> tuple[AppliedSteering, ...]:
     """Return the vectors a `steering` entry selects: None or [] selects none.
 
-    An entry is `{"pair": str, "layer": int, "alpha": number, "direction"?: str, "alpha_units"?: str}`
-    (direction default "residual", or "mean_difference", or a random control "random_<k>"; alpha_units default
-    "residual_norm"); `value` is one entry or a list of at most MAX_STEERING_ENTRIES.
+    `value` is one entry (module docstring) or a list of at most MAX_STEERING_ENTRIES, clamping each layer at
+    most once; the |alpha| of its add entries together stay within `limits.max_alpha` (their vectors add up).
     """
     if value is None:
         return ()
@@ -151,7 +162,13 @@ def parse_steering(
         if len(value) > MAX_STEERING_ENTRIES:
             raise RequestError(key, f"{len(value)} entries; expected at most {MAX_STEERING_ENTRIES}")
         entries = tuple(_parse_entry(entry, catalog, f"{key}[{i}]", limits) for i, entry in enumerate(value))
-        total = sum(_bounded_size(entry)[0] for entry in entries)
+        clamped: dict[int, int] = {}  # layer -> the entry clamping it
+        for i, entry in enumerate(entries):
+            layer = entry.vector.layer
+            if entry.mode == "clamp" and clamped.setdefault(layer, i) != i:
+                raise RequestError(f"{key}[{i}].layer", f"layer {layer} is clamped by {key}[{clamped[layer]}] too; "
+                                                        "a projection takes one level: clamp a layer once")
+        total = sum(_bounded_size(entry)[0] for entry in entries if entry.mode == "add")
         if total > limits.max_alpha:  # the vectors add up: the bound is on their sum, not on each
             raise RequestError(key, f"the entries' |alpha| add up to {total:g} (residual_norm units), above the "
                                     f"server's bound {limits.max_alpha:g} on their sum (serve --max-alpha)")
@@ -161,27 +178,32 @@ def parse_steering(
 
 
 def parse_steering_option(text: str) -> dict:
-    """Return the steering entry of a command-line spec `pair:layer:alpha[:direction[:alpha_units]]`."""
+    """Return the steering entry of a command-line spec `pair:layer:alpha[:direction[:alpha_units|mode]]`: a last
+    part naming a mode (`open_vs_close:12:0.5:probe:clamp`) is the entry's mode, any other its alpha_units."""
     parts = text.split(":")
     if len(parts) not in (3, 4, 5):
-        raise ValueError(f"steering {text!r} must look like pair:layer:alpha[:direction[:alpha_units]], "
-                         "e.g. open_vs_close:12:2.0")
+        raise ValueError(f"steering {text!r} must look like pair:layer:alpha[:direction[:alpha_units|mode]], "
+                         "e.g. open_vs_close:12:2.0 or open_vs_close:12:0.5:sae:clamp")
     try:
         entry = {"pair": parts[0], "layer": int(parts[1]), "alpha": float(parts[2])}
     except ValueError:
         raise ValueError(f"steering {text!r}: layer must be an integer and alpha a number") from None
-    return entry | dict(zip(ENTRY_KEYS[3:], parts[3:], strict=False))
+    if len(parts) > 3:
+        entry["direction"] = parts[3]
+    if len(parts) > 4:
+        entry["mode" if parts[4] in MODES else "alpha_units"] = parts[4]
+    return entry
 
 
 def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringLimits) -> AppliedSteering:
     if not isinstance(entry, Mapping):
-        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction, alpha_units), "
-                                f"got {_describe(entry)}")
+        raise RequestError(key, f"expected a dict with pair, layer, alpha (and optional direction, alpha_units, "
+                                f"mode), got {_describe(entry)}")
     unknown = sorted(str(k) for k in entry if k not in ENTRY_KEYS)
     if unknown:
         raise RequestError(key, f"unknown key(s) {unknown}; expected {list(ENTRY_KEYS)}")
     pair, layer, alpha = (_required(entry, name, f"{key}.{name}") for name in ENTRY_KEYS[:3])
-    direction = entry.get("direction", DEFAULT_DIRECTION)
+    direction, mode = entry.get("direction"), entry.get("mode", DEFAULT_MODE)
     if not isinstance(pair, str):
         raise RequestError(f"{key}.pair", f"expected a str, got {_describe(pair)}")
     if isinstance(layer, bool) or not isinstance(layer, int | np.integer):
@@ -189,8 +211,10 @@ def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringL
     if isinstance(alpha, bool) or not isinstance(alpha, int | float | np.integer | np.floating) \
             or not math.isfinite(alpha):
         raise RequestError(f"{key}.alpha", f"expected a finite number, got {_describe(alpha)}")
-    if not isinstance(direction, str):
+    if direction is not None and not isinstance(direction, str):
         raise RequestError(f"{key}.direction", f"expected a str, got {_describe(direction)}")
+    if not isinstance(mode, str) or mode not in MODES:
+        raise RequestError(f"{key}.mode", f"expected one of {list(MODES)}, got {_describe(mode)}")
     if pair not in catalog.pairs:
         raise RequestError(f"{key}.pair", f"unknown pair {pair!r}; the server has {catalog.pairs}")
     if int(layer) not in catalog.layers(pair):
@@ -199,20 +223,17 @@ def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringL
     if limits.lm_depth is not None and int(layer) == limits.lm_depth - 1:
         raise RequestError(f"{key}.layer", f"layer {int(layer)}: {LAST_LM_LAYER}; use a layer below {int(layer)}")
     vector = catalog.get(pair, int(layer), direction)
+    offered = catalog.directions(pair, int(layer))
     if vector is None:
-        offered = catalog.directions(pair, int(layer))
-        controls = f" and random_0..random_{RANDOM_CONTROLS - 1}" if DEFAULT_DIRECTION in offered else ""
-        raise RequestError(f"{key}.direction", f"pair {pair!r} at layer {int(layer)} has no {direction!r} direction; "
+        controls = f" and random_0..random_{RANDOM_CONTROLS - 1}" if catalog.default_direction(pair, int(layer)) else ""
+        missing = f"no default direction ({' or '.join(DEFAULT_DIRECTIONS)})" if direction is None \
+            else f"no {direction!r} direction"
+        raise RequestError(f"{key}.direction", f"pair {pair!r} at layer {int(layer)} has {missing}; "
                                                f"it has {offered}{controls}")
-    units = entry.get("alpha_units", DEFAULT_ALPHA_UNITS)
-    if units not in ALPHA_UNITS:
-        raise RequestError(f"{key}.alpha_units", f"expected one of {list(ALPHA_UNITS)}, got {_describe(units)}")
-    if units == "residual_norm" and (vector.mean_residual_norm is None or not vector.norm > 0):
-        problem = "no recorded mean_residual_norm (phase-3 output older than the record; re-run the steer step)" \
-            if vector.mean_residual_norm is None else "norm 0"
-        raise RequestError(f"{key}.alpha_units", f"{vector.path} has {problem}, so alpha cannot be in residual_norm "
-                                                 "units; send \"alpha_units\": \"vector\"")
-    applied = AppliedSteering(vector, float(alpha), units)
+    if mode == "clamp":
+        applied = _clamp_entry(entry, vector, float(alpha), key, offered)
+    else:
+        applied = _add_entry(entry, vector, float(alpha), key)
     size, unit = _bounded_size(applied)
     if size > limits.max_alpha:
         raise RequestError(f"{key}.alpha", f"|alpha| is {size:g} in {unit} units, above the server's bound "
@@ -220,9 +241,38 @@ def _parse_entry(entry: Any, catalog: VectorCatalog, key: str, limits: SteeringL
     return applied
 
 
+def _clamp_entry(entry: Mapping, vector: SteeringVector, alpha: float, key: str, offered: list[str]) -> AppliedSteering:
+    """Return a clamp entry; RequestError for alpha_units given, or a vector without two distinct levels."""
+    if "alpha_units" in entry:
+        raise RequestError(f"{key}.alpha_units", "mode 'clamp' takes alpha as the level fraction (0: the negative "
+                                                 "concept's mean level, 1: the positive's), in no units; drop it")
+    if vector.levels is None:
+        raise RequestError(f"{key}.mode", f"{vector.direction!r} is a random control, with no concept levels to "
+                                          f"clamp to; use mode 'add', or clamp one of {offered}")
+    if vector.levels[0] == vector.levels[1]:
+        raise RequestError(f"{key}.mode", f"{vector.path} has equal levels m- = m+ = {vector.levels[0]:g}: the "
+                                          "concepts do not differ along it; use mode 'add'")
+    return AppliedSteering(vector, alpha, None, "clamp")
+
+
+def _add_entry(entry: Mapping, vector: SteeringVector, alpha: float, key: str) -> AppliedSteering:
+    """Return an add entry; RequestError for unknown alpha_units, or residual_norm units without a recorded R."""
+    units = entry.get("alpha_units", DEFAULT_ALPHA_UNITS)
+    if units not in ALPHA_UNITS:
+        raise RequestError(f"{key}.alpha_units", f"expected one of {list(ALPHA_UNITS)}, got {_describe(units)}")
+    if units == "residual_norm" and vector.mean_residual_norm is None:
+        raise RequestError(f"{key}.alpha_units", f"{vector.path} has no recorded mean_residual_norm (concept "
+                                                 "statistics older than the record; re-run the steer step), so alpha "
+                                                 "cannot be in residual_norm units; send \"alpha_units\": \"vector\"")
+    return AppliedSteering(vector, alpha, units)
+
+
 def _bounded_size(applied: AppliedSteering) -> tuple[float, str]:
-    """Return |α| in residual_norm units (vector units for a vector without a recorded R) and that unit."""
+    """Return |α| in level fractions (clamp), else in residual_norm units (vector units for a vector without a
+    recorded R), and that unit."""
     vector = applied.vector
+    if applied.mode == "clamp":
+        return abs(applied.alpha), "level-fraction"
     if applied.alpha_units == "vector" and vector.mean_residual_norm is not None:
         return abs(applied.alpha) * vector.norm / vector.mean_residual_norm, "residual_norm"
     return abs(applied.alpha), applied.alpha_units

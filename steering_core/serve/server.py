@@ -47,13 +47,15 @@ from steering_core.serve.batching import (
     Batcher,
     InferenceFailed,
 )
-from steering_core.serve.catalog import RANDOM_DERIVATION, VectorCatalog
+from steering_core.serve.catalog import DEFAULT_DIRECTIONS, RANDOM_DERIVATION, VectorCatalog
 from steering_core.serve.episodes import CTRL_KEY, END_FIELDS, START_FIELDS, ConnectionEpisodes, EpisodeLog
 from steering_core.serve.policy import ServedPolicy
 from steering_core.serve.request import (
     ALPHA_UNITS,
     DEFAULT_ALPHA_UNITS,
     DEFAULT_MAX_ALPHA,
+    DEFAULT_MODE,
+    MODES,
     STEERING_KEY,
     AppliedSteering,
     RequestError,
@@ -104,8 +106,9 @@ transport_logger.addFilter(_OneLineHandshakeErrors())
 class PolicyServer:
     """Serve `policy` with the vectors of `catalog` on host:port (port 0: a free port, see `port` once ready).
 
-    Requests with |α| above `max_alpha` (residual_norm units) are refused, and so are steerings of the last
-    language-model layer when the policy's metadata gives its depth (`steerable.lm.layers`, as Pi05Policy's does).
+    Requests with |α| above `max_alpha` (residual_norm units; clamps: level fractions) are refused, and so are
+    steerings of the last language-model layer when the policy's metadata gives its depth (`steerable.lm.layers`,
+    as Pi05Policy's does).
     With `api_key`, only upgrades carrying it are accepted. Finished episodes go to `episode_log` (default: one
     kept in memory only); `episodes` lists the last EPISODES_KEPT. `inference_timeout_s`, `max_connections` and
     `max_queue` bound a request's wait and the server's memory; `max_batch` (rows) and `batch_wait_ms` shape the
@@ -329,10 +332,18 @@ class PolicyServer:
             "steering": {
                 "request_key": STEERING_KEY,
                 "entry": {"pair": "str", "layer": "int", "alpha": "float",
-                          "direction": "str: residual (default), mean_difference or random_<k>",
-                          "alpha_units": f"one of {list(ALPHA_UNITS)} (default {DEFAULT_ALPHA_UNITS})"},
-                "alpha_units": {"residual_norm": "alpha * mean_residual_norm / norm * vector is added (the "
-                                                 "evaluation's unit)", "vector": "alpha * vector is added"},
+                          "direction": f"str: a method of `vectors` or random_<k> (default: "
+                                       f"{' if stored, else '.join(DEFAULT_DIRECTIONS)})",
+                          "mode": f"one of {list(MODES)} (default {DEFAULT_MODE})",
+                          "alpha_units": f"add mode: one of {list(ALPHA_UNITS)} (default {DEFAULT_ALPHA_UNITS})"},
+                "modes": {"add": "alpha (in alpha_units) times the unit vector is added",
+                          "clamp": "each steered token's projection on the unit vector is set to m- + alpha * "
+                                   "(m+ - m-), (m-, m+) the vector's levels: alpha 0 the negative concept's mean, "
+                                   "1 the positive's; no alpha_units, no random controls"},
+                "alpha_units": {
+                    "residual_norm": "alpha * mean_residual_norm * vector is added (the evaluation's unit)",
+                    "vector": "alpha * norm * vector is added (the method's vector before normalising, times alpha)",
+                },
                 "max_alpha": self.limits.max_alpha,
                 "applied_at": "language-model residual stream, the prompt's instruction tokens",
                 "random_controls": RANDOM_DERIVATION,
