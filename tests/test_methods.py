@@ -140,3 +140,27 @@ def test_a_template_with_other_fields_is_refused(tmp_path):
     chosen = settings(tmp_path, methods=("file",), direction_file=str(tmp_path / "{pair}_{run}.safetensors"))
     with pytest.raises(ValueError, match=r"only \{pair\} and \{layer\} may be filled in"):
         compute_steering(chosen)
+
+
+def test_the_directions_identity_covers_every_method_setting_and_the_rows_they_read(tmp_path):
+    """Mutate each input a method reads: the pair-directions task's cache key must change with it."""
+    from tasks.sae import direction_inputs, stats_files
+
+    vector = torch.randn(D_IN, generator=torch.Generator().manual_seed(3))
+    save_file({"v": vector}, tmp_path / "p_12.safetensors")
+    base = settings(tmp_path, methods=("mean_difference", "file"),
+                    direction_file=str(tmp_path / "{pair}_{layer}.safetensors"))
+    key = direction_inputs(base)
+    for field, value in (("methods", ("file",)), ("top_k", 6), ("probe_folds", 3), ("probe_c", 0.5),
+                         ("effect_min_episodes", 3), ("include_decoder_bias", True),
+                         ("direction_file", str(tmp_path / "{pair}_{layer}_b.safetensors"))):
+        assert direction_inputs(base.model_copy(update={field: value})) != key, field
+    save_file({"v": vector * 2}, tmp_path / "p_12.safetensors")  # the supplied file's content
+    assert direction_inputs(base) != key
+    layer = compute_steering(base)
+    stats = next((layer / "concepts").glob("pos-*.json"))
+    before = stats_files(str(stats))
+    slices = tmp_path / "slices" / "positive.safetensors"  # the rows and episodes the probe and sae_effect read
+    episodes = torch.arange(3).repeat_interleave(10).flip(0)
+    save_file({"residuals": rows(tmp_path, "positive").float(), "episode_index": episodes}, slices)
+    assert stats_files(str(stats)) != before
