@@ -125,11 +125,12 @@ def gpu_inputs(path: Path | None) -> dict[str, Any]:
             "source": f"GPU check {path}"}
 
 
-def grid_model(gpu: dict[str, Any]) -> list[dict[str, Any]]:
-    """Return the modelled study time: inputs, GPU time, simulator time, and their sum (upper bound)."""
+def grid_model(gpu: dict[str, Any], episodes: int = GRID["episodes"]) -> list[dict[str, Any]]:
+    """Return the modelled time of a study of `episodes` episodes: inputs, GPU time, simulator time, and their sum
+    (upper bound)."""
     from bench.capture_throughput import REAL_ARCH, sample_flops
 
-    episodes, steps = GRID["episodes"], GRID["max_steps"]
+    steps = GRID["max_steps"]
     calls_per_episode = math.ceil(steps / GRID["replan"])
     rows = episodes * calls_per_episode
     row_s = sample_flops(REAL_ARCH, PROMPT_TOKENS) / (MFU * gpu["peak_tflops"] * 1e12)

@@ -332,14 +332,15 @@ def report_paths(config: RunConfig) -> list[Path]:
 
 
 def format_rollouts(config: RunConfig) -> str:
-    """Return the closed-loop answer of every rolled-out (pair, layer, side), after the rollouts' note."""
+    """Return the closed-loop answer of every rolled-out (pair, layer, side, steered direction), after the rollouts'
+    note."""
     lines = []
     for layer in config.rollout_layers:
         summary = read_json(config.rollout_layer_path(layer) / SUMMARY_JSON)
         lines += [f"Closed-loop rollouts in LIBERO, {layer_dir(layer)} (success toward the other task, Wilson 95%; "
                   "paired exact McNemar tests, best α cross-fitted):"]
         lines += [summary["note"]] if summary.get("note") else []
-        lines += [f"  {pair['pair']}, {row['side']} side: {row['text']}" for pair in summary["pairs"]
+        lines += [f"  {pair['pair']}, {row['side']} side, {row['condition']}: {row['text']}" for pair in summary["pairs"]
                   for row in pair["answers"]]
     return "\n".join(lines)
 

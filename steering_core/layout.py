@@ -37,7 +37,7 @@ TRAJECTORY_PLOT = "trajectory.png"
 # phase 5: ROLLOUTS_ROOT/layerNN/<pair>/<cell>/ per cell; the pair's table and PNGs in <pair>/, summaries in layerNN/
 ROLLOUTS_ROOT = "rollouts"
 ROLLOUT_FILE = "rollouts"  # + .json / .safetensors in a cell folder
-ROLLOUT_VIDEO = "{cell}_ep{episode}_{outcome}.mp4"  # in a cell folder: e.g. negative_steered_a+2_ep0_toward.mp4
+ROLLOUT_VIDEO = "{cell}_ep{episode}_{outcome}.mp4"  # in a cell folder: e.g. negative_sae_a+2_ep0_toward.mp4
 ROLLOUT_PAIR_TABLE = "cells"  # + .md / .json in a pair folder: one row per cell
 SUCCESS_PLOT = "success_vs_alpha.png"
 JOINTS_PLOT = "joint_trajectories.png"
@@ -77,11 +77,12 @@ def stream_layer_dir(layer: int, stream: str) -> str:
 
 
 def rollout_cell_dir(side: str, condition: str, alpha: float) -> str:
-    """Return the folder name of one rollout cell, e.g. `negative_steered_a+2`, `positive_wrong_concept-on_vs_off_a-1.5`
-    (characters other than letters, digits and `_.+-` become `-`; α = -0 is written `+0`)."""
+    """Return the folder name of one rollout cell, e.g. `negative_sae_a+2`, `positive_probe+clamp_a-0.5`,
+    `positive_wrong_concept-on_vs_off-sae_a-1.5` (characters other than letters, digits and `_.+-` become `-`;
+    α = -0 is written `+0`)."""
     return _UNSAFE.sub("-", f"{side}_{condition}_a{alpha + 0.0:+g}")
 
 
 def rollout_video_file(cell: str, episode: int, outcome: str) -> str:
-    """Return the MP4 file name of one episode of a cell, e.g. `negative_steered_a+2_ep0_toward.mp4`."""
+    """Return the MP4 file name of one episode of a cell, e.g. `negative_sae_a+2_ep0_toward.mp4`."""
     return ROLLOUT_VIDEO.format(cell=cell, episode=episode, outcome=outcome)

@@ -6,9 +6,9 @@ chunks per (pair, layer) and holds them all in memory; the rollouts step cells x
 computed from the settings alone (nothing allocated in proportion to a count) and refused with the estimate, the
 limit and the settings that lower it.
 
-The limits sit far above the field's scale. The issue's evaluation (32 frames, 4 seeds, 9 α, 3 + 32 random + 8
-permuted directions) samples 44,288 chunks per (pair, layer); the limit, 10 million, allows 225 times that (e.g.
-1,000 frames x 16 seeds x 43 directions x 14 α). The paper-scale closed-loop study (10 LIBERO tasks as 5 pairs,
+The limits sit far above the field's scale. The default evaluation (32 frames, 4 seeds, 9 α, 6 methods x 2 modes
++ 32 random + 8 permuted directions) samples 53,504 chunks per (pair, layer); the limit, 10 million, allows 186
+times that (e.g. 1,000 frames x 16 seeds x 52 directions x 12 α). The paper-scale closed-loop study (10 LIBERO tasks as 5 pairs,
 50 episodes, 3 pushes with 4 random directions and the controls: 40 cells per (pair, layer), up to 520 steps)
 steps about 1 million times per (pair, layer), 5 million per layer; the limit, a billion steps per run, allows
 that at 200 layers, or 20 pairs at 10 layers with 200 episodes each.
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from steering_core.rollout.grid import cells
 from steering_core.rollout.protocol import max_steps
 
 if TYPE_CHECKING:
@@ -28,25 +29,32 @@ if TYPE_CHECKING:
 MAX_EVALUATION_SAMPLES = 10_000_000  # action chunks sampled per (pair, layer): frames x seeds x entries
 MAX_EVALUATION_BYTES = 16 << 30      # the robot actions of those samples, held as float64 until the metrics
 MAX_ROLLOUT_STEPS = 1_000_000_000    # simulator steps of a run's rollouts, every (pair, layer) and cell together
-NAMED_DIRECTIONS = 3                 # residual, mean difference, top-k: the directions phase 3 gives a pair
+NAMED_METHODS = 6                    # every registered method: the most phase 3 gives a pair unless told fewer
 ROBOT_DIMS = 7                       # robot action values per step (LIBERO's end-effector delta and gripper)
 
 
 def evaluation_samples(settings: EvaluateSettings) -> int:
     """Return the action chunks the evaluation of one (pair, layer) samples at most: per frame (`max_frames`) and
     noise seed, the unsteered and instruction-swapped references and every direction at every α ≠ 0."""
-    directions = NAMED_DIRECTIONS + settings.random_directions + settings.permutations
-    return settings.max_frames * settings.noise_seeds * (2 + directions * (len(settings.alphas) - 1))
+    return settings.max_frames * settings.noise_seeds * (2 + evaluated_directions(settings) * (len(settings.alphas) - 1))
+
+
+def evaluated_directions(settings: EvaluateSettings) -> int:
+    """Return the directions of one (pair, layer): each method (`methods`, else every registered one) in each mode,
+    and the nulls."""
+    methods = len(settings.methods) if settings.methods is not None else NAMED_METHODS
+    return methods * len(settings.modes) + settings.random_directions + settings.permutations
 
 
 def evaluation_problems(settings: EvaluateSettings, action_horizon: int, where: str = "evaluate") -> list[str]:
     """Return the evaluation's work or memory over its limit, one line each naming the settings to lower."""
     samples = evaluation_samples(settings)
-    directions = NAMED_DIRECTIONS + settings.random_directions + settings.permutations
-    product = (f"max_frames {settings.max_frames} x noise_seeds {settings.noise_seeds} x (2 + {directions} directions "
-               f"(3 + random_directions {settings.random_directions} + permutations {settings.permutations}) x "
+    methods = len(settings.methods) if settings.methods is not None else NAMED_METHODS
+    product = (f"max_frames {settings.max_frames} x noise_seeds {settings.noise_seeds} x (2 + "
+               f"{evaluated_directions(settings)} directions ({methods} methods x {len(settings.modes)} modes + "
+               f"random_directions {settings.random_directions} + permutations {settings.permutations}) x "
                f"{len(settings.alphas) - 1} alphas besides 0)")
-    lower = "lower max_frames, noise_seeds, alphas, random_directions or permutations"
+    lower = "lower max_frames, noise_seeds, alphas, methods, modes, random_directions or permutations"
     problems = []
     if samples > MAX_EVALUATION_SAMPLES:
         problems.append(f"{where}: an estimated {samples:,} action chunks sampled per (pair, layer) = {product}; "
@@ -60,10 +68,8 @@ def evaluation_problems(settings: EvaluateSettings, action_horizon: int, where: 
 
 
 def rollout_cells(settings: RolloutSettings, other_pairs: bool) -> int:
-    """Return the cells of one (pair, layer) (`rollout.grid.cells`, counted without building them)."""
-    per_push = 1 + settings.random_directions + (1 if settings.wrong_concept and other_pairs else 0)
-    per_side = 1 + (1 if settings.instruction_swap else 0) + len(settings.pushes) * per_push
-    return len(settings.sides) * per_side
+    """Return the cells of one (pair, layer) (`rollout.grid.cells`; `other_pairs`: the wrong concept has one)."""
+    return len(cells("pair", 0, settings, ["other"] if other_pairs else []))
 
 
 def rollout_problems(config: RunConfig, targets: list[tuple[str, int]] | None = None,
@@ -83,6 +89,7 @@ def rollout_problems(config: RunConfig, targets: list[tuple[str, int]] | None = 
     if steps <= MAX_ROLLOUT_STEPS:
         return []
     return [f"{where}: an estimated {steps:,} simulator steps = {len(targets)} (pair, layer) x cells (sides, α, "
-            f"random_directions {settings.random_directions}, controls) x episodes {settings.episodes} x up to "
-            f"max_steps {settings.max_steps or 'of the suite'} each; expected at most {MAX_ROLLOUT_STEPS:,}: lower "
-            "rollout.episodes, alphas, random_directions, max_steps, or roll out fewer pairs or layers"]
+            f"{len(settings.methods)} methods x {len(settings.modes)} modes, random_directions "
+            f"{settings.random_directions}, controls) x episodes {settings.episodes} x up to max_steps "
+            f"{settings.max_steps or 'of the suite'} each; expected at most {MAX_ROLLOUT_STEPS:,}: lower "
+            "rollout.episodes, alphas, methods, modes, random_directions, max_steps, or roll out fewer pairs or layers"]

@@ -1,6 +1,7 @@
 """Phase 5 tasks: one chunk of a rollout cell in the LIBERO simulator, a cell's merged record, and the per-layer
-summary. Chunks are cached on everything that changes their episodes: the code, the cell, the steering vectors
-read (the pair's and, for the wrong-concept control, the other pair's), the model and the settings."""
+summary. Chunks are cached on everything that changes their episodes: the code, the cell (its side, α, and the
+method and mode it steers with), the steering vectors read (the pair's and, for the wrong-concept control, the
+other pair's), the model and the settings."""
 
 from __future__ import annotations
 
@@ -39,10 +40,12 @@ def job_inputs(job: RolloutJob) -> dict[str, Any]:
 
 
 def settings_inputs(settings: RolloutSettings) -> dict[str, Any]:
-    """Return the settings that change an episode (not how the policy is reached, where assets are read, nor how
-    episodes are placed on task runs and envs)."""
+    """Return the settings that change an episode (not how the policy is reached, where assets are read, how
+    episodes are placed on task runs and envs, nor `methods` and `modes`: they only choose the grid's cells, and a
+    cell names its own method and mode, so adding one leaves the other cells' chunks cached)."""
     return plain(settings.model_dump(mode="json", exclude={"policy", "api_key_file", "libero_assets", "device",
-                                                           "compiled", "note", "chunk_episodes", "envs_per_worker"}))
+                                                           "compiled", "note", "chunk_episodes", "envs_per_worker",
+                                                           "methods", "modes"}))
 
 
 def transient_connection(exc: BaseException) -> bool:

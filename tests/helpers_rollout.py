@@ -168,7 +168,7 @@ def make_episode(prompt: str, outcome: str, steps: int, init_index: int = 0, *, 
 
 def toward_count(condition: str, alpha_toward: float, n: int) -> int:
     """Return how many of `n` episodes reach the other task's goal in the synthetic pair's `condition`."""
-    if condition == "steered":
+    if condition == "sae":
         return min(n, int(2 * alpha_toward + 0.5))  # 2, 4, 8 of 10 at α 1, 2, 4
     return {"instruction_swap": n - 1, "unsteered": 0}.get(condition, int(alpha_toward >= 4))  # controls: rare
 
@@ -176,8 +176,8 @@ def toward_count(condition: str, alpha_toward: float, n: int) -> int:
 def write_pair_cells(layer_path: Path, n: int = 10, pair: str = PAIR, frames: int = 2) -> list[dict]:
     """Write every cell of a synthetic pair under `layer_path/pair/`; return their records."""
     records = []
-    conditions = [(c, a) for a in ALPHAS for c in ("steered", "random_0", "random_1", "random_2", "random_3",
-                                                    f"wrong_concept:{OTHER_PAIR}")]
+    conditions = [(c, a) for a in ALPHAS for c in ("sae", "random_0", "random_1", "random_2", "random_3",
+                                                    f"wrong_concept:{OTHER_PAIR}/sae")]
     conditions += [("instruction_swap", 0.0), ("unsteered", 0.0)]
     for side, own, other in (("positive", OPEN, CLOSE), ("negative", CLOSE, OPEN)):
         for condition, size in conditions:
@@ -186,7 +186,7 @@ def write_pair_cells(layer_path: Path, n: int = 10, pair: str = PAIR, frames: in
             prompt = other.instruction if condition == "instruction_swap" else own.instruction
             episodes = [make_episode(prompt, "toward" if i < k else ("instructed" if i % 4 == 3 else "neither"),
                                      steps=20 + 3 * i, init_index=i, seed=i,
-                                     drift=(-1 if other is OPEN else 1) * 0.0015 * size * (condition == "steered"),
+                                     drift=(-1 if other is OPEN else 1) * 0.0015 * size * (condition == "sae"),
                                      frames=frames if i == 0 else 0) for i in range(n)]
             records.append(write_cell(layer_path / pair / cell.name, cell, CellTasks(own, other), episodes, seeds=[7] * n, run=RUN))
     return records

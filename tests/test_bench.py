@@ -31,6 +31,7 @@ from bench import (  # noqa: E402
     policy_latency,
     policy_sweep,
     real_size,
+    rollout_grid,
     rollout_throughput,
     run_all,
     sae_encoding,
@@ -301,6 +302,20 @@ def test_policy_flop_model_and_the_study_model_known_answers():
     assert rows["GPU s per call of rows_per_call rows"] == pytest.approx(max(0.1, 16 * row_s))
     assert rows["GPU minutes"] == pytest.approx(7500 * max(0.1, 16 * row_s) / 60)
     assert rows["simulator minutes"] == pytest.approx(2000 * (310 / 93.7 + 60 * 0.216) / 16 / 60)
+
+
+def test_the_method_grid_counts_its_cells_from_the_settings_and_models_their_time():
+    # per side: α = 0, the swap, and at each of 3 pushes M x modes steered cells, 4 random directions, the wrong
+    # concept; 50 episodes per cell
+    assert rollout_grid.grid_size(("sae",), ("add",)) == (40, 2000)  # section 16's study
+    assert rollout_grid.grid_size(("sae", "mean_difference"), ("add", "clamp")) == (2 * (2 + 3 * 9), 2900)
+    gpu = {"peak_tflops": 800.0, "batch1_ms": 100.0, "source": "hand"}
+    rows = rollout_grid.method_grid(gpu)
+    assert [(row["methods"], row["modes"], row["episodes"]) for row in rows][-2:] == [
+        (4, "add", 2 * (2 + 3 * 9) * 50), (4, "add + clamp", 2 * (2 + 3 * 13) * 50)]
+    study = {row["quantity"].split(" (")[0]: row["value"] for row in serve_throughput.grid_model(gpu, 4100)}
+    assert rows[-1]["total min (no overlap)"] == study["study minutes"]
+    assert rows[0]["GPU min"] == serve_throughput.grid_model(gpu)[2]["value"]  # one method, add: the 2,000 episodes
 
 
 @pytest.mark.slow

@@ -443,7 +443,7 @@ def test_demo_rolls_the_steered_policy_out_in_the_simulator(first_run, demo_conf
     tasks = task_runs_under(first_run[0])
     chunks = {name: run for name, run in tasks.items() if name.startswith("rollout open_vs_close layer 1 ")}
     assert sorted(name.split()[4] for name in chunks) == [  # both sides at α toward the other task 0 and 2
-        "negative_steered_a+2", "negative_unsteered_a+0", "positive_steered_a-2", "positive_unsteered_a+0"]
+        "negative_sae_a+2", "negative_unsteered_a+0", "positive_sae_a-2", "positive_unsteered_a+0"]
     assert {run.state.name for run in chunks.values()} == {"Completed"}
     layer_path = config.rollout_layer_path(1)
     summary = read_json(layer_path / "summary.json")
@@ -764,7 +764,7 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
         "slice open_vs_close expert layer 2", "evaluate open_vs_close expert layer 2",
         "evaluation summary expert layer 2", "evaluation pathways",
         # closed loop: the drawer pair's steered cells (its vector changed), not its α = 0 cells
-        *(name.format(cell) for cell in ("negative_steered_a+2", "positive_steered_a-2")
+        *(name.format(cell) for cell in ("negative_sae_a+2", "positive_sae_a-2")
           for name in ("rollout open_vs_close layer 1 {} chunk 0", "merge rollout open_vs_close layer 1 {}")),
         "rollout summary layer 1",
     }

@@ -150,7 +150,7 @@ def test_a_libero_episode_of_the_lerobot_policy_runs_through_rollout(tmp_path):
     path = write_run_config(config, tmp_path / "run.yaml")
     summaries = rollout_config(load_run_config(path))
     assert list(summaries) == [1]
-    for cell in ("negative_unsteered_a+0", "negative_steered_a+2"):
+    for cell in ("negative_unsteered_a+0", "negative_sae_a+2"):
         record, arrays = read_cell(config.rollout_layer_path(1) / pair / cell)
         [episode] = record["episodes"]
         assert episode["init_index"] == 0 and arrays["lengths"][0] > 0

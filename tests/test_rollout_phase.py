@@ -32,7 +32,7 @@ PAIR = "open_vs_close"
 # libero_goal: both tasks in one scene, so the module builds one env; 2 episodes in chunks of 1 (merged per cell)
 TASKS = RolloutPair(positive=LiberoTask(suite="libero_goal", task="open the middle drawer of the cabinet"),
                     negative=LiberoTask(suite="libero_goal", task=7))
-CELLS = ("negative_unsteered_a+0", "negative_instruction_swap_a+0", "negative_steered_a+2", "negative_random_0_a+2")
+CELLS = ("negative_unsteered_a+0", "negative_instruction_swap_a+0", "negative_sae_a+2", "negative_random_0_a+2")
 
 
 @pytest.fixture(scope="module")
@@ -78,21 +78,21 @@ def test_every_cell_is_written_with_paired_episodes_videos_and_a_summary(run):
         assert video and (layer_path / PAIR / name / video).stat().st_size > 0
         assert record["episodes"][1]["video"] is None
         assert arrays["actions"].shape[0] == 2 and np.isfinite(arrays["actions"][0, : arrays["lengths"][0]]).all()
-    thresholds = cell(config, "negative_steered_a+2")[0]["run"]["thresholds"]  # libero's own predicates, swept
+    thresholds = cell(config, "negative_sae_a+2")[0]["run"]["thresholds"]  # libero's own predicates, swept
     assert {joint: [label for label, _ in entries] for joint, entries in thresholds.items()} == {
         "flat_stove_1_button": ["turnon"], "wooden_cabinet_1_middle_level": ["open"]}
     assert thresholds["flat_stove_1_button"][0][1] == pytest.approx(0.5, abs=0.006)
     assert (layer_path / PAIR / "joint_trajectories.png").stat().st_size > 0
     assert cell(config, "negative_instruction_swap_a+0")[0]["prompt"] == "open the middle drawer of the cabinet"
-    assert cell(config, "negative_steered_a+2")[0]["prompt"] == "turn on the stove"
+    assert cell(config, "negative_sae_a+2")[0]["prompt"] == "turn on the stove"
 
 
 def test_steering_reaches_the_policy_and_controls_differ(run):
     config, _ = run
     first = {name: cell(config, name)[1]["actions"][0, 0] for name in CELLS}
     # the first action of episode 0 comes from the same observation in every cell: only prompt/steering differ
-    assert not np.array_equal(first["negative_steered_a+2"], first["negative_unsteered_a+0"])
-    assert not np.array_equal(first["negative_random_0_a+2"], first["negative_steered_a+2"])
+    assert not np.array_equal(first["negative_sae_a+2"], first["negative_unsteered_a+0"])
+    assert not np.array_equal(first["negative_random_0_a+2"], first["negative_sae_a+2"])
     assert not np.array_equal(first["negative_instruction_swap_a+0"], first["negative_unsteered_a+0"])
 
 
@@ -121,7 +121,7 @@ def test_a_chunk_on_two_envs_in_lockstep_gives_the_episodes_of_chunks_on_one(run
     observation), a little more later on as the simulator carries it; a row given to the wrong episode is ~1 off."""
     config, _ = run
     settings = config.rollout.settings().model_copy(update={"chunk_episodes": 2, "envs_per_worker": 2})
-    job = next(job for job in config_jobs(config, PAIR, 1) if job.cell.name == "negative_steered_a+2")
+    job = next(job for job in config_jobs(config, PAIR, 1) if job.cell.name == "negative_sae_a+2")
     job = job.model_copy(update={"init_states": (0, 1), "output_dir": tmp_path})
     rows, progress, infer_batch = [], [], LocalPolicy.infer_batch
     monkeypatch.setattr(LocalPolicy, "infer_batch", lambda self, batch: rows.append(len(batch)) or infer_batch(self, batch))
@@ -129,7 +129,7 @@ def test_a_chunk_on_two_envs_in_lockstep_gives_the_episodes_of_chunks_on_one(run
         folder = run_chunk(job, config.capture_settings(), settings, progress=lambda *done: progress.append(done))
     assert progress == [(1, 2), (2, 2)] and rows == [2, 2, 2]  # both replan at steps 0, 5 and 10 of 12
     together, together_arrays = read_cell(folder)
-    alone, alone_arrays = cell(config, "negative_steered_a+2")
+    alone, alone_arrays = cell(config, "negative_sae_a+2")
     assert [e["init_index"] for e in together["episodes"]] == [0, 1]
     for mine, theirs in zip(together["episodes"], alone["episodes"], strict=True):
         assert (mine["outcome"], mine["steps"]) == (theirs["outcome"], theirs["steps"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -14,18 +15,30 @@ from steering_core.rollout.records import CellTasks, merge_chunks, read_cell, wr
 
 
 def test_cell_names_and_condition_kinds():
-    assert rollout_cell_dir("negative", "steered", 2.0) == "negative_steered_a+2"
-    assert rollout_cell_dir("positive", "wrong_concept:on_vs_off", -1.5) == "positive_wrong_concept-on_vs_off_a-1.5"
+    assert rollout_cell_dir("negative", "sae", 2.0) == "negative_sae_a+2"
+    assert rollout_cell_dir("positive", "probe+clamp", -0.5) == "positive_probe+clamp_a-0.5"
+    assert rollout_cell_dir("positive", "wrong_concept:on_vs_off/sae", -1.5) == \
+        "positive_wrong_concept-on_vs_off-sae_a-1.5"
     assert rollout_cell_dir("positive", "unsteered", -0.0) == "positive_unsteered_a+0"
-    assert [condition_kind(c) for c in ("steered", "random_3", "wrong_concept:a_vs_b", "instruction_swap",
-                                        "unsteered")] == ["steered", "random", "wrong_concept", "instruction_swap",
-                                                          "unsteered"]
-    cell = Cell("open_vs_close", 12, "positive", "steered", -2.0)
-    assert (cell.name, cell.alpha_toward) == ("positive_steered_a-2", 2.0)
+    assert [condition_kind(c) for c in ("sae", "mean_difference+clamp", "random_3", "wrong_concept:a_vs_b/sae",
+                                        "instruction_swap", "unsteered")] == [
+        "steered", "steered", "random", "wrong_concept", "instruction_swap", "unsteered"]
+    cell = Cell("open_vs_close", 12, "positive", "sae", -2.0)
+    assert (cell.name, cell.alpha_toward, cell.method, cell.mode) == ("positive_sae_a-2", 2.0, "sae", "add")
+    clamp = Cell("open_vs_close", 12, "negative", "mean_difference+clamp", 0.5)
+    assert (clamp.method, clamp.mode, clamp.direction, clamp.steering_pair) == (
+        "mean_difference", "clamp", "mean_difference", "open_vs_close")
+    wrong = Cell("open_vs_close", 12, "negative", "wrong_concept:on_vs_off/mean_difference", 1.0)
+    assert (wrong.method, wrong.mode, wrong.direction, wrong.steering_pair) == (
+        "mean_difference", "add", "mean_difference", "on_vs_off")
+    control = Cell("open_vs_close", 12, "negative", "random_2", 1.0)
+    assert (control.method, control.mode, control.direction) == (None, "add", "random_2")
+    assert (Cell("open_vs_close", 12, "negative", "unsteered", 0.0).mode,
+            Cell("open_vs_close", 12, "negative", "instruction_swap", 0.0).direction) == (None, None)
 
 
 def test_cell_round_trips(tmp_path):
-    cell, tasks = Cell("open_vs_close", 12, "negative", "steered", 2.0), CellTasks(CLOSE, OPEN)
+    cell, tasks = Cell("open_vs_close", 12, "negative", "sae", 2.0), CellTasks(CLOSE, OPEN)
     episodes = [make_episode(CLOSE.instruction, "toward", 12, init_index=3, seed=1, drift=-0.01, frames=3),
                 make_episode(CLOSE.instruction, "neither", 30, init_index=4, seed=2),
                 make_episode(CLOSE.instruction, "instructed", 2, init_index=5, seed=3)]
@@ -33,17 +46,17 @@ def test_cell_round_trips(tmp_path):
     read, arrays = read_cell(tmp_path / cell.name)
     assert read == json.loads(json.dumps(record))
     assert sorted(p.name for p in (tmp_path / cell.name).iterdir()) == [
-        "negative_steered_a+2_ep0_toward.mp4", "rollouts.json", "rollouts.safetensors"]
-    assert {key: read[key] for key in ("pair", "layer", "side", "condition", "kind", "alpha", "alpha_toward",
-                                       "cell", "prompt", "joints", "run")} == {
-        "pair": "open_vs_close", "layer": 12, "side": "negative", "condition": "steered", "kind": "steered",
-        "alpha": 2.0, "alpha_toward": 2.0, "cell": "negative_steered_a+2", "prompt": CLOSE.instruction,
-        "joints": [JOINT], "run": RUN}
+        "negative_sae_a+2_ep0_toward.mp4", "rollouts.json", "rollouts.safetensors"]
+    assert {key: read[key] for key in ("pair", "layer", "side", "condition", "kind", "method", "mode", "alpha",
+                                       "alpha_toward", "cell", "prompt", "joints", "run")} == {
+        "pair": "open_vs_close", "layer": 12, "side": "negative", "condition": "sae", "kind": "steered",
+        "method": "sae", "mode": "add", "alpha": 2.0, "alpha_toward": 2.0, "cell": "negative_sae_a+2",
+        "prompt": CLOSE.instruction, "joints": [JOINT], "run": RUN}
     assert read["instructed"] == {"suite": "libero_90", "index": 0, "instruction": CLOSE.instruction}
     assert read["episodes"][0] == {
         "episode": 0, "seed": 7, "init_index": 3, "outcome": "toward", "steps": 12, "success_step": None,
         "toward_step": 12, "jerk": pytest.approx(episodes[0].jerk), "joint_limit_hits": 0, "policy_calls": 3,
-        "toward_at_start": False, "video": "negative_steered_a+2_ep0_toward.mp4"}
+        "toward_at_start": False, "video": "negative_sae_a+2_ep0_toward.mp4"}
     assert read["episodes"][2]["jerk"] is None and read["mean_jerk"] == pytest.approx(
         (episodes[0].jerk + episodes[1].jerk) / 2)  # a 2-step episode has no third difference
     assert read["success"]["toward"] == {"k": 1, "n": 3, "rate": 1 / 3, "low": pytest.approx(0.0615, abs=1e-4),
@@ -65,13 +78,17 @@ def test_bad_cells_are_refused_with_every_problem(tmp_path):
         Cell("p", 1, "left", "random", 1.0)
     with pytest.raises(ValueError, match="0 for the unsteered and instruction_swap cells"):
         Cell("p", 1, "positive", "unsteered", 1.0)
-    cell, tasks = Cell("p", 1, "positive", "steered", 1.0), CellTasks(OPEN, CLOSE)
+    # "steered" (the old single direction) and "residual" are no methods; a mode is clamp or nothing
+    for bad in ("steered", "residual", "sae+add", "sae+", "wrong_concept:q", "wrong_concept:q/residual"):
+        with pytest.raises(ValueError, match=re.escape(f"condition {bad!r} is not <method>, <method>+clamp")):
+            Cell("p", 1, "positive", bad, 1.0)
+    cell, tasks = Cell("p", 1, "positive", "sae", 1.0), CellTasks(OPEN, CLOSE)
     short = make_episode(OPEN.instruction, "won", 5)
     short.actions = short.actions[:4]
     with pytest.raises(ValueError) as err:
         write_cell(tmp_path / cell.name, cell, tasks, [short, make_episode(CLOSE.instruction, "toward", 3)], [7], RUN)
     assert str(err.value) == (
-        "cell p/positive_steered_a+1: 1 seeds for 2 episodes; episodes saw different prompts "
+        "cell p/positive_sae_a+1: 1 seeds for 2 episodes; episodes saw different prompts "
         f"['{CLOSE.instruction}', '{OPEN.instruction}']; episode 0: actions is (4, 7), expected (5, 7); "
         "episode 0: outcome 'won' is not one of ['instructed', 'toward', 'neither']")
     assert not (tmp_path / cell.name).exists()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest
 
-from steering_core.rollout.stats import WILSON_Z, mcnemar, proportion, wilson_interval
+from steering_core.rollout.stats import WILSON_Z, holm, mcnemar, proportion, wilson_interval
 
 
 def roots(k: int, n: int) -> tuple[float, float]:
@@ -70,3 +70,9 @@ def test_coverage_near_95_percent(n):
     cover = {k: low <= p <= high for k in range(n + 1) for low, high in [wilson_interval(k, n)]}
     coverage = np.mean([cover[k] for k in draws])
     assert 0.92 <= coverage <= 0.98, coverage  # Wilson's coverage oscillates around 95% with n
+
+
+def test_holm_multiplies_the_sorted_p_values_and_keeps_them_monotone():
+    # sorted 0.01 x 4 = 0.04, 0.03 x 3 = 0.09, 0.04 x 2 = 0.08 -> 0.09 (at least the one before), 0.5 x 1
+    assert holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5], abs=1e-15)
+    assert holm([0.6, 0.7]) == [1.0, 1.0] and holm([0.2]) == [0.2] and holm([]) == []

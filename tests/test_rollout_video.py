@@ -22,7 +22,7 @@ def moving_frames(count: int = 12, side: int = 224) -> list[np.ndarray]:
 
 def test_video_decodes_back_to_its_frames(tmp_path):
     frames = moving_frames()
-    path = write_video(tmp_path / "cell" / "negative_steered_a+2_ep0_toward.mp4", frames, fps=8)
+    path = write_video(tmp_path / "cell" / "negative_sae_a+2_ep0_toward.mp4", frames, fps=8)
     assert [p.name for p in path.parent.iterdir()] == [path.name]  # no staging file left
     with av.open(str(path)) as container:
         stream = container.streams.video[0]

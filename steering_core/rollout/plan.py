@@ -5,9 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from steering_core.layout import PAIR_SUMMARY_FILE, layer_dir
 from steering_core.rollout.grid import cells, chunks
 from steering_core.rollout.run import RolloutJob
 from steering_core.rollout.settings import RolloutPair, RolloutSettings
+from steering_core.storage.fileio import read_json
 
 if TYPE_CHECKING:
     from steering_core.config import RunConfig
@@ -16,7 +18,10 @@ if TYPE_CHECKING:
 def pair_jobs(pair: str, layer: int, tasks: RolloutPair, settings: RolloutSettings, *, other_pairs: list[str],
               vectors_root: Path, output_dir: Path, sides: tuple[str, ...] | None = None) -> list[RolloutJob]:
     """Return the jobs of every cell of (pair, layer) (of `sides` only, when given); `output_dir` is the pair's
-    folder, each cell writes into `output_dir/<cell name>/`."""
+    folder, each cell writes into `output_dir/<cell name>/`. Refuses a method phase 3 did not write (`check_methods_written`)."""
+    check_methods_written(vectors_root, pair, layer, settings.methods)
+    if settings.wrong_concept and other_pairs:
+        check_methods_written(vectors_root, other_pairs[0], layer, settings.methods[:1])
     jobs = []
     for cell in cells(pair, layer, settings, other_pairs):
         if sides is not None and cell.side not in sides:
@@ -25,6 +30,21 @@ def pair_jobs(pair: str, layer: int, tasks: RolloutPair, settings: RolloutSettin
             jobs.append(RolloutJob(cell=cell, tasks=tasks, init_states=states, chunk=index, vectors_root=vectors_root,
                                    output_dir=output_dir / cell.name))
     return jobs
+
+
+def check_methods_written(vectors_root: Path, pair: str, layer: int, methods: tuple[str, ...]) -> None:
+    """Raise one ValueError naming `rollout.methods` unless the pair's directions.json at `layer` lists every one
+    of `methods` (phase 3 writes the methods of `steering.methods`)."""
+    path = vectors_root / layer_dir(layer) / pair / PAIR_SUMMARY_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"rollout.methods {list(methods)}: pair {pair!r}, layer {layer} has no {path}; run "
+                                "the steer step (phase 3) first")
+    listed = list(read_json(path).get("methods", {}))
+    missing = [name for name in methods if name not in listed]
+    if missing:
+        raise ValueError(f"rollout.methods {list(methods)}: pair {pair!r}, layer {layer} has no {missing} direction "
+                         f"(phase 3 wrote {listed} in {path}); roll out those, or add the method to steering.methods "
+                         "and re-run the steer step")
 
 
 def by_cell(jobs: list[RolloutJob]) -> dict[Path, list[RolloutJob]]:

@@ -13,7 +13,8 @@ from steering_core.pairs import SIDES
 from steering_core.reporting.plots import figure, save_png
 from steering_core.rollout.records import JOINT_KEY
 
-ALPHA_LABEL = "α toward the other task (× R, residual_norm units)"
+ALPHA_LABELS = {"add": "α toward the other task (× R, residual_norm units)",
+                "clamp": "α toward the other task (clamp: fraction of the way to the other concept's level)"}
 Thresholds = Mapping[str, Sequence[tuple[str, float]]]  # joint name -> (goal label, qpos threshold)
 
 
@@ -44,22 +45,35 @@ def _random_band(ax: Any, cells: Sequence[dict[str, Any]]) -> None:
                     edgecolor="0.6", label=f"random ({count} directions): toward, min-max", zorder=0)
 
 
-def plot_success(path: Path, records: Sequence[dict[str, Any]]) -> None:
-    """Success rate vs α toward the other task, one panel per side: the steered direction's toward-task and
-    instructed-task success with Wilson 95% intervals, the random controls' band, each wrong concept's marks,
-    and α = 0 (unsteered) and the instruction swap (ceiling) as horizontal lines."""
+def _panels(records: Sequence[dict[str, Any]]) -> list[tuple[str, str]]:
+    """Return the (steered condition, side) of each panel: one row per method x mode, one column per side."""
     sides = [s for s in SIDES if any(r["side"] == s for r in records)]
-    fig = figure((5.5 * len(sides), 4.2))
-    for i, side in enumerate(sides):
-        ax = fig.add_subplot(1, len(sides), i + 1, sharey=fig.axes[0] if i else None)
-        steered = _side_cells(records, side, "steered")
-        alphas = [r["alpha_toward"] for r in records]
-        dodge = 0.012 * ((max(alphas) - min(alphas)) or 1.0)
+    conditions = list(dict.fromkeys(r["condition"] for r in records if r["kind"] == "steered")) or [None]
+    return [(condition, side) for condition in conditions for side in sides]
+
+
+def plot_success(path: Path, records: Sequence[dict[str, Any]]) -> None:
+    """Success rate vs α toward the other task, one panel per steered direction (method x mode, rows) and side
+    (columns): the direction's toward-task and instructed-task success with Wilson 95% intervals, the random
+    controls' band (shared by every direction), the wrong concept's marks (in its method's add panel), and α = 0
+    (unsteered) and the instruction swap (ceiling) as horizontal lines."""
+    panels = _panels(records)
+    columns = len({side for _, side in panels})
+    rows = len(panels) // columns
+    fig = figure((5.5 * columns, 4.6 * rows))
+    alphas = [r["alpha_toward"] for r in records]
+    dodge = 0.012 * ((max(alphas) - min(alphas)) or 1.0)
+    for i, (condition, side) in enumerate(panels):
+        ax = fig.add_subplot(rows, columns, i + 1, sharey=fig.axes[0] if i else None)
+        steered = [r for r in _side_cells(records, side, "steered") if r["condition"] == condition]
+        mode = steered[0]["mode"] if steered else "add"
         if randoms := _side_cells(records, side, "random"):
             _random_band(ax, randoms)
-        for name in sorted({c["condition"] for c in _side_cells(records, side, "wrong_concept")}):
-            _errorbar(ax, [c for c in _side_cells(records, side, "wrong_concept") if c["condition"] == name],
-                      "toward", -dodge, marker="x", linestyle="none", color="C3", label=f"{name}: toward")
+        wrong = [c for c in _side_cells(records, side, "wrong_concept")
+                 if steered and c["method"] == steered[0]["method"] and mode == "add"]
+        for name in sorted({c["condition"] for c in wrong}):
+            _errorbar(ax, [c for c in wrong if c["condition"] == name], "toward", -dodge, marker="x",
+                      linestyle="none", color="C3", label=f"{name}: toward")
         for kind, outcome, color, style in (("unsteered", "toward", "C0", ":"), ("unsteered", "instructed", "C1", ":"),
                                             ("instruction_swap", "toward", "C2", "--")):
             for cell in _side_cells(records, side, kind):
@@ -67,16 +81,17 @@ def plot_success(path: Path, records: Sequence[dict[str, Any]]) -> None:
                 ax.axhline(cell["success"][outcome]["rate"], color=color, linestyle=style, linewidth=1,
                            label=f"{name}: {outcome} {cell['success'][outcome]['k']}/{cell['success'][outcome]['n']}")
         if steered:  # from α = 0: the direction at zero strength
-            curve = _side_cells(records, side, "unsteered", "steered")
-            _errorbar(ax, curve, "toward", marker="o", color="C0", label="steered: toward-task success")
+            curve = _side_cells(records, side, "unsteered") + steered
+            _errorbar(ax, curve, "toward", marker="o", color="C0", label=f"{condition}: toward-task success")
             _errorbar(ax, curve, "instructed", dodge, marker="s", color="C1", linestyle="--",
-                      label="steered: instructed-task success")
+                      label=f"{condition}: instructed-task success")
         first = next(r for r in records if r["side"] == side)
         task = f"{first['instructed']['instruction']!r} → {first['toward']['instruction']!r}"
-        ax.set(xlabel=ALPHA_LABEL, ylabel="success rate (Wilson 95%)" if i == 0 else None, ylim=(-0.03, 1.03),
-               title=f"{side} side: {task}")
+        ax.set(xlabel=ALPHA_LABELS[mode], ylabel="success rate (Wilson 95%)" if i % columns == 0 else None,
+               ylim=(-0.03, 1.03), title=f"{condition or 'no steered cells'}, {side} side: {task}")
         ax.title.set_fontsize(8)
-        ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+        ax.xaxis.label.set_fontsize(8)
+        ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2)
     pair = records[0]
     fig.suptitle(f"{pair['pair']}, layer {pair['layer']}: {pair['success']['toward']['n']} episodes per cell",
                  fontsize=9)
@@ -94,23 +109,23 @@ def held_after_end(values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
 
 def plot_joints(path: Path, cells: Sequence[tuple[dict[str, Any], dict[str, np.ndarray]]],
                 thresholds: Thresholds | None = None) -> None:
-    """Each goal-tested joint's position per policy step, one panel per (side, joint): one line per α toward
-    the other task (steered and α = 0; median over episodes with the 25-75% band), the instruction swap dotted,
-    and the goals' thresholds dashed."""
+    """Each goal-tested joint's position per policy step, one panel per (steered direction, side, joint): one line
+    per α toward the other task (the direction's and α = 0; median over episodes with the 25-75% band), the
+    instruction swap dotted, and the goals' thresholds dashed."""
     from matplotlib import colormaps
 
     joints = sorted({name for record, _ in cells for name in record["joints"]})
     if not joints:
         raise ValueError(f"{cells[0][0]['pair']}: the cells record no goal-tested joints; nothing to plot")
-    sides = [s for s in SIDES if any(r["side"] == s for r, _ in cells)]
-    fig = figure((4.6 * len(joints), 3.4 * len(sides)))
+    panels = _panels([record for record, _ in cells])
+    fig = figure((4.6 * len(joints), 3.4 * len(panels)))
     largest = max((abs(r["alpha_toward"]) for r, _ in cells), default=0.0) or 1.0
-    for row, side in enumerate(sides):
-        lines = sorted(((r, a) for r, a in cells if r["side"] == side and r["kind"] in ("steered", "unsteered",
-                                                                                          "instruction_swap")),
+    for row, (condition, side) in enumerate(panels):
+        lines = sorted(((r, a) for r, a in cells if r["side"] == side and (
+            r["kind"] in ("unsteered", "instruction_swap") or r["condition"] == condition)),
                        key=lambda item: (item[0]["kind"] == "instruction_swap", item[0]["alpha_toward"]))
         for col, joint in enumerate(joints):
-            ax = fig.add_subplot(len(sides), len(joints), row * len(joints) + col + 1)
+            ax = fig.add_subplot(len(panels), len(joints), row * len(joints) + col + 1)
             for record, arrays in lines:
                 if JOINT_KEY + joint not in arrays:
                     continue
@@ -126,10 +141,11 @@ def plot_joints(path: Path, cells: Sequence[tuple[dict[str, Any], dict[str, np.n
                 ax.axhline(value, color="C3", linestyle="--", linewidth=0.8)
                 ax.annotate(goal, (1.0, value), xycoords=("axes fraction", "data"), fontsize=7, color="C3",
                             ha="right", va="bottom")
+            task = f": {lines[0][0]['instructed']['instruction']!r}" if lines else ""
             ax.set(xlabel="policy step", ylabel=f"{joint} qpos" if col == 0 else None,
-                   title=f"{side} side: {lines[0][0]['instructed']['instruction']!r}" if lines else side)
+                   title=f"{condition or 'no steered cells'}, {side} side{task}")
             ax.title.set_fontsize(8)
-            if row == col == 0:
+            if col == 0:
                 ax.legend(fontsize=6)
     fig.suptitle(f"{cells[0][0]['pair']}, layer {cells[0][0]['layer']}: median over episodes, 25-75% shaded "
                  "(an ended episode holds its last value)", fontsize=9)

@@ -1,9 +1,9 @@
 """One rollout cell's files: `rollouts.json` (identity, per-episode outcomes, success counts) and
 `rollouts.safetensors` (per-episode trajectories), plus an MP4 of each episode that recorded frames.
 
-The record names its cell (`cells.Cell`) and the two LIBERO tasks: `instructed` (the side's own) and `toward`
-(the other). An episode's outcome is the first goal reached: "instructed", "toward" or "neither" by the step
-limit.
+The record names its cell (`cells.Cell`, with its kind, method and mode) and the two LIBERO tasks: `instructed`
+(the side's own) and `toward` (the other). An episode's outcome is the first goal reached: "instructed", "toward"
+or "neither" by the step limit.
 
 Tensors (E episodes, T the longest episode's steps; shorter episodes padded with NaN): `lengths` (E,) int64 steps,
 `actions` (E, T, 7) float32, `robot_qpos` (E, T + 1, 7) float64, `joints/<name>` (E, T + 1) float64 per joint a
@@ -32,9 +32,12 @@ from steering_core.tensor_files import load_safetensors, save_safetensors
 if TYPE_CHECKING:
     from steering_core.rollout.episode import EpisodeRecord
 
-ROLLOUT_FORMAT_VERSION = 1
+ROLLOUT_FORMAT_VERSION = 2  # 2: conditions name their method and mode (`sae`, `probe+clamp`); records carry both
 OUTCOMES = ("instructed", "toward", "neither")
 JOINT_KEY = "joints/"  # tensor name prefix of the goal-tested joints
+ADD_UNITS = "residual_norm: × R, the mean residual norm at the steered positions (the evaluation's unit)"
+CLAMP_UNITS = ("clamp level: the fraction of the way from this side's concept level (its mean projection on the "
+               "direction) to the other concept's")
 
 
 @dataclass(frozen=True)
@@ -127,8 +130,10 @@ def cell_record(cell: Cell, tasks: CellTasks, episodes: Sequence[EpisodeRecord],
         **asdict(cell),
         **asdict(tasks),
         "kind": cell.kind,
+        "method": cell.method,
+        "mode": cell.mode,
         "alpha_toward": cell.alpha_toward,
-        "alpha_units": "residual_norm: × R, the mean residual norm at the steered positions (the evaluation's unit)",
+        "alpha_units": CLAMP_UNITS if cell.mode == "clamp" else ADD_UNITS,
         "prompt": episodes[0].prompt,
         "joints": sorted(episodes[0].joints),
         "run": dict(run),

@@ -43,20 +43,27 @@ class RolloutJob(StrictModel):
         return getattr(self.tasks, other_side(self.cell.side))
 
 
-def steering_entries(cell: Cell, settings: RolloutSettings) -> list[dict[str, Any]]:
-    """Return the cell's steering as the server's request entries (empty when unsteered)."""
-    direction = cell.direction(settings.direction)
-    if direction is None:
+def steering_entries(cell: Cell) -> list[dict[str, Any]]:
+    """Return the cell's steering as the server's request entries (empty when unsteered).
+
+    Add mode: the signed α in residual_norm units. Clamp mode: α is the absolute level fraction, the projection
+    set to t = m₋ + α(m₊ − m₋): a push a toward the other task is α = a on the negative side (from m₋ toward m₊)
+    and α = 1 − a on the positive side (t = m₊ + a(m₋ − m₊)).
+    """
+    if cell.steering_pair is None:
         return []
-    return [{"pair": cell.steering_pair, "layer": cell.layer, "alpha": cell.alpha, "direction": direction,
-             "alpha_units": "residual_norm"}]
+    entry = {"pair": cell.steering_pair, "layer": cell.layer}
+    if cell.mode == "clamp":
+        level = cell.alpha_toward if cell.side == "negative" else 1.0 - cell.alpha_toward
+        return [entry | {"alpha": level, "direction": cell.direction, "mode": "clamp"}]
+    return [entry | {"alpha": cell.alpha, "direction": cell.direction, "alpha_units": "residual_norm"}]
 
 
 def make_policy(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, api_key: str | None) -> Any:
     """Return the cell's `RolloutPolicy`: the served policy with its steering entries, or the in-process one."""
     from steering_core.rollout.client import LocalPolicy, RemotePolicy
 
-    entries = steering_entries(job.cell, settings)
+    entries = steering_entries(job.cell)
     if settings.policy != "local":
         return RemotePolicy(settings.policy, steering=entries, api_key=api_key)
     from steering_core.evaluate.run import load_policy
@@ -144,7 +151,7 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
             policy.close()
     tasks = records.CellTasks(records.TaskRef(job.scene_task.suite, scene_index, scene.language),
                               records.TaskRef(job.toward_task.suite, toward_index, toward.language))
-    run = {"policy": settings.policy, "steering": steering_entries(job.cell, settings), "max_steps": max_steps,
+    run = {"policy": settings.policy, "steering": steering_entries(job.cell), "max_steps": max_steps,
            "noise_seed": settings.noise_seed, "chunk": job.chunk, "thresholds": thresholds}
     folder = chunk_dir(job)
     records.write_cell(folder, job.cell, tasks, done, [settings.seed] * len(done), run)

@@ -10,7 +10,9 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from steering_core.pairs import SIDES, Side, same_text
+from steering_core.pi05.steering import Mode
 from steering_core.storage.schema import StrictModel
+from steering_core.vectors.methods import METHODS
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
 # α toward the other task, in residual_norm units (the evaluation's): the shift is |α| typical residual norms.
@@ -61,13 +63,18 @@ class RolloutPair(StrictModel):
 class RolloutSettings(StrictModel):
     """How each (pair, layer) is rolled out; defaults follow openpi's LIBERO evaluation and the issue's grid."""
 
-    alphas: tuple[float, ...] = DEFAULT_ALPHAS_TOWARD  # α toward the other task (residual_norm units); must hold 0
+    alphas: tuple[float, ...] = DEFAULT_ALPHAS_TOWARD  # α toward the other task (residual_norm units; in clamp mode
+                                                # the fraction of the way to the other concept's level); must hold 0
     episodes: int = Field(10, gt=0, le=1000)    # episodes per cell (the same initial states for every cell)
     first_init_state: int = Field(0, ge=0, le=10_000)  # episodes use initial states first .. first + episodes - 1
     sides: tuple[Side, ...] = SIDES  # instructions to run under
-    direction: Literal["residual", "mean_difference"] = "residual"
+    methods: tuple[str, ...] = ("sae",)         # direction methods steered (steering_core.vectors.methods), each a
+                                                # cell per push and mode; phase 3 must have written them
+    modes: tuple[Mode, ...] = ("add",)          # add: α × R along the direction; clamp: each steered token's
+                                                # projection set to m₋ + α(m₊ − m₋) (negative side; mirrored)
     random_directions: int = Field(MIN_RANDOM_DIRECTIONS, ge=0, le=256)  # norm-matched random controls at each α ≠ 0
-    wrong_concept: bool = True                  # another pair's direction at the same α (needs two pairs)
+                                                # (add mode, shared by every method and mode at that α)
+    wrong_concept: bool = True                  # another pair's direction (the first method, add) at the same α
     instruction_swap: bool = True               # the other task's instruction, unsteered: the ceiling
     chunk_episodes: int = Field(5, gt=0, le=1000)  # episodes per task run (the fan-out's unit)
     envs_per_worker: int | None = None          # envs a task run steps in lockstep, batching their policy calls;
@@ -99,6 +106,23 @@ class RolloutSettings(StrictModel):
         if grid[:1] != (0.0,) or len(grid) < 2:
             raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")
         return grid
+
+    @field_validator("methods")
+    @classmethod
+    def _methods(cls, methods: tuple[str, ...]) -> tuple[str, ...]:
+        unknown = [name for name in methods if name not in METHODS]
+        if unknown:
+            raise ValueError(f"methods {list(methods)}: {unknown} not registered; registered: {sorted(METHODS)}")
+        if not methods or len(set(methods)) != len(methods):
+            raise ValueError(f"methods {list(methods)}: give at least one direction method, each once")
+        return methods
+
+    @field_validator("modes")
+    @classmethod
+    def _modes(cls, modes: tuple[str, ...]) -> tuple[str, ...]:
+        if not modes or len(set(modes)) != len(modes):
+            raise ValueError(f"modes {list(modes)}: give add and/or clamp, each once")
+        return modes
 
     @field_validator("envs_per_worker")
     @classmethod

@@ -1,5 +1,5 @@
 """Success counts as proportions with Wilson 95% score intervals (the interval recent VLA steering work reports),
-and the exact McNemar test of two cells on the same episodes.
+the exact McNemar test of two cells on the same episodes, and Holm's adjustment of a family of p-values.
 
 Wilson's interval solves (p̂ − p)² = z² p(1 − p) / n for p: unlike p̂ ± z·√(p̂(1 − p̂)/n) it stays inside [0, 1]
 and does not collapse to a point at 0/n or n/n, which 10-episode cells often give.
@@ -10,6 +10,10 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+
+import torch
+
+from steering_core.evaluate.metrics import holm as holm_tensor
 
 WILSON_Z = 1.959963984540054  # the standard normal's 97.5% quantile: a two-sided 95% interval
 
@@ -92,3 +96,11 @@ def mcnemar(a: Sequence[bool], b: Sequence[bool]) -> Paired:
     greater, less = _binomial_tail(only_a, discordant), _binomial_tail(only_b, discordant)
     return Paired(n=len(a), both=sum(bool(x) and bool(y) for x, y in zip(a, b)), only_a=only_a, only_b=only_b,
                   p_greater=greater, p_two_sided=min(1.0, 2 * min(greater, less)))
+
+
+def holm(p_values: Sequence[float]) -> list[float]:
+    """Return Holm's step-down adjusted p-values of a family (same order, each at most 1): the i-th smallest of m
+    is multiplied by m − i (i from 0), and each kept at least the one before it."""
+    if not p_values:
+        return []
+    return holm_tensor(torch.tensor(p_values, dtype=torch.float64)).tolist()
