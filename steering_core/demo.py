@@ -76,6 +76,7 @@ DEMO_STEPS = 24                # steps per generated demo (real demos: 100-300)
 TINY_MODEL_NOTE = "Tiny random demo model: these numbers mean nothing; on a real checkpoint they are the result."
 PLANTED_NOTE = ("Planted concept: the two tasks' layer-0 rows differ by exactly one direction, so the right answer "
                 "is the mean difference at α = 1 with efficacy 1 on both sides")
+DEMO_ROLLOUT_METHODS = ("sae", "mean_difference", "probe")  # head to head in both modes, open and closed loop
 PLANTED_DIR = "planted"        # the planted run's folder inside the demo folder
 # The closed-loop section: one pair in LIBERO's own scenes (libero_90 task 7 opens the top drawer of KITCHEN_SCENE1,
 # task 0 closes the one of KITCHEN_SCENE10), both sides, α toward the other task 0 and 2, 2 episodes of 30 steps.
@@ -133,7 +134,8 @@ def demo_config(folder: Path, layers: tuple[int, ...] = DEMO_LAYERS) -> RunConfi
         steering=SteeringSection(device="cpu", batch_size=256, top_k=5),
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
                                  note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),
-        rollout=RolloutSection(pairs={DEMO_ROLLOUT_PAIR: DEMO_ROLLOUT}, layers=layers[:1], alphas=(0.0, 2.0),
+        rollout=RolloutSection(pairs={DEMO_ROLLOUT_PAIR: DEMO_ROLLOUT}, layers=layers[:1], alphas=(0.0, 1.0),
+                               methods=DEMO_ROLLOUT_METHODS, modes=("add", "clamp"),
                                episodes=2, max_steps=30, random_directions=0, wrong_concept=False,
                                instruction_swap=False, device="cpu", note=ROLLOUT_NOTE),
     )

@@ -51,7 +51,7 @@ from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
 from steering_core.data.convert import read_sources
-from steering_core.demo import DEMO_STEPS, PLANTED_DIR, build_demo, format_summary, summarise
+from steering_core.demo import DEMO_ROLLOUT_METHODS, DEMO_STEPS, PLANTED_DIR, build_demo, format_summary, summarise
 from steering_core.identity import code_modules, code_version
 from steering_core.layout import layer_dir
 from steering_core.remote import filesystems, publish
@@ -437,17 +437,27 @@ def test_closing_table_names_every_task_run_with_its_state(first_run, demo_confi
                for line in lines)
 
 
+def steered_cells() -> list[str]:
+    """Return the demo's steered rollout cells: every method of the demo in both modes, on both sides at push 1."""
+    return [f"{side}_{method}{mode}_a{sign}1" for side, sign in (("negative", "+"), ("positive", "-"))
+            for method in DEMO_ROLLOUT_METHODS for mode in ("", "+clamp")]
+
+
 @pytest.mark.slow
 def test_demo_rolls_the_steered_policy_out_in_the_simulator(first_run, demo_config):
     config = load_run_config(demo_config)
     tasks = task_runs_under(first_run[0])
     chunks = {name: run for name, run in tasks.items() if name.startswith("rollout open_vs_close layer 1 ")}
-    assert sorted(name.split()[4] for name in chunks) == [  # both sides at α toward the other task 0 and 2
-        "negative_sae_a+2", "negative_unsteered_a+0", "positive_sae_a-2", "positive_unsteered_a+0"]
+    assert sorted(name.split()[4] for name in chunks) == sorted(  # both sides at α toward the other task 0 and 1
+        ["negative_unsteered_a+0", "positive_unsteered_a+0"] + steered_cells())
     assert {run.state.name for run in chunks.values()} == {"Completed"}
     layer_path = config.rollout_layer_path(1)
     summary = read_json(layer_path / "summary.json")
-    assert [row["side"] for row in summary["pairs"][0]["answers"]] == ["positive", "negative"]
+    answered = sorted((row["side"], row["condition"]) for row in summary["pairs"][0]["answers"])
+    assert answered == sorted((side, f"{method}{mode}") for side in ("positive", "negative")
+                              for method in DEMO_ROLLOUT_METHODS for mode in ("", "+clamp"))
+    assert {(row["method"], row["mode"]) for row in summary["methods"]} == {
+        (method, mode) for method in DEMO_ROLLOUT_METHODS for mode in ("add", "clamp")}
     for cell in chunks:
         record = read_json(layer_path / "open_vs_close" / cell.split()[4] / "rollouts.json")
         assert len(record["episodes"]) == 2 and all(e["steps"] <= 30 for e in record["episodes"])
@@ -460,7 +470,7 @@ def test_demo_rolls_the_steered_policy_out_in_the_simulator(first_run, demo_conf
 def test_demo_finds_the_planted_concept(first_run):
     check = first_run[1].split("The planted-concept check", 1)[1]
     row = next(line for line in check.splitlines() if line.startswith("planted "))
-    assert "mean_difference_direction, layer 0" in row and " 1 / 1 " in row
+    assert "mean_difference" in row and ", layer 0 " in row and " 1 / " in row  # either mode, at α = 1
     assert row.count("1.000 [1.000, 1.000]") == 2 and row.split()[-1] == "0.030"  # both sides; p = 1/33
     assert "better than random directions" in check
 
@@ -764,7 +774,7 @@ def test_added_demo_recomputes_only_what_depends_on_it(added_demo_refresh, demo_
         "slice open_vs_close expert layer 2", "evaluate open_vs_close expert layer 2",
         "evaluation summary expert layer 2", "evaluation pathways",
         # closed loop: the drawer pair's steered cells (its vector changed), not its α = 0 cells
-        *(name.format(cell) for cell in ("negative_sae_a+2", "positive_sae_a-2")
+        *(name.format(cell) for cell in steered_cells()
           for name in ("rollout open_vs_close layer 1 {} chunk 0", "merge rollout open_vs_close layer 1 {}")),
         "rollout summary layer 1",
     }

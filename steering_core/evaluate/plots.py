@@ -24,29 +24,37 @@ def layer_label(layer: int, stream: str) -> str:
 
 
 def plot_efficacy(path: Path, record: dict[str, Any]) -> None:
-    """Pooled efficacy vs α per direction with intervals, each side dashed; the random null's 2.5-97.5% shaded."""
+    """Pooled efficacy vs α per method with intervals, each side dashed, one panel per strength mode; the random
+    null's 2.5-97.5% shaded in each (the nulls are added, shared by every method and mode)."""
     alphas, null = record["alphas"], record["random"]
-    fig = figure((6.4, 4.2))
-    ax = fig.add_subplot()
-    ax.fill_between(alphas, null["low"], null["high"], color="0.85",
-                    label=f"null: {len(null['names'])} random, 2.5-97.5%")
-    ax.plot(alphas, null["mean"], color="0.6", linestyle="--", linewidth=1)
-    for name in named(record):
-        entry = record["directions"][name]
-        # a percentile interval need not contain its estimate (a ratio over resampled episodes): bars stop there
-        low = [max(v - ci[0], 0.0) for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
-        high = [max(ci[1] - v, 0.0) for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
-        line = ax.errorbar(alphas, entry["efficacy"], yerr=[low, high], marker="o", markersize=3, capsize=2,
-                           label=name)
-        for side, style in (("positive", ":"), ("negative", "--")):
-            ax.plot(alphas, entry[f"efficacy_{side}"], linestyle=style, linewidth=0.8, color=line.lines[0].get_color())
-    ax.axhline(1.0, color="k", linewidth=0.6, linestyle=":")
-    ax.set(xlabel="α (× R, the mean residual norm; vector units: α·R/‖d‖)",
-           ylabel="efficacy (1 = instruction swap, action std units)",
-           title=f"{record['pair']}, {layer_label(record['layer'], record['stream'])} "
-                 "(dotted: positive-task frames, dashed: negative)")
-    ax.title.set_fontsize(8)
-    ax.legend(fontsize=7)
+    modes = list(dict.fromkeys(record["directions"][name].get("mode", "add") for name in named(record)))
+    fig = figure((6.4 * len(modes), 4.2))
+    for panel, mode in enumerate(modes):
+        ax = fig.add_subplot(1, len(modes), panel + 1)
+        ax.fill_between(alphas, null["low"], null["high"], color="0.85",
+                        label=f"null: {len(null['names'])} random (added), 2.5-97.5%")
+        ax.plot(alphas, null["mean"], color="0.6", linestyle="--", linewidth=1)
+        for name in named(record):
+            entry = record["directions"][name]
+            if entry.get("mode", "add") != mode:
+                continue
+            # a percentile interval need not contain its estimate (a ratio over resampled episodes): bars stop there
+            low = [max(v - ci[0], 0.0) for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
+            high = [max(ci[1] - v, 0.0) for v, ci in zip(entry["efficacy"], entry["efficacy_ci"], strict=True)]
+            line = ax.errorbar(alphas, entry["efficacy"], yerr=[low, high], marker="o", markersize=3, capsize=2,
+                               label=entry.get("method", name))
+            for side, style in (("positive", ":"), ("negative", "--")):
+                ax.plot(alphas, entry[f"efficacy_{side}"], linestyle=style, linewidth=0.8,
+                        color=line.lines[0].get_color())
+        ax.axhline(1.0, color="k", linewidth=0.6, linestyle=":")
+        unit = ("α: the level between the own concept's mean projection (0) and the other's (1)" if mode == "clamp"
+                else "α (× R, the mean residual norm; vector units: α·R/‖d‖)")
+        ax.set(xlabel=unit, ylabel="efficacy (1 = instruction swap, action std units)" if panel == 0 else None,
+               title=f"{record['pair']}, {layer_label(record['layer'], record['stream'])}, {mode} "
+                     "(dotted: positive-task frames, dashed: negative)")
+        ax.title.set_fontsize(8)
+        ax.xaxis.label.set_fontsize(8)
+        ax.legend(fontsize=7)
     save_png(fig, path)
 
 
