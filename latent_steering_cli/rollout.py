@@ -32,6 +32,7 @@ def rollout_command(
     Each cell's rollouts.json and .safetensors, success-vs-α plots with Wilson intervals and the random band,
     joint trajectories, an MP4 of each cell's first episode, and a summary.md per layer.
     """
+    from steering_core.preflight import rollout_input_problems
     from steering_core.rollout.local_run import rollout_config
     from steering_core.serve.auth import read_api_key
 
@@ -50,7 +51,8 @@ def rollout_command(
             chosen = " ".join([*(f"--pair {name}" for name in pair), *(f"--layer {at}" for at in layer)])
             raise ValueError(f"{chosen}: no (pair, layer) left to roll out: the config maps {sorted(section.pairs)} "
                              f"at layers {list(run_config.layers)}")
-        if problems := rollout_problems(run_config, targets, where=f"{config}: rollout"):
+        problems = rollout_input_problems(run_config) or rollout_problems(run_config, targets, where=f"{config}: rollout")
+        if problems:
             raise ValueError("; ".join(problems))
         summaries = rollout_config(run_config, targets, api_key=read_api_key(section.api_key_file))
     for layer_number, path in summaries.items():

@@ -84,7 +84,7 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
         checks += [(lambda layer=layer: resolve_device(config.train_settings(layer).device))
                    for layer in config.trained_layers]
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
-    return list(dict.fromkeys(problems + model + _failures(checks) + _rollout_problems(config)))
+    return list(dict.fromkeys(problems + model + _failures(checks) + rollout_input_problems(config)))
 
 
 def _check_checkpoint_finite(config: RunConfig) -> None:
@@ -120,7 +120,7 @@ def _check_methods(config: RunConfig, layer: int, *, check_width: bool) -> None:
         check_methods(settings, [pair.name for pair in config.pairs], config.model.arch.width, True)
 
 
-def _rollout_problems(config: RunConfig) -> list[str]:
+def rollout_input_problems(config: RunConfig) -> list[str]:
     """Return the problems of the rollout section: its scene assets, each pair's LIBERO tasks and their initial
     states, the server key."""
     if config.rollout is None:

@@ -117,7 +117,6 @@ def evaluate(world: World, tmp_path: Path, pairs: Path, layer: int) -> list:
     """`evaluate` of the run's pairs config `pairs` at `layer` (the rest of its working command line)."""
     argv = [str(word) for word in good(world, tmp_path)["evaluate"]]
     argv[argv.index("--pairs-config") + 1], argv[argv.index("--layer") + 1] = str(pairs), str(layer)
-    argv[argv.index("--sae") + 1] = "none"
     return ["evaluate", *argv]
 
 

@@ -158,7 +158,7 @@ def _steer(world: World, tmp_path: Path) -> list:
 
 
 def _evaluate(world: World, tmp_path: Path) -> list:
-    return ["evaluate", "--pairs-config", world.data / "layer2_pairs.json", "--layer", "2", "--sae", "none",
+    return ["evaluate", "--pairs-config", world.data / "layer2_pairs.json", "--layer", "2",
             "--checkpoint-path", world.checkpoint, "--tokenizer-path", world.tokenizer,
             "--arch-file", world.data / "arch.json", "--device", "cpu"]
 

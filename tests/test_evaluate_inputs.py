@@ -90,7 +90,7 @@ def test_evaluate_cli_refuses_slices_cut_without_the_split(tmp_path):
     result = runner.invoke(app, [
         "evaluate", "--pairs-config", str(pairs_config(data, slices)), "--layer", str(LAYER), "--data-root", str(data),
         "--lerobot-root", str(tmp_path / "lerobot"), "--checkpoint-path", str(tmp_path / "ckpt"),
-        "--tokenizer-path", str(tmp_path / "tok"), "--sae", "none", "--device", "cpu"])
+        "--tokenizer-path", str(tmp_path / "tok"), "--device", "cpu"])
     assert result.exit_code != 0
     lines = [line for line in result.output.splitlines() if "held" in line or "holding" in line]
     assert len(lines) == 1 and "slices cut holding out episodes []" in lines[0] \

@@ -285,8 +285,9 @@ def test_current_statistics_are_reused_and_stale_ones_recomputed(project, sae_fo
 def test_without_sae_directions_are_mean_differences(project):
     layer_path = compute_steering(settings(project, None))
     pair_dir = layer_path / "open_drawer_main"
-    assert sorted(p.name for p in pair_dir.iterdir()) == [
-        "directions.json", "residual_direction.pt", "residual_direction.safetensors"]
+    assert sorted(p.name for p in pair_dir.iterdir()) == [  # the seed's file and the residual-space methods
+        "directions.json", "mean_difference_direction.safetensors", "probe_direction.safetensors",
+        "residual_direction.pt", "residual_direction.safetensors"]
     residual = torch.load(pair_dir / "residual_direction.pt", weights_only=True)
     assert set(residual) == SEED_KEYS["residual_direction"] | OUR_RESIDUAL_KEYS
     pos = torch.load(project / "data/residuals/open_vs_close_slices/layer12/open the top drawer of the cabinet.pt", weights_only=True)
