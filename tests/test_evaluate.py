@@ -635,6 +635,7 @@ def test_clamp_reaches_the_other_level_at_one_where_add_needs_the_gap(tmp_path):
         assert versus["reference"] == "mean_difference" + name[3:]
         assert versus["difference"] == pytest.approx(record["directions"][name]["best"]["efficacy"] - reference)
         assert versus["ci"][0] <= versus["difference"] <= versus["ci"][1]
+        assert versus["gain"] == pytest.approx(abs(reference - 1) - abs(record["directions"][name]["best"]["efficacy"] - 1))
     p = [record["directions"][n]["p_random"][a] for n in ("sae", "sae:clamp", "mean_difference",
                                                            "mean_difference:clamp")
          for a, alpha in enumerate(alphas) if alpha != 0]

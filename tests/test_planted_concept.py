@@ -80,10 +80,10 @@ def test_evaluation_finds_the_planted_concept_and_nothing_else(planted):
     for name in tested:
         best = record["directions"][name]["best"]
         assert "p_random" in best and "p_random_holm" in best
-        if not name.startswith("mean_difference"):  # its paired difference from the mean difference, same mode
+        if not name.startswith("mean_difference"):  # no closer to the swap than the mean difference (same mode)
             versus = best["vs_reference"]
             assert versus["reference"] == "mean_difference" + name.partition(":")[1] + name.partition(":")[2]
-            assert versus["ci"][0] is None or versus["ci"][0] <= 1e-9, name
+            assert versus["gain_ci"][0] is None or versus["gain_ci"][0] <= 1e-9, name
     randoms = [record["directions"][name]["efficacy"][at_one] for name in record["random"]["names"]]
     assert abs(sum(randoms) / len(randoms)) < 0.2 and max(abs(value) for value in randoms) < 0.75  # near 0
 
@@ -98,7 +98,7 @@ def test_a_reversed_pairs_config_is_refused(planted, tmp_path):
     reversed_file.write_text(json.dumps({"pairs": [reversed_entry]}))
     arch_file = out / "arch.json"
     result = CliRunner().invoke(app, [
-        "evaluate", "--pairs-config", str(reversed_file), "--layer", str(PLANTED_LAYER), "--sae", "none",
+        "evaluate", "--pairs-config", str(reversed_file), "--layer", str(PLANTED_LAYER),
         "--data-root", str(out), "--lerobot-root", str(out / "libero_lerobot" / config.dataset.repo_id),
         "--checkpoint-path", str(config.model.checkpoint), "--tokenizer-path", str(config.model.tokenizer),
         "--arch-file", str(arch_file), "--output-root", str(tmp_path / "eval"), "--device", "cpu"])

@@ -105,9 +105,13 @@ def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[floa
         entry["best"]["p_random_holm"] = entry["p_random_holm"][best]
     reference = entry_name(REFERENCE_METHOD, mode)
     if not is_null(name) and reference in names and reference != name:
-        difference, ci = paired_difference(metrics["crossfit"], metrics["crossfit_boot"], d, names.index(reference))
-        entry["best"]["vs_reference"] = {"reference": reference, "difference": difference, "ci": _json_floats(
-            torch.tensor(ci))}
+        other = names.index(reference)
+        difference, ci = paired_difference(metrics["crossfit"], metrics["crossfit_boot"], d, other)
+        closeness = [-(metrics[key] - 1).abs() for key in ("crossfit", "crossfit_boot")]  # 0 at the swap itself
+        gain, gain_ci = paired_difference(*closeness, d, other)
+        entry["best"]["vs_reference"] = {"reference": reference, "difference": difference,
+                                         "ci": _json_floats(torch.tensor(ci)), "gain": gain,
+                                         "gain_ci": _json_floats(torch.tensor(gain_ci))}
     return entry
 
 
@@ -226,8 +230,10 @@ SELECTION_TEXT = (
     "through the same selection; mean differences of episode labels permuted, at their own (smaller) size and "
     "the row's α. The nulls are added (not clamped) and shared by every method: a clamp row is ranked against "
     "them at the same α. Holm: the per-α p against the random null, adjusted over every method × mode × α ≠ 0 "
-    "of the pair, read at the row's α. Δ vs mean_difference: the row's cross-fitted efficacy minus the "
-    "mean difference's in the same mode, with a paired interval (the same resampled episodes for both).\n\n"
+    "of the pair, read at the row's α. Gain vs mean_difference: how much closer to the instruction swap "
+    "(efficacy 1) the row's cross-fitted efficacy is than the mean difference's in the same mode, "
+    "|1 − e_mean_difference| − |1 − e| (positive: closer; overshooting 1 is not better), with a paired interval "
+    "(the same resampled episodes for both); the plain difference of efficacies is in summary.json.\n\n"
     "Modes: add puts h + α·R·d̂ at the steered tokens; clamp sets each steered token's projection on d̂ to "
     "m_own + α·(m_other − m_own), the two concepts' mean projections (α = 1: the other concept's level, no "
     "overshoot whatever the token's start).")
@@ -239,13 +245,13 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     lines = [f"# Steering evaluation, {summary['layer']}", ""]
     lines += [f"**{note}**" for note in summary["notes"]] + ([""] if summary["notes"] else [])
     lines += [SELECTION_TEXT, "", "| pair | method | mode | α (R / vector) | efficacy [95% CI] | "
-              "Δ vs mean_difference [95% CI] | positive-task frames | negative-task frames | p random | "
+              "gain vs mean_difference [95% CI] | positive-task frames | negative-task frames | p random | "
               "p random, Holm | p permuted |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
         versus = row.get("vs_reference")
         lines.append(f"| {row['pair']} | {row['method']} | {row['mode']} | {alpha_text(row)} | "
                      f"{with_ci(row['efficacy'], row['efficacy_ci'])} | "
-                     f"{with_ci(versus['difference'], versus['ci']) if versus else '–'} | "
+                     f"{with_ci(versus['gain'], versus['gain_ci']) if versus else '–'} | "
                      f"{with_ci(row['efficacy_positive'], row['efficacy_positive_ci'])} | "
                      f"{with_ci(row['efficacy_negative'], row['efficacy_negative_ci'])} | "
                      f"{fmt(row.get('p_random'))} | {fmt(row.get('p_random_holm'))} | {fmt(row.get('p_permuted'))} |")

@@ -1,6 +1,6 @@
 """Direction methods (`registry`): every module here registers one or more; importing the package registers all."""
 
-from steering_core.vectors.methods import basic, sae_effect, supplied  # noqa: F401  (registration)
+from steering_core.vectors.methods import basic, probe, sae_effect, supplied  # noqa: F401  (registration)
 from steering_core.vectors.methods.registry import (
     METHODS,
     DirectionMethod,
