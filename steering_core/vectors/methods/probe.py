@@ -62,7 +62,7 @@ class ProbeFit:
     iterations: int
     converged: bool
     stopped: str                            # one of `STOPS`
-    gradient: float                         # the final fit's √(gᵀM⁻¹g)
+    gradient_norm: float                    # the final fit's √(gᵀM⁻¹g)
 
     def record(self) -> dict[str, Any]:
         """Return the JSON record of the fit (the held-out scores left out)."""
@@ -76,7 +76,7 @@ class ProbeFit:
             "rows": dict(zip(("positive", "negative"), self.rows)),
             "episodes": dict(zip(("positive", "negative"), self.episodes)),
             "intercept": self.intercept, "iterations": self.iterations, "converged": self.converged,
-            "stopped": self.stopped, "gradient": self.gradient,
+            "stopped": self.stopped, "gradient_norm": self.gradient_norm,
         }
 
 
@@ -88,7 +88,7 @@ class _Rows:
         dtype = torch.float64 if x_pos.dtype == x_neg.dtype == torch.float64 else torch.float32
         self.x = torch.empty(len(x_pos) + len(x_neg), x_pos.shape[1], dtype=dtype)
         self.x[:len(x_pos)], self.x[len(x_pos):] = x_pos, x_neg
-        self.mean = self.x.mean(0, dtype=torch.float64)
+        self.mean = sum(block.sum(0, dtype=torch.float64) for block in self.x.split(GRAM_ROWS)) / len(self.x)
         self.x -= self.mean.to(dtype)
         self.y = torch.cat([torch.ones(len(x_pos)), -torch.ones(len(x_neg))]).double()
         self.fold = fold
@@ -193,14 +193,14 @@ class _Fits:
 
 def fit_logistic(x_pos: torch.Tensor, x_neg: torch.Tensor, c: float, *, max_iter: int = MAX_ITER,
                  tol: float = TOLERANCE) -> tuple[torch.Tensor, float, dict[str, Any]]:
-    """Return the (width,) float64 weights, intercept and {iterations, converged, stopped, gradient} of the logistic
-    regression of positive rows (label 1) against negative rows (label 0) at C = `c`."""
+    """Return the (width,) float64 weights, intercept and {iterations, converged, stopped, gradient_norm} of the
+    logistic regression of positive rows (label 1) against negative rows (label 0) at C = `c`."""
     rows = _Rows(x_pos, x_neg, torch.zeros(len(x_pos) + len(x_neg), dtype=torch.long))
     v, iterations, stop, norm = _Fits(rows, torch.tensor([-1]), torch.tensor([float(c)], dtype=torch.float64)
                                       ).run(max_iter, tol)
     return v[0, :-1], float(rows.intercepts(v)[0]), {
         "iterations": int(iterations[0]), "converged": STOPS[stop[0]] != "iteration cap",
-        "stopped": STOPS[stop[0]], "gradient": float(norm[0])}
+        "stopped": STOPS[stop[0]], "gradient_norm": float(norm[0])}
 
 
 def episode_folds(episodes_pos: torch.Tensor, episodes_neg: torch.Tensor, k: int
@@ -209,15 +209,15 @@ def episode_folds(episodes_pos: torch.Tensor, episodes_neg: torch.Tensor, k: int
     dealt round-robin, then the other side's episodes not already placed fill the folds it lacks first, then
     round-robin. An episode in both sides is in one fold, and every fold holds episodes of both sides (k at most
     either side's episode count)."""
-    ids = [sorted(set(episodes_pos.tolist())), sorted(set(episodes_neg.tolist()))]
-    first, second = sorted(ids, key=len)
+    ids = [episodes.unique(return_inverse=True) for episodes in (episodes_pos, episodes_neg)]
+    first, second = sorted((unique.tolist() for unique, _ in ids), key=len)
     fold_of = {episode: i % k for i, episode in enumerate(first)}
     lacking = sorted(set(range(k)) - {fold_of[episode] for episode in second if episode in fold_of})
     new = [episode for episode in second if episode not in fold_of]
     for i, episode in enumerate(new):
         fold_of[episode] = lacking[i] if i < len(lacking) else (i - len(lacking)) % k
-    return tuple(torch.tensor([fold_of[e] for e in episodes.tolist()], dtype=torch.long)
-                 for episodes in (episodes_pos, episodes_neg))
+    return tuple(torch.tensor([fold_of[e] for e in unique.tolist()], dtype=torch.long)[inverse]
+                 for unique, inverse in ids)
 
 
 def roc_auc(scores: torch.Tensor, labels: torch.Tensor) -> float:
@@ -232,7 +232,7 @@ def fit_probe(rows_pos: torch.Tensor, rows_neg: torch.Tensor, episodes_pos: torc
               episodes_neg: torch.Tensor | None, *, folds: int, c: float | None) -> ProbeFit:
     """Fit the probe: at C = `c` when given, else at the C of `C_GRID` with the lowest mean held-out log-loss over
     min(`folds`, either side's episodes) folds of whole episodes (`DEFAULT_C` when a side has fewer than two)."""
-    episodes = tuple(None if e is None else len(set(e.tolist())) for e in (episodes_pos, episodes_neg))
+    episodes = tuple(None if e is None else len(e.unique()) for e in (episodes_pos, episodes_neg))
     k = min(folds, *episodes) if None not in episodes else 0
     labels = torch.cat([torch.ones(len(rows_pos), dtype=torch.bool), torch.zeros(len(rows_neg), dtype=torch.bool)])
     cv: dict[str, Any] = {"c_grid": None, "cv_log_loss": None, "folds": None, "cv_unconverged": None,
@@ -267,8 +267,8 @@ def fit_probe(rows_pos: torch.Tensor, rows_neg: torch.Tensor, episodes_pos: torc
     return ProbeFit(weights=v[0, :-1], intercept=float(rows.intercepts(v)[0]), c=float(c), c_choice=choice,
                     train_accuracy=float(((train > 0) == labels).double().mean()),
                     rows=(len(rows_pos), len(rows_neg)), episodes=episodes, iterations=int(iterations[0]),
-                    converged=STOPS[stop[0]] != "iteration cap", stopped=STOPS[stop[0]], gradient=float(norm[0]),
-                    **cv)
+                    converged=STOPS[stop[0]] != "iteration cap", stopped=STOPS[stop[0]],
+                    gradient_norm=float(norm[0]), **cv)
 
 
 @register_method("probe", "the weights of an L2 logistic regression between the concepts' training rows "
@@ -299,7 +299,7 @@ def probe_direction(data: PairData) -> MethodResult:
     if not fit.converged:
         logger.warning("%s: the probe at C = %g reached the iteration cap (%d) with gradient %.2g > %g; its "
                        "weights are used as they are (converged: false in the record)", where, fit.c, MAX_ITER,
-                       fit.gradient, TOLERANCE)
+                       fit.gradient_norm, TOLERANCE)
     if not fit.weights.any():
         raise ValueError(f"{where}: the probe's weights are all zero, expected a direction; the rows do not tell "
                          "the concepts apart")
