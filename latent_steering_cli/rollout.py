@@ -51,8 +51,8 @@ def rollout_command(
             chosen = " ".join([*(f"--pair {name}" for name in pair), *(f"--layer {at}" for at in layer)])
             raise ValueError(f"{chosen}: no (pair, layer) left to roll out: the config maps {sorted(section.pairs)} "
                              f"at layers {list(run_config.layers)}")
-        problems = rollout_input_problems(run_config) or rollout_problems(run_config, targets, where=f"{config}: rollout")
-        if problems:
+        if problems := rollout_input_problems(run_config) + rollout_problems(run_config, targets,
+                                                                             where=f"{config}: rollout"):
             raise ValueError("; ".join(problems))
         summaries = rollout_config(run_config, targets, api_key=read_api_key(section.api_key_file))
     for layer_number, path in summaries.items():

@@ -135,7 +135,7 @@ def demo_config(folder: Path, layers: tuple[int, ...] = DEMO_LAYERS) -> RunConfi
         evaluate=EvaluateSection(max_frames=4, noise_seeds=2, bootstrap=200, batch_size=2, device="cpu",
                                  note=TINY_MODEL_NOTE, expert_layers=DEMO_EXPERT_LAYERS),
         rollout=RolloutSection(pairs={DEMO_ROLLOUT_PAIR: DEMO_ROLLOUT}, layers=layers[:1], alphas=(0.0, 1.0),
-                               methods=DEMO_ROLLOUT_METHODS, modes=("add", "clamp"),
+                               methods=DEMO_ROLLOUT_METHODS, modes=("add", "clamp"), sides=("negative",),
                                episodes=2, max_steps=30, random_directions=0, wrong_concept=False,
                                instruction_swap=False, device="cpu", note=ROLLOUT_NOTE),
     )

@@ -165,7 +165,9 @@ def test_evaluation_sweep_gives_the_naive_loops_actions(cache, tmp_path):
     assert result.checks["max_abs_difference"] < 1e-4
     assert result.checks["naive_calls"] == 2 * 1 * (4 * 3 + 1)  # frames x seeds x (directions x alphas + swap)
     assert [row["case"] for row in result.table] == ["measured cpu, layer 2",
-                                                     "real pi0.5, layer 12, one pair (analytic)"]
+                                                     "real pi0.5, layer 12, one pair (analytic)",
+                                                     "methods: 4 x 2 modes + null vs 1 method + null, layer 2"]
+    assert result.checks["methods_ratio"] > 0
 
 
 def test_evaluation_flop_model_known_answers():

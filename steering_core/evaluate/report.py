@@ -109,9 +109,9 @@ def _direction_entry(d: int, name: str, head: dict[str, Any], alphas: tuple[floa
         difference, ci = paired_difference(metrics["crossfit"], metrics["crossfit_boot"], d, other)
         closeness = [-(metrics[key] - 1).abs() for key in ("crossfit", "crossfit_boot")]  # 0 at the swap itself
         gain, gain_ci = paired_difference(*closeness, d, other)
-        entry["best"]["vs_reference"] = {"reference": reference, "difference": difference,
-                                         "ci": _json_floats(torch.tensor(ci)), "gain": gain,
-                                         "gain_ci": _json_floats(torch.tensor(gain_ci))}
+        entry["best"]["vs_reference"] = {  # NaN (None) where a half holds no frames of a side
+            "reference": reference, **{key: _json_floats(torch.tensor(value, dtype=torch.float64)) for key, value in
+                                       (("difference", difference), ("ci", ci), ("gain", gain), ("gain_ci", gain_ci))}}
     return entry
 
 

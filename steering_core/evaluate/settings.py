@@ -9,6 +9,7 @@ from pydantic import AfterValidator, Field
 
 from steering_core.devices import DEVICE_HELP
 from steering_core.storage.schema import StrictModel
+from steering_core.vectors.methods import MethodNames
 
 # α in units of R, the mean residual norm of the training rows at the steered positions: α = 1 adds a vector as
 # long as a typical residual, whatever the direction's own norm (α_vector = α · R / ‖d‖ multiplies d itself).
@@ -47,7 +48,6 @@ def _each_once(names: tuple[str, ...]) -> tuple[str, ...]:
 
 # field-level validators (not model methods), so that the run config's evaluate section checks them too
 AlphaGrid = Annotated[tuple[float, ...], AfterValidator(_grid_with_zero)]
-Names = Annotated[tuple[str, ...], AfterValidator(_each_once)]
 
 
 class EvaluateSettings(StrictModel):
@@ -64,7 +64,7 @@ class EvaluateSettings(StrictModel):
         "Random directions of the null (drawn from the rows' covariance, norm-matched)."))
     permutations: int = Field(8, ge=0, le=10_000, description=(
         "Null: mean differences with episode labels shuffled between the tasks."))
-    methods: Names | None = Field(None, description=(
+    methods: MethodNames | None = Field(None, description=(
         "Direction methods evaluated (default: every one phase 3 wrote, steering.methods)."))
     modes: Annotated[tuple[Literal["add", "clamp"], ...], AfterValidator(_each_once)] = Field(("add", "clamp"), description=(
         "Strength modes: add (h + α·R·d̂) and clamp (each steered token's projection on d̂ set to m_own + "

@@ -12,7 +12,7 @@ from pydantic import Field, field_validator, model_validator
 from steering_core.pairs import SIDES, Side, same_text
 from steering_core.pi05.steering import Mode
 from steering_core.storage.schema import StrictModel
-from steering_core.vectors.methods import METHODS
+from steering_core.vectors.methods import MethodNames
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
 # α toward the other task, in residual_norm units (the evaluation's): the shift is |α| typical residual norms.
@@ -68,7 +68,7 @@ class RolloutSettings(StrictModel):
     episodes: int = Field(10, gt=0, le=1000)    # episodes per cell (the same initial states for every cell)
     first_init_state: int = Field(0, ge=0, le=10_000)  # episodes use initial states first .. first + episodes - 1
     sides: tuple[Side, ...] = SIDES  # instructions to run under
-    methods: tuple[str, ...] = ("sae",)         # direction methods steered (steering_core.vectors.methods), each a
+    methods: MethodNames = ("sae",)         # direction methods steered (steering_core.vectors.methods), each a
                                                 # cell per push and mode; phase 3 must have written them
     modes: tuple[Mode, ...] = ("add",)          # add: α × R along the direction; clamp: each steered token's
                                                 # projection set to m₋ + α(m₊ − m₋) (negative side; mirrored)
@@ -106,16 +106,6 @@ class RolloutSettings(StrictModel):
         if grid[:1] != (0.0,) or len(grid) < 2:
             raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")
         return grid
-
-    @field_validator("methods")
-    @classmethod
-    def _methods(cls, methods: tuple[str, ...]) -> tuple[str, ...]:
-        unknown = [name for name in methods if name not in METHODS]
-        if unknown:
-            raise ValueError(f"methods {list(methods)}: {unknown} not registered; registered: {sorted(METHODS)}")
-        if not methods or len(set(methods)) != len(methods):
-            raise ValueError(f"methods {list(methods)}: give at least one direction method, each once")
-        return methods
 
     @field_validator("modes")
     @classmethod

@@ -59,7 +59,7 @@ from steering_core.vectors.concept_stats import (
     encode_concept,
     read_concept_stats,
 )
-from steering_core.vectors.methods import METHODS, PairData
+from steering_core.vectors.methods import METHODS, MethodNames, PairData
 from steering_core.vectors.methods.direction_file import (
     MethodDirection,
     method_direction,
@@ -132,7 +132,7 @@ class SteeringSettings(StrictModel):
     include_decoder_bias: bool = Field(False, description=(
         "Seed compatibility: residual_direction = decode(delta) = delta @ W_dec + b_dec (default: without b_dec)."))
     top_k: int = Field(20, gt=0, le=4096, description="Latents listed per direction in the report.")
-    methods: tuple[str, ...] | None = Field(None, description=(
+    methods: MethodNames | None = Field(None, description=(
         "Direction methods written per pair (registered in steering_core.vectors.methods); default: "
         + ", ".join(DEFAULT_METHODS) + " (those needing an SAE only when there is one)."))
     direction_file: str | None = Field(None, description=(
@@ -146,18 +146,6 @@ class SteeringSettings(StrictModel):
     paths_relative_to: PathsRelativeTo = Field("auto", description=(
         "Base of relative concept paths: auto (the current directory when the file exists there, as the seed's "
         "pairs files expect, else the pairs file's folder, as the pipeline writes them), cwd or config."))
-
-    @field_validator("methods")
-    @classmethod
-    def _registered_methods(cls, methods: tuple[str, ...] | None) -> tuple[str, ...] | None:
-        if methods is None:
-            return None
-        unknown = [name for name in methods if name not in METHODS]
-        if unknown:
-            raise ValueError(f"methods {list(methods)}: {unknown} not registered; registered: {sorted(METHODS)}")
-        if not methods or len(set(methods)) != len(methods):
-            raise ValueError(f"methods {list(methods)}: give at least one method, each once")
-        return methods
 
     @model_validator(mode="after")
     def _file_method_has_a_file(self) -> SteeringSettings:

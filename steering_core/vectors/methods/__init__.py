@@ -4,10 +4,11 @@ from steering_core.vectors.methods import basic, probe, sae_effect, supplied  # 
 from steering_core.vectors.methods.registry import (
     METHODS,
     DirectionMethod,
+    MethodNames,
     MethodResult,
     PairData,
     method,
     method_names,
 )
 
-__all__ = ["METHODS", "DirectionMethod", "MethodResult", "PairData", "method", "method_names"]
+__all__ = ["METHODS", "DirectionMethod", "MethodNames", "MethodResult", "PairData", "method", "method_names"]

@@ -15,9 +15,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import torch
+from pydantic import AfterValidator
 
 from steering_core.pairs import SIDES
 from steering_core.sae.model import Sae
@@ -101,6 +102,21 @@ def method(name: str) -> DirectionMethod:
     if name not in METHODS:
         raise ValueError(f"unknown direction method {name!r}; registered: {sorted(METHODS)}")
     return METHODS[name]
+
+
+def check_method_names(names: tuple[str, ...]) -> tuple[str, ...]:
+    """Return `names` (a setting's list of methods); ValueError for an unregistered name, a repeat, or none."""
+    unknown = [name for name in names if name not in METHODS]
+    if unknown:
+        raise ValueError(f"methods {list(names)}: {unknown} not registered; registered: {sorted(METHODS)}")
+    if not names or len(set(names)) != len(names):
+        raise ValueError(f"methods {list(names)}: give at least one direction method, each once")
+    return names
+
+
+# a settings field of method names (steering.methods, evaluate.methods, rollout.methods), checked as a type so that
+# the run config's sections check it too
+MethodNames = Annotated[tuple[str, ...], AfterValidator(check_method_names)]
 
 
 def method_names() -> tuple[str, ...]:
