@@ -336,12 +336,13 @@ def test_first_run_writes_the_seed_layout(first_run, demo_config):
         assert tasks[f"slice {pair} expert layer 2"].state.name == "Completed"
         assert tasks[f"evaluate {pair} expert layer 2"].tags == ["gpu"]
         record = read_json(config.eval_layer_path(2, "expert") / pair / "dose_response.json")
-        assert record["stream"] == "expert" and list(record["directions"])[0] == "decision_mean_difference"
+        assert record["stream"] == "expert" and list(record["directions"])[:2] == ["mean_difference",
+                                                                                  "mean_difference:clamp"]
         assert len(record["random"]["names"]) == 32 and {f["episode_index"] for f in record["frames"]} == held_out
         lm = read_json(config.eval_layer_path(2) / pair / "dose_response.json")
         assert record["frames"] == lm["frames"]  # the same held-out frames (and noise) as the language model's
         vectors = load_file(config.eval_layer_path(2, "expert") / pair / "dose_response.safetensors")["directions"]
-        assert vectors.shape == (1 + 32 + len(record["random"]["permuted"]), decision.run.width)
+        assert vectors.shape == (2 + 32 + len(record["random"]["permuted"]), decision.run.width)  # both modes
     assert {"evaluation summary expert layer 2", "evaluation pathways"} <= set(tasks)
     pathways = read_json(config.eval_root / "pathways.json")
     assert [(r["pair"], r["lm"]["chosen"][0]["layer"] in config.layers, r["expert"]["chosen"][0]["layer"])

@@ -44,7 +44,7 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 
 from steering_core.capture.shards import read_run_metadata
 from steering_core.config import load_run_config
-from steering_core.demo import build_demo
+from steering_core.demo import DEMO_ROLLOUT_METHODS, build_demo
 from steering_core.layout import layer_dir
 from steering_core.remote import filesystems, publish
 from steering_core.storage import mirrors
@@ -315,7 +315,8 @@ def test_deployment_run_uses_gpu_pool_for_capture_and_cpu_pool_for_sae(bucket, s
         assert sorted((t.name, t.tags) for t in trained) == [("judge SAE layer01", ["gpu"]),
                                                               ("train SAE layer 1", ["gpu"])]
         chunks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[r.id for r in rollouts])))
-        assert sum(t.name.startswith("rollout open_vs_close layer 1 ") for t in chunks) == 2 * 2  # sides x α cells
+        # the negative side: α = 0 and every rolled-out method in both modes at the push
+        assert sum(t.name.startswith("rollout open_vs_close layer 1 ") for t in chunks) == 1 + 2 * len(DEMO_ROLLOUT_METHODS)
 
         runs = {r.id: r for r in [parent, *captures]}
         tasks = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=list(runs))))
