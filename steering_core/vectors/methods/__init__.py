@@ -8,7 +8,6 @@ from steering_core.vectors.methods.registry import (
     MethodResult,
     PairData,
     method,
-    method_names,
 )
 
-__all__ = ["METHODS", "DirectionMethod", "MethodNames", "MethodResult", "PairData", "method", "method_names"]
+__all__ = ["METHODS", "DirectionMethod", "MethodNames", "MethodResult", "PairData", "method"]

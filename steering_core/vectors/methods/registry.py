@@ -117,8 +117,3 @@ def check_method_names(names: tuple[str, ...]) -> tuple[str, ...]:
 # a settings field of method names (steering.methods, evaluate.methods, rollout.methods), checked as a type so that
 # the run config's sections check it too
 MethodNames = Annotated[tuple[str, ...], AfterValidator(check_method_names)]
-
-
-def method_names() -> tuple[str, ...]:
-    """Return every registered method's name, in registration order."""
-    return tuple(METHODS)
