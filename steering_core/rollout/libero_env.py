@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from steering_core.rollout.renderer import choose_renderer
+
 CAMERAS = ("agentview", "robot0_eye_in_hand")  # openpi's two cameras, in its observation order
 CONFIG_NAME = "config.yaml"
 
@@ -58,11 +60,11 @@ def _write_config(config_dir: Path) -> None:
 def prepare_libero(assets: Path | None, config_dir: Path | None = None) -> None:
     """Make `libero.libero` importable without questions and point it at `assets` (None: hf-libero downloads).
 
-    Sets MUJOCO_GL=egl unless set. Writes the config into `config_dir` (default `default_config_dir()`) and sets
-    LIBERO_CONFIG_PATH, unless LIBERO_CONFIG_PATH already holds a config. Pass `assets` verified
-    (`assets.resolve_assets`).
+    Chooses the renderer first (`renderer.choose_renderer`: EGL, on NVIDIA's driver where a GPU is visible). Writes
+    the config into `config_dir` (default `default_config_dir()`) and sets LIBERO_CONFIG_PATH, unless
+    LIBERO_CONFIG_PATH already holds a config. Pass `assets` verified (`assets.resolve_assets`).
     """
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when robosuite imports mujoco
+    choose_renderer()  # read when robosuite imports mujoco
     existing = os.environ.get("LIBERO_CONFIG_PATH")
     if "libero.libero" not in sys.modules and not (existing and (Path(existing) / CONFIG_NAME).is_file()):
         config_dir = Path(config_dir) if config_dir is not None else default_config_dir()
