@@ -1,4 +1,5 @@
-"""`latent-steering rollout`: closed-loop steered episodes in the LIBERO simulator (phase 5), in this process."""
+"""`latent-steering rollout`: closed-loop steered episodes in the LIBERO simulator (phase 5) from this process, on
+its simulation workers, without Prefect."""
 
 from __future__ import annotations
 
@@ -26,6 +27,10 @@ def rollout_command(
         "upstream hashes), a folder (verified), or \"download\" (hf-libero fetches them from the hub)."
     ),
     episodes: int | None = typer.Option(None, "--episodes", min=1, help="Episodes per cell (default: the config's)."),
+    workers: int | None = typer.Option(
+        None, "--workers", help="Chunks simulated at once in worker processes, 1 to 256 (default: the config's "
+        "rollout.workers, else one per usable core within the memory)."
+    ),
 ) -> None:
     """Run the steered policy in the LIBERO simulator per pair, layer, α and control; write rollouts/layerNN/.
 
@@ -41,7 +46,8 @@ def rollout_command(
         if run_config.rollout is None:
             raise ValueError(f"{config}: no `rollout` section; map each pair to its LIBERO tasks there")
         overrides = {key: value for key, value in (("policy", policy), ("api_key_file", api_key_file),
-                                                   ("libero_assets", libero_assets), ("episodes", episodes))
+                                                   ("libero_assets", libero_assets), ("episodes", episodes),
+                                                   ("workers", workers))
                      if value is not None}
         section = run_config.rollout.model_validate({**run_config.rollout.model_dump(), **overrides})
         run_config = run_config.model_copy(update={"rollout": section})

@@ -40,13 +40,15 @@ class ProgressArtifact:
         self.id = create_progress_artifact(0.0, key=key, description=description)
         self._last, self._percent = 0.0, 0.0
 
-    def __call__(self, done: int, total: int) -> None:
+    def __call__(self, done: int, total: int, text: str | None = None) -> None:
+        """Show `done` of `total` (and `text`, e.g. a `Progress.describe()` with the rate and the time left)."""
         now = time.monotonic()
         if done < total and now - self._last < PROGRESS_EVERY_SECONDS:
             return
         self._last = now
         self._percent = 100.0 * done / total if total else 100.0
-        update_progress_artifact(self.id, self._percent, description=f"{self.description}: {done}/{total} {self.unit}")
+        update_progress_artifact(self.id, self._percent,
+                                 description=f"{self.description}: {text or f'{done}/{total} {self.unit}'}")
 
     def finish(self) -> None:
         """Show 100% when the step ended without counting (its outputs were already current)."""

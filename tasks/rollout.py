@@ -14,8 +14,10 @@ from steering_core import layout
 from steering_core.capture import CaptureSettings
 from steering_core.identity import plain
 from steering_core.rollout import records, report
+from steering_core.rollout.local_run import chunk_in_worker
 from steering_core.rollout.run import RolloutJob, run_chunk
 from steering_core.rollout.settings import RolloutSettings
+from steering_core.rollout.workers import CHUNK_RETRIES, SimulationWorkers, WorkerDied
 from steering_core.storage.digests import file_digest
 from tasks.artifacts import ProgressArtifact, artifact_key
 from tasks.cache_keys import content_key
@@ -28,8 +30,9 @@ from tasks.retries import retry_if
 # The modules a chunk runs (and, transitively, what they import: episodes, LIBERO, predicates, records, the
 # policy clients, the π0.5 policy the evaluation loads)
 CHUNK_CODE = "steering_core.rollout.run"
-# Connection errors reach a policy server that is restarting; a second attempt can succeed. Nothing else retries.
-SIM_RETRIES, SIM_RETRY_DELAYS = 2, [10, 60]
+# Connection errors reach a policy server that is restarting, and a simulation worker may die (a MuJoCo crash):
+# a second attempt can succeed. Nothing else retries.
+SIM_RETRIES, SIM_RETRY_DELAYS = CHUNK_RETRIES, [10, 60]
 
 
 def job_inputs(job: RolloutJob) -> dict[str, Any]:
@@ -45,27 +48,32 @@ def settings_inputs(settings: RolloutSettings) -> dict[str, Any]:
     cell names its own method and mode, so adding one leaves the other cells' chunks cached)."""
     return plain(settings.model_dump(mode="json", exclude={"policy", "api_key_file", "libero_assets", "device",
                                                            "compiled", "note", "chunk_episodes", "envs_per_worker",
-                                                           "methods", "modes"}))
+                                                           "workers", "methods", "modes"}))
 
 
-def transient_connection(exc: BaseException) -> bool:
-    """Return True for an error a policy server's restart explains."""
-    return isinstance(exc, ConnectionError | TimeoutError)
+def transient(exc: BaseException) -> bool:
+    """Return True for an error a policy server's restart or a lost simulation worker explains."""
+    return isinstance(exc, ConnectionError | TimeoutError | WorkerDied)
 
 
 @task(
     name="rollout-chunk",
     task_run_name="rollout {job.cell.pair} layer {job.cell.layer} {job.output_dir.name} chunk {job.chunk}",
     cache_policy=content_key(CHUNK_CODE, job=job_inputs, model=model_inputs, settings=settings_inputs,
-                             ignore=("api_key",)),
-    retries=SIM_RETRIES, retry_delay_seconds=SIM_RETRY_DELAYS, retry_condition_fn=retry_if(transient_connection),
+                             ignore=("api_key", "workers")),
+    retries=SIM_RETRIES, retry_delay_seconds=SIM_RETRY_DELAYS, retry_condition_fn=retry_if(transient),
     **RESULTS,
 )
-def rollout_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, api_key: str | None) -> dict:
-    """Run one chunk of a cell in the simulator; return its record files."""
+def rollout_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings, api_key: str | None,
+                  workers: SimulationWorkers | None = None) -> dict:
+    """Run one chunk of a cell in the simulator, here or on one of `workers`; return its record files."""
     progress = ProgressArtifact(artifact_key("rollout", job.cell.pair, job.cell.layer, job.output_dir.name, job.chunk),
                                 "episodes", f"rollout {job.cell.pair} layer {job.cell.layer} {job.output_dir.name}")
-    folder = run_chunk(job, model, settings, api_key=api_key, progress=progress)
+    if workers is None:
+        folder = run_chunk(job, model, settings, api_key=api_key, progress=progress)
+    else:
+        folder = workers.run(chunk_in_worker, job, model, settings, api_key)
+        progress(len(job.init_states), len(job.init_states))
     progress.finish()
     return {OUTPUTS: record_files(folder), "chunk": str(folder)}
 

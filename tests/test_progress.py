@@ -60,7 +60,7 @@ def test_a_failed_step_logs_no_closing_line(caplog):
         bar.update(1)  # logged: the interval has passed
         clock.now += 11.0
         raise RuntimeError("boom")
-    assert [r.getMessage() for r in caplog.records] == ["slice: 1/5 shards (20%), 0.0909 shards/s, about 44 s left"]
+    assert [r.getMessage() for r in caplog.records] == ["slice: 1/5 shards (20%), 327 shards/hour, about 44 s left"]  # 1 shard in 11 s = 327/hour
 
 
 def test_on_a_terminal_a_bar_and_no_log_lines(caplog):

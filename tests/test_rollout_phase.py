@@ -1,15 +1,27 @@
 """Phase 5 end to end on the tiny π0.5 in the real LIBERO simulator: the `rollout` command's path in-process, then
-the same cells through `latent-steering serve`'s server (same model, same noise seed): the same episodes."""
+the same cells through `latent-steering serve`'s server (same model, same noise seed) and on two simulation workers
+sharing one policy: the same episodes; Ctrl-C and a killed worker in a `rollout` command's process."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from helpers_serve import fixed_threads, write_vectors
+from helpers_serve import FIXED_THREADS_ENV, fixed_threads, write_vectors
 
+from bench.common import session_processes
 from steering_core.config import RolloutSection, load_run_config, write_run_config
 from steering_core.config.run import RunConfig
 from steering_core.config.sections import DatasetSection, ModelSection, PairSection, SourcesSection
@@ -136,3 +148,76 @@ def test_a_chunk_on_two_envs_in_lockstep_gives_the_episodes_of_chunks_on_one(run
     np.testing.assert_allclose(together_arrays["actions"][:, :5], alone_arrays["actions"][:, :5], atol=1e-5)
     np.testing.assert_allclose(together_arrays["actions"], alone_arrays["actions"], atol=1e-2)
     assert together["episodes"][0]["video"] and together["episodes"][1]["video"] is None
+
+
+def worker_root(config, folder):
+    """Return `config` writing its rollouts under `folder` (its steering vectors copied there)."""
+    shutil.copytree(config.steering_root, folder / "data" / "latent_steering")
+    return config.model_copy(update={"output_root": folder / "data"})
+
+
+def test_two_workers_give_the_episodes_of_one(run, tmp_path):
+    """The same cells on two simulation workers sharing one served policy: per episode the same outcome in the same
+    steps, and the same actions (the served rows equal the in-process ones; test above)."""
+    config, _ = worker_root(run[0], tmp_path), None
+    config = config.model_copy(update={"rollout": config.rollout.model_copy(update={"workers": 2})})
+    with fixed_threads():
+        rollout_config(config)
+    for name in CELLS:
+        (mine, mine_arrays), (theirs, theirs_arrays) = cell(config, name), cell(run[0], name)
+        assert [(e["init_index"], e["outcome"], e["steps"]) for e in mine["episodes"]] == \
+            [(e["init_index"], e["outcome"], e["steps"]) for e in theirs["episodes"]], name
+        np.testing.assert_allclose(mine_arrays["actions"], theirs_arrays["actions"], atol=1e-5)
+
+
+def rollout_process(config, folder):
+    """Start `latent-steering rollout` on `config` with 2 workers in a session of its own; return it (its stderr
+    collected in `.log`) once both simulation workers run."""
+    config = config.model_copy(update={"rollout": config.rollout.model_copy(update={"workers": 2})})
+    path = write_run_config(config, folder / "run.yaml")
+    process = subprocess.Popen([sys.executable, "-c", "from latent_steering_cli import app; app()", "rollout",
+                                "--config", str(path)], start_new_session=True, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, env={**os.environ, **FIXED_THREADS_ENV})
+    process.log = []  # its stderr's lines
+    threading.Thread(target=lambda: process.log.extend(process.stderr), daemon=True).start()
+    deadline = time.monotonic() + 600  # imports and the policy's load on a loaded machine; prompt when it works
+    while len(workers_of(process)) < 2 and time.monotonic() < deadline:
+        assert process.poll() is None, "the rollout ended before its workers started"
+        time.sleep(0.2)
+    return process
+
+
+def workers_of(process):
+    """Return the spawned worker processes of a rollout process."""
+    found = []
+    for pid in session_processes(process.pid):
+        with contextlib.suppress(OSError):
+            if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text():
+                found.append(pid)
+    return found
+
+
+def test_ctrl_c_leaves_no_process_behind(run, tmp_path):
+    process = rollout_process(worker_root(run[0], tmp_path), tmp_path)
+    assert workers_of(process)
+    process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=120) != 0
+    deadline = time.monotonic() + 60
+    while session_processes(process.pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert session_processes(process.pid) == []
+
+
+def test_a_killed_worker_costs_only_its_chunk(run, tmp_path):
+    config = worker_root(run[0], tmp_path)
+    process = rollout_process(config, tmp_path)
+    os.kill(workers_of(process)[0], signal.SIGKILL)
+    assert process.wait(timeout=1800) == 0
+    log = "".join(process.log)
+    assert re.search(r"simulation worker \(process \d+\) died while running chunk \d+ of \w+ layer \d+ \S+; its job "
+                     r"is lost", log), log[-3000:]
+    assert "rendering with EGL on llvmpipe" in log
+    for name in CELLS:
+        record, _ = cell(config, name)
+        assert [e["init_index"] for e in record["episodes"]] == [0, 1], name  # every episode once
+    assert session_processes(process.pid) == []

@@ -66,12 +66,14 @@ class Progress:
             self._callback(self.done, self.total)
 
     def describe(self) -> str:
-        """Return e.g. `capture: 480/1200 frames (40%), 35.2 frames/s, about 20 s left`."""
+        """Return e.g. `capture: 480/1200 frames (40%), 35.2 frames/s, about 20 s left` (a rate below one a second
+        per hour: `rollouts: 12/400 episodes (3%), 96 episodes/hour, about 4 h 2 min left`)."""
         elapsed = max(self._clock() - self._start, 1e-9)
         rate = self.done / elapsed
         percent = f" ({100 * self.done / self.total:.0f}%)" if self.total else ""
         left = f", about {_duration((self.total - self.done) / rate)} left" if rate > 0 and self.done < self.total else ""
-        return f"{self.desc}: {self.done}/{self.total} {self.unit}s{percent}, {rate:.3g} {self.unit}s/s{left}"
+        speed = f"{rate:.3g} {self.unit}s/s" if rate >= 1 or rate == 0 else f"{rate * 3600:.3g} {self.unit}s/hour"
+        return f"{self.desc}: {self.done}/{self.total} {self.unit}s{percent}, {speed}{left}"
 
     def close(self, failed: bool = False) -> None:
         """Close the bar, or log the final count and time of a long step (not after a failure: the error says enough)."""

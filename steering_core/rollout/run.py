@@ -14,6 +14,7 @@ from steering_core.capture import CaptureSettings
 from steering_core.pairs import other_side
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.rollout.cells import Cell
+from steering_core.rollout.renderer import describe_renderer
 from steering_core.rollout.settings import LiberoTask, RolloutPair, RolloutSettings
 from steering_core.storage.schema import StrictModel
 
@@ -31,6 +32,11 @@ class RolloutJob(StrictModel):
     chunk: int = Field(ge=0)
     vectors_root: Path        # the steer step's output root (layerNN/<pair>/directions.json)
     output_dir: Path          # the cell's folder
+
+    @property
+    def label(self) -> str:
+        """Return e.g. "chunk 3 of pick_vs_place layer 12 negative_sae_a+2"."""
+        return f"chunk {self.chunk} of {self.cell.pair} layer {self.cell.layer} {self.cell.name}"
 
     @property
     def scene_task(self) -> LiberoTask:
@@ -128,6 +134,7 @@ def run_chunk(job: RolloutJob, model: CaptureSettings, settings: RolloutSettings
     toward_index, toward = libero_task(job.toward_task)
     prompt = (toward if job.cell.prompt_side != job.cell.side else scene).language
     envs = _scene_envs(scene, settings.lockstep_envs(len(job.init_states)))
+    logger.info("%s: %s", job.label, describe_renderer())
     goal = Goal.from_task(toward)
     goal.check(envs[0])
     thresholds = goal_thresholds([Goal.of_env(envs[0]), goal], envs[0])  # drawn on the pair's joint plot

@@ -11,6 +11,7 @@ from pydantic import Field, field_validator, model_validator
 
 from steering_core.pairs import SIDES, Side, same_text
 from steering_core.pi05.steering import Mode
+from steering_core.rollout.workers import MAX_WORKERS
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.methods import MethodNames
 
@@ -77,6 +78,8 @@ class RolloutSettings(StrictModel):
     wrong_concept: bool = True                  # another pair's direction (the first method, add) at the same α
     instruction_swap: bool = True               # the other task's instruction, unsteered: the ceiling
     chunk_episodes: int = Field(5, gt=0, le=1000)  # episodes per task run (the fan-out's unit)
+    workers: int | None = None                  # chunks simulated at once in worker processes on this machine;
+                                                # None: one per usable core within the memory (at most the chunks)
     envs_per_worker: int | None = None          # envs a task run steps in lockstep, batching their policy calls;
                                                 # None: min(8, the chunk's episodes). Outside the identity, like
                                                 # device: it moves actions by float32 rounding (a row's batch place)
@@ -121,6 +124,14 @@ class RolloutSettings(StrictModel):
             raise ValueError(f"envs_per_worker {envs}: expected a positive integer up to {MAX_ENVS_PER_WORKER} (LIBERO "
                              f"envs in one process), or null for min({DEFAULT_ENVS_PER_WORKER}, the chunk's episodes)")
         return envs
+
+    @field_validator("workers")
+    @classmethod
+    def _workers(cls, workers: int | None) -> int | None:
+        if workers is not None and not 1 <= workers <= MAX_WORKERS:
+            raise ValueError(f"workers {workers}: expected 1 to {MAX_WORKERS} simulation processes on this machine, "
+                             "or null for one per usable core")
+        return workers
 
     def lockstep_envs(self, episodes: int) -> int:
         """Return how many envs a task run of `episodes` episodes steps in lockstep (no more than it has episodes)."""
