@@ -19,10 +19,14 @@ same run:
 - `server`: a steered request with a CPU vector over loopback to the policy server with the policy on the
   device (openpi's client when installed, else the project's codec of its msgpack-numpy format), against a
   direct `infer` of the same observation.
+- `render`: LIBERO's simulator steps/s with both 256 px cameras rendered every step, MuJoCo's EGL on the GPU against
+  the software renderer (Mesa's llvmpipe), each in its own process, the same episode. It uses no CUDA: where
+  NVIDIA's EGL is missing it measures the software side and says so in a note (`--sections render --quick` on
+  the CPU).
 
-The sections live in `bench.gpu_policy_sections` (capture, latency, sweep, precision, server) and
-`bench.gpu_matmul_sections` (peak, sae), on the harness of `bench.gpu_harness` (sizes, tolerances, records, the
-run's context); this module runs them through `SECTIONS`.
+The sections live in `bench.gpu_policy_sections` (capture, latency, sweep, precision, server),
+`bench.gpu_matmul_sections` (peak, sae) and `bench.gpu_render_section` (render), on the harness of
+`bench.gpu_harness` (sizes, tolerances, records, the run's context); this module runs them through `SECTIONS`.
 
 Each section's peak memory is recorded (`torch.cuda.max_memory_allocated`, reset between sections; peak RSS
 on the CPU). Every comparison has a tolerance; the command exits with status 1 when one is exceeded.
@@ -61,12 +65,13 @@ from bench.common import Result, cache_dir, command, finish, machine, parser, pe
 from bench.gpu_harness import Comparison, Context, Section
 from bench.gpu_matmul_sections import peak, sae
 from bench.gpu_policy_sections import capture, latency, precision, server, sweep
+from bench.gpu_render_section import render
 from steering_core.devices import resolve_device
 from steering_core.pi05.layouts import LayoutName
 
 SECTIONS: dict[str, Callable[[Context], Section]] = {
     "peak": peak, "capture": capture, "latency": latency, "sweep": sweep, "server": server, "precision": precision,
-    "sae": sae,
+    "sae": sae, "render": render,
 }
 POLICY_SECTIONS = ("latency", "sweep", "server")  # share the loaded real-size policy
 CHECKPOINT_SECTIONS = ("capture", *POLICY_SECTIONS)  # read the checkpoint: the generated one or --checkpoint

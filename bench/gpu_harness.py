@@ -1,6 +1,6 @@
 """The GPU check's harness: its sizes, tolerances and error metrics, the records a section returns, and the run's
-context every section takes (`bench.gpu_check` runs the sections; they live in `bench.gpu_policy_sections` and
-`bench.gpu_matmul_sections`)."""
+context every section takes (`bench.gpu_check` runs the sections; they live in `bench.gpu_policy_sections`,
+`bench.gpu_matmul_sections` and `bench.gpu_render_section`)."""
 
 from __future__ import annotations
 
@@ -47,6 +47,7 @@ class Sizes:
     sae_training: dict[str, int]  # bench.sae_training's sizes
     repeats: int  # timed calls per measurement (median), after one warm-up
     server_rounds: int
+    render: dict[str, int]  # bench.rollout_throughput.step_rates's settings, per renderer
 
 
 REAL = Sizes(matmul=8192, arch=Pi05Arch(), layer=12, capture_batches=(32, 128), latency_batches=(1, 4, 16, 64),
@@ -54,10 +55,11 @@ REAL = Sizes(matmul=8192, arch=Pi05Arch(), layer=12, capture_batches=(32, 128), 
              sae_training={"d_in": sae_training.D_IN, "d_sae": sae_training.D_SAE, "k": sae_training.K,
                            "batch_size": sae_training.BATCH_SIZE, "steps": sae_training.STEPS,
                            "run_rows": sae_training.RUN_ROWS},
-             repeats=5, server_rounds=20)
+             repeats=5, server_rounds=20, render={"rounds": 2, "plain_steps": 50, "render_steps": 50})
 QUICK = Sizes(matmul=512, arch=tiny_arch(), layer=2, capture_batches=(2, 4), latency_batches=(1, 4),
               precision_arch=tiny_arch(), precision_batch=2, sae=(64, 256, 128),
-              sae_training={**sae_training.QUICK, "steps": 4}, repeats=2, server_rounds=3)
+              sae_training={**sae_training.QUICK, "steps": 4}, repeats=2, server_rounds=3,
+              render={"rounds": 1, "plain_steps": 5, "render_steps": 3})
 
 
 # ----------------------------------------------------------------------------- records

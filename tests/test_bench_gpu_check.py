@@ -22,7 +22,7 @@ if str(REPO_ROOT) not in sys.path:  # bench/ is a folder of scripts at the repos
 from bench import capture_input, gpu_check, gpu_harness, gpu_matmul_sections, serve_throughput  # noqa: E402
 from bench.common import Result  # noqa: E402
 
-SECTIONS = ["peak", "capture", "latency", "sweep", "server", "precision", "sae"]
+SECTIONS = ["peak", "capture", "latency", "sweep", "server", "precision", "sae", "render"]
 PRECISION_CASES = ["unsteered actions", "LM-steered actions", "expert-steered actions", "SAE-spliced actions",
                    "decision rows"]
 
