@@ -162,6 +162,27 @@ def peak_rss_mib() -> float:
     return _status_kib("VmHWM") / 1024
 
 
+def session_processes(sid: int) -> list[int]:
+    """Return the running processes (zombies excluded) of session `sid` (a child started with a session of its
+    own: its whole process tree)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[3]) == sid and fields[0] != "Z":
+                found.append(int(stat.parent.name))
+    return found
+
+
+def rss_bytes(pid: int) -> int:
+    """Return a process's resident memory in bytes (0 once it has ended)."""
+    with contextlib.suppress(OSError, IndexError, ValueError):
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
 def run_child(module: str, argv: Sequence[str], *, env: dict[str, str] | None = None) -> dict[str, Any]:
     """Run `python -m bench.<module> *argv` in a fresh process and return the JSON object it printed last.
 

@@ -46,7 +46,7 @@ H200 = {"peak_tflops": 796.0, "batch1_ms": 192.0, "source": "first H200 run, eag
 MFU = 0.40  # assumed fraction of the peak a batched sample_actions reaches (capture's forward reached 0.56)
 # the simulator on this machine (BENCHMARKS.md section 12): steps/s per core without rendering, and the cost of
 # rendering both 256 px cameras once (Mesa's software renderer; a GPU machine's EGL renders faster)
-SIM_STEPS_PER_S, RENDER_S = 93.7, 0.216
+SIM = {"steps_per_s": 93.7, "render_s": 0.216, "source": "this machine, section 12"}
 PROMPT_TOKENS = 16  # longest LIBERO prompt of a batch (bench.capture_throughput's assumption)
 
 
@@ -125,19 +125,25 @@ def gpu_inputs(path: Path | None) -> dict[str, Any]:
             "source": f"GPU check {path}"}
 
 
-def grid_model(gpu: dict[str, Any], episodes: int = GRID["episodes"]) -> list[dict[str, Any]]:
-    """Return the modelled time of a study of `episodes` episodes: inputs, GPU time, simulator time, and their sum
-    (upper bound)."""
+def grid_model(gpu: dict[str, Any], episodes: int = GRID["episodes"], sim: dict[str, Any] | None = None
+               ) -> list[dict[str, Any]]:
+    """Return the modelled time of a study of `episodes` episodes: inputs, GPU time, simulator time (`sim`: steps/s
+    and s per render of one core, default section 12's), their sum (upper bound) and the phase's time with its
+    workers sharing one policy server (GPU calls overlapping the stepping)."""
     from bench.capture_throughput import REAL_ARCH, sample_flops
+    from steering_core.rollout.settings import DEFAULT_ENVS_PER_WORKER
 
+    sim = sim or SIM
     steps = GRID["max_steps"]
     calls_per_episode = math.ceil(steps / GRID["replan"])
     rows = episodes * calls_per_episode
     row_s = sample_flops(REAL_ARCH, PROMPT_TOKENS) / (MFU * gpu["peak_tflops"] * 1e12)
     per_call = max(gpu["batch1_ms"] / 1000, GRID["rows_per_call"] * row_s)
     gpu_s = math.ceil(rows / GRID["rows_per_call"]) * per_call
-    episode_sim_s = (steps + GRID["wait_steps"]) / SIM_STEPS_PER_S + calls_per_episode * RENDER_S
+    episode_sim_s = (steps + GRID["wait_steps"]) / sim["steps_per_s"] + calls_per_episode * sim["render_s"]
     sim_s = episodes * episode_sim_s / GRID["sim_cores"]
+    # a worker steps DEFAULT_ENVS_PER_WORKER envs in lockstep and waits for one call per replan of them
+    wait_s = rows * per_call / (GRID["sim_cores"] * DEFAULT_ENVS_PER_WORKER)
     return [
         {"quantity": "policy rows (episodes x calls per episode)", "value": rows,
          "from": f"{episodes} episodes x {calls_per_episode} replans of {steps} steps"},
@@ -146,10 +152,13 @@ def grid_model(gpu: dict[str, Any], episodes: int = GRID["episodes"]) -> list[di
                  f"{row_s * 1000:.2f} ms at {MFU:.0%} of {gpu['peak_tflops']:g} TFLOP/s); {gpu['source']}"},
         {"quantity": "GPU minutes", "value": gpu_s / 60, "from": "calls x s per call"},
         {"quantity": "simulator minutes", "value": sim_s / 60,
-         "from": f"{GRID['sim_cores']} cores at {SIM_STEPS_PER_S} steps/s + {RENDER_S} s per replan render "
-                 "(this machine, section 12)"},
+         "from": f"{GRID['sim_cores']} cores at {sim['steps_per_s']:g} steps/s + {sim['render_s']:g} s per replan "
+                 f"render ({sim['source']})"},
         {"quantity": "study minutes (GPU + simulator, no overlap)", "value": (gpu_s + sim_s) / 60,
          "from": "upper bound; overlapping GPU calls with stepping approaches the larger of the two"},
+        {"quantity": "phase minutes (workers sharing one policy server)", "value": max(gpu_s, sim_s + wait_s) / 60,
+         "from": f"max(GPU minutes, simulator minutes + each of {GRID['sim_cores']} workers' wait for one call per "
+                 f"replan of its {DEFAULT_ENVS_PER_WORKER} lockstep envs: {wait_s / 60:.1f} min)"},
     ]
 
 

@@ -242,11 +242,13 @@ def test_rollout_loops_execute_the_same_actions(cache, tmp_path):
     assert checks["same_actions_openpi_loop"] and checks["same_actions_served"] and checks["same_call_actions"]
     assert checks["same_actions_recorded"]  # a recorded episode renders every step and acts the same
     assert (checks["episode_steps"], checks["policy_calls"]) == (rollout_throughput.QUICK["episode_steps"], 2)
-    assert checks["worker_steps"] == [20, 40]  # 1 then 2 workers, one episode each of 10 wait + 10 policy steps
+    # the demo's 7 cells x 2 episodes on 1 and on 2 simulation workers, the policy loaded once in each run
+    assert checks["phase_episodes"] == {1: 14, 2: 14} and checks["policy_loads"] == {1: 1, 2: 1}
     # 3 episodes on 2 envs in lockstep end as on one env, first chunks equal, sharing calls of 2 rows; 6 steps each
     assert checks["same_episodes_lockstep"] and checks["lockstep_batch_rows"] == 2
     assert checks["lockstep_episode_steps"] == [rollout_throughput.QUICK["lockstep_steps"]] * 3
-    assert [row["measure"][:2] for row in result.table] == ["1.", "1.", "2.", "2.", "3.", "3.", "4.", "4.", "5."]
+    assert [row["measure"][:2] for row in result.table] == ["1.", "1.", "2.", "2.", "3.", "3.", "4.", "4.", "5.",
+                                                             "6.", "6."]
 
 
 def test_seed_model_runs_a_whole_inference_call(tmp_path):
@@ -304,6 +306,12 @@ def test_policy_flop_model_and_the_study_model_known_answers():
     assert rows["GPU s per call of rows_per_call rows"] == pytest.approx(max(0.1, 16 * row_s))
     assert rows["GPU minutes"] == pytest.approx(7500 * max(0.1, 16 * row_s) / 60)
     assert rows["simulator minutes"] == pytest.approx(2000 * (310 / 93.7 + 60 * 0.216) / 16 / 60)
+    # workers sharing the server: each waits one call per replan of its 8 lockstep envs, or the GPU is the limit
+    wait_min = 2000 * 60 * max(0.1, 16 * row_s) / (16 * 8) / 60
+    assert rows["study minutes"] == pytest.approx(rows["GPU minutes"] + rows["simulator minutes"])
+    assert rows["phase minutes"] == pytest.approx(max(rows["GPU minutes"], rows["simulator minutes"] + wait_min))
+    slow_sim = {"steps_per_s": 10.0, "render_s": 1.0, "source": "hand"}
+    assert serve_throughput.grid_model(gpu, sim=slow_sim)[3]["value"] == pytest.approx(2000 * (31 + 60) / 16 / 60)
 
 
 def test_the_method_grid_counts_its_cells_from_the_settings_and_models_their_time():
