@@ -197,6 +197,18 @@ def workers_of(process):
     return found
 
 
+def busy_worker(process):
+    """Return the process id of a worker that has started a chunk (its log line says so)."""
+    deadline = time.monotonic() + 600
+    while time.monotonic() < deadline:
+        assert process.poll() is None, "the rollout ended before a worker started a chunk"
+        found = re.search(r"\| worker (\d+) \| steering_core\.rollout\.run - chunk ", "".join(process.log))
+        if found:
+            return int(found.group(1))
+        time.sleep(0.2)
+    raise AssertionError("no worker started a chunk in 10 minutes")
+
+
 def test_ctrl_c_leaves_no_process_behind(run, tmp_path):
     process = rollout_process(worker_root(run[0], tmp_path), tmp_path)
     assert workers_of(process)
@@ -211,7 +223,7 @@ def test_ctrl_c_leaves_no_process_behind(run, tmp_path):
 def test_a_killed_worker_costs_only_its_chunk(run, tmp_path):
     config = worker_root(run[0], tmp_path)
     process = rollout_process(config, tmp_path)
-    os.kill(workers_of(process)[0], signal.SIGKILL)
+    os.kill(busy_worker(process), signal.SIGKILL)
     assert process.wait(timeout=1800) == 0
     log = "".join(process.log)
     assert re.search(r"simulation worker \(process \d+\) died while running chunk \d+ of \w+ layer \d+ \S+; its job "
