@@ -20,14 +20,14 @@ against a baseline timed in the same run:
    `PolicyServer` in a thread of this process on 127.0.0.1, same model): per call on one real observation
    (alternated), and for the whole episode of 2 (which must execute the same actions).
 4. The rollout phase on 1 against 2 simulation workers (`rollout.workers`): `latent-steering rollout --workers N
-   --episodes 10` on the demo's run config (`latent-steering demo` run once into the cache folder for its phases
-   1-3; 7 cells of 2 chunks), a fresh rollouts folder each time, alternated over the rounds; episodes/hour of
-   wall time from the command's start to its exit (imports, the policy's load, the workers' start, scene builds
-   and resets included). The issue asks for at least 1.7x with 2 workers on 2 cores: that is the headline. The
-   policy must be loaded once (the log's "pi0.5 policy from" lines) and the process tree's peak memory (its RSS
-   summed, sampled) is reported for each. On a shared machine another process's CPU use lowers the ratio; the
-   load average before the runs and the other processes' CPU share during the 2-worker run (from /proc/stat,
-   minus the run's own CPU time) are reported with it.
+   --episodes 10` on the demo's run config (its inputs and phases 1-3 made once in the cache folder by
+   `latent-steering run` without evaluation and rollouts; 7 cells of 2 chunks), a fresh rollouts folder each time,
+   alternated over the rounds; episodes/hour of wall time from the command's start to its exit (imports, the
+   policy's load, the workers' start, scene builds and resets included). The issue asks for at least 1.7x with 2
+   workers on 2 cores: that is the headline. The policy must be loaded once (the log's "pi0.5 policy from"
+   lines) and the process tree's peak memory (its RSS summed, sampled) is reported for each. On a shared machine
+   another process's CPU use lowers the ratio; the load average before the runs and the other processes' CPU
+   share during the 2-worker run (from /proc/stat, minus the run's own CPU time) are reported with it.
 5. Envs in lockstep (`rollout.envs_per_worker`): the same initial states run as a chunk does, K envs of the
    scene stepped together with one batched `LocalPolicy.infer_batch` call per step for the episodes that
    replan (`run_lockstep`), against one env and one `infer` per replan (`run_episode`, K = 1); episodes/hour
@@ -90,12 +90,14 @@ SETTINGS = {
     "render_steps": 20,      # steps per render-every-step block
     "episode_steps": 60,     # policy steps of the part 2 and 3 episodes (12 policy calls)
     "calls": 30,             # alternated local/remote policy calls
+    "demos_per_task": 3,     # the demo's inputs (its default) for part 4's steering vectors
     "phase_episodes": 10,    # episodes per cell of part 4's rollout runs (2 chunks of 5 per cell)
     "lockstep_envs": 8,      # K of part 5 (the setting's default for a chunk of 8 or more episodes)
     "lockstep_episodes": 8,  # initial states 0..7 of part 5, run with K envs and with one
     "lockstep_steps": 20,    # policy steps per part 5 episode (4 replans)
 }
-QUICK = {"rounds": 1, "plain_steps": 20, "render_steps": 4, "episode_steps": 10, "calls": 3, "phase_episodes": 2, "lockstep_envs": 2, "lockstep_episodes": 3, "lockstep_steps": 6}
+QUICK = {"rounds": 1, "plain_steps": 20, "render_steps": 4, "episode_steps": 10, "calls": 3, "demos_per_task": 2,
+         "phase_episodes": 1, "lockstep_envs": 2, "lockstep_episodes": 3, "lockstep_steps": 6}
 LOCKSTEP_ATOL = 1e-5  # a batched call's rows equal the lone calls' to float32 rounding (actions of size ~1)
 SCALING_TARGET = 1.7  # 2-worker / 1-worker closed-loop throughput on 2 cores (issue 23)
 CLI = "from latent_steering_cli import app; app()"
@@ -245,14 +247,21 @@ def cpu_jiffies() -> tuple[int, int]:
     return sum(fields[:8]) - idle, sum(fields[:8])
 
 
-def demo_config(folder: Path) -> Path:
-    """Return the demo's run config under `folder`, running `latent-steering demo` there first unless its steering
-    vectors are there (phases 1-3 done once; the rollouts are run here)."""
+def demo_config(folder: Path, demos_per_task: int) -> Path:
+    """Return the demo's run config under `folder`, its steering vectors made first unless they are there: the demo's
+    inputs (`build_demo`) and phases 1-3 of its run (`latent-steering run` on the same config without its evaluation
+    and rollouts, which are timed here)."""
+    from steering_core.config import load_run_config, write_run_config
+    from steering_core.demo import build_demo
+
     demo = folder / "demo"
+    config = build_demo(demo, demos_per_task=demos_per_task)
     if not (demo / "data" / "latent_steering").is_dir():
-        subprocess.run([sys.executable, "-c", CLI, "demo", "--output-dir", str(demo)], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return demo / "run.yaml"
+        phases = load_run_config(config).model_copy(update={"evaluate": None, "rollout": None})
+        subprocess.run([sys.executable, "-c", CLI, "run", "--config",
+                        str(write_run_config(phases, demo / "phases_1_to_3.yaml"))],
+                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return config
 
 
 def phase_run(config: Path, workers: int, episodes: int) -> dict[str, Any]:
@@ -406,7 +415,7 @@ def measure(args: argparse.Namespace) -> Result:
     for built in lockstep:
         built.close()
 
-    config = demo_config(folder)
+    config = demo_config(folder, settings["demos_per_task"])
     load_workers = os.getloadavg()
     runs: dict[int, dict[str, Any]] = {}
     for _ in range(settings["rounds"]):  # alternated; the fastest of each kept
@@ -521,8 +530,8 @@ def measure(args: argparse.Namespace) -> Result:
                 "same_call_actions": bool(same_call), "same_episodes_lockstep": bool(same_lockstep),
                 "lockstep_batch_rows": batch_rows, "lockstep_episode_steps": [record.steps for record in together],
                 "episode_steps": steps, "policy_calls": calls_per_episode,
-                "phase_episodes": {count: run["episodes"] for count, run in runs.items()},
-                "policy_loads": {count: run["policy_loads"] for count, run in runs.items()},
+                "phase_episodes": {str(count): run["episodes"] for count, run in runs.items()},
+                "policy_loads": {str(count): run["policy_loads"] for count, run in runs.items()},
                 "phase_minutes": {label: model["phase minutes"] for label, _, model in grids},
                 "other_cores_busy": others},
     ), args)
