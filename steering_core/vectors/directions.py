@@ -49,6 +49,7 @@ from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
 from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
+from steering_core.storage.overwrites import check_no_overwrite
 from steering_core.storage.schema import StrictModel, read_model
 from steering_core.tensor_files import load_safetensors, non_finite, require_finite, save_safetensors, save_torch
 from steering_core.vectors.concept_stats import (
@@ -463,6 +464,11 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
     """
     config = read_pairs_config(settings.pairs_config)
     sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
+    layer_path = settings.output_root / layer_dir(settings.layer)
+    check_no_overwrite({f"output_root's {layer_path.name}": layer_path}, {
+        "pairs_config": settings.pairs_config, **{f"pair {name!r}'s slices": files for name, files in pairs.items()},
+        **{key: path for key in ("sae", "sae_dir", "sae_cfg_from", "direction_file")
+           if (path := getattr(settings, key)) is not None and Path(path).exists()}})
     check_pair_slices([(pair.name, (pair.positive_label, pair.negative_label), pairs[pair.name])
                        for pair in config.pairs], settings.layer, settings.pairs_config)
     for pair in config.pairs:
@@ -474,7 +480,6 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     check_methods(settings, pairs, next(iter(readers.values())).width, sae is not None)
-    layer_path = settings.output_root / layer_dir(settings.layer)
     with output_lock(layer_path):  # a second run waits, then reuses the concept statistics written here
         rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
         total, done = sum(rows.values()), 0
