@@ -48,7 +48,14 @@ from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
-from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
+from steering_core.storage.fileio import (
+    atomic_dir,
+    atomic_files,
+    json_text,
+    read_json,
+    restored_on_failure,
+    write_json,
+)
 from steering_core.storage.overwrites import check_no_overwrite
 from steering_core.storage.schema import StrictModel, read_model
 from steering_core.tensor_files import load_safetensors, non_finite, require_finite, save_safetensors, save_torch
@@ -409,14 +416,15 @@ def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
             entry |= {"residual_norm_a": float(va["residual"].norm()), "residual_norm_b": float(vb["residual"].norm())}
             entries[PAIR_KEY.format(a=a, b=b)] = entry
     pt_path = layer_path / f"{PAIRWISE_STATS_FILE}.pt"
-    with atomic_path(pt_path) as tmp:
-        save_torch(entries, tmp)
-    write_json(pt_path.with_suffix(".json"), {
+    record = json_text({
         "format_version": FORMAT_VERSION,
         "pairs": pair_names,
         "sae_used": sae_used,
         "entries": {key: entry | extras.get(key, {}) for key, entry in entries.items()},
-    })
+    }, pt_path.with_suffix(".json"))
+    with atomic_files(layer_path) as staging:
+        save_torch(entries, staging / pt_path.name)
+        (staging / pt_path.with_suffix(".json").name).write_text(record, encoding="utf-8")
     return pt_path
 
 
@@ -480,7 +488,8 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     check_methods(settings, pairs, next(iter(readers.values())).width, sae is not None)
-    with output_lock(layer_path):  # a second run waits, then reuses the concept statistics written here
+    # a second run waits, then reuses the concept statistics written here; a failure leaves the folder as it was
+    with output_lock(layer_path), restored_on_failure(layer_path):
         rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
         total, done = sum(rows.values()), 0
         stats_files = {}
