@@ -185,8 +185,8 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
     places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=options.repo_id or lerobot_root.name,
                   output_root=options.output_root or data_root / STEERING_EVAL_ROOT)
     check_no_overwrite({"--output-root": places["output_root"]}, {
-        "--pairs-config": options.pairs_config, "--steering-root": options.steering_root, "--lerobot-root": lerobot_root,
-        "--decision-run": options.decision_run, **model_inputs(options.model)})
+        "--pairs-config": options.pairs_config, "--steering-root": options.steering_root or data_root / STEERING_ROOT,
+        "--lerobot-root": lerobot_root, "--decision-run": options.decision_run, **model_inputs(options.model)})
     jobs = _layer_jobs(options, names, places) if layer is not None else []
     if options.decision_run is not None:
         jobs += _expert_jobs(options.decision_run, expert, names, places, model, settings)
