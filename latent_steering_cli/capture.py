@@ -7,13 +7,14 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import device_option, model_options
+from latent_steering_cli.options import device_option, model_inputs, model_options
 from steering_core.capture import CaptureResult, CaptureSettings, capture
 from steering_core.capture.shards import StorageDtype, TokenType
 from steering_core.capture.slicing import Reduce, SliceSettings, slice_concepts
 from steering_core.config import load_run_config
 from steering_core.data.split import read_split
 from steering_core.pi05.spec import ModelSpec
+from steering_core.storage.overwrites import check_no_overwrite
 
 _CAPTURE_FIELDS = CaptureSettings.model_fields  # defaults live in the settings model only
 
@@ -116,6 +117,7 @@ def _capture_from_flags(
         raise typer.BadParameter(f"--capture-instructions contradicts --token-type {token_type}; pass one of them",
                                  param_hint="--capture-instructions")
     with input_errors():
+        check_no_overwrite({"--output-dir": output_dir}, {"--lerobot-root": lerobot_root, **model_inputs(model)})
         settings = CaptureSettings(**fields, model=model, layers=layer_list(layers),
                                    token_type=token_type or "instructions")
         result = capture(lerobot_root, repo_id or lerobot_root.name, output_dir, settings,
@@ -171,6 +173,8 @@ def slice_command(
 ) -> None:
     """Write <output-dir>/layerNN/<concept>.pt (+ .safetensors, index.json) for each concept."""
     with input_errors():
+        check_no_overwrite({"--output-dir": output_dir}, {"--run-dir": run_dir, "--concept-map-path": concept_map_path,
+                                                          "--split": split})
         settings = SliceSettings(
             holdout_episodes=read_split(split).holdout_episodes if split is not None else (),
             layers=layer_list(layers),

@@ -11,6 +11,7 @@ from steering_core.data.concept_map import build_concept_map, read_rename_map, w
 from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
 from steering_core.data.contrast_hdf5 import build_hdf5_manifest
 from steering_core.data.convert import DemoOrder
+from steering_core.storage.overwrites import check_no_overwrite
 
 _DEFAULTS = ContrastSettings()
 
@@ -99,6 +100,8 @@ def manifest_command(
     if backend == "lerobot" and lerobot_root is None:
         raise typer.BadParameter("the lerobot backend needs --lerobot-root", param_hint="--lerobot-root")
     with input_errors():
+        check_no_overwrite({"--output": output}, {"--lerobot-root": lerobot_root, "--task-a-file": task_a_file,
+                                                  "--task-b-file": task_b_file, "--search-root": search_root})
         settings = ContrastSettings(
             min_abs_delta=min_abs_delta,
             progress_frac=progress_frac,
@@ -137,6 +140,8 @@ def concept_map_command(
 ) -> None:
     """Map every manifest segment to its global dataset indices, grouped by concept."""
     with input_errors():
+        check_no_overwrite({"--output-path": output_path}, {"--manifest-path": manifest_path,
+                                                            "--lerobot-root": lerobot_root, "--concept-map": concept_map})
         rename = read_rename_map(concept_map) if concept_map is not None else None
         result = build_concept_map(manifest_path, lerobot_root, repo_id=repo_id, rename=rename)
         write_concept_map(result, output_path)

@@ -9,7 +9,7 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from latent_steering_cli.capture import layer_list
-from latent_steering_cli.options import Flag, model_options, names_flag, settings_options
+from latent_steering_cli.options import Flag, model_inputs, model_options, names_flag, settings_options
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest
@@ -29,6 +29,7 @@ from steering_core.evaluate.run import (
 from steering_core.layout import STEERING_EVAL_ROOT, STEERING_ROOT, SUMMARY_MD, check_name
 from steering_core.pi05.robot_side import DEFAULT_HORIZON
 from steering_core.pi05.spec import ModelSpec
+from steering_core.storage.overwrites import check_no_overwrite
 from steering_core.vectors.directions import PathsRelativeTo, SteeringSettings, read_pairs_config
 from steering_core.workload import evaluation_problems
 
@@ -47,6 +48,7 @@ def split_command(
 ) -> None:
     """Split each task's episodes into training (sliced) and held-out (evaluated) ones; pass it to `slice --split`."""
     with input_errors():
+        check_no_overwrite({"--output": output}, {"--manifest": manifest})
         split = split_episodes(read_manifest(manifest), holdout_fraction, where=str(manifest))
         write_split(split, output)
     for task, sides in split.tasks.items():
@@ -182,6 +184,9 @@ def _flags_plan(options: EvaluateOptions, expert: list[int] | None, overrides: d
         p.name for p in read_pairs_config(options.pairs_config).pairs]
     places = dict(data_root=data_root, dataset_root=lerobot_root, repo_id=options.repo_id or lerobot_root.name,
                   output_root=options.output_root or data_root / STEERING_EVAL_ROOT)
+    check_no_overwrite({"--output-root": places["output_root"]}, {
+        "--pairs-config": options.pairs_config, "--steering-root": options.steering_root or data_root / STEERING_ROOT,
+        "--lerobot-root": lerobot_root, "--decision-run": options.decision_run, **model_inputs(options.model)})
     jobs = _layer_jobs(options, names, places) if layer is not None else []
     if options.decision_run is not None:
         jobs += _expert_jobs(options.decision_run, expert, names, places, model, settings)

@@ -118,6 +118,14 @@ def settings_options(model: type[BaseModel], parameter: str = "settings",
     return decorate
 
 
+def model_inputs(model: ModelSpec | None) -> dict[str, Path | None]:
+    """Return the files the model options name, by their flags (the inputs an output must keep apart from)."""
+    if model is None:
+        return {}
+    return {MODEL_FLAGS["checkpoint"].name: model.checkpoint, MODEL_FLAGS["tokenizer"].name: model.tokenizer,
+            flag("norm_stats"): model.norm_stats}
+
+
 def model_options(parameter: str = "model") -> Callable[[Callable], Callable]:
     """Decorate a command that takes the pi0.5 model: ModelSpec's options (`MODEL_FLAGS`), all optional, handed on
     as one `ModelSpec` (None when none was given)."""

@@ -16,6 +16,7 @@ from steering_core.data.convert import (
     convert_libero,
 )
 from steering_core.data.filtering import FilterSettings, filter_demos
+from steering_core.storage.overwrites import check_no_overwrite
 from steering_core.synthetic.libero import SyntheticSettings, write_demo_suite
 
 _CONVERT_DEFAULTS = ConvertSettings(repo_id="-")
@@ -40,6 +41,7 @@ def filter_command(
         mode="copy" if copy else "symlink",
     )
     with input_errors():
+        check_no_overwrite({"--output-dir": output_dir}, {"--input-dir": input_dir})
         selection = filter_demos(input_dir, output_dir, settings)
     for entry in selection.files:
         typer.echo(f"{entry.name}\t{entry.num_demos} demos\t{entry.instruction}")
@@ -80,6 +82,7 @@ def convert_command(
 ) -> None:
     """Convert LIBERO demos into a LeRobot dataset (openpi's physical-intelligence/libero schema)."""
     with input_errors():
+        check_no_overwrite({"--output-dir": output_dir}, {"--input-dir": input_dir})
         settings = ConvertSettings(repo_id=repo_id, image_size=image_size, orientation=orientation, fps=fps,
                                    codebase_version=codebase_version, resize_filter=resize_filter,
                                    demo_order=demo_order)

@@ -9,6 +9,7 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from steering_core.config import load_run_config
+from steering_core.config.run import run_overwrite_problem
 from steering_core.workload import rollout_problems
 
 
@@ -51,6 +52,8 @@ def rollout_command(
                      if value is not None}
         section = run_config.rollout.model_validate({**run_config.rollout.model_dump(), **overrides})
         run_config = run_config.model_copy(update={"rollout": section})
+        if (problem := run_overwrite_problem(run_config)) is not None:  # --api-key-file inside the outputs
+            raise ValueError(problem)
         targets = [(name, at) for name, at in run_config.rollout_targets()
                    if (not pair or name in pair) and (not layer or at in layer)]
         if not targets:

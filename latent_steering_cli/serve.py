@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import device_option, model_options
+from latent_steering_cli.options import device_option, model_inputs, model_options
 from steering_core.layout import STEERING_ROOT
 from steering_core.pi05.spec import ModelSpec
 from steering_core.serve import (
@@ -30,6 +30,7 @@ from steering_core.serve.server import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_QUEUE,
 )
+from steering_core.storage.overwrites import check_no_overwrite
 
 DEFAULT_VECTORS = Path("data") / STEERING_ROOT
 TOKENIZER_FILES = ("paligemma_tokenizer.model", "tokenizer.json")
@@ -113,6 +114,8 @@ def serve_command(
     messages are recorded.
     """
     with input_errors():
+        check_no_overwrite({"--episodes-file": episodes_file}, {"--vectors": vectors, "--api-key-file": api_key_file,
+                                                                **model_inputs(model)})
         api_key, episode_log = read_api_key(api_key_file), EpisodeLog(episodes_file)
         # the default folder may not exist yet (serve the plain policy); a folder given explicitly must
         catalog = VectorCatalog.scan(vectors) if vectors != DEFAULT_VECTORS or vectors.exists() else VectorCatalog()

@@ -11,6 +11,7 @@ from latent_steering_cli.options import settings_options
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
 from steering_core.sae.training.trainer import train_sae
+from steering_core.storage.overwrites import check_no_overwrite
 
 
 @app.command("train-sae")
@@ -25,6 +26,7 @@ def train_sae_command(
 ) -> None:
     """Train an SAE on a layer's captured residuals (resumable) and save it in SAELens's format."""
     with input_errors():
+        check_no_overwrite({"--output-dir": output_dir}, {"--run-dir": run_dir})
         source = RowSource(run_dir, layer, exclude=exclude_episodes)
         folder = train_sae(source, output_dir, settings, layer=layer)
     typer.echo(f"SAE of layer {layer} trained on {source.rows} rows: {folder}")

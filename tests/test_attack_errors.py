@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import itertools
 import pathlib
 import shutil
 from pathlib import Path
@@ -17,11 +18,16 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+import safetensors.torch
+import torch
 from helpers_attack import CLOSE, OPEN, Case, World, assert_refused, good
+from safetensors.torch import load_file, save_file
 from test_attack_inputs import config_case, config_text, named
 from test_attack_paths import demo_file
 from tqdm.auto import tqdm
 
+from steering_core import tensor_files
+from steering_core.sae.formats import WEIGHTS_FILE
 from steering_core.workload import MAX_EVALUATION_SAMPLES, MAX_ROLLOUT_STEPS
 
 LONG = "n" * 300  # one path part over the 255 bytes of a file-system name
@@ -33,27 +39,31 @@ DISK_FULL = "no space left on the device"
 SAVE_FILE_USERS = ("steering_core.capture.shards", "steering_core.vectors.concept_stats", "steering_core.evaluate.report")
 
 
-def fill_disk_under(monkeypatch: pytest.MonkeyPatch, root: Path) -> None:
-    """Make every write of a file under `root` write half its bytes, then fail as a full disk does (ENOSPC)."""
+def fill_disk_under(monkeypatch: pytest.MonkeyPatch, root: Path, after: int = 0) -> None:
+    """Make every write of a file under `root`, after the first `after` of them, write half its bytes, then fail as a
+    full disk does (ENOSPC)."""
+    writes = itertools.count()
+
     def full(path: Path, data: bytes) -> None:
         with open(path, "wb") as handle:
             handle.write(data[: len(data) // 2])
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    def guarded(original):
-        def write(self, data, *args, **kwargs):
-            if not Path(self).absolute().is_relative_to(root):
-                return original(self, data, *args, **kwargs)
-            return full(Path(self), data.encode() if isinstance(data, str) else bytes(data))
+    def guarded(original, path_at: int = 0, fill: bytes | None = None):
+        def write(*args, **kwargs):
+            path = Path(args[path_at])
+            if not path.absolute().is_relative_to(root) or next(writes) < after:
+                return original(*args, **kwargs)
+            data = args[1] if fill is None else fill
+            return full(path, data.encode() if isinstance(data, str) else bytes(data))
         return write
-
-    def save_file(tensors, path, metadata=None):
-        full(Path(path), b"\0" * 64)
 
     monkeypatch.setattr(pathlib.Path, "write_bytes", guarded(pathlib.Path.write_bytes))
     monkeypatch.setattr(pathlib.Path, "write_text", guarded(pathlib.Path.write_text))
     for module in SAVE_FILE_USERS:
-        monkeypatch.setattr(f"{module}.save_file", save_file)
+        monkeypatch.setattr(f"{module}.save_file", guarded(safetensors.torch.save_file, 1, b"\0" * 64))
+    monkeypatch.setattr(tensor_files, "save_torch_without_crcs",
+                        guarded(tensor_files.save_torch_without_crcs, 1, b"\0" * 64))
 
 
 DISK_FULL_COMMANDS = ["filter", "manifest", "split", "concept-map", "capture", "slice", "steer", "train-sae", "evaluate"]
@@ -61,17 +71,48 @@ DISK_FULL_COMMANDS = ["filter", "manifest", "split", "concept-map", "capture", "
 
 @pytest.mark.parametrize("command", DISK_FULL_COMMANDS)
 def test_disk_full_is_one_line(attack_world, tmp_path, monkeypatch, command):
+    assert_disk_full_refused(attack_world, tmp_path, monkeypatch, command)
+
+
+# the commands that write many files for one output, and how many of them are written before the disk fills up
+LATER_FILES = [("train-sae", after) for after in (1, 2, 3)] + [("steer", after) for after in (1, 9, 14, 30)]
+
+
+@pytest.mark.parametrize(("command", "after"), LATER_FILES, ids=[f"{c}-{a}" for c, a in LATER_FILES])
+def test_disk_full_at_a_later_file_keeps_nothing(attack_world, tmp_path, monkeypatch, command, after):
+    """A disk that fills up at the Nth file of an output: the one line says nothing was kept, and nothing was."""
+    assert_disk_full_refused(attack_world, tmp_path, monkeypatch, command, after)
+
+
+def assert_disk_full_refused(world: World, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, command: str,
+                             after: int = 0) -> None:
+    """Run `command` on the world with the disk full after `after` files; check the one line and that nothing is left."""
     monkeypatch.chdir(tmp_path)
     if command == "train-sae":  # SAELens's progress bars go to stderr: not part of the error
         for module in ("sae_lens.training.sae_trainer", "sae_lens.training.activation_scaler"):
             monkeypatch.setattr(f"{module}.tqdm", functools.partial(tqdm, disable=True))
-    fill_disk_under(monkeypatch, tmp_path)
+    fill_disk_under(monkeypatch, tmp_path, after)
 
     def attack(world: World, tmp: Path) -> Case:
         argv = [command, *good(world, tmp)[command]]
         if command == "evaluate":  # the smallest grid: the refusal comes when its outputs are written
             argv += ["--alphas", "0,1", "--random-directions", "8"]
         return Case(argv, (str(tmp), DISK_FULL, "nothing was kept"))
+
+    assert_refused(world, tmp_path, attack)
+
+
+def test_steer_through_an_sae_that_overflows_keeps_nothing(attack_world, tmp_path):
+    """A `b_dec` of 1e38 overflows float32 in the SAE pass: refused naming the file, no concept statistics left."""
+    def attack(world: World, tmp: Path) -> Case:
+        folder = shutil.copytree(world.sae(1), tmp / "sae")
+        tensors = load_file(folder / WEIGHTS_FILE)
+        tensors["b_dec"] = torch.full_like(tensors["b_dec"], 1e38)
+        save_file(tensors, folder / WEIGHTS_FILE)
+        argv = [str(word) for word in good(world, tmp)["steer"]]
+        argv[argv.index("--sae") + 1] = str(folder)
+        return Case(["steer", *argv], (str(tmp / "steering" / "layer01" / "concepts"), "is NaN or Inf",
+                                       "nothing was written"))
 
     assert_refused(attack_world, tmp_path, attack)
 

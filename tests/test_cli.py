@@ -68,7 +68,7 @@ def test_a_heavy_command_loads_its_libraries_when_run():
 
 
 def test_option_validation_error_is_one_sentence(tmp_path):
-    result = CliRunner().invoke(app, ["convert", "--input-dir", str(tmp_path), "--repo-id", "x",
+    result = CliRunner().invoke(app, ["convert", "--input-dir", str(tmp_path / "demos"), "--repo-id", "x",
                                       "--output-dir", str(tmp_path / "out"), "--image-size", "3"])
     assert result.exit_code == 1
     assert result.output == "error: --image-size 3: input should be greater than or equal to 8\n"

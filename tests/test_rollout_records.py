@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import re
 
@@ -12,6 +13,7 @@ from helpers_rollout import CLOSE, JOINT, OPEN, RUN, make_episode, write_pair_ce
 from steering_core.layout import rollout_cell_dir
 from steering_core.rollout.cells import Cell, condition_kind
 from steering_core.rollout.records import CellTasks, merge_chunks, read_cell, write_cell
+from steering_core.storage.os_limits import DiskFullError
 
 
 def test_cell_names_and_condition_kinds():
@@ -71,6 +73,20 @@ def test_cell_round_trips(tmp_path):
         assert np.array_equal(arrays["robot_qpos"][i, : steps + 1], episode.robot_qpos)
         assert np.array_equal(arrays[f"joints/{JOINT}"][i, : steps + 1], episode.joints[JOINT])
         assert np.isnan(arrays[f"joints/{JOINT}"][i, steps + 1:]).all() and np.isnan(arrays["actions"][i, steps:]).all()
+
+
+def test_a_cell_that_fails_at_a_later_file_keeps_none(tmp_path, monkeypatch):
+    """A full disk at the arrays, after the video: the cell keeps no file, not even its folder."""
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("steering_core.rollout.records.save_safetensors", full)
+    cell, tasks = Cell("open_vs_close", 12, "negative", "sae", 2.0), CellTasks(CLOSE, OPEN)
+    with pytest.raises(DiskFullError) as err:
+        write_cell(tmp_path / cell.name, cell, tasks, [make_episode(CLOSE.instruction, "toward", 12, frames=3)],
+                   seeds=[7], run=RUN)
+    assert list(tmp_path.rglob("*")) == []
+    assert str(err.value).startswith(f"{tmp_path / cell.name}: no space left") and "nothing was kept" in str(err.value)
 
 
 def test_bad_cells_are_refused_with_every_problem(tmp_path):

@@ -35,6 +35,7 @@ from steering_core.evaluate import EvaluateSettings
 from steering_core.pi05.robot_side import DEFAULT_HORIZON
 from steering_core.pi05.spec import ModelSpec
 from steering_core.sae.training.settings import TrainSettings
+from steering_core.storage.overwrites import overwrite_problem
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.directions import PairsConfig, PairSpec, SteeringSettings
 from steering_core.workload import evaluation_problems, rollout_problems
@@ -121,7 +122,7 @@ class RunConfig(StrictModel):
         if self.rollout is not None and depth - 1 in self.rollout_layers:
             problems.append(f"layers include {depth - 1}, the last decoder layer: steering it cannot move the actions, "
                             "so its rollouts would only repeat α = 0; roll out earlier layers")
-        if (overlap := _written_into(self.output_root, self.dataset.existing)) is not None:
+        if (overlap := run_overwrite_problem(self)) is not None:
             problems.append(overlap)
         problems += self._workload_problems()
         if (self.sources is None) == (self.dataset.existing is None):
@@ -375,12 +376,14 @@ class RunConfig(StrictModel):
         return PairsConfig(pairs=specs)
 
 
-def _written_into(output_root: Path, existing: Path | None) -> str | None:
-    """Return why the outputs would land in the `existing` dataset (the run never writes there), else None."""
-    if existing is None:
-        return None
-    root, dataset = output_root.resolve(), existing.resolve()
-    if root == dataset or dataset in root.parents:
-        return (f"output_root {output_root} is {'' if root == dataset else 'inside '}dataset.existing {existing}, "
-                "which is read in place and never written; give an output_root outside the dataset")
-    return None
+def run_overwrite_problem(config: RunConfig) -> str | None:
+    """Return the line refusing an output of the run (`output_root`, `dataset.root`) that is, contains or lies
+    inside one of its inputs (`storage.overwrites`), else None."""
+    inputs = {"sources.folders": config.sources.folders if config.sources is not None else None,
+              "dataset.existing": config.dataset.existing, "model.checkpoint": config.model.checkpoint,
+              "model.tokenizer": config.model.tokenizer, "model.norm_stats": config.model.norm_stats,
+              "rollout.api_key_file": config.rollout.api_key_file if config.rollout is not None else None}
+    inputs |= {f"sae.{layer}.{key}": getattr(entry, key) for layer, entry in config.sae.items() if entry is not None
+               for key in ("path", "local_dir")}
+    return overwrite_problem({"output_root": config.output_root, "dataset.root": config.dataset.root}, inputs,
+                             of="the run")

@@ -26,7 +26,7 @@ from steering_core.layout import ROLLOUT_FILE, rollout_video_file
 from steering_core.rollout.cells import Cell
 from steering_core.rollout.stats import proportion
 from steering_core.rollout.video import DEFAULT_FPS, write_video
-from steering_core.storage.fileio import atomic_path, read_json, write_json
+from steering_core.storage.fileio import atomic_files, json_text, read_json
 from steering_core.tensor_files import load_safetensors, save_safetensors
 
 if TYPE_CHECKING:
@@ -161,17 +161,18 @@ def write_cell(folder: str | Path, cell: Cell, tasks: CellTasks, episodes: Seque
     recorded = recorded or {}
     videos = {i: rollout_video_file(cell.name, i, e.outcome) for i, e in enumerate(episodes)
               if len(e.frames) or i in recorded}
-    for i, name in videos.items():
-        if i in recorded:
-            with atomic_path(folder / name) as tmp:
-                shutil.copyfile(recorded[i], tmp)
-        else:
-            write_video(folder / name, episodes[i].frames, fps=fps)
     tensors = {key: torch.from_numpy(value) for key, value in cell_arrays(episodes).items()}
-    with atomic_path(folder / f"{ROLLOUT_FILE}.safetensors") as tmp:
-        save_safetensors(tensors, tmp, metadata={"format_version": str(ROLLOUT_FORMAT_VERSION)})
     record = cell_record(cell, tasks, episodes, seeds, run, videos)
-    write_json(folder / f"{ROLLOUT_FILE}.json", record)
+    text = json_text(record, folder / f"{ROLLOUT_FILE}.json")
+    with atomic_files(folder) as staging:  # the cell's files: all of them, or (on a failure) none
+        for i, name in videos.items():
+            if i in recorded:
+                shutil.copyfile(recorded[i], staging / name)
+            else:
+                write_video(staging / name, episodes[i].frames, fps=fps)
+        save_safetensors(tensors, staging / f"{ROLLOUT_FILE}.safetensors",
+                         metadata={"format_version": str(ROLLOUT_FORMAT_VERSION)})
+        (staging / f"{ROLLOUT_FILE}.json").write_text(text, encoding="utf-8")
     return record
 
 

@@ -103,6 +103,71 @@ def atomic_dir(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[
         shutil.rmtree(staging, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def atomic_files(folder: str | os.PathLike) -> Iterator[Path]:
+    """Yield a staging folder for the files of one output in `folder`; move them all there only if the block succeeds.
+
+    A failure at any file (a full disk at the third of four) leaves none of them: the moves at the end are renames
+    within one file system, which need no space. A full disk is reported naming `folder`.
+    """
+    folder = check_path_parts(folder, "output", extra=staging_extra())
+    made = not folder.exists()
+    with reraise_disk_full(folder):
+        folder.mkdir(parents=True, exist_ok=True)
+        remove_stale_staging(folder / _FILES)
+        staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(folder / _FILES), suffix=".tmp", dir=folder))
+    try:
+        with reraise_disk_full(folder, staging, rename=True):
+            yield staging
+        umask = _umask()
+        for name in sorted(os.listdir(staging)):
+            _share(staging / name, umask)
+            os.replace(staging / name, folder / name)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        if made:
+            with contextlib.suppress(OSError):  # the folder made for these files: not left empty
+                folder.rmdir()
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def restored_on_failure(folder: str | os.PathLike) -> Iterator[None]:
+    """Run the block; if it fails, put `folder` back as it was before (gone when it did not exist), so a step that
+    writes many files into it keeps none of them.
+
+    The previous copy is a tree of hard links (no data copied) in a staging folder beside `folder`; the writers
+    replace files by renames, never in place, so the links keep the previous bytes.
+    """
+    folder = Path(folder)
+    remove_stale_staging(folder)
+    backup = None
+    if folder.is_dir():
+        staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(folder), suffix=".tmp", dir=folder.parent))
+        backup = Path(shutil.copytree(folder, staging / f"{folder.name}{_OLD}", symlinks=True, copy_function=_link))
+    try:
+        yield
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        if backup is not None:
+            os.replace(backup, folder)
+        raise
+    finally:
+        if backup is not None:
+            shutil.rmtree(backup.parent, ignore_errors=True)
+
+
+def _link(source: str, target: str) -> None:
+    """Hard-link `source` at `target` (a copy where the file system has no hard links)."""
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copy2(source, target)
+
+
+_FILES = ".files"  # the name of `atomic_files`' staging folders in the folder they fill
 _OLD = ".old"  # inside a staging folder: the previous copy of the target while two renames swap them
 _RENAME_EXCHANGE, _AT_FDCWD = 2, -100  # linux/fs.h, fcntl.h
 _LIBC = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
@@ -203,17 +268,22 @@ def write_json(path: str | os.PathLike, payload: Any) -> Path:
     NaN and Inf are refused (JSON has neither; Python would write bare `NaN`), naming the key; nothing is written.
     """
     path = Path(path)
+    text = json_text(payload, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return path
+
+
+def json_text(payload: Any, path: str | os.PathLike) -> str:
+    """Return the text `write_json` writes for `payload`; ValueError naming `path` and the key of a NaN or Inf."""
     payload = portable(payload)  # paths in object-storage mirrors are written as their URLs
     try:
-        text = json.dumps(payload, indent=2, ensure_ascii=False, allow_nan=False)
+        return json.dumps(payload, indent=2, ensure_ascii=False, allow_nan=False) + "\n"
     except ValueError:
         key = non_finite_key(payload)
         if key is None:
             raise
         raise ValueError(f"{path}: `{key}` is NaN or Inf, which JSON cannot hold; nothing was written") from None
-    with atomic_path(path) as tmp:
-        tmp.write_text(text + "\n", encoding="utf-8")
-    return path
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

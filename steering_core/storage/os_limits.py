@@ -113,14 +113,14 @@ def human(size: int) -> str:
 
 
 @contextlib.contextmanager
-def reraise_disk_full(path: Path, staging: Path | None = None) -> Iterator[None]:
+def reraise_disk_full(path: Path, staging: Path | None = None, *, rename: bool = False) -> Iterator[None]:
     """Re-raise a full disk met while writing `staging` (the partial copy of `path`; None: while preparing to write
-    it) as `DiskFullError`."""
+    it) as `DiskFullError`; with `rename`, also one already raised naming a file inside `staging`."""
     try:
         yield
     except Exception as err:
         where = (staging or path).parent
-        if isinstance(err, DiskFullError) or not is_disk_full(err, where):
+        if (isinstance(err, DiskFullError) and not rename) or not is_disk_full(err, where):
             raise
         written, free = (size_of(staging) if staging else 0), free_bytes(where)
         needed = "more space than was free" if free < 0 else f"more than the {human(free + written)} free there"

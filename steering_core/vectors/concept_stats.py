@@ -26,7 +26,7 @@ from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.sae.model import Sae
 from steering_core.storage.digests import file_digest
-from steering_core.storage.fileio import atomic_path, read_json, sha256_json, write_json
+from steering_core.storage.fileio import atomic_files, json_text, read_json, sha256_json
 from steering_core.tensor_files import check_safetensors, load_torch_file
 
 logger = logging.getLogger(__name__)
@@ -150,9 +150,7 @@ def encode_concept(
         tensors = {"residual_mean": stats.residual_mean}
         if sae is not None:
             tensors |= {"latent_mean": stats.latent_mean, "firing_rate": stats.firing_rate}
-        with atomic_path(stem.with_suffix(".safetensors")) as tmp:
-            save_file({name: tensor.contiguous() for name, tensor in tensors.items()}, tmp)
-        write_json(json_path, {
+        record = json_text({
             "format_version": FORMAT_VERSION,
             "label": source.label,
             "identity": identity,
@@ -162,7 +160,11 @@ def encode_concept(
             "mean_l0": stats.mean_l0,
             "batch_size": batch_size,
             "tensors": stem.with_suffix(".safetensors").name,
-        })
+        }, json_path)
+        with atomic_files(stem.parent) as staging:  # the tensors and their record: both or neither
+            save_file({name: tensor.contiguous() for name, tensor in tensors.items()},
+                      staging / stem.with_suffix(".safetensors").name)
+            (staging / json_path.name).write_text(record, encoding="utf-8")
     fidelity = "" if stats.fvu is None else f", FVU {stats.fvu:.3f}, mean L0 {stats.mean_l0:.1f}"
     logger.info("%s: %d rows%s", source.label, stats.count, fidelity)
     return json_path

@@ -48,7 +48,15 @@ from steering_core.remote.locks import output_lock
 from steering_core.reporting.progress import ProgressCallback
 from steering_core.sae.formats import HOOK_NAME
 from steering_core.sae.model import Sae, load_sae
-from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, write_json
+from steering_core.storage.fileio import (
+    atomic_dir,
+    atomic_files,
+    json_text,
+    read_json,
+    restored_on_failure,
+    write_json,
+)
+from steering_core.storage.overwrites import check_no_overwrite
 from steering_core.storage.schema import StrictModel, read_model
 from steering_core.tensor_files import load_safetensors, non_finite, require_finite, save_safetensors, save_torch
 from steering_core.vectors.concept_stats import (
@@ -408,14 +416,15 @@ def compute_pairwise_stats(layer_path: Path, pair_names: list[str]) -> Path:
             entry |= {"residual_norm_a": float(va["residual"].norm()), "residual_norm_b": float(vb["residual"].norm())}
             entries[PAIR_KEY.format(a=a, b=b)] = entry
     pt_path = layer_path / f"{PAIRWISE_STATS_FILE}.pt"
-    with atomic_path(pt_path) as tmp:
-        save_torch(entries, tmp)
-    write_json(pt_path.with_suffix(".json"), {
+    record = json_text({
         "format_version": FORMAT_VERSION,
         "pairs": pair_names,
         "sae_used": sae_used,
         "entries": {key: entry | extras.get(key, {}) for key, entry in entries.items()},
-    })
+    }, pt_path.with_suffix(".json"))
+    with atomic_files(layer_path) as staging:
+        save_torch(entries, staging / pt_path.name)
+        (staging / pt_path.with_suffix(".json").name).write_text(record, encoding="utf-8")
     return pt_path
 
 
@@ -463,6 +472,11 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
     """
     config = read_pairs_config(settings.pairs_config)
     sources, pairs = concept_sources(config, settings.pairs_config, settings.paths_relative_to)
+    layer_path = settings.output_root / layer_dir(settings.layer)
+    check_no_overwrite({f"output_root's {layer_path.name}": layer_path}, {
+        "pairs_config": settings.pairs_config, **{f"pair {name!r}'s slices": files for name, files in pairs.items()},
+        **{key: path for key in ("sae", "sae_dir", "sae_cfg_from", "direction_file")
+           if (path := getattr(settings, key)) is not None and Path(path).exists()}})
     check_pair_slices([(pair.name, (pair.positive_label, pair.negative_label), pairs[pair.name])
                        for pair in config.pairs], settings.layer, settings.pairs_config)
     for pair in config.pairs:
@@ -474,8 +488,8 @@ def compute_steering(settings: SteeringSettings, *, sae: Sae | None = None, prog
         check_sae_layer(sae, settings.layer)
     readers = check_concepts(sources, pairs, sae)
     check_methods(settings, pairs, next(iter(readers.values())).width, sae is not None)
-    layer_path = settings.output_root / layer_dir(settings.layer)
-    with output_lock(layer_path):  # a second run waits, then reuses the concept statistics written here
+    # a second run waits, then reuses the concept statistics written here; a failure leaves the folder as it was
+    with output_lock(layer_path), restored_on_failure(layer_path):
         rows = {path: reader.rows for path, reader in readers.items()}  # progress counts rows over every concept
         total, done = sum(rows.values()), 0
         stats_files = {}

@@ -27,7 +27,7 @@ from steering_core.reporting.progress import Progress, ProgressCallback
 from steering_core.sae.formats import CFG_FILE, SPARSITY_FILE, WEIGHTS_FILE
 from steering_core.sae.training.rows import RowSource
 from steering_core.sae.training.settings import TrainSettings
-from steering_core.storage.fileio import atomic_dir, atomic_path, read_json, sha256_json, write_json
+from steering_core.storage.fileio import atomic_dir, atomic_files, json_text, read_json, sha256_json, write_json
 from steering_core.tensor_files import load_safetensors, load_torch_file, save_safetensors, save_torch
 
 logger = logging.getLogger(__name__)
@@ -181,15 +181,17 @@ def _checkpoint_folders(checkpoints: Path) -> list[Path]:
 
 
 def _write_final(out_dir: Path, sae: Any, trainer: Any, record: dict[str, Any]) -> None:
-    """Write SAELens's three files and then `training.json`, each atomically."""
+    """Write SAELens's three files and `training.json` as one output: all of them, or (on a failure) none."""
     from steering_core.sae.training.loop import inference_files
 
     weights, cfg, sparsity = inference_files(sae, trainer)
-    for name, tensors in ((WEIGHTS_FILE, weights), (SPARSITY_FILE, sparsity)):
-        with atomic_path(out_dir / name) as tmp:
-            save_safetensors(tensors, tmp)
-    write_json(out_dir / CFG_FILE, _sorted_keys(cfg))  # SAELens orders its fields by a set: per process
-    write_json(out_dir / TRAINING_FILE, record)
+    texts = {CFG_FILE: json_text(_sorted_keys(cfg), out_dir / CFG_FILE),  # SAELens orders its fields by a set
+             TRAINING_FILE: json_text(record, out_dir / TRAINING_FILE)}
+    with atomic_files(out_dir) as staging:
+        for name, tensors in ((WEIGHTS_FILE, weights), (SPARSITY_FILE, sparsity)):
+            save_safetensors(tensors, staging / name)
+        for name, text in texts.items():
+            (staging / name).write_text(text, encoding="utf-8")
 
 
 def _sorted_keys(value: Any) -> Any:
