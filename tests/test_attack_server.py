@@ -24,7 +24,7 @@ from websockets.sync.client import connect
 from steering_core.serve import PolicyServer, VectorCatalog
 from steering_core.serve.codec import pack, unpack
 from steering_core.serve.episodes import EpisodeLog
-from steering_core.serve.server import MAX_REPLY_CHARS
+from steering_core.serve.server import MAX_REPLY_CHARS, serving_in_thread
 
 MAX_MESSAGE_BYTES = 1_000_000
 TRACEBACK_MARKS = ("Traceback", 'File "')
@@ -355,6 +355,17 @@ def test_another_method_than_get_is_answered_405(server, good, caplog, method, p
     with connect(url(server), max_size=None) as ws:
         ws.recv()
         assert_serves(ws, good)
+
+
+def test_a_port_in_use_is_one_line_naming_it(catalog):
+    """The server's own bind (the address taken after `serve` checked it) raises one line, not asyncio's."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        with pytest.raises(ValueError, match=rf"^127\.0\.0\.1:{port} is in use: .* choose another port"):
+            with serving_in_thread(PolicyServer(TrappedPolicy(), catalog, port=port)):
+                pass
 
 
 def test_an_episodes_file_that_cannot_be_written_is_said_to_the_client(catalog, good, tmp_path, caplog):
