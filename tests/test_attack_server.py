@@ -370,7 +370,8 @@ def test_a_port_in_use_is_one_line_naming_it(catalog):
 
 def test_an_episodes_file_that_cannot_be_written_is_said_to_the_client(catalog, good, tmp_path, caplog):
     """The episodes file's folder removed while serving: the client hears that the episode was not recorded (not
-    "inference failed"), the log names the file, the episode is kept in memory and the connection serves on."""
+    "inference failed"), the log names the file, the episode is kept in memory and the connection serves on; an
+    episode ended by the disconnect is logged the same, with no traceback."""
     episodes_file = tmp_path / "records" / "episodes.jsonl"
     episodes_file.parent.mkdir()
     with running(PolicyServer(TrappedPolicy(), catalog, episode_log=EpisodeLog(episodes_file))) as server, \
@@ -388,10 +389,12 @@ def test_an_episodes_file_that_cannot_be_written_is_said_to_the_client(catalog, 
                 "the server could not record the episode: No such file or directory"), reply
             assert "\n" not in reply and str(tmp_path) not in reply, reply
         assert_serves(ws, good)
+        ws.send(pack({"__ctrl__": "episode_start", "__episode_id__": 3}))  # ended by the disconnect: only logged
+        assert unpack(ws.recv(timeout=30)) == {"__ack__": "episode_start"}
     assert [(r["episode_id"], r["ended_by"], r["inferences"]) for r in server.episodes] == [
-        (1, "episode_start", 1), (2, "episode_end", 0)]
+        (1, "episode_start", 1), (2, "episode_end", 0), (3, "disconnect", 0)]
     unwritten = [r.getMessage() for r in caplog.records if "not written" in r.getMessage()]
-    assert len(unwritten) == 2 and all(str(episodes_file) in m for m in unwritten), unwritten
+    assert len(unwritten) == 3 and all(str(episodes_file) in m for m in unwritten), unwritten
     assert not [r for r in caplog.records if r.exc_info]
 
 
