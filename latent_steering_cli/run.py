@@ -66,7 +66,7 @@ def run_command(
 ) -> None:
     """Run the whole pipeline (the `latent-steering` flow) in this process.
 
-    Uses PREFECT_API_URL when set, else Prefect's embedded server.
+    Uses PREFECT_API_URL when set (checked to answer first), else Prefect's embedded server.
     Prefect's state (database, run history) is kept in .prefect/ beside the run config, unless PREFECT_HOME is set.
     Re-runs reuse every step whose inputs did not change.
     Ends with a table of every task run: ran, cached or failed, time, output.
@@ -74,6 +74,10 @@ def run_command(
     with input_errors():
         run_config = load_run_config(config)
         prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
+        if os.environ.get("PREFECT_API_URL"):  # a server of one's own: it must answer before the run starts
+            from deployments.setup import check_api_answers
+
+            check_api_answers(os.environ["PREFECT_API_URL"])
         check_run(run_config, capture_device=run_config.orchestration.mode != "deployment")  # before Prefect starts
     run_pipeline(config, run_config)
     _echo_outcome(run_config, random_sae=False)

@@ -47,13 +47,14 @@ def cli_error(argv: list, cwd: Path, env: dict[str, str] | None = None, preexec_
     return errors[0]
 
 
-def test_deploy_to_a_server_that_does_not_answer_is_one_line(attack_world, tmp_path):
+@pytest.mark.parametrize("command", ["deploy", "run"])
+def test_a_prefect_server_that_does_not_answer_is_one_line(attack_world, tmp_path, command):
     """PREFECT_API_URL on a port where nothing listens: refused before Prefect's client retries (279 lines)."""
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]  # free again once closed: nothing answers there
     url = f"http://127.0.0.1:{port}/api"
-    line = cli_error(["deploy", "--config", attack_world.config], tmp_path, {"PREFECT_API_URL": url})
+    line = cli_error([command, "--config", attack_world.config], tmp_path, {"PREFECT_API_URL": url})
     assert f"PREFECT_API_URL {url}: no Prefect server answers there" in line and "prefect server start" in line, line
 
 
