@@ -2,7 +2,8 @@
 (with `--storage`), then every deployment of prefect.yaml.
 
 Runs against the server named by PREFECT_API_URL; without it, Prefect would silently deploy to a
-throwaway embedded server, so that is refused.
+throwaway embedded server, so that is refused, and so is an address where no Prefect server answers (one line
+naming it, before Prefect's client retries).
 
 Storage (`--storage s3://bucket/prefix`): checked writable from this machine, saved as the RemoteFileSystem block
 `latent-steering-results` (basepath `<url>/.prefect-cache`), and named in the deployments' job env so flow results
@@ -18,6 +19,7 @@ import sys
 from datetime import timedelta
 from pathlib import Path
 
+import httpx
 from prefect.client.orchestration import get_client
 from prefect.client.schemas.actions import WorkPoolCreate
 from prefect.client.schemas.objects import StateType
@@ -53,6 +55,7 @@ PROJECT_TAG = "latent-steering"              # tag of every deployment in prefec
 HEARTBEAT_TIMEOUT = 600
 MINIMUM_HEARTBEAT_TIMEOUT = 90  # three heartbeats: Prefect's own rule of thumb for the window
 CRASH_AUTOMATION = "latent-steering: crash flow runs whose heartbeats stopped"
+API_PROBE_TIMEOUT_S = 10  # a Prefect server answers its health check in milliseconds
 _FINAL_EVENTS = {f"prefect.flow-run.{state}" for state in ("Completed", "Failed", "Cancelled", "Crashed")}
 
 
@@ -65,6 +68,20 @@ def require_api_url() -> str:
             "start a server (`prefect server start`) and export PREFECT_API_URL=http://127.0.0.1:4200/api"
         )
     return url
+
+
+def check_api_answers(url: str) -> None:
+    """Return once the Prefect server at `url` answers its health check; ValueError naming the address otherwise."""
+    health = f"{url.rstrip('/')}/health"
+    try:
+        answer = httpx.get(health, timeout=API_PROBE_TIMEOUT_S)
+    except httpx.HTTPError as err:
+        reason = str(err) or type(err).__name__
+        raise ValueError(f"PREFECT_API_URL {url}: no Prefect server answers there ({reason}); start one "
+                         "(`prefect server start`) or set PREFECT_API_URL to your server's address") from None
+    if answer.status_code != 200:
+        raise ValueError(f"PREFECT_API_URL {url}: {health} answers HTTP {answer.status_code}, not a Prefect server's "
+                         "health check; set PREFECT_API_URL to the server's API address (ending in /api)")
 
 
 def ensure_pools(pools: tuple[str, ...] = (GPU_POOL, CPU_POOL, SIM_POOL)) -> list[str]:
@@ -180,7 +197,9 @@ def setup(config_path: str | os.PathLike, gpu_slots: int = 1, project_dir: Path 
                          "seconds (three 30-second heartbeats)")
     if storage is not None:
         storage = check_storage(storage)  # before anything changes on the server
-    logger.info("setting up deployments on %s", require_api_url())
+    url = require_api_url()
+    check_api_answers(url)  # before any client call: Prefect's client retries for minutes, then prints tracebacks
+    logger.info("setting up deployments on %s", url)
     ensure_pools()
     set_gpu_limit(gpu_slots)
     ensure_crash_automation(heartbeat_timeout)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import signal
+import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, get_args
@@ -134,8 +136,16 @@ class RunNameFormatter(logging.Formatter):
 def main(verbose: bool = typer.Option(
     False, "--verbose", "-v", help="Log debug messages, and the INFO lines of libraries (HTTP calls, server)."
 )) -> None:
-    """Set up logging for every subcommand."""
+    """Set up logging for every subcommand; a write over the file-size limit raises (EFBIG), not kills."""
     configure_logging(verbose)
+    ignore_file_size_signal()
+
+
+def ignore_file_size_signal() -> None:
+    """Ignore SIGXFSZ, so a write past `ulimit -f` fails with OSError EFBIG (`machine_errors` says it in one line)
+    rather than killing the process with a core dump; child processes inherit it."""
+    if hasattr(signal, "SIGXFSZ") and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 
 
 def configure_logging(verbose: bool) -> None:
@@ -173,7 +183,8 @@ def input_errors(*extra: type[Exception]) -> Iterator[None]:
         raise typer.Exit(1) from None
     except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError,
             *extra) as err:
-        typer.secho(f"error: {portable(str(err))}", fg=typer.colors.RED, err=True)  # mirror paths as their URLs
+        line = machine_error_line(err) or str(err)  # a permission refused: what to do
+        typer.secho(f"error: {portable(line)}", fg=typer.colors.RED, err=True)  # mirror paths as their URLs
         raise typer.Exit(1) from None
 
 

@@ -16,6 +16,7 @@ from latent_steering_cli.app import app, input_errors
 from steering_core import demo
 from steering_core.config import RunConfig, load_run_config
 from steering_core.preflight import check_run
+from steering_core.storage.os_limits import check_writable_folder
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.
 EPHEMERAL_STARTUP_SECONDS = "90"
@@ -32,6 +33,15 @@ def prefect_environment(home: Path | None = None) -> None:
     os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
     if home is not None:
         os.environ.setdefault("PREFECT_HOME", str(home))
+    check_prefect_home()
+
+
+def check_prefect_home() -> Path:
+    """Return Prefect's home folder ($PREFECT_HOME, else ~/.prefect) once a file can be written there; ValueError
+    naming the variable and the folder otherwise (before Prefect starts: it keeps its database there)."""
+    home = Path(os.environ.get("PREFECT_HOME", "~/.prefect")).expanduser()
+    return check_writable_folder(home, "PREFECT_HOME", "Prefect keeps its database and settings there: set "
+                                 "PREFECT_HOME to a writable folder (or unset it to use .prefect/ beside the run config)")
 
 
 def run_pipeline(config_path: Path, run_config: RunConfig) -> None:
@@ -56,7 +66,7 @@ def run_command(
 ) -> None:
     """Run the whole pipeline (the `latent-steering` flow) in this process.
 
-    Uses PREFECT_API_URL when set, else Prefect's embedded server.
+    Uses PREFECT_API_URL when set (checked to answer first), else Prefect's embedded server.
     Prefect's state (database, run history) is kept in .prefect/ beside the run config, unless PREFECT_HOME is set.
     Re-runs reuse every step whose inputs did not change.
     Ends with a table of every task run: ran, cached or failed, time, output.
@@ -64,6 +74,10 @@ def run_command(
     with input_errors():
         run_config = load_run_config(config)
         prefect_environment(home=config.resolve().parent / PREFECT_HOME_DIR)
+        if os.environ.get("PREFECT_API_URL"):  # a server of one's own: it must answer before the run starts
+            from deployments.setup import check_api_answers
+
+            check_api_answers(os.environ["PREFECT_API_URL"])
         check_run(run_config, capture_device=run_config.orchestration.mode != "deployment")  # before Prefect starts
     run_pipeline(config, run_config)
     _echo_outcome(run_config, random_sae=False)
@@ -85,7 +99,7 @@ def demo_command(
     output_dir = output_dir.resolve()
     with input_errors():
         demo.check_demo_folder(output_dir)
-    prefect_environment(home=output_dir / PREFECT_HOME_DIR)
+        prefect_environment(home=output_dir / PREFECT_HOME_DIR)
     planted_path = demo.build_planted(output_dir / demo.PLANTED_DIR)
     config_path = demo.build_demo(output_dir, demos_per_task=demos_per_task)
     typer.echo(f"inputs written under {output_dir / demo.INPUTS_DIR}; run config {config_path}")
@@ -133,6 +147,7 @@ def deploy_command(
     """
     with input_errors(RuntimeError):
         load_run_config(config)
+        check_prefect_home()
         from deployments.setup import RESULTS_BLOCK, setup
 
         timeout = {} if heartbeat_timeout is None else {"heartbeat_timeout": heartbeat_timeout}

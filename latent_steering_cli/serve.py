@@ -29,6 +29,7 @@ from steering_core.serve.server import (
     DEFAULT_MAX_CONNECTIONS,
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_QUEUE,
+    check_address_free,
 )
 from steering_core.storage.overwrites import check_no_overwrite
 
@@ -128,6 +129,7 @@ def serve_command(
             model = model.model_copy(update={"tokenizer": _tokenizer_beside(model.checkpoint)})
         default = parse_steering([parse_steering_option(text) for text in steer], catalog, key="--steer",
                                  limits=SteeringLimits(max_alpha, model.arch.depth))
+        check_address_free(host, port)  # before the model loads
         policy = model.load_policy(device, dtype, compiled)
         policy.normalization.check()  # read now: a missing or broken file stops here, not at a request
         served = SteeredPi05Policy(policy, noise_seed=noise_seed)
@@ -137,7 +139,7 @@ def serve_command(
                               episode_log=episode_log, inference_timeout_s=inference_timeout_s,
                               max_connections=max_connections, max_queue=max_queue, max_batch=max_batch,
                               batch_wait_ms=batch_wait_ms, idle_timeout_s=idle_timeout_s)
-    server.run()
+        server.run()  # an address taken meanwhile: one line too
 
 
 def _tokenizer_beside(checkpoint_path: Path) -> Path:

@@ -1,11 +1,13 @@
 """The policy server under attack: each bad request is answered with one line naming its key (never a
 traceback) and the connection then serves a good request; plain HTTP, stuck inference, too many connections,
-a client sending ahead and oversize frames are bounded and answered without an error traceback in the log."""
+a client sending ahead and oversize frames are bounded and answered without an error traceback in the log; another
+HTTP method than GET is answered 405, and an episodes file that cannot be written is said to the client as that."""
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import shutil
 import socket
 import threading
 import time
@@ -21,7 +23,8 @@ from websockets.sync.client import connect
 
 from steering_core.serve import PolicyServer, VectorCatalog
 from steering_core.serve.codec import pack, unpack
-from steering_core.serve.server import MAX_REPLY_CHARS
+from steering_core.serve.episodes import EpisodeLog
+from steering_core.serve.server import MAX_REPLY_CHARS, serving_in_thread
 
 MAX_MESSAGE_BYTES = 1_000_000
 TRACEBACK_MARKS = ("Traceback", 'File "')
@@ -34,6 +37,10 @@ class TrappedPolicy(FakePolicy):
     def __init__(self, slow_s: float = 0.0) -> None:
         super().__init__()
         self.slow_s = slow_s
+
+    @property
+    def metadata(self) -> dict:
+        return {**super().metadata, "state_dim": 8}  # as Pi05Policy's: the widest state its norm stats describe
 
     def infer(self, observation: dict, steering) -> dict:
         prompt = observation["prompt"]
@@ -210,6 +217,12 @@ CASES = {
     "state_scalar_holding_a_list": (with_(observation_state=scalar([1, 2], "<f8")),
                                     "observation/state: numpy scalar"),
     "state_scalar_bad_value": (with_(observation_state=scalar("x", "<f8")), "observation/state: numpy scalar"),
+    "state_10000_wide": (with_(observation_state=np.zeros(10_000)),
+                         "observation/state: 10000 dimensions; this policy takes at most 8"),
+    # a key given twice in one map (msgpack keeps the last silently)
+    "prompt_twice": (with_raw("prompt", msgpack.packb("close the drawer")), "prompt: this key appears twice"),
+    "steering_alpha_twice": (with_raw("steering", b"\x84" + b"".join(map(msgpack.packb, (
+        "pair", "open_vs_close", "layer", 1, "alpha", 1.0, "alpha", 90.0)))), "steering.alpha: this key appears twice"),
     # the prompt
     "prompt_bytes": (with_(prompt=b"open the drawer"), "prompt: expected a str"),
     "prompt_int": (with_(prompt=3), "prompt: expected a str"),
@@ -325,6 +338,64 @@ def test_plain_http_is_answered_426_or_404_without_an_error_in_the_log(server, g
     with connect(url(server), max_size=None) as ws:
         ws.recv()
         assert_serves(ws, good)
+
+
+@pytest.mark.parametrize(("method", "path"), [("POST", "/healthz"), ("PUT", "/"), ("DELETE", "/healthz"),
+                                              ("HEAD", "/healthz")])
+def test_another_method_than_get_is_answered_405(server, good, caplog, method, path):
+    caplog.set_level(logging.INFO)
+    request = urllib.request.Request(f"http://127.0.0.1:{server.port}{path}", method=method,
+                                     data=b"{}" if method in ("POST", "PUT") else None)
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(request, timeout=10)
+    assert err.value.code == 405 and err.value.headers["Allow"] == "GET", method
+    if method != "HEAD":
+        assert "/healthz" in err.value.read().decode()
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING or r.exc_info]
+    with connect(url(server), max_size=None) as ws:
+        ws.recv()
+        assert_serves(ws, good)
+
+
+def test_a_port_in_use_is_one_line_naming_it(catalog):
+    """The server's own bind (the address taken after `serve` checked it) raises one line, not asyncio's."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        with pytest.raises(ValueError, match=rf"^127\.0\.0\.1:{port} is in use: .* choose another port"):
+            with serving_in_thread(PolicyServer(TrappedPolicy(), catalog, port=port)):
+                pass
+
+
+def test_an_episodes_file_that_cannot_be_written_is_said_to_the_client(catalog, good, tmp_path, caplog):
+    """The episodes file's folder removed while serving: the client hears that the episode was not recorded (not
+    "inference failed"), the log names the file, the episode is kept in memory and the connection serves on; an
+    episode ended by the disconnect is logged the same, with no traceback."""
+    episodes_file = tmp_path / "records" / "episodes.jsonl"
+    episodes_file.parent.mkdir()
+    with running(PolicyServer(TrappedPolicy(), catalog, episode_log=EpisodeLog(episodes_file))) as server, \
+            connect(url(server), max_size=None) as ws:
+        ws.recv()
+        shutil.rmtree(episodes_file.parent)
+        ws.send(pack({"__ctrl__": "episode_start", "__episode_id__": 1}))
+        assert unpack(ws.recv(timeout=30)) == {"__ack__": "episode_start"}  # nothing ended: nothing to write
+        assert_serves(ws, good)
+        # episode 2 begins, ending episode 1; then episode 2 ends: neither can be written
+        for message in ({"__ctrl__": "episode_start", "__episode_id__": 2}, {"__ctrl__": "episode_end"}):
+            ws.send(pack(message))
+            reply = ws.recv(timeout=30)
+            assert isinstance(reply, str) and reply.startswith(
+                "the server could not record the episode: No such file or directory"), reply
+            assert "\n" not in reply and str(tmp_path) not in reply, reply
+        assert_serves(ws, good)
+        ws.send(pack({"__ctrl__": "episode_start", "__episode_id__": 3}))  # ended by the disconnect: only logged
+        assert unpack(ws.recv(timeout=30)) == {"__ack__": "episode_start"}
+    assert [(r["episode_id"], r["ended_by"], r["inferences"]) for r in server.episodes] == [
+        (1, "episode_start", 1), (2, "episode_end", 0), (3, "disconnect", 0)]
+    unwritten = [r.getMessage() for r in caplog.records if "not written" in r.getMessage()]
+    assert len(unwritten) == 3 and all(str(episodes_file) in m for m in unwritten), unwritten
+    assert not [r for r in caplog.records if r.exc_info]
 
 
 # ---------------------------------------------------------------- timeout, connection cap, queue, frame size
@@ -479,14 +550,15 @@ def test_the_tiny_pi05_policy_behind_the_server_gets_the_same_one_line_answers(t
     policy = Pi05Policy.from_checkpoint(tiny["checkpoint"], tiny["arch"], device="cpu",
                                         tokenizer_path=tiny["tokenizer"])
     names = ("image_0x0", "image_1x2000", "wrist_image_2000x1", "state_nan", "state_inf", "map_900_deep",
-             "list_900_deep_in_steering", "prompt_too_long")
+             "list_900_deep_in_steering", "prompt_too_long", "prompt_twice")
     with running(PolicyServer(SteeredPi05Policy(policy, noise_seed=1))) as server, \
             connect(url(server), max_size=None) as ws:
         ws.recv()
         ws.send(pack(good))
         want = unpack(ws.recv(timeout=60))["actions"]
-        for name in names:
-            build, key = CASES[name]
+        width = policy.state_dim  # its norm stats' state width
+        wide = f"observation/state: {width + 1} dimensions; this policy takes at most {width}"
+        for build, key in [CASES[name] for name in names] + [(with_(observation_state=np.zeros(width + 1)), wide)]:
             ws.send(build(good))
             assert_one_line_naming(ws.recv(timeout=60), key)
             ws.send(pack(good))

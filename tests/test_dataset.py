@@ -21,7 +21,6 @@ from helpers_dataset import (
     write_contrast_dataset,
 )
 
-from steering_core.data import dataset
 from steering_core.data.dataset import (
     dataset_fingerprint,
     read_episode_column,
@@ -117,7 +116,7 @@ def test_frames_are_never_read(root, copy, monkeypatch):
         requested.append((str(path), columns))
         return real_read_table(path, *args, columns=columns, **kwargs)
 
-    monkeypatch.setattr(dataset.pq, "read_table", spy)
+    monkeypatch.setattr(pq, "read_table", spy)  # every parquet read (data.parquet_reads)
     read_index_columns(root)
     read_episode_columns(root, range(7), "state")
     dataset_fingerprint(root)

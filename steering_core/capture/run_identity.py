@@ -8,12 +8,12 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import pyarrow.parquet as pq
 
 from steering_core.capture.settings import STATE_KEY, CaptureInputs, CaptureSettings
 from steering_core.capture.shards import RunSpec
 from steering_core.data import lerobot_v2
 from steering_core.data.dataset import DatasetMeta, dataset_fingerprint, read_episode_columns
+from steering_core.data.parquet_reads import read_table
 from steering_core.devices import resolve_device, resolve_dtype
 from steering_core.pi05.robot_side import RobotSide
 from steering_core.storage.digests import file_digest
@@ -117,7 +117,7 @@ def episode_frame_digests(meta: DatasetMeta, episodes: Sequence[int]) -> dict[in
         by_file.setdefault(meta.episode(index).data_file, []).append(index)
     digests: dict[int, str] = {}
     for rel, members in by_file.items():
-        table = pq.read_table(meta.root / rel, columns=["episode_index", "frame_index", *images],
+        table = read_table(meta.root / rel, columns=["episode_index", "frame_index", *images],
                               filters=[("episode_index", "in", members)])
         episode_of, frame_of = table.column("episode_index").to_numpy(), table.column("frame_index").to_numpy()
         encoded = {key: table.column(key).combine_chunks() for key in images}

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from steering_core.data import lerobot_v2
+from steering_core.data.parquet_reads import read_schema, read_table
 from steering_core.storage.fileio import read_json, sha256_file, sha256_json
 
 logger = logging.getLogger(__name__)
@@ -208,7 +208,7 @@ def read_tasks(root: str | os.PathLike) -> dict[int, str]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found; the dataset is incomplete (was finalize() called?)")
     # lerobot stores the task text as the pandas index; to_pandas() restores it.
-    frame = pq.read_table(path).to_pandas()
+    frame = read_table(path).to_pandas()
     if "task_index" not in frame.columns:
         raise ValueError(f"{path}: no `task_index` column (found {list(frame.columns)}); not a v3.0 tasks table")
     tasks = {int(i): str(text) for text, i in zip(frame.index, frame["task_index"], strict=True)}
@@ -253,11 +253,11 @@ def _read_v3_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
         )
     tables = []
     for path in files:
-        names = pq.read_schema(path).names
+        names = read_schema(path).names
         missing = [c for c in _EPISODE_COLUMNS if c not in names]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}; not v3.0 episode metadata")
-        tables.append(pq.read_table(path, columns=list(_EPISODE_COLUMNS)))
+        tables.append(read_table(path, columns=list(_EPISODE_COLUMNS)))
     rows = pa.concat_tables(tables).to_pylist()
     episodes = [
         EpisodeInfo(
@@ -309,7 +309,7 @@ def data_files(meta: DatasetMeta) -> list[Path]:
 
 def _read_data_table(path: Path, columns: Sequence[str], filters: list | None = None) -> pa.Table:
     """Return the named columns of one data file; the single place frame data is read."""
-    return pq.read_table(path, columns=list(columns), filters=filters)
+    return read_table(path, columns=list(columns), filters=filters)
 
 
 def read_index_columns(root: str | os.PathLike) -> IndexColumns:
@@ -317,7 +317,7 @@ def read_index_columns(root: str | os.PathLike) -> IndexColumns:
     meta = read_meta(root)
     tables = []
     for path in data_files(meta):
-        names = pq.read_schema(path).names
+        names = read_schema(path).names
         missing = [c for c in INDEX_COLUMNS if c not in names]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}; not a LeRobot data file")

@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from steering_core.data import lerobot_v2
 from steering_core.data.dataset import (
@@ -32,7 +31,8 @@ from steering_core.data.dataset import (
     read_index_columns,
     read_meta,
 )
-from steering_core.storage.fileio import parse_json, read_json
+from steering_core.data.parquet_reads import read_schema, read_table
+from steering_core.storage.fileio import parse_json, read_json, read_text
 
 STATS_FILE = "meta/stats.json"  # lerobot's dataset-wide statistics (v3.0 and v2.0)
 _FRAME_DTYPES = ("image", "video")
@@ -78,7 +78,7 @@ def check_meta(meta: DatasetMeta) -> None:
 
 def check_data_schema(meta: DatasetMeta, path: Path) -> None:
     """Raise a ValueError if a data file lacks a numeric feature of info.json or stores it with another width."""
-    schema = pq.read_schema(path)
+    schema = read_schema(path)
     for key, feature in meta.info["features"].items():
         if feature.get("dtype") in _NON_NUMERIC:
             continue
@@ -150,12 +150,12 @@ def _statistics(meta: DatasetMeta) -> Iterator[tuple[str, Any]]:
     if meta.is_v2:
         path = meta.root / lerobot_v2.EPISODES_STATS_JSONL
         if path.is_file():
-            for number, line in enumerate(path.read_text().splitlines(), start=1):
+            for number, line in enumerate(read_text(path, "a JSON lines file").splitlines(), start=1):
                 yield f"{path}:{number}", parse_json(line, f"{path}:{number}") if line.strip() else None
         return
     for path in sorted((meta.root / EPISODES_DIR).glob("chunk-*/file-*.parquet")):
-        names = [name for name in pq.read_schema(path).names if name.startswith("stats/")]
-        table = pq.read_table(path, columns=names)
+        names = [name for name in read_schema(path).names if name.startswith("stats/")]
+        table = read_table(path, columns=names)
         for name in names:
             yield f"{path}: column {name!r}", table.column(name).to_pylist()
 

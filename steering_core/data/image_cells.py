@@ -17,9 +17,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 
 from steering_core.data.dataset import INFO_FILE, DatasetMeta
+from steering_core.data.parquet_reads import parquet_errors, parquet_file, read_table
 
 
 def check_image_cells(meta: DatasetMeta, episodes: Sequence[int]) -> None:
@@ -31,7 +31,7 @@ def check_image_cells(meta: DatasetMeta, episodes: Sequence[int]) -> None:
         for key in keys:
             missing = _cells_without_bytes(path, key)
             if missing:
-                cells = pq.read_table(path, columns=[key]).column(0).combine_chunks()
+                cells = read_table(path, columns=[key]).column(0).combine_chunks()
                 empty = cells.filter(pc.is_null(cells.field("bytes"))).field("path").drop_null()
                 named = f", e.g. path {empty[0].as_py()!r}" if len(empty) else ""
                 raise ValueError(f"{path}: {missing} cell(s) of image feature {key!r} hold no PNG bytes{named}; "
@@ -41,7 +41,7 @@ def check_image_cells(meta: DatasetMeta, episodes: Sequence[int]) -> None:
 
 def _cells_without_bytes(path: Path, key: str) -> int:
     """Return how many cells of image feature `key` in one data file have null bytes."""
-    metadata = pq.ParquetFile(path).metadata
+    metadata = parquet_file(path).metadata
     leaf = f"{key}.bytes"
     columns = [i for i in range(metadata.num_columns) if metadata.schema.column(i).path == leaf]
     if not columns:
@@ -50,7 +50,7 @@ def _cells_without_bytes(path: Path, key: str) -> int:
     for group in range(metadata.num_row_groups):
         stats = metadata.row_group(group).column(columns[0]).statistics
         if stats is None or not stats.has_null_count:
-            return int(pc.sum(pc.is_null(pq.read_table(path, columns=[leaf]).column(0))).as_py() or 0)
+            return int(pc.sum(pc.is_null(read_table(path, columns=[leaf]).column(0))).as_py() or 0)
         counts.append(stats.null_count)
     return int(sum(counts))
 
@@ -65,7 +65,8 @@ def check_png_headers(meta: DatasetMeta, episodes: Sequence[int]) -> None:
     for path in sorted({meta.root / meta.episode(int(e)).data_file for e in episodes}):
         if not features:
             return
-        batch = next(pq.ParquetFile(path).iter_batches(batch_size=1, columns=list(features)))
+        with parquet_errors(path):
+            batch = next(parquet_file(path).iter_batches(batch_size=1, columns=list(features)))
         for key, feature in features.items():
             problem = png_problem(batch.column(key)[0]["bytes"].as_py() or b"", tuple(feature.get("shape") or ()))
             if problem:

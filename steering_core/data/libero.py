@@ -366,8 +366,9 @@ def _instruction(path: Path, attrs: h5py.AttributeManager) -> tuple[str, Instruc
     if raw is not None:
         try:
             info = json.loads(_as_str(raw))
-        except json.JSONDecodeError as err:
-            problems.append(f"data attribute problem_info is not valid JSON ({err.msg}), expected a JSON object")
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            problems.append(f"data attribute problem_info is not valid JSON ({getattr(err, 'msg', None) or err}), "
+                            "expected a JSON object in UTF-8 text")
         else:
             value = info.get("language_instruction") if isinstance(info, dict) else None
             if isinstance(value, list):
@@ -378,7 +379,7 @@ def _instruction(path: Path, attrs: h5py.AttributeManager) -> tuple[str, Instruc
             logger.debug("%s: problem_info has no usable language_instruction; trying the BDDL", path.name)
     bddl = attrs.get("bddl_file_content")
     if bddl is not None:
-        match = _BDDL_LANGUAGE.search(_as_str(bddl))
+        match = _BDDL_LANGUAGE.search(_as_str(bddl, errors="replace"))  # only its language line is read
         if match and _clean_text(match.group(1)):
             return _clean_text(match.group(1)), "bddl", problems
     logger.debug("%s: no instruction attribute; using the file name", path.name)
@@ -390,11 +391,11 @@ def _clean_text(text: str) -> str:
     return " ".join(text.strip().strip('"').split())
 
 
-def _as_str(value: object) -> str:
+def _as_str(value: object, errors: str = "strict") -> str:
     if isinstance(value, bytes):
-        return value.decode("utf-8")
+        return value.decode("utf-8", errors)
     if isinstance(value, np.ndarray) and value.shape == ():
-        return _as_str(value.item())
+        return _as_str(value.item(), errors)
     return str(value)
 
 

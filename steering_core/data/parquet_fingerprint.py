@@ -21,7 +21,7 @@ import os
 import re
 from pathlib import Path
 
-import pyarrow.parquet as pq
+from steering_core.data.parquet_reads import read_metadata
 
 logger = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ def content_fingerprint(path: str | os.PathLike) -> str | None:
     laid out as pyarrow writes it (the fingerprint must appear once in the JSON and once in the Arrow schema).
     """
     path = Path(path)
-    metadata = pq.read_metadata(path).metadata or {}
+    metadata = read_metadata(path).metadata or {}
     if _HF_KEY not in metadata:
         return None
     old = json.loads(metadata[_HF_KEY]).get("fingerprint")
@@ -64,7 +64,7 @@ def content_fingerprint(path: str | os.PathLike) -> str | None:
             replaced = _replace_once(path, replaced, schema, swapped)
         handle.seek(footer_start)
         handle.write(replaced)
-    found = json.loads(pq.read_metadata(path).metadata[_HF_KEY]).get("fingerprint")
+    found = json.loads(read_metadata(path).metadata[_HF_KEY]).get("fingerprint")
     if found != new:  # a footer we misread would show here, not in a later reader
         raise ValueError(f"{path}: fingerprint reads {found!r} after rewriting the footer; expected {new!r}")
     logger.debug("%s: fingerprint %s -> %s", path, old, new)

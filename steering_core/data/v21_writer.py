@@ -25,6 +25,7 @@ from PIL import Image
 
 from steering_core.data import lerobot_v2
 from steering_core.data.dataset import INFO_FILE
+from steering_core.storage.fileio import read_json
 
 CODEBASE_VERSION = "v2.1"
 CHUNKS_SIZE = 1000  # episodes per data/chunk-NNN folder (lerobot's default)
@@ -84,7 +85,7 @@ class V21Writer:
     def open(cls, root: str | os.PathLike) -> V21Writer:
         """Return a writer that appends to the v2.1 dataset this module wrote at `root`."""
         root = Path(root)
-        info = json.loads((root / INFO_FILE).read_text(encoding="utf-8"))
+        info = read_json(root / INFO_FILE)
         if info.get("codebase_version") != CODEBASE_VERSION:
             raise ValueError(f"{root / INFO_FILE}: codebase_version {info.get('codebase_version')!r}, expected 'v2.1'")
         tasks = {text: index for index, text in lerobot_v2.read_tasks(root).items()}

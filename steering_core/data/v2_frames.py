@@ -15,12 +15,12 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import pyarrow.parquet as pq
 import torch
 from PIL import Image
 
 from steering_core.data import lerobot_v2
 from steering_core.data.dataset import DatasetMeta
+from steering_core.data.parquet_reads import read_table
 
 FRAME_DTYPES = ("image", "video")
 _NON_NUMERIC = (*FRAME_DTYPES, "string")
@@ -41,7 +41,7 @@ class V2Frames:
         numeric = [k for k, v in features.items() if v.get("dtype") not in _NON_NUMERIC]
         parts: dict[str, list[np.ndarray]] = {k: [] for k in numeric}
         for episode in self.episodes:
-            table = pq.read_table(meta.root / episode.data_file, columns=numeric)
+            table = read_table(meta.root / episode.data_file, columns=numeric)
             if table.num_rows != episode.length:
                 raise ValueError(
                     f"{meta.root / episode.data_file}: {table.num_rows} rows, but episode {episode.episode_index} "
@@ -83,7 +83,7 @@ class V2Frames:
             return {}
         if self._images is None or self._images[0] != slot:
             path = self.meta.root / self.episodes[slot].data_file
-            table = pq.read_table(path, columns=self.image_keys)
+            table = read_table(path, columns=self.image_keys)
             self._images = (slot, {k: table.column(k).combine_chunks().field("bytes").to_pylist()
                                    for k in self.image_keys})
         return self._images[1]

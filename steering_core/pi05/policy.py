@@ -188,12 +188,19 @@ class Pi05Policy(nn.Module):
         return self.expert_arch.action_dim
 
     @property
+    def state_dim(self) -> int:
+        """Return the widest state this policy takes: the width its normaliser's state statistics describe, else
+        the action width (openpi pads the state to it; a wider one it cannot normalise or pad)."""
+        return self.normalization.state_dim or self.action_dim
+
+    @property
     def metadata(self) -> dict[str, Any]:
         """Return a JSON-ready summary of the policy (served to clients)."""
         return {
             "model": "pi05",
             "action_horizon": self.action_horizon,
             "action_dim": self.action_dim,
+            "state_dim": self.state_dim,
             "robot_action_dim": ROBOT_ACTION_DIM,
             "image_size": self.arch.image_size,
             "max_token_len": self.tokenizer.max_len if self.tokenizer else None,

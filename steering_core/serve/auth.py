@@ -8,6 +8,8 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
+from steering_core.storage.fileio import read_text
+
 API_KEY_ENV = "LATENT_STEERING_API_KEY"
 HEADER = "Authorization"
 SCHEME = "Api-Key"
@@ -16,10 +18,10 @@ SCHEME = "Api-Key"
 def read_api_key(path: Path | None, environ: Mapping[str, str] = os.environ) -> str | None:
     """Return the key in `path` (surrounding whitespace stripped), else in $LATENT_STEERING_API_KEY, else None.
 
-    Raises ValueError for an empty key or one that cannot travel in an HTTP header (printable ASCII, no spaces).
+    Raises FileNotFoundError for a missing file, ValueError naming it for a binary one, and ValueError for an empty key or one that cannot travel in an HTTP header (printable ASCII, no spaces).
     """
     if path is not None:
-        key, where = path.read_text(encoding="utf-8").strip(), str(path)
+        key, where = read_text(path, "the api key: one line of printable ASCII").strip(), str(path)
     elif API_KEY_ENV in environ:
         key, where = environ[API_KEY_ENV].strip(), f"${API_KEY_ENV}"
     else:

@@ -4,7 +4,8 @@ An ndarray travels as `{b"__ndarray__": True, b"data": C-order bytes, b"dtype": 
 and a numpy scalar as `{b"__npgeneric__": True, b"data": item(), b"dtype": dtype.str}`, with msgpack >= 1.0
 defaults (bin type for bytes, str keys decoded to str, map keys limited to str/bytes). Object, void and complex
 dtypes are refused both ways. Decoding walks the message itself, rather than through an object hook, so a
-malformed array names its key (`observation/image: ...`), and refuses nesting deeper than MAX_DEPTH.
+malformed array names its key (`observation/image: ...`), and refuses nesting deeper than MAX_DEPTH and a map
+that holds one key twice (msgpack would keep the last value silently).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def unpack(data: bytes) -> Any:
     if not isinstance(data, bytes | bytearray | memoryview):
         raise WireError(None, f"expected a binary msgpack message, got {type(data).__name__}")
     try:
-        obj = msgpack.unpackb(data)
+        obj = msgpack.unpackb(data, object_pairs_hook=_Pairs)
     except (ValueError, msgpack.UnpackException) as err:
         raise WireError(None, f"message is not msgpack ({type(err).__name__}: {err})") from None
     return _decode(obj, None, 0)
@@ -60,10 +61,25 @@ def _encode_numpy(obj: Any) -> dict[bytes, Any]:
     raise TypeError(f"cannot serialize {type(obj).__name__} object")
 
 
+class _Pairs(list):
+    """A msgpack map as its (key, value) pairs in order, so that a key given twice is seen."""
+
+
+def _unique(pairs: _Pairs, key: str | None) -> dict:
+    """Return the map of `pairs`; WireError naming the first key it holds twice."""
+    found: dict = {}
+    for name, value in pairs:
+        if name in found:
+            raise WireError(_child(key, name), "this key appears twice in one map; send each key once")
+        found[name] = value
+    return found
+
+
 def _decode(obj: Any, key: str | None, depth: int) -> Any:
-    if isinstance(obj, dict | list) and depth >= MAX_DEPTH:
+    if isinstance(obj, list) and depth >= MAX_DEPTH:  # a map too: _Pairs
         raise WireError(key, f"nested deeper than {MAX_DEPTH} maps and lists; an observation is at most a few deep")
-    if isinstance(obj, dict):
+    if isinstance(obj, _Pairs):
+        obj = _unique(obj, key)
         if NDARRAY_TAG in obj:
             return _decode_array(obj, key)
         if NPGENERIC_TAG in obj:

@@ -10,6 +10,7 @@ episode_end without an episode_start is recorded too, with no experiment, task, 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -53,10 +54,15 @@ class Episode:
     ended_by: str | None = None  # "episode_end", "episode_start" (the next one began) or "disconnect"
 
 
+class EpisodeNotRecorded(Exception):
+    """An episode kept in memory whose line could not be written to the episodes file; str() is the client's line."""
+
+
 class EpisodeLog:
     """The server's finished episodes: the last EPISODES_KEPT in `records`, every one logged and, with a
     `path`, appended to it as one JSON line (written whole and flushed; the file rotates at
-    MAX_EPISODES_FILE_BYTES)."""
+    MAX_EPISODES_FILE_BYTES). A failed write (a full disk, the file removed with its folder) is logged naming the
+    file and raised as EpisodeNotRecorded; the server keeps serving and the next episode tries again."""
 
     def __init__(self, path: Path | None = None) -> None:
         self.path = path
@@ -71,14 +77,24 @@ class EpisodeLog:
                     episode.episode_id, episode.experiment, episode.task, episode.client, episode.success,
                     episode.inferences, episode.ended_by)
         if self.path is not None:
-            line = json.dumps(record) + "\n"
-            if self.path.stat().st_size + len(line.encode()) > MAX_EPISODES_FILE_BYTES:
-                rotated = self.path.with_name(self.path.name + ".1")
-                self.path.replace(rotated)
-                logger.info("episodes file %s reached %d MiB: moved to %s, a new one begins", self.path,
-                            MAX_EPISODES_FILE_BYTES // 2**20, rotated)
-            with self.path.open("a", encoding="utf-8") as f:
-                f.write(line)
+            try:
+                self._append(json.dumps(record) + "\n")
+            except OSError as err:
+                reason = err.strerror or str(err)
+                logger.warning("episodes file %s: episode %s of %s not written (%s); it is kept in memory only",
+                               self.path, episode.episode_id, episode.client, reason)
+                raise EpisodeNotRecorded(f"the server could not record the episode: {reason} (its episodes file; "
+                                         "the server keeps serving)") from None
+
+    def _append(self, line: str) -> None:
+        """Append one line to the episodes file, first moving a full file to <file>.1."""
+        if self.path.is_file() and self.path.stat().st_size + len(line.encode()) > MAX_EPISODES_FILE_BYTES:
+            rotated = self.path.with_name(self.path.name + ".1")
+            self.path.replace(rotated)
+            logger.info("episodes file %s reached %d MiB: moved to %s, a new one begins", self.path,
+                        MAX_EPISODES_FILE_BYTES // 2**20, rotated)
+        with self.path.open("a", encoding="utf-8") as f:
+            f.write(line)
 
 
 class ConnectionEpisodes:
@@ -90,22 +106,23 @@ class ConnectionEpisodes:
         self.inferences = 0  # since the connection opened or the last episode began or ended
 
     def control(self, message: Mapping[str, Any]) -> dict[str, str]:
-        """Apply one control message and return the reply; raise RequestError for a malformed one."""
+        """Apply one control message and return the reply; raise RequestError for a malformed one, and
+        EpisodeNotRecorded (after applying it) when the episode it ended could not be written."""
         ctrl = message[CTRL_KEY]
         if not isinstance(ctrl, str):
             raise RequestError(CTRL_KEY, f"expected a str, got {type(ctrl).__name__}")
         if ctrl == "episode_start":
             fields = _fields(message, START_FIELDS)
-            self._finish(None, "episode_start")
+            ended = self._end(None, "episode_start")
             self.current = Episode(self.client, start_time=time.time(), **fields)
-            self.inferences = 0
+            self._record(ended)
         elif ctrl == "episode_end":
             fields = _fields(message, END_FIELDS)
             if self.current is None:
                 logger.warning("episode_end from %s without episode_start: recorded without experiment, task, id "
                                "or start time", self.client)
                 self.current = Episode(self.client)
-            self._finish(fields["success"], "episode_end")
+            self._record(self._end(fields["success"], "episode_end"))
         else:
             raise RequestError(CTRL_KEY, f"unknown control message {ctrl!r}; expected 'episode_start' or "
                                          "'episode_end'")
@@ -115,15 +132,22 @@ class ConnectionEpisodes:
         self.inferences += 1
 
     def close(self) -> None:
-        """Record the open episode, if any, as ended by the connection closing."""
-        self._finish(None, "disconnect")
+        """Record the open episode, if any, as ended by the connection closing (a failed write is only logged)."""
+        with contextlib.suppress(EpisodeNotRecorded):
+            self._record(self._end(None, "disconnect"))
 
-    def _finish(self, success: bool | None, ended_by: str) -> None:
-        if self.current is not None:
-            self.current.inferences, self.current.success = self.inferences, success
-            self.current.end_time, self.current.ended_by = time.time(), ended_by
-            self.log.add(self.current)
+    def _end(self, success: bool | None, ended_by: str) -> Episode | None:
+        """Return the open episode (None: none) ended, and begin counting afresh."""
+        ended = self.current
+        if ended is not None:
+            ended.inferences, ended.success = self.inferences, success
+            ended.end_time, ended.ended_by = time.time(), ended_by
         self.current, self.inferences = None, 0
+        return ended
+
+    def _record(self, episode: Episode | None) -> None:
+        if episode is not None:
+            self.log.add(episode)
 
 
 def _fields(message: Mapping[str, Any], spec: dict[str, tuple]) -> dict[str, Any]:

@@ -80,13 +80,14 @@ class AppliedSteering:
                 "mean_residual_norm": v.mean_residual_norm}
 
 
-def check_observation(observation: Any, max_rows: int = 1) -> int:
+def check_observation(observation: Any, max_rows: int = 1, max_state_dim: int | None = None) -> int:
     """Return the number of frames of `observation`, or raise RequestError unless it is what openpi's LIBERO
     client sends: one frame, or up to `max_rows` frames along a leading batch dimension (openpi PR #941).
 
     Expected: the two images uint8 (H, W, 3) (batched: (B, H, W, 3)) with neither side more than MAX_IMAGE_ASPECT
-    times the other, the state a finite real-valued (D,) array with D >= 1 ((B, D)), the prompt a str of at most
-    MAX_PROMPT_CHARS characters (B of them, as a list or array of str).
+    times the other, the state a finite real-valued (D,) array with 1 <= D <= `max_state_dim` (the policy's
+    metadata `state_dim`; None: no bound) ((B, D)), the prompt a str of at most MAX_PROMPT_CHARS characters (B of
+    them, as a list or array of str).
     """
     if not isinstance(observation, dict):
         raise RequestError(None, f"the message must be an observation dict, got {type(observation).__name__}")
@@ -113,6 +114,9 @@ def check_observation(observation: Any, max_rows: int = 1) -> int:
             or state.shape[:-1] != lead or state.shape[-1] == 0):
         raise RequestError(STATE_KEY, f"expected a real-valued {'(B, D)' if batched else '(D,)'} array with D >= 1"
                                       f"{f' and B = {rows}' if batched else ''}, got {_describe(state)}")
+    if max_state_dim is not None and state.shape[-1] > max_state_dim:
+        raise RequestError(STATE_KEY, f"{state.shape[-1]} dimensions; this policy takes at most {max_state_dim} "
+                                      "(the state width its norm stats describe)")
     if not np.isfinite(state).all():
         flat = state.reshape(-1)
         bad = np.flatnonzero(~np.isfinite(flat))

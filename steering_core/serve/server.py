@@ -6,13 +6,13 @@ gets one line of text naming the key (never a traceback) and the connection stay
 Control messages (`__ctrl__` episode_start / episode_end, openpi's current client) record episodes
 (steering_core.serve.episodes). With an api key, an upgrade without `Authorization: Api-Key <key>` gets HTTP 401.
 `GET /healthz` answers 200 "OK\\n" on the same port, key or not, from the moment the server listens: after the
-policy's `warm_up()` (if it has one) has run; any other plain HTTP request gets 426 (at `/`)
-or 404, and a malformed one a one-line warning in the log. One model serves every connection: requests run in
-order per connection, and requests of all connections that arrive within `batch_wait_ms` of the oldest waiting
-one share one policy call of up to `max_batch` rows (dynamic batching, steering_core.serve.batching; a request may
-itself carry a leading batch dimension), each row with its own prompt, steering and noise. One call runs at a
-time, in a worker thread so the event loop keeps answering pings; a request without actions within the inference
-timeout is answered with an error.
+policy's `warm_up()` (if it has one) has run; any other plain HTTP request gets 426 (at `/`) or 404, another
+method than GET 405, and a malformed one a one-line warning in the log. An address in use is one line naming it.
+One model serves every connection: requests run in order per connection, and requests of all connections that arrive
+within `batch_wait_ms` of the oldest waiting one share one policy call of up to `max_batch` rows (dynamic batching,
+steering_core.serve.batching; a request may itself carry a leading batch dimension), each row with its own prompt,
+steering and noise. One call runs at a time, in a worker thread so the event loop keeps answering pings; a request
+without actions within the inference timeout is answered with an error.
 Bounds per server: `max_connections` connections (at the cap the connection idle longest, if idle for
 `evict_idle_s`, is closed to admit a new one; otherwise the new one is closed with 1013, try again later; a
 connection that sends nothing for `idle_timeout_s` is closed, so idle sockets cannot hold the cap), each reading
@@ -26,9 +26,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import http
 import logging
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -48,7 +50,14 @@ from steering_core.serve.batching import (
     InferenceFailed,
 )
 from steering_core.serve.catalog import DEFAULT_DIRECTIONS, RANDOM_DERIVATION, VectorCatalog
-from steering_core.serve.episodes import CTRL_KEY, END_FIELDS, START_FIELDS, ConnectionEpisodes, EpisodeLog
+from steering_core.serve.episodes import (
+    CTRL_KEY,
+    END_FIELDS,
+    START_FIELDS,
+    ConnectionEpisodes,
+    EpisodeLog,
+    EpisodeNotRecorded,
+)
 from steering_core.serve.policy import ServedPolicy
 from steering_core.serve.request import (
     ALPHA_UNITS,
@@ -102,6 +111,46 @@ class _OneLineHandshakeErrors(logging.Filter):
 transport_logger = logging.getLogger(f"{__name__}.transport")
 transport_logger.addFilter(_OneLineHandshakeErrors())
 
+# HTTP methods other than GET: websockets closes their connection unanswered; these get 405 Method Not Allowed
+_NOT_GET = frozenset({b"POST", b"PUT", b"DELETE", b"PATCH", b"HEAD", b"OPTIONS", b"CONNECT", b"TRACE"})
+
+
+class _MethodCheckingConnection(ServerConnection):
+    """A connection that answers a request of another method than GET (`POST /healthz`) with 405 Method Not
+    Allowed and closes; websockets itself would close it without an HTTP answer."""
+
+    _line: bytes | None = b""  # the request line's start, until its method is known (None: known)
+    _refused = False
+
+    def data_received(self, data: bytes) -> None:
+        if self._line is not None and self.request is None:
+            self._line += data
+            if b" " in self._line or b"\n" in self._line or len(self._line) > 16:
+                method, self._line = self._line.split(b" ", 1)[0], None
+                if method in _NOT_GET:
+                    self._refuse(method.decode())
+                    return
+        super().data_received(data)
+
+    def _refuse(self, method: str) -> None:
+        self._refused = True
+        body = b"" if method == "HEAD" else (f"method {method} not allowed: GET {HEALTH_PATH} for the health check, "
+                                             "or connect with a websocket client (openpi-client)\n").encode()
+        self.transport.write(b"HTTP/1.1 405 Method Not Allowed\r\nAllow: GET\r\nConnection: close\r\n"
+                             b"Content-Type: text/plain; charset=utf-8\r\n"
+                             + f"Content-Length: {len(body)}\r\n\r\n".encode() + body)
+        self.transport.close()
+        host, port = (self.transport.get_extra_info("peername") or ("?", 0))[:2]
+        logger.info("answered %s from %s:%s with 405 Method Not Allowed", method, host, port)
+
+    async def handshake(self, *args: Any, **kwargs: Any) -> None:
+        """websockets' handshake; a refused method's connection (closed before any request) ends quietly."""
+        try:
+            await super().handshake(*args, **kwargs)
+        except Exception:
+            if not self._refused:
+                raise
+
 
 class PolicyServer:
     """Serve `policy` with the vectors of `catalog` on host:port (port 0: a free port, see `port` once ready).
@@ -138,6 +187,8 @@ class PolicyServer:
         self.policy = policy
         self.catalog = catalog or VectorCatalog()
         self.limits = SteeringLimits(max_alpha, lm_depth(policy.metadata))
+        state_dim = policy.metadata.get("state_dim")  # the widest state the policy takes, when it says
+        self.max_state_dim = state_dim if isinstance(state_dim, int) else None
         self.default_steering = tuple(default_steering)
         self.host, self.port = host, port
         self.max_message_bytes = max_message_bytes
@@ -173,11 +224,16 @@ class PolicyServer:
         warm_up = getattr(self.policy, "warm_up", None)
         if warm_up is not None:  # before listening: once /healthz answers, no request pays a compilation
             await asyncio.to_thread(warm_up, self.max_batch)  # every row count a call may have
-        async with serve(
-            self._handle, self.host, self.port, compression=None, process_request=self._check_request,
-            max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR, max_queue=self.max_queue,
-            logger=transport_logger,
-        ) as server:
+        try:
+            server = await serve(
+                self._handle, self.host, self.port, compression=None, process_request=self._check_request,
+                max_size=self.max_message_bytes * TRANSPORT_LIMIT_FACTOR, max_queue=self.max_queue,
+                logger=transport_logger, create_connection=_MethodCheckingConnection,
+            )
+        except OSError as err:  # the address in use, not this machine's, a port below 1024 without privileges
+            batches.cancel()
+            raise ValueError(listen_error_line(self.host, self.port, err)) from None
+        try:
             self.port = server.sockets[0].getsockname()[1]
             logger.info("serving on ws://%s:%d (health: http://%s:%d%s)%s", self.host, self.port, self.host,
                         self.port, HEALTH_PATH, "; clients must send the api key" if self.api_key else "")
@@ -185,6 +241,9 @@ class PolicyServer:
                 ready()
             await self._stop.wait()
             await self._shutdown(server)
+        finally:
+            server.close()
+            await server.wait_closed()
         batches.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await batches
@@ -307,6 +366,8 @@ class PolicyServer:
             reply = _one_line(f"inference failed (the server keeps serving): {err}")
             logger.warning("%s", reply)
             return reply, False
+        except EpisodeNotRecorded as err:  # logged naming the file; the control message was applied
+            return _one_line(str(err)), True
         except Exception as err:  # the policy's own error: its traceback goes to the log, one line to the client
             logger.exception("inference failed")
             return _one_line(f"inference failed (the server keeps serving): {type(err).__name__}: {err}"), False
@@ -320,7 +381,7 @@ class PolicyServer:
         return codec.unpack(message)
 
     def _read(self, observation: Any) -> tuple[dict[str, Any], tuple[AppliedSteering, ...], int]:
-        rows = check_observation(observation, self.max_batch)
+        rows = check_observation(observation, self.max_batch, self.max_state_dim)
         if STEERING_KEY in observation:
             steering = parse_steering(observation.pop(STEERING_KEY), self.catalog, limits=self.limits)
             return observation, steering, rows
@@ -391,6 +452,27 @@ def _one_line(text: str) -> str:
 def _address(connection: ServerConnection) -> str:
     host, port = connection.remote_address[:2]
     return f"{host}:{port}"
+
+
+def check_address_free(host: str, port: int) -> None:
+    """Return when `host`:`port` can be bound now (as the server binds it); ValueError naming the address and what
+    to do otherwise. For a check before a model loads: the server's own bind says the same if it is taken later."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+        with socket.socket(family, kind, proto) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
+            sock.bind(address)
+    except OSError as err:
+        raise ValueError(listen_error_line(host, port, err)) from None
+
+
+def listen_error_line(host: str, port: int, err: OSError) -> str:
+    """Return one line for an address the server cannot listen on, naming it and what to do."""
+    if err.errno == errno.EADDRINUSE:
+        return (f"{host}:{port} is in use: another server listens there; stop it, or choose another port "
+                "(serve --port, or --port 0 for a free one)")
+    return f"cannot listen on {host}:{port} ({err.strerror or err}); choose another --host or --port"
 
 
 def lm_depth(metadata: dict[str, Any]) -> int | None:
