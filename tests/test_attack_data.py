@@ -133,6 +133,19 @@ def v21_dataset(world: World, tmp_path: Path) -> Path:
     return dataset
 
 
+def with_image_cell(dataset: Path, frame: int, cell: dict) -> tuple[Path, int]:
+    """Put `cell` in camera `image` at `frame` of the dataset's first data file; return (the file, its episode)."""
+    data_file = sorted((dataset / "data").rglob("*.parquet"))[0]
+    table = pq.read_table(data_file)
+    assert table.column("frame_index")[frame].as_py() == frame
+    cells = table.column("image").to_pylist()
+    cells[frame] = cell
+    field = table.schema.field("image")
+    pq.write_table(table.set_column(table.schema.get_field_index("image"), field, pa.array(cells, type=field.type)),
+                   data_file)
+    return data_file, table.column("episode_index")[frame].as_py()
+
+
 def bad_frame(name: str, frame: int, cell: Callable[[], dict], *expect: str, workers: int = 0,
               v21: bool = False) -> None:
     """`capture` of a dataset (v3.0, or v2.1) whose camera `image` at frame `frame` of its first data file is
@@ -140,15 +153,7 @@ def bad_frame(name: str, frame: int, cell: Callable[[], dict], *expect: str, wor
     @case(name)
     def attack(world: World, tmp_path: Path) -> Case:
         dataset = v21_dataset(world, tmp_path) if v21 else dataset_copy(world, tmp_path)
-        data_file = sorted((dataset / "data").rglob("*.parquet"))[0]
-        table = pq.read_table(data_file)
-        assert table.column("frame_index")[frame].as_py() == frame
-        episode = table.column("episode_index")[frame].as_py()
-        cells = table.column("image").to_pylist()
-        cells[frame] = cell()
-        field = table.schema.field("image")
-        pq.write_table(table.set_column(table.schema.get_field_index("image"), field,
-                                        pa.array(cells, type=field.type)), data_file)
+        data_file, episode = with_image_cell(dataset, frame, cell())
         return capture_case(world, tmp_path, dataset, str(data_file), f"episode {episode} frame {frame}", *expect,
                             workers=workers)
 
@@ -167,6 +172,19 @@ bad_frame("capture_65x64_png_at_frame_4", 4, lambda: {"bytes": png(65, 64), "pat
           "camera 'image' is a 65x64 PNG")
 bad_frame("capture_truncated_png_at_frame_2", 2, lambda: {"bytes": png(64, 64)[:60], "path": None},
           "cannot be decoded")
+
+
+def test_evaluation_frames_are_checked_like_capture(attack_world, tmp_path):
+    """The evaluation reads its frames through capture's checks: a 65x64 PNG at frame 4 is one ValueError naming
+    the data file, episode and frame (a changed dataset never reaches it through the CLI: its fingerprint differs
+    from the manifest's)."""
+    from steering_core.evaluate.frames import EvalFrame, load_frames
+
+    dataset = dataset_copy(attack_world, tmp_path)
+    data_file, episode = with_image_cell(dataset, 4, {"bytes": png(65, 64), "path": None})
+    index = pq.read_table(data_file, columns=["index"]).column("index")[4].as_py()
+    with pytest.raises(ValueError, match=rf"^{data_file}: episode {episode} frame 4: camera 'image' is a 65x64 PNG"):
+        load_frames(dataset, "libero_demo_lerobot", [EvalFrame("positive", episode, 4, index)], 32)
 
 
 def info_case(name: str, edit: Callable[[dict], None], *expect: str) -> None:
