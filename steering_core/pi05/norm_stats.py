@@ -21,8 +21,8 @@ QUANTILE_EPS = 1e-6  # openpi's guard against q99 == q01
 STATE_BIN_EDGES = np.linspace(-1.0, 1.0, 256 + 1)[:-1]
 
 # A statistic's magnitude beyond which its scale cannot be real: a robot's states and actions are metres, radians,
-# gripper widths and actions in [-1, 1] (LIBERO's largest, joint positions, stay within ±2π); 1e6 is four orders
-# beyond any of them, while a model run in units of 1e38 (or of 1e-38) only rounds.
+# gripper widths and actions in [-1, 1] (LIBERO's 8 state and 7 action values stay within a few units); 1e6 is five
+# orders beyond them, while a model run in units of 1e38 only rounds.
 MAX_STAT_MAGNITUDE = 1e6
 _SPREADS = ("std",)  # statistics that are a scale: not negative
 _REQUIRED_FIELDS = ("mean", "std")
