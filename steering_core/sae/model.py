@@ -307,8 +307,8 @@ def check_trained(cfg: SaeConfig, weights: dict[str, torch.Tensor]) -> None:
         if not tensor.is_floating_point():
             raise ValueError(f"{cfg.source}: `{name}` is {tensor.dtype}, expected floating point weights; the SAE is "
                              "damaged: re-download or re-train it")
-    for name in ("W_enc", "W_dec"):
-        if name in weights and not (weights[name].numel() and weights[name].abs().max() >= MIN_NORMAL):
+    for name in ("W_enc", "W_dec"):  # NaN counts as a value here: the finiteness check names it
+        if name in weights and not ((weights[name].abs() >= MIN_NORMAL) | weights[name].isnan()).any():
             raise ValueError(f"{cfg.source}: `{name}` is all zeros or subnormal (no |value| of at least "
                              f"{MIN_NORMAL:.3g}), expected trained weights (every direction would be zero); the SAE "
                              "is untrained or damaged: re-download or re-train it")
