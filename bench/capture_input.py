@@ -98,17 +98,17 @@ def loader_rates(inputs: Inputs, image_size: int, batch_size: int, device: torch
     frames = capture_frames.frame_source(meta, inputs.repo_id, episodes, None)
     plan = capture_frames.batch_plan(frames, {"0": tuple(episodes)}, batch_size)
     keys = capture_frames.FRAME_KEYS
-    dataset = capture_frames.FrameDataset(frames, keys)
+    dataset = capture_frames.FrameDataset(frames, keys, meta)  # each frame checked as capture checks it
     default = capture_frames.frame_workers(None)
     loaders = {  # name -> (a fresh loader, its workers)
         "old: decode + resize in 1 worker": (lambda: DataLoader(
             dataset, batch_sampler=[p for _, p in plan], num_workers=1,
             multiprocessing_context=capture_frames.worker_start_method(1),
             collate_fn=functools.partial(old_collate, image_size=image_size)), 1),
-        "decode, 1 worker": (lambda: capture_frames.frame_loader(frames, plan, keys, 1, False), 1),
-        "decode, 2 workers": (lambda: capture_frames.frame_loader(frames, plan, keys, 2, False), 2),
+        "decode, 1 worker": (lambda: capture_frames.frame_loader(frames, plan, keys, 1, False, meta), 1),
+        "decode, 2 workers": (lambda: capture_frames.frame_loader(frames, plan, keys, 2, False, meta), 2),
         f"decode + slots on {device.type}, default ({default} worker{'s' if default != 1 else ''})":
-            (lambda: capture_frames.frame_batches(frames, plan, keys, image_size, None, device), default),
+            (lambda: capture_frames.frame_batches(frames, plan, keys, image_size, None, device, meta), default),
     }
     best = dict.fromkeys(loaders, 0.0)
     for _ in range(rounds):

@@ -37,6 +37,8 @@ from steering_core.remote.reads import RemoteFile, remote_file
 from steering_core.storage.fileio import crc32
 from steering_core.storage.finite import non_finite
 
+# float32's smallest normal number: a length or weight below it is 0 or subnormal, rounding noise rather than a value
+MIN_NORMAL = float(torch.finfo(torch.float32).tiny)
 _LENGTH_BYTES = 8  # safetensors: u64 little-endian header length, then the JSON header, then the data
 _MAX_HEADER = 100 << 20  # the reference reader's own limit (100 MB)
 # bytes per element of every safetensors dtype code

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
+import pyarrow as pa
 import pytest
 import torch
 from torch.utils.data import default_collate
 
 from steering_core.capture import frames as frames_module
 from steering_core.capture.frames import frame_loader, frame_workers, slots_on_device
+from steering_core.data.dataset import DatasetMeta, EpisodeInfo
 from steering_core.pi05 import libero_camera_slots
 
 DEVICES = [
@@ -89,13 +93,22 @@ def test_a_frame_that_cannot_be_decoded_is_one_value_error():
         next(iter(loader))
 
 
-def test_a_frame_of_another_shape_than_declared_is_refused():
-    items = [{**item, "episode_index": 3, "frame_index": position}
-             for position, item in enumerate(lerobot_items(2, 16, 16))]
+class StoredFrames(list):
+    """Decoded frames of episode 3 over the stored columns lerobot's dataset holds (`hf_dataset.data`)."""
+
+    def __init__(self, items: list[dict]):
+        super().__init__(items)
+        self.hf_dataset = SimpleNamespace(data=pa.table({"episode_index": [3] * len(items),
+                                                         "frame_index": list(range(len(items)))}))
+
+
+def test_a_video_frame_of_another_shape_than_declared_is_refused(tmp_path):
+    items = StoredFrames(lerobot_items(2, 16, 16))
     items[1]["wrist_image"] = torch.zeros(1, 16, 16)  # a grayscale frame among RGB ones
-    shapes = {"image": (3, 16, 16), "wrist_image": (3, 16, 16)}
-    loader = frame_loader(items, [("0", [0, 1])], ("image", "wrist_image"), 0, False, shapes)
-    with pytest.raises(ValueError, match=r"^episode 3 frame 1 has camera\(s\) \{'wrist_image': \(1, 16, 16\)\}"):
+    features = {key: {"dtype": "video", "shape": [16, 16, 3]} for key in ("image", "wrist_image")}
+    meta = DatasetMeta(tmp_path, {"features": features}, {0: "open"}, (EpisodeInfo(3, ("open",), 2, 0, 2, "d.parquet"),))
+    loader = frame_loader(items, [("0", [0, 1])], ("image", "wrist_image"), 0, False, meta)
+    with pytest.raises(ValueError, match=r"d.parquet: episode 3 frame 1 has camera\(s\) \{'wrist_image': \(1, 16, 16\)\}"):
         next(iter(loader))
 
 

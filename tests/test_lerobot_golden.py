@@ -258,15 +258,23 @@ def bad_mode_disagrees(folder):
     return "normalises action with 'QUANTILES', config.json's normalization_mapping says 'MEAN_STD'"
 
 
+def bad_stats_scale(folder):
+    path = folder / "policy_postprocessor_step_0_unnormalizer_processor.safetensors"
+    stats = load_file(str(path))
+    stats["action.q99"][2] = 1e38
+    save_file(stats, str(path))
+    return r"unnormalizer_processor.safetensors: `action.q99` holds 1e\+38, expected magnitudes up to 1e\+06"
+
+
 def bad_missing_processor(folder):
     (folder / "policy_postprocessor.json").unlink()
     return "policy_postprocessor.json: not found"
 
 
 @pytest.mark.parametrize("make", [bad_both_layouts, bad_stats_width, bad_type("pi0"), bad_type("smolvla"),
-                                  bad_mixed_keys, bad_mode_disagrees, bad_missing_processor],
+                                  bad_mixed_keys, bad_mode_disagrees, bad_missing_processor, bad_stats_scale],
                          ids=["both_layouts", "stats_width", "type_pi0", "type_smolvla", "mixed_keys",
-                              "mode_disagrees", "missing_processor"])
+                              "mode_disagrees", "missing_processor", "stats_scale"])
 def test_bad_lerobot_folders_are_refused_in_one_line(tmp_path, make):
     folder = folder_copy(tmp_path)
     expected = make(folder)

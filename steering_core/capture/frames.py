@@ -6,7 +6,7 @@ from __future__ import annotations
 import functools
 import multiprocessing
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -15,7 +15,7 @@ from PIL import Image
 from torch.utils.data import DataLoader, Dataset, default_collate
 
 from steering_core.data.dataset import NO_VIDEO_BACKEND, DatasetMeta
-from steering_core.data.image_cells import check_image_cells
+from steering_core.data.image_cells import PNG_HEADER_BYTES, check_image_cells, png_problem
 from steering_core.data.v2_frames import V2Frames
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
 
@@ -31,29 +31,61 @@ MAX_DEFAULT_WORKERS = 8
 class FrameDataset(Dataset):
     """The dataset's frames reduced to what capture reads (cameras, state, task, index columns).
 
-    A frame whose camera cannot be decoded, or decodes to another shape than info.json declares, is refused in
-    one ValueError naming the dataset, episode and frame (the first frame of each file was checked before the run,
-    `image_cells.check_png_headers`; the rest are checked here, as they are decoded).
+    With the dataset's `meta`, each frame is checked as it is read, and refused in one ValueError naming the data
+    file, episode and frame: a PNG camera whose header (read before any pixel is decoded, so a small file declaring
+    a huge image allocates nothing) is no RGB PNG of the size info.json declares, a camera that cannot be decoded,
+    or one that decodes to another shape (the first frame of each file was checked before the run,
+    `image_cells.check_png_headers`).
     """
 
-    def __init__(self, frames: Any, keys: Sequence[str], shapes: Mapping[str, tuple[int, ...]] | None = None):
-        self.frames, self.keys, self.shapes = frames, tuple(keys), dict(shapes or {})  # camera -> (3, H, W)
+    def __init__(self, frames: Any, keys: Sequence[str], meta: DatasetMeta | None = None):
+        self.frames, self.keys, self.meta = frames, tuple(keys), meta
+        features = meta.info["features"] if meta else {}
+        self.shapes = {key: (3, *features[key]["shape"][:2]) for key in LIBERO_IMAGE_KEYS if key in features}
+        self.pngs = {key: tuple(features[key]["shape"]) for key in self.shapes if features[key]["dtype"] == "image"}
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def __getitem__(self, position: int) -> dict[str, Any]:
+        for key, shape in self.pngs.items():
+            problem = png_problem(stored_png_header(self.frames, position, key), shape)
+            if problem:
+                raise ValueError(f"{self._where(position)}: camera {key!r} {problem} (`features.{key}.shape` in "
+                                 "meta/info.json); re-create the dataset")
         try:
             item = self.frames[position]
         except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as err:  # Pillow's decoding errors
-            raise ValueError(f"the frame at dataset position {position} cannot be decoded ({err}); "
-                             "expected PNG cameras, re-create the dataset") from None
+            raise ValueError(f"{self._where(position)} cannot be decoded ({err}); expected PNG cameras, "
+                             "re-create the dataset") from None
         bad = {key: tuple(item[key].shape) for key, shape in self.shapes.items() if tuple(item[key].shape) != shape}
         if bad:
-            raise ValueError(f"episode {int(item['episode_index'])} frame "
-                             f"{int(item['frame_index'])} has camera(s) {bad}, expected {self.shapes} "
+            raise ValueError(f"{self._where(position)} has camera(s) {bad}, expected {self.shapes} "
                              "(`features.<camera>.shape` in meta/info.json); re-create the dataset")
         return {key: item[key] for key in self.keys}
+
+    def _where(self, position: int) -> str:
+        """Return where the frame at `position` is stored: its data file, episode and frame (or its position)."""
+        if self.meta is None:
+            return f"the frame at dataset position {position}"
+        episode, frame = stored_frame(self.frames, position)
+        return f"{self.meta.root / self.meta.episode(episode).data_file}: episode {episode} frame {frame}"
+
+
+def stored_png_header(frames: Any, position: int, key: str) -> bytes:
+    """Return the first bytes (the PNG header) of camera `key`'s image cell at `position`, read without decoding."""
+    if isinstance(frames, V2Frames):
+        return frames.stored_png(position, key)[:PNG_HEADER_BYTES]
+    cell = frames.hf_dataset.data.column(key)[position]["bytes"]  # lerobot's arrow table, before HF's decoding
+    return b"" if not cell.is_valid else cell.as_buffer()[:PNG_HEADER_BYTES].to_pybytes()
+
+
+def stored_frame(frames: Any, position: int) -> tuple[int, int]:
+    """Return the (episode, frame index) of `position` in a frame source, from its stored columns."""
+    if isinstance(frames, V2Frames):
+        return int(frames.episode_index[position]), int(frames.row[position])
+    table = frames.hf_dataset.data
+    return tuple(int(table.column(name)[position].as_py()) for name in ("episode_index", "frame_index"))
 
 
 def _collate(items: list[dict[str, Any]], cameras: Cameras = Cameras()) -> dict[str, Any]:
@@ -107,19 +139,14 @@ def batch_plan(frames: Any, groups: dict[str, tuple[int, ...]], batch_size: int)
     return plan
 
 
-def camera_shapes(meta: DatasetMeta) -> dict[str, tuple[int, int, int]]:
-    """Return camera -> (3, H, W) as info.json declares (H, W, 3), what a decoded frame must be."""
-    features = meta.info["features"]
-    return {key: (3, *features[key]["shape"][:2]) for key in LIBERO_IMAGE_KEYS if key in features}
-
-
 def frame_loader(
     frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], num_workers: int, pin_memory: bool,
-    shapes: Mapping[str, tuple[int, ...]] | None = None, cameras: Cameras = Cameras(),
+    meta: DatasetMeta | None = None, cameras: Cameras = Cameras(),
 ) -> DataLoader:
-    """Return a DataLoader yielding one batch per `plan` entry, both cameras uint8 (B, 3, H, W)."""
+    """Return a DataLoader yielding one batch per `plan` entry, both cameras uint8 (B, 3, H, W); with `meta`, each
+    frame is checked against the dataset's declared cameras (`FrameDataset`)."""
     return DataLoader(
-        FrameDataset(frames, keys, shapes),
+        FrameDataset(frames, keys, meta),
         batch_sampler=[positions for _, positions in plan],
         num_workers=num_workers,
         multiprocessing_context=worker_start_method(num_workers),
@@ -130,14 +157,14 @@ def frame_loader(
 
 def frame_batches(
     frames: Any, plan: list[tuple[str, list[int]]], keys: Sequence[str], image_size: int, num_workers: int | None,
-    device: torch.device, shapes: Mapping[str, tuple[int, ...]] | None = None, cameras: Cameras = Cameras(),
+    device: torch.device, meta: DatasetMeta | None = None, cameras: Cameras = Cameras(),
 ) -> Iterator[dict[str, Any]]:
     """Return an iterator of one batch per `plan` entry, cameras in pi0.5's three slots on `device`.
 
     The workers (`frame_workers(num_workers)`) start now, so they decode while the caller loads its model.
     A frame refused in a worker (`FrameDataset`) is raised here as the worker's one-line ValueError.
     """
-    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", shapes, cameras)
+    loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", meta, cameras)
     return (slots_on_device(batch, image_size, device, cameras) for batch in _worker_errors(iter(loader)))
 
 

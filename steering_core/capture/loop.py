@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from steering_core.capture.action_rows import adarms_rows, decision_rows, frame_noise
-from steering_core.capture.frames import FRAME_KEYS, batch_plan, camera_shapes, frame_batches, frame_source
+from steering_core.capture.frames import FRAME_KEYS, batch_plan, frame_batches, frame_source
 from steering_core.capture.run_identity import episode_records, run_spec
 from steering_core.capture.selected_rows import selected_residuals
 from steering_core.capture.settings import (
@@ -220,9 +220,8 @@ def _capture_groups(job: CaptureJob, progress: ProgressCallback | None) -> None:
     # Start the workers first: they decode the first batches while the checkpoint loads, and they fork
     # before CUDA is initialised. The cameras are resized on the model's device, not in the workers.
     batches = frame_batches(frames, plan, keys, settings.arch.image_size, settings.num_workers,
-                            resolve_device(settings.run_device), camera_shapes(job.meta), job.inputs.robot.cameras)
+                            resolve_device(settings.run_device), job.meta, job.inputs.robot.cameras)
     model = _load_model(settings, job.inputs)
-    write_run_spec(job.run_dir, job.spec)  # only once the checkpoint loaded: a bad one leaves no run folder behind
     remaining = {key: sum(1 for k, _ in plan if k == key) for key in job.groups}
     prompts: dict[str, TokenizedPrompt] = {}
     buffers: dict[str, _GroupRows] = {}
@@ -402,7 +401,9 @@ def _record_task(
 
 
 def _write_group(job: CaptureJob, key: str, buffer: _GroupRows) -> None:
-    """Write one shard per layer for a finished episode group."""
+    """Write run.json, then one shard per layer for a finished episode group: a run refused before its first group
+    is complete (a bad checkpoint or frame) leaves no run folder behind."""
+    write_run_spec(job.run_dir, job.spec)
     episodes = job.groups[key]
     columns = {name: torch.from_numpy(np.concatenate(parts)) for name, parts in buffer.columns.items()}
     columns.setdefault(STEP, None)

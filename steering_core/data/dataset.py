@@ -63,6 +63,7 @@ class EpisodeInfo:
     from_index: int   # global `index` of its first frame
     to_index: int     # global `index` one past its last frame (exclusive, as in lerobot)
     data_file: str    # data parquet holding its frames, relative to the dataset root (posix)
+    video_files: tuple[tuple[str, str], ...] = ()  # (camera, mp4 relative to the root) of each video feature
 
     @property
     def task(self) -> str:
@@ -102,7 +103,7 @@ class DatasetMeta:
     @property
     def has_videos(self) -> bool:
         """Return True when a feature of info.json is stored as video (what a video backend decodes)."""
-        return any(feature.get("dtype") == "video" for feature in self.info.get("features", {}).values())
+        return bool(video_keys(self.info))
 
     @property
     def total_frames(self) -> int:
@@ -178,11 +179,41 @@ def read_info(root: str | os.PathLike) -> dict[str, Any]:
     missing = [key for key in required if key not in info]
     if missing:
         raise ValueError(f"{info_path}: missing field(s) {missing}; the dataset is incomplete, re-create it")
+    problems = _field_type_problems(info)
+    if problems:
+        raise ValueError(f"{info_path}: {'; '.join(problems)}; re-create the dataset")
     templates = {key: info[key] for key in PATH_TEMPLATES if key in info and (key == "data_path" or info[key])}
     problems = [problem for key, template in templates.items() if (problem := _template_problem(key, template))]
     if problems:
         raise ValueError(f"{info_path}: " + "; ".join(problems))
     return info
+
+
+def _field_type_problems(info: dict[str, Any]) -> list[str]:
+    """Return the problems of info.json fields every reader indexes having another JSON type than lerobot writes:
+    `features` an object of objects, each with a string `dtype` and a `shape` of positive integers; the counts
+    (`total_frames`, `total_episodes`, `chunks_size`) integers; `video_path` a template where a feature is a video."""
+    def count(value: Any) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+    problems = [f"`{key}` is {info[key]!r}, expected an integer"
+                for key in ("total_frames", "total_episodes", "chunks_size") if key in info and not count(info[key])]
+    features = info["features"]
+    if not isinstance(features, dict):
+        return [*problems, f"`features` is {type(features).__name__}, expected a JSON object of features"]
+    for key, feature in features.items():
+        if not isinstance(feature, dict):
+            problems.append(f"`features.{key}` is {type(feature).__name__}, expected a JSON object (dtype, shape)")
+            continue
+        if not isinstance(feature.get("dtype"), str):
+            problems.append(f"`features.{key}.dtype` is {feature.get('dtype')!r}, expected a string")
+        shape = feature.get("shape")
+        if not isinstance(shape, list) or not shape or not all(count(n) and n > 0 for n in shape):
+            problems.append(f"`features.{key}.shape` is {shape!r}, expected a list of positive integers")
+        if feature.get("dtype") == "video" and not isinstance(info.get("video_path"), str):
+            problems.append(f"`features.{key}` is a video, but `video_path` is {info.get('video_path')!r}, expected "
+                            "its path template")
+    return problems
 
 
 def _template_problem(key: str, template: Any) -> str | None:
@@ -229,6 +260,11 @@ def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
     return _read_v3_episodes(root, info)
 
 
+def video_keys(info: dict[str, Any]) -> list[str]:
+    """Return the features of info.json stored as video, in its order."""
+    return [key for key, feature in info["features"].items() if feature["dtype"] == "video"]
+
+
 def _read_v2_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
     """Return the episodes of `meta/episodes.jsonl`; global indices follow episode order, as lerobot assigns them."""
     episodes = []
@@ -237,6 +273,8 @@ def _read_v2_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
         episodes.append(EpisodeInfo(
             episode_index=episode_index, tasks=tasks, length=length, from_index=start, to_index=start + length,
             data_file=lerobot_v2.episode_data_file(info, episode_index),
+            video_files=tuple((key, lerobot_v2.episode_video_file(info, episode_index, key))
+                              for key in video_keys(info)),
         ))
         start += length
     _check_episodes(root / lerobot_v2.EPISODES_JSONL, episodes)
@@ -251,13 +289,15 @@ def _read_v3_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
             f"{root / EPISODES_DIR}: no episode metadata files; the dataset was not finalized "
             "(call LeRobotDataset.finalize() after the last save_episode)"
         )
+    videos = video_keys(info)
+    columns = [*_EPISODE_COLUMNS, *(f"videos/{key}/{part}" for key in videos for part in ("chunk_index", "file_index"))]
     tables = []
     for path in files:
         names = read_schema(path).names
-        missing = [c for c in _EPISODE_COLUMNS if c not in names]
+        missing = [c for c in columns if c not in names]
         if missing:
-            raise ValueError(f"{path}: missing column(s) {missing}; not v3.0 episode metadata")
-        tables.append(read_table(path, columns=list(_EPISODE_COLUMNS)))
+            raise ValueError(f"{path}: missing column(s) {missing}; not v3.0 episode metadata of info.json's features")
+        tables.append(read_table(path, columns=columns))
     rows = pa.concat_tables(tables).to_pylist()
     episodes = [
         EpisodeInfo(
@@ -269,6 +309,9 @@ def _read_v3_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeInfo]:
             data_file=info["data_path"].format(
                 chunk_index=int(row["data/chunk_index"]), file_index=int(row["data/file_index"])
             ),
+            video_files=tuple((key, info["video_path"].format(
+                video_key=key, chunk_index=int(row[f"videos/{key}/chunk_index"]),
+                file_index=int(row[f"videos/{key}/file_index"]))) for key in videos),
         )
         for row in rows
     ]

@@ -6,8 +6,8 @@ info.json fields that contradict the episode rows (`fps`, `total_episodes`, `tot
 holding NaN or Inf, episode rows whose task is not in the tasks table, data files whose columns contradict
 the feature shapes of info.json, and frames that contradict the episode rows (an episode missing from
 the metadata, a duplicated or shifted global `index`, `frame_index` out of order, a `task_index` unknown
-to the tasks table or disagreeing with the episode's task). It reads metadata, parquet footers and the
-four integer index columns: never an image.
+to the tasks table or disagreeing with the episode's task), and a video feature whose file for some episode is
+missing. It reads metadata, parquet footers and the four integer index columns: never an image.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ def check_dataset(root: str | os.PathLike) -> DatasetMeta:
     if not meta.episodes:
         raise ValueError(f"{meta.root}: {meta.episodes_source} lists no episodes; nothing to read")
     check_meta(meta)
+    check_video_files(meta)
     for path in data_files(meta):
         check_data_schema(meta, path)
     check_frames(meta, read_index_columns(meta.root))
@@ -74,6 +75,16 @@ def check_meta(meta: DatasetMeta) -> None:
     for where, value in _statistics(meta):
         if not _finite_tree(value):
             raise ValueError(f"{where}: holds NaN or Inf; expected finite statistics, re-create the dataset")
+
+
+def check_video_files(meta: DatasetMeta) -> None:
+    """Raise a FileNotFoundError naming the first episode whose video file of a video feature is missing."""
+    for episode in meta.episodes:
+        for key, video in episode.video_files:
+            if not (meta.root / video).is_file():
+                raise FileNotFoundError(f"{meta.root / video}: the video of feature {key!r}, episode "
+                                        f"{episode.episode_index}, not found (`video_path` in {meta.root / INFO_FILE}); "
+                                        "the dataset is incomplete, re-create it")
 
 
 def check_data_schema(meta: DatasetMeta, path: Path) -> None:

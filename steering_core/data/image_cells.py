@@ -7,7 +7,7 @@ of `<key>.bytes` per row group) where the writer kept them, else that column alo
 
 The first cell of each data file and camera must also be a PNG of the size info.json declares, in RGB: its
 header (the first 26 bytes) is read, never the pixels, so a corrupt, grayscale, tiny or huge image is refused
-before a run starts (`check_png_headers`); later frames are checked as they are decoded (capture.frames).
+before a run starts (`check_png_headers`); later frames' headers are checked before they are decoded (capture.frames).
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ def _cells_without_bytes(path: Path, key: str) -> int:
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_HEADER_BYTES = 26  # the signature, then the IHDR chunk's length, type, width, height, depth and colour type
 _PNG_RGB = 2  # IHDR colour type of 8-bit RGB, what lerobot writes for an (H, W, 3) image feature
 
 
@@ -76,9 +77,9 @@ def check_png_headers(meta: DatasetMeta, episodes: Sequence[int]) -> None:
 
 def png_problem(data: bytes, shape: tuple[int, ...]) -> str | None:
     """Return what keeps PNG bytes from being an 8-bit RGB image of `shape` (H, W, 3), read from its header."""
-    if len(data) < 26 or not data.startswith(PNG_SIGNATURE) or data[12:16] != b"IHDR":
+    if len(data) < PNG_HEADER_BYTES or not data.startswith(PNG_SIGNATURE) or data[12:16] != b"IHDR":
         return "is not a PNG, expected one"
-    width, height, depth, colour = struct.unpack(">IIBB", data[16:26])
+    width, height, depth, colour = struct.unpack(">IIBB", data[16:PNG_HEADER_BYTES])
     if (height, width, 3) != tuple(shape) or depth != 8 or colour != _PNG_RGB:
         return (f"is a {height}x{width} PNG of colour type {colour}, depth {depth}; expected shape {list(shape)}, "
                 f"8-bit RGB (colour type {_PNG_RGB})")

@@ -170,6 +170,9 @@ def read_instruction_with_source(path: str | Path) -> tuple[str, InstructionSour
     """
     path = _existing(path)
     with _open_hdf5(path) as handle:
+        indirection = _indirection_problem(handle, DATA_GROUP, DATA_GROUP)
+        if indirection:
+            raise ValueError(_report(path, [indirection]))
         if DATA_GROUP not in handle:
             raise ValueError(f"{path}: no `{DATA_GROUP}` group; expected a LIBERO demo file; {_FIX}")
         text, source, problems = _instruction(path, handle[DATA_GROUP].attrs)
@@ -232,9 +235,9 @@ def _open_hdf5(path: Path) -> Iterator[h5py.File]:
 def _open_validated(path: Path) -> Iterator[tuple[h5py.File, LiberoFileInfo]]:
     with _open_hdf5(path) as handle:
         problems: list[str] = []
-        link = _link_problem(handle, DATA_GROUP, DATA_GROUP)
-        if link:
-            raise ValueError(_report(path, [link]))
+        indirection = _indirection_problem(handle, DATA_GROUP, DATA_GROUP)
+        if indirection:
+            raise ValueError(_report(path, [indirection]))
         if DATA_GROUP not in handle or not isinstance(handle[DATA_GROUP], h5py.Group):
             raise ValueError(_report(path, [f"no `{DATA_GROUP}` group (found top-level keys {sorted(handle)})"]))
         data = handle[DATA_GROUP]
@@ -248,8 +251,8 @@ def _open_validated(path: Path) -> Iterator[tuple[h5py.File, LiberoFileInfo]]:
             problems.append(f"`data` holds {_preview(stray)}, expected only demo_<k> groups (k = 0, 1, ...)")
         lengths: dict[str, int] = {}
         for key in demo_keys:
-            link = _link_problem(data, key, f"data/{key}")
-            length, demo_problems = (0, [link]) if link else _check_demo(data[key], key)
+            indirection = _indirection_problem(data, key, f"data/{key}")
+            length, demo_problems = (0, [indirection]) if indirection else _check_demo(data[key], key)
             problems += demo_problems
             lengths[key] = length
         if problems:
@@ -265,9 +268,9 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
     first_dims: dict[str, int] = {}
     for name, (kind, trailing) in DEMO_SCHEMA.items():
         where = f"data/{key}/{name}"
-        link = _link_problem(group, name, where)
-        if link:
-            problems.append(link)
+        indirection = _indirection_problem(group, name, where)
+        if indirection:
+            problems.append(indirection)
             continue
         item = group.get(name)
         if item is None:
@@ -305,9 +308,10 @@ def _check_demo(group: h5py.Group | h5py.Dataset, key: str) -> tuple[int, list[s
     return steps, problems
 
 
-def _link_problem(parent: h5py.Group, name: str, where: str) -> str | None:
-    """Return the problem of `name` (or a group on its path) being a soft or external link (a loop, or a file
-    elsewhere), else None: a LIBERO demo file holds its own data."""
+def _indirection_problem(parent: h5py.Group, name: str, where: str) -> str | None:
+    """Return the problem of `name` reading anything but this file's own bytes, else None: a LIBERO demo file holds
+    its own data. Refused: a soft or external link on its path (a loop, or a file elsewhere), and a dataset whose
+    values lie elsewhere (external raw storage, or a virtual dataset, whose missing sources read as fill values)."""
     parts = name.split("/")
     for depth in range(1, len(parts) + 1):
         step = "/".join(parts[:depth])
@@ -321,6 +325,15 @@ def _link_problem(parent: h5py.Group, name: str, where: str) -> str | None:
             return f"{where} goes through an external link to {link.filename}:{link.path}, expected the data itself"
         if link is None:
             return None
+    item = parent[name]
+    if not isinstance(item, h5py.Dataset):
+        return None
+    if item.external:
+        files = sorted({file for file, _, _ in item.external})
+        return f"{where} keeps its values in other files {files} (external storage), expected the data itself"
+    if item.is_virtual:
+        sources = sorted({f"{source.file_name}:{source.dset_name}" for source in item.virtual_sources()})
+        return f"{where} is a virtual dataset mapping {sources}, expected the data itself"
     return None
 
 

@@ -77,6 +77,10 @@ class V2Frames:
         item["task"] = self.meta.tasks[int(self.columns["task_index"][position])]
         return item
 
+    def stored_png(self, position: int, key: str) -> bytes:
+        """Return the stored PNG bytes of image feature `key` at `position` (b"" where the cell holds none)."""
+        return self._episode_images(int(self.slot[position]))[key][int(self.row[position])] or b""
+
     def _episode_images(self, slot: int) -> dict[str, list[bytes | None]]:
         """Return the PNG bytes of the episode's image features, reading its parquet once per episode."""
         if not self.image_keys:

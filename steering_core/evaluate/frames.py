@@ -94,19 +94,22 @@ def load_frames(
 
     Reads only the frames' episodes; cameras are preprocessed exactly as capture does (`cameras`, default openpi's).
     """
-    from steering_core.capture.frames import frame_source, position_columns
+    from steering_core.capture.frames import FrameDataset, frame_source, position_columns
     from steering_core.capture.settings import STATE_KEY
     from steering_core.data.dataset import read_meta
 
     episodes = sorted({f.episode_index for f in frames})
-    dataset = frame_source(read_meta(dataset_root), repo_id, episodes, video_backend)  # v3.0, v2.1 or v2.0
+    meta = read_meta(dataset_root)
+    dataset = frame_source(meta, repo_id, episodes, video_backend)  # v3.0, v2.1 or v2.0
     index_column = position_columns(dataset)[1]
     position = {int(index): p for p, index in enumerate(index_column)}
     missing = [f.index for f in frames if f.index not in position]
     if missing:
         raise ValueError(f"{dataset_root}: frames with index {missing[:5]} are not in the dataset; the concept map "
                          "belongs to another dataset")
-    items = [dataset[position[f.index]] for f in frames]
+    keys = (*LIBERO_IMAGE_KEYS, *([STATE_KEY] if STATE_KEY in meta.info["features"] else []))
+    checked = FrameDataset(dataset, keys, meta)  # a bad camera: one line naming its file, episode and frame
+    items = [checked[position[f.index]] for f in frames]
     image, wrist = (torch.stack([item[key] for item in items]) for key in LIBERO_IMAGE_KEYS)
     images, image_masks = cameras.from_float(image, wrist, image_size)
     states = np.stack([np.asarray(item[STATE_KEY], dtype=np.float64) for item in items]) \

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from steering_core.pi05.layouts import CONFIG_FILE, LEROBOT_POSTPROCESSOR, LEROBOT_PREPROCESSOR
+from steering_core.pi05.norm_stats import scale_problem
 from steering_core.storage.fileio import read_json
 from steering_core.tensor_files import check_safetensors
 
@@ -192,4 +193,6 @@ def _feature_stats(path: Path, feature: str, width: int, needed: tuple[str, ...]
         if vector.shape != (width,) or not np.issubdtype(vector.dtype, np.floating) or not np.isfinite(vector).all():
             raise ValueError(f"{path}: `{feature}.{name}` is {vector.shape} {vector.dtype}, expected ({width},) "
                              f"finite floats (the width {CONFIG_FILE}'s features give)")
+        if problem := scale_problem(vector, name):
+            raise ValueError(f"{path}: `{feature}.{name}` {problem}; re-create the statistics")
     return {name: vector.astype(np.float32) for name, vector in stored.items()}

@@ -20,6 +20,11 @@ QUANTILE_EPS = 1e-6  # openpi's guard against q99 == q01
 # 256 bins over [-1, 1): digitize against the left edges, minus one (spec 4.3)
 STATE_BIN_EDGES = np.linspace(-1.0, 1.0, 256 + 1)[:-1]
 
+# A statistic's magnitude beyond which its scale cannot be real: a robot's states and actions are metres, radians,
+# gripper widths and actions in [-1, 1] (LIBERO's 8 state and 7 action values stay within a few units); 1e6 is five
+# orders beyond them, while a model run in units of 1e38 only rounds.
+MAX_STAT_MAGNITUDE = 1e6
+_SPREADS = ("std",)  # statistics that are a scale: not negative
 _REQUIRED_FIELDS = ("mean", "std")
 _QUANTILE_FIELDS = ("q01", "q99")
 
@@ -84,11 +89,24 @@ def _parse_entry(name: str, entry: object, problems: list[str]) -> NormStats:
             vector = np.empty((0, 0))
         if vector.ndim != 1 or not np.isfinite(vector).all():
             problems.append(f"`{name}.{field}` is {value!r:.60}, expected a list of finite numbers")
+        elif problem := scale_problem(vector, field):
+            problems.append(f"`{name}.{field}` {problem}")
         fields[field] = vector
     lengths = {field: len(v) for field, v in fields.items() if v is not None and v.ndim == 1}
     if len(set(lengths.values())) > 1:
         problems.append(f"`{name}` fields have different lengths {lengths}")
     return NormStats(**fields)
+
+
+def scale_problem(vector: np.ndarray, statistic: str) -> str | None:
+    """Return what makes a finite normalisation statistic's scale unreal (`MAX_STAT_MAGNITUDE`; a negative `std`),
+    else None."""
+    largest = float(np.abs(vector).max()) if vector.size else 0.0
+    if largest > MAX_STAT_MAGNITUDE:
+        return f"holds {largest:g}, expected magnitudes up to {MAX_STAT_MAGNITUDE:g} (a robot's states and actions)"
+    if statistic in _SPREADS and (vector < 0).any():
+        return f"holds {float(vector.min()):g}, expected a spread of at least 0"
+    return None
 
 
 def quantile_normalize(values: np.ndarray, stats: NormStats) -> np.ndarray:

@@ -35,7 +35,7 @@ from steering_core.sae.formats import (
 )
 from steering_core.sae.registry import RELEASES, SaeEntry, find_by_folder, get_entry, resolve_release
 from steering_core.storage.fileio import sha256_file, sha256_json
-from steering_core.tensor_files import require_finite
+from steering_core.tensor_files import MIN_NORMAL, require_finite
 
 logger = logging.getLogger(__name__)
 
@@ -300,11 +300,18 @@ def _check_weights(cfg: SaeConfig, weights: dict[str, torch.Tensor], extra_weigh
 
 
 def check_trained(cfg: SaeConfig, weights: dict[str, torch.Tensor]) -> None:
-    """Raise when an SAE file's encoder or decoder is all zeros (it would encode or decode everything to zero)."""
-    for name in ("W_enc", "W_dec"):
-        if name in weights and not weights[name].any():
-            raise ValueError(f"{cfg.source}: `{name}` is all zeros, expected trained weights (every direction would "
-                             "be zero); the SAE is untrained or damaged: re-download or re-train it")
+    """Raise naming the SAE file and tensor when a weight is not floating point (integers would be cast silently),
+    or the encoder or decoder holds no normal float32 value: all zeros or subnormal, it encodes or decodes every
+    direction to zero or rounding noise."""
+    for name, tensor in weights.items():
+        if not tensor.is_floating_point():
+            raise ValueError(f"{cfg.source}: `{name}` is {tensor.dtype}, expected floating point weights; the SAE is "
+                             "damaged: re-download or re-train it")
+    for name in ("W_enc", "W_dec"):  # NaN counts as a value here: the finiteness check names it
+        if name in weights and not ((weights[name].abs() >= MIN_NORMAL) | weights[name].isnan()).any():
+            raise ValueError(f"{cfg.source}: `{name}` is all zeros or subnormal (no |value| of at least "
+                             f"{MIN_NORMAL:.3g}), expected trained weights (every direction would be zero); the SAE "
+                             "is untrained or damaged: re-download or re-train it")
 
 
 def fold_norm_scaling_factor(weights: dict[str, torch.Tensor], factor: float) -> dict[str, torch.Tensor]:
@@ -359,6 +366,7 @@ def load_sae(
         if entry.neuronpedia_id:
             overrides["neuronpedia_id"] = entry.neuronpedia_id
     cfg = parse_cfg(raw, source=str(weights_path), overrides=overrides, where=str(cfg_file))
+    check_trained(cfg, weights)
     weights = apply_scaling_factor(cfg, weights)
     if cfg.normalize_activations == "expected_average_only_in":
         factor = known[2].norm_scaling_factor if known is not None else None
@@ -371,7 +379,6 @@ def load_sae(
         else:
             weights = fold_norm_scaling_factor(weights, factor)
             cfg = cfg.model_copy(update={"normalize_activations": "none", "norm_scaling_factor": factor})
-    check_trained(cfg, weights)
     check_sparsity(log_sparsity, cfg)
     sae = sae_class(cfg.architecture)(cfg, weights, device=device, log_sparsity=log_sparsity, weights_path=weights_path)
     logger.info(

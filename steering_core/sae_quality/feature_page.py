@@ -83,20 +83,22 @@ def read_thumbnails(
     """
     from torchvision.io import encode_jpeg
 
-    from steering_core.capture.frames import frame_source, position_columns
+    from steering_core.capture.frames import FrameDataset, frame_source, position_columns
     from steering_core.data.dataset import read_meta
 
     if not frames:
         return {}
-    dataset = frame_source(read_meta(dataset_root), repo_id, sorted(set(frames.values())), video_backend)
+    meta = read_meta(dataset_root)
+    dataset = frame_source(meta, repo_id, sorted(set(frames.values())), video_backend)
     position = {int(index): p for p, index in enumerate(position_columns(dataset)[1])}
     missing = sorted(index for index in frames if index not in position)
     if missing:
         raise ValueError(f"{dataset_root}: frames with index {missing[:5]} are not in the dataset; the residual run "
                          "was captured from another dataset")
+    checked = FrameDataset(dataset, (THUMBNAIL_KEY,), meta)  # a bad camera: one line naming its file and frame
     uris = {}
     for index in frames:
-        image = dataset[position[index]][THUMBNAIL_KEY].float()  # (3, H, W) in [0, 1]
+        image = checked[position[index]][THUMBNAIL_KEY].float()  # (3, H, W) in [0, 1]
         image = torch.nn.functional.interpolate(image[None], size=(size, size), mode="bilinear", antialias=True)[0]
         jpeg = encode_jpeg((image.clamp(0, 1) * 255).round().to(torch.uint8), quality=85)
         uris[index] = "data:image/jpeg;base64," + base64.b64encode(jpeg.numpy().tobytes()).decode("ascii")

@@ -72,6 +72,7 @@ from steering_core.vectors.methods.direction_file import (
     MethodDirection,
     method_direction,
     read_method_direction,
+    unit_direction,
     write_method_direction,
 )
 from steering_core.vectors.methods.supplied import read_supplied
@@ -294,6 +295,16 @@ def compute_pair(
     bias = include_decoder_bias and sae is not None
     methods = pair_methods(pair.name, stats, sae, settings, head["mean_residual_norm"])
     mean_difference = (stats["positive"].residual_mean - stats["negative"].residual_mean).float()
+    if sae is None:
+        residual = mean_difference
+    else:
+        latent = (stats["positive"].latent_mean - stats["negative"].latent_mean).float()
+        residual = sae.decode_direction(latent).cpu()
+        if include_decoder_bias:
+            residual = residual + sae.b_dec.cpu()
+        residual = residual.float()
+    source = "the concepts' mean difference" if sae is None else f"the latent difference decoded by SAE {sae.name}"
+    unit_direction(residual, f"pair {pair.name!r}, layer {settings.layer}, residual_direction ({source})")
     summary: dict[str, Any] = {
         "format_version": FORMAT_VERSION,
         **head,
@@ -316,18 +327,13 @@ def compute_pair(
         write = functools.partial(_write_tensor_dict, staging, layer_path / pair.name, summary["files"])
         if sae is None:
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",
-                  {**head, "residual_direction": mean_difference, "residual_norm": float(mean_difference.norm()),
+                  {**head, "residual_direction": residual, "residual_norm": float(residual.norm()),
                    "counts": counts, "include_decoder_bias": False})
         else:
             for side in SIDES:
                 write(LATENT_MEAN_FILE.format(side=side), "mean",
                       {"concept": getattr(pair, f"{side}_label"), "count": counts[side],
                        "mean": stats[side].latent_mean.float()})
-            latent = (stats["positive"].latent_mean - stats["negative"].latent_mean).float()
-            residual = sae.decode_direction(latent).cpu()
-            if include_decoder_bias:
-                residual = residual + sae.b_dec.cpu()
-            residual = residual.float()
             write(LATENT_DIRECTION_FILE, "latent_direction",
                   {**head, "latent_direction": latent, "latent_norm": float(latent.norm()), "counts": counts})
             write(RESIDUAL_DIRECTION_FILE, "residual_direction",

@@ -17,13 +17,11 @@ from typing import Any
 import torch
 
 from steering_core.pairs import SIDES
-from steering_core.tensor_files import load_safetensors, require_finite, save_safetensors
+from steering_core.tensor_files import MIN_NORMAL, load_safetensors, require_finite, save_safetensors
 from steering_core.vectors.concept_stats import ConceptStats
 
 METHOD_FILE = "{method}_direction.safetensors"
 TENSOR_KEY = "direction"
-# below this a vector's length is a float32 subnormal (or 0): normalising it amplifies rounding, not a direction
-MIN_NORM = float(torch.finfo(torch.float32).tiny)
 
 
 @dataclass(frozen=True)
@@ -51,9 +49,9 @@ def unit_direction(vector: torch.Tensor, where: str) -> tuple[torch.Tensor, floa
     vector = vector.detach().to("cpu", torch.float64).flatten()
     require_finite(vector, where, TENSOR_KEY)
     norm = float(vector.norm())
-    if not norm >= MIN_NORM:
+    if not norm >= MIN_NORMAL:  # normalising a subnormal length amplifies rounding, not a direction
         raise ValueError(f"{where}: the direction's length is {norm:.3g}, below float32's smallest normal number "
-                         f"({MIN_NORM:.3g}): it points nowhere, nothing to steer along")
+                         f"({MIN_NORMAL:.3g}): it points nowhere, nothing to steer along")
     return (vector / norm).float(), norm
 
 
