@@ -77,14 +77,26 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
         *[(lambda layer=layer: _check_sae(config, layer, check_width=layout_ok)) for layer in config.layers
           if config.sae_for(layer) is not None],
         *[(lambda layer=layer: _check_methods(config, layer, check_width=layout_ok)) for layer in config.layers],
-        lambda: resolve_device(config.steering.device),
+        lambda: _check_device("steering.device", config.steering.device),
     ]
-    if capture_device:
-        checks.append(lambda: resolve_device(config.capture_settings().run_device))
-        checks += [(lambda layer=layer: resolve_device(config.train_settings(layer).device))
+    if capture_device:  # the devices of the steps a fleet runs on its gpu and sim workers
+        checks.append(lambda: _check_device("capture.device", config.capture_settings().run_device))
+        checks += [(lambda layer=layer: _check_device(f"sae.{layer}.train.device", config.train_settings(layer).device))
                    for layer in config.trained_layers]
+        if config.evaluate is not None:
+            checks.append(lambda: _check_device("evaluate.device", config.evaluate.device))
+        if config.rollout is not None:
+            checks.append(lambda: _check_device("rollout.device", config.rollout.device))
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
     return list(dict.fromkeys(problems + model + _failures(checks) + rollout_input_problems(config)))
+
+
+def _check_device(setting: str, device: str | None) -> None:
+    """Raise naming `setting` unless its device exists on this machine (`resolve_device`)."""
+    try:
+        resolve_device(device)
+    except ValueError as err:
+        raise ValueError(f"{setting}: {err}") from None
 
 
 def _check_checkpoint_finite(config: RunConfig) -> None:
