@@ -33,13 +33,13 @@ MODES: tuple[Mode, ...] = ("add", "clamp")
 MAX_ALPHA = 100.0
 
 
-def check_alpha_grid(alphas: Sequence[float], key: str = "alphas") -> None:
-    """Raise naming `key` unless every α is finite and |α| <= `MAX_ALPHA`."""
+def check_alpha_grid(alphas: Sequence[float]) -> None:
+    """Raise unless every α of a grid is finite and |α| <= `MAX_ALPHA`."""
     if not all(math.isfinite(alpha) for alpha in alphas):
-        raise ValueError(f"{key} {list(alphas)} must be finite numbers")
+        raise ValueError(f"alphas {list(alphas)} must be finite numbers")
     if (largest := max((abs(alpha) for alpha in alphas), default=0.0)) > MAX_ALPHA:
-        raise ValueError(f"{key}: |α| {largest:g} is above {MAX_ALPHA:g} (in units of the mean residual norm, or level "
-                         "fractions for clamp): a larger shift swamps the residual stream; give values within "
+        raise ValueError(f"alphas hold |α| = {largest:g}, above {MAX_ALPHA:g} (units of the mean residual norm, or "
+                         f"level fractions for clamp): a larger shift swamps the residual stream; give values within "
                          f"±{MAX_ALPHA:g}")
 
 
