@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import number_option
+from latent_steering_cli.numbers import number_option
 from steering_core.data.concept_map import build_concept_map, read_rename_map, write_concept_map
 from steering_core.data.contrast import MAX_EPISODES, ContrastSettings, build_manifest, write_manifest
 from steering_core.data.contrast_hdf5 import build_hdf5_manifest

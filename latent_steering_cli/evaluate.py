@@ -9,7 +9,8 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from latent_steering_cli.capture import layer_list
-from latent_steering_cli.options import Flag, model_options, names_flag, number_option, settings_options
+from latent_steering_cli.numbers import number_option
+from latent_steering_cli.options import Flag, model_options, names_flag, settings_options
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
 from steering_core.data.contrast import read_manifest

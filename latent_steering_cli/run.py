@@ -13,7 +13,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import number_option
+from latent_steering_cli.numbers import number_option
 from steering_core import demo
 from steering_core.config import RunConfig, load_run_config
 from steering_core.preflight import check_run

@@ -7,7 +7,8 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
-from latent_steering_cli.options import device_option, model_options, number_option
+from latent_steering_cli.numbers import number_option
+from latent_steering_cli.options import device_option, model_options
 from steering_core.layout import STEERING_ROOT
 from steering_core.pi05.spec import ModelSpec
 from steering_core.pi05.steering import MAX_ALPHA

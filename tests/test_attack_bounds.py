@@ -39,7 +39,7 @@ from test_attack_finite import no_pipeline  # noqa: F401 (a fixture)
 
 import steering_core.capture.frames as frames_module
 from latent_steering_cli.lazy import COMMANDS, load_command
-from latent_steering_cli.options import FiniteNumber
+from latent_steering_cli.numbers import FiniteNumber
 from steering_core.config.yaml_files import MAX_VALUES
 from steering_core.data.contrast import MAX_EPISODES
 from steering_core.pi05.steering import MAX_ALPHA
