@@ -122,6 +122,11 @@ def bomb_small(world: World, tmp_path: Path) -> Case:
     return config_case(tmp_path, alias_bomb(6), f"more than {MAX_VALUES:,} values")
 
 
+@case("config_yaml_alias_inside_itself")
+def alias_loop(world: World, tmp_path: Path) -> Case:
+    return config_case(tmp_path, "layers: &loop [1, *loop]\n", f"more than {MAX_VALUES:,} values")
+
+
 @guarded("config_yaml_alias_bomb_9e9")
 def bomb_large(world: World, tmp_path: Path) -> Case:
     assert len(alias_bomb(9)) < 700

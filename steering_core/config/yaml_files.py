@@ -55,14 +55,14 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
 
 MAX_DEPTH = 64  # mappings and lists inside each other; a run config nests 5 deep, Python's recursion stops near 300
 MAX_ERROR_LINES = 20  # problems listed of an invalid config; the count of the others follows
-MAX_VALUES = 100_000  # values a document expands to, each alias counted as what it repeats; a run config holds ~200
+MAX_VALUES = 100_000  # values a document's aliases add, each counted as what it repeats; a run config holds ~200
 
 
 class UniqueKeyLoader(yaml.SafeLoader):
     """YAML's safe loader, refusing a mapping that names one key twice (YAML would silently keep the last), values
     nested more than `MAX_DEPTH` deep (before the recursion that builds them could exhaust Python's stack), and a
-    document whose aliases expand to more than `MAX_VALUES` values (a few hundred bytes of nested aliases repeat a
-    list billions of times: counted on the composed nodes, before anything is built from them).
+    document whose aliases add more than `MAX_VALUES` values to those written (a few hundred bytes of nested aliases
+    repeat a list billions of times: counted on the composed nodes, before anything is built from them).
 
     Keys merged in with `<<: *alias` may be overridden: only keys written in the mapping itself are compared.
     """
@@ -71,11 +71,11 @@ class UniqueKeyLoader(yaml.SafeLoader):
 
     def compose_document(self) -> yaml.Node | None:
         node = super().compose_document()
-        values = _expanded_values(node, {})
-        if values > MAX_VALUES:
-            raise yaml.composer.ComposerError(None, None, f"its aliases expand to more than {MAX_VALUES:,} values (each "
-                                              "alias counts as what it repeats); a run config holds a few hundred: "
-                                              "write the values out", node.start_mark)
+        sizes: dict[int, int] = {}
+        if _expanded_values(node, sizes) - len(sizes) > MAX_VALUES:  # what the aliases add to the values written
+            raise yaml.composer.ComposerError(None, None, f"its aliases expand to more than {MAX_VALUES:,} values "
+                                              "beyond those written (each alias counts as what it repeats); a run "
+                                              "config holds a few hundred: write the values out", node.start_mark)
         return node
 
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
@@ -109,7 +109,7 @@ def _expanded_values(node: yaml.Node, sizes: dict[int, int]) -> int:
     beyond any limit."""
     if id(node) in sizes:
         return sizes[id(node)]
-    sizes[id(node)] = MAX_VALUES + 1  # while counting: reached again only through an alias to an enclosing node
+    sizes[id(node)] = 2**62  # while counting: reached again only through an alias to an enclosing node
     children = node.value if isinstance(node, yaml.CollectionNode) else []
     items = [part for child in children for part in (child if isinstance(child, tuple) else (child,))]
     sizes[id(node)] = total = 1 + sum(_expanded_values(item, sizes) for item in items)

@@ -98,13 +98,13 @@ class RolloutSettings(StrictModel):
     @field_validator("alphas")
     @classmethod
     def _alphas(cls, alphas: tuple[float, ...]) -> tuple[float, ...]:
+        if len(alphas) > MAX_ALPHAS:
+            raise ValueError(f"alphas: {len(alphas)} values; expected at most {MAX_ALPHAS} (each is a cell per "
+                             "condition and side, every one a set of episodes)")
         check_alpha_grid(alphas)
         if not all(a >= 0 for a in alphas):
             raise ValueError(f"alphas {list(alphas)} must be >= 0: each is a push toward the other task "
                              "(the mirror side gets the opposite sign)")
-        if len(alphas) > MAX_ALPHAS:
-            raise ValueError(f"alphas: {len(alphas)} values; expected at most {MAX_ALPHAS} (each is a cell per "
-                             "condition and side, every one a set of episodes)")
         grid = tuple(sorted(set(alphas)))
         if grid[:1] != (0.0,) or len(grid) < 2:
             raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")
