@@ -206,6 +206,12 @@ for _section in ("steering", "capture", "evaluate", "rollout"):
                     "before the run started", f"{_section}.device: device 'mps'", "not available here")
 
 
+@case("rollout_config_device_xpu")
+def rollout_device(world: World, tmp_path: Path) -> Case:
+    case = config_case(tmp_path, config_text(world, tmp_path, lambda data: data["rollout"].update(device="xpu")))
+    return Case(["rollout", *case.argv[1:]], ("rollout.device: device 'xpu'", "not available here"))
+
+
 # ----------------------------------------------------------------------------- class 6: α within MAX_ALPHA
 
 
