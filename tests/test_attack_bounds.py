@@ -300,17 +300,6 @@ def same_pair_twice(world: World, tmp_path: Path) -> Case:
                        "contrast the same two tasks")
 
 
-@case("steer_pairs_config_same_slices_twice")
-def same_slices_twice(world: World, tmp_path: Path) -> Case:
-    pairs = json.loads((world.data / "layer1_pairs.json").read_text())
-    pairs["pairs"].append({**pairs["pairs"][0], "name": "again"})
-    path = tmp_path / "pairs.json"
-    path.write_text(json.dumps(pairs))
-    argv = [str(word) for word in good(world, tmp_path)["steer"]]
-    argv[argv.index("--pairs-config") + 1] = str(path)
-    return Case(["steer", *argv], (str(path), "contrast the same two slices", "'again'"))
-
-
 # ----------------------------------------------------------------------------- the tables
 
 

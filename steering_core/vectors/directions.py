@@ -96,7 +96,7 @@ class PairSpec(StrictModel):
 
 
 class PairsConfig(StrictModel):
-    """The seed's pairs config: `{"pairs": [...]}` with unique pair names, each two slices contrasted once."""
+    """The seed's pairs config: `{"pairs": [...]}` with unique pair names."""
 
     pairs: list[PairSpec] = Field(min_length=1)
 
@@ -106,13 +106,6 @@ class PairsConfig(StrictModel):
         duplicates = sorted({name for name in names if names.count(name) > 1})
         if duplicates:
             raise ValueError(f"pair names must be unique; repeated: {duplicates}")
-        seen: dict[frozenset[str], str] = {}
-        for pair in self.pairs:
-            slices = frozenset(os.path.normpath(path) for path in (pair.positive_path, pair.negative_path))
-            if slices in seen:
-                raise ValueError(f"pairs {seen[slices]!r} and {pair.name!r} contrast the same two slices "
-                                 f"{pair.positive_path!r} and {pair.negative_path!r}; give each pair of slices once")
-            seen[slices] = pair.name
         return self
 
 
