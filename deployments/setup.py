@@ -13,6 +13,7 @@ go there too. Only the URL is stored: each worker reads the endpoint and credent
 from __future__ import annotations
 
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -192,9 +193,9 @@ def setup(config_path: str | os.PathLike, gpu_slots: int = 1, project_dir: Path 
           storage: str | None = None, heartbeat_timeout: float = HEARTBEAT_TIMEOUT) -> str | None:
     """Create pools, the GPU limit and the crash automation (window `heartbeat_timeout` seconds), the result storage
     of `storage` (a URL, checked first), then deploy every flow; return the results' basepath (None without storage)."""
-    if heartbeat_timeout < MINIMUM_HEARTBEAT_TIMEOUT:
-        raise ValueError(f"--heartbeat-timeout is {heartbeat_timeout:g}, expected at least {MINIMUM_HEARTBEAT_TIMEOUT} "
-                         "seconds (three 30-second heartbeats)")
+    if not MINIMUM_HEARTBEAT_TIMEOUT <= heartbeat_timeout < math.inf:  # NaN fails every comparison
+        raise ValueError(f"--heartbeat-timeout is {heartbeat_timeout:g}, expected a finite number of at least "
+                         f"{MINIMUM_HEARTBEAT_TIMEOUT} seconds (three 30-second heartbeats)")
     if storage is not None:
         storage = check_storage(storage)  # before anything changes on the server
     url = require_api_url()

@@ -7,8 +7,9 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.numbers import number_option
 from steering_core.data.concept_map import build_concept_map, read_rename_map, write_concept_map
-from steering_core.data.contrast import ContrastSettings, build_manifest, write_manifest
+from steering_core.data.contrast import MAX_EPISODES, ContrastSettings, build_manifest, write_manifest
 from steering_core.data.contrast_hdf5 import build_hdf5_manifest
 from steering_core.data.convert import DemoOrder
 from steering_core.storage.overwrites import check_no_overwrite
@@ -21,20 +22,20 @@ def _episode_list(values: list[str] | None, flag: str) -> tuple[int, ...] | None
     """Return the episode indices of repeated/comma-separated values with ranges, e.g. `0-4,7`."""
     if not values:
         return None
-    indices: list[int] = []
+    spans: list[range] = []
     for part in ",".join(values).split(","):
         part = part.strip()
         try:
-            if "-" in part:
-                low, high = (int(p) for p in part.split("-", 1))
-                if high < low:
-                    raise ValueError
-                indices.extend(range(low, high + 1))
-            else:
-                indices.append(int(part))
+            low, high = (int(p) for p in part.split("-", 1)) if "-" in part else (int(part),) * 2
+            if high < low:
+                raise ValueError
         except ValueError:
             raise typer.BadParameter(f"{part!r} is not an episode index or range like 3-7", param_hint=flag) from None
-    return tuple(indices)
+        spans.append(range(low, high + 1))
+    if (count := sum(len(span) for span in spans)) > MAX_EPISODES:  # counted as ranges, before any is expanded
+        raise typer.BadParameter(f"{count:,} episode indices; expected at most {MAX_EPISODES:,} (a dataset's episodes "
+                                 "number in the thousands)", param_hint=flag)
+    return tuple(index for span in spans for index in span)
 
 
 def _task(text: str | None, index: int | None, letter: str) -> str | int:
@@ -72,10 +73,10 @@ def manifest_command(
     ),
     output: Path = typer.Option(..., "--output", help="Manifest JSON to write (data/manifests/<pair>.json)."),
     repo_id: str | None = typer.Option(None, "--repo-id", help="Recorded repo id (default: the dataset folder name)."),
-    min_abs_delta: float = typer.Option(
+    min_abs_delta: float = number_option(
         _DEFAULTS.min_abs_delta, "--min-abs-delta", help="Least |mean terminal displacement| per task on the axis."
     ),
-    progress_frac: float = typer.Option(
+    progress_frac: float = number_option(
         _DEFAULTS.progress_frac, "--progress-frac", help="Share of a demo's axis displacement that opens its window."
     ),
     pad: int = typer.Option(_DEFAULTS.pad, "--pad", help="Frames added on both sides of each window."),

@@ -9,6 +9,7 @@ import typer
 
 from latent_steering_cli.app import app, input_errors
 from latent_steering_cli.capture import layer_list
+from latent_steering_cli.numbers import number_option
 from latent_steering_cli.options import Flag, model_inputs, model_options, names_flag, settings_options
 from steering_core.capture import CaptureSettings
 from steering_core.config import load_run_config
@@ -41,7 +42,7 @@ _STEERING_FIELDS = SteeringSettings.model_fields  # --paths-relative-to: the ste
 def split_command(
     manifest: Path = typer.Option(..., "--manifest", help="Contrast manifest, e.g. data/manifests/open_vs_close.json."),
     output: Path = typer.Option(..., "--output", help="Split JSON, e.g. data/manifests/open_vs_close_split.json."),
-    holdout_fraction: float = typer.Option(
+    holdout_fraction: float = number_option(
         _DEFAULTS.holdout_fraction, "--holdout-fraction", min=0.0, max=0.99,
         help="Share of each task's episodes held out of slicing for the evaluation (at least one; 0: none).",
     ),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import types
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,9 +20,15 @@ import typer
 from pydantic import BaseModel
 
 from latent_steering_cli.app import input_errors
+from latent_steering_cli.numbers import FiniteNumber
 from steering_core.devices import DEVICE_HELP
 from steering_core.pi05.arch import read_arch
 from steering_core.pi05.spec import ModelSpec
+
+
+def _is_float(annotation: Any) -> bool:
+    """Return whether an option's annotation is `float` or `float | None`."""
+    return annotation is float or (isinstance(annotation, types.UnionType) and float in typing.get_args(annotation))
 
 
 def device_option(default: str | None = "auto", help: str = DEVICE_HELP) -> Any:
@@ -86,8 +93,10 @@ def settings_options(model: type[BaseModel], parameter: str = "settings",
         field, given = model.model_fields[name], flags.get(name, Flag(flag(name)))
         default = None if name in unset_if_none else ... if field.is_required() else field.default
         annotation = given.annotation or (hints[name] | None if optional else hints[name])
+        numeric = {"parser": FiniteNumber()} if _is_float(annotation) and not given.parse else {}
         return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
-                                 default=typer.Option(default, given.name, help=given.help or field.description))
+                                 default=typer.Option(default, given.name, help=given.help or field.description,
+                                                      **numeric))
 
     fields = [option(name) for name in names]
     parsers = {name: given.parse for name, given in flags.items() if given.parse} | (parse or {})

@@ -13,6 +13,7 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.numbers import number_option
 from steering_core import demo
 from steering_core.config import RunConfig, load_run_config
 from steering_core.preflight import check_run
@@ -99,6 +100,7 @@ def demo_command(
     output_dir = output_dir.resolve()
     with input_errors():
         demo.check_demo_folder(output_dir)
+        demo.check_demo_request(output_dir, demos_per_task)
         prefect_environment(home=output_dir / PREFECT_HOME_DIR)
     planted_path = demo.build_planted(output_dir / demo.PLANTED_DIR)
     config_path = demo.build_demo(output_dir, demos_per_task=demos_per_task)
@@ -135,7 +137,7 @@ def deploy_command(
     storage: str | None = typer.Option(
         None, "--storage", help="Bucket URL (s3://bucket/prefix, gs://...) for Prefect's results: checked writable, "
                                 "saved as the block `latent-steering-results`, named in the deployments' env."),
-    heartbeat_timeout: float | None = typer.Option(
+    heartbeat_timeout: float | None = number_option(
         None, "--heartbeat-timeout", help="Seconds of heartbeat silence after which the deploy automation marks a "
                                           "flow run Crashed, the last resort for runs no parent watches (default 600; "
                                           "deployments/README.md)."),

@@ -7,9 +7,11 @@ from pathlib import Path
 import typer
 
 from latent_steering_cli.app import app, input_errors
+from latent_steering_cli.numbers import number_option
 from latent_steering_cli.options import device_option, model_inputs, model_options
 from steering_core.layout import STEERING_ROOT
 from steering_core.pi05.spec import ModelSpec
+from steering_core.pi05.steering import MAX_ALPHA
 from steering_core.serve import (
     PolicyServer,
     SteeredPi05Policy,
@@ -21,7 +23,6 @@ from steering_core.serve import (
 from steering_core.serve.auth import API_KEY_ENV, read_api_key
 from steering_core.serve.batching import DEFAULT_BATCH_WAIT_MS, MAX_BATCH, MAX_BATCH_WAIT_MS
 from steering_core.serve.episodes import EpisodeLog
-from steering_core.serve.request import DEFAULT_MAX_ALPHA
 from steering_core.serve.server import (
     DEFAULT_IDLE_TIMEOUT_S,
     DEFAULT_INFERENCE_TIMEOUT_S,
@@ -49,8 +50,8 @@ def serve_command(
         "evaluation's; :sae:vector for vector units; :sae:clamp to clamp to level fraction α, 0 the negative "
         "concept's mean, 1 the positive's; repeat to combine)."
     ),
-    max_alpha: float = typer.Option(
-        DEFAULT_MAX_ALPHA, "--max-alpha", min=0.0, help="Refuse steering with |α| above this, in residual_norm units "
+    max_alpha: float = number_option(
+        MAX_ALPHA, "--max-alpha", min=0.0, help="Refuse steering with |α| above this, in residual_norm units "
         "(α·R is the norm of the shift; the evaluation's grid stays within a few units)."
     ),
     host: str = typer.Option("127.0.0.1", "--host", help="Interface to listen on (0.0.0.0: every interface)."),
@@ -67,11 +68,11 @@ def serve_command(
         None, "--noise-seed", help="Use the same initial noise for every request (paired steered/plain comparisons); "
         "default: fresh noise per request, as openpi."
     ),
-    max_message_mb: float = typer.Option(
+    max_message_mb: float = number_option(
         DEFAULT_MAX_MESSAGE_BYTES / 2**20, "--max-message-mb", min=0.001, help="Largest observation message accepted "
         "(twice this closes the connection)."
     ),
-    inference_timeout_s: float = typer.Option(
+    inference_timeout_s: float = number_option(
         DEFAULT_INFERENCE_TIMEOUT_S, "--inference-timeout-s", min=0.001, help="Answer a request with an error when "
         "its actions are not ready this many seconds after it arrived (waiting for the model included)."
     ),
@@ -83,7 +84,7 @@ def serve_command(
         DEFAULT_MAX_QUEUE, "--max-queue", min=1, help="Frames a connection may send ahead of the request being "
         "answered before the server stops reading from it."
     ),
-    idle_timeout_s: float = typer.Option(
+    idle_timeout_s: float = number_option(
         DEFAULT_IDLE_TIMEOUT_S, "--idle-timeout-s", min=0.001, help="Close a connection that sends nothing for this "
         "long; at the connection cap, one idle for 30 s gives way to a new client."
     ),
@@ -91,7 +92,7 @@ def serve_command(
         DEFAULT_MAX_BATCH, "--max-batch", min=1, max=MAX_BATCH, help="Rows per policy call: requests arriving "
         "together (and a request's own leading batch dimension) share one call; 1 serves one request per call."
     ),
-    batch_wait_ms: float = typer.Option(
+    batch_wait_ms: float = number_option(
         DEFAULT_BATCH_WAIT_MS, "--batch-wait-ms", min=0.0, max=MAX_BATCH_WAIT_MS, help="How long the oldest waiting "
         "request waits for others to share its policy call (0: take only those already waiting)."
     ),

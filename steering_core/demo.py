@@ -72,6 +72,10 @@ DEMO_TRAIN = SaeTrainSection(d_sae=DEMO_SAE_LATENTS, k=8, lr=3e-3, batch_size=12
                              buffer_rows=8192, checkpoints=1, dead_feature_window=200, device="cpu", judge_frames=4)
 DEMO_IMAGE_SIZE = 64           # dataset frames (real: 256); the tiny model resizes them to 28
 DEMO_STEPS = 24                # steps per generated demo (real demos: 100-300)
+DEMO_SYNTHETIC = SyntheticSettings(image_size=32, num_steps=DEMO_STEPS, length_jitter=4)
+# Frames the demo's CPU run goes through (every step runs capture and the rollouts' tiny model): 3 demos per task,
+# about 330 frames, take 2.5 minutes; the limit, about an hour and a half.
+MAX_DEMO_FRAMES = 10_000
 # The tiny model is random: its dose-responses exercise the whole phase but measure nothing.
 TINY_MODEL_NOTE = "Tiny random demo model: these numbers mean nothing; on a real checkpoint they are the result."
 PLANTED_NOTE = ("Planted concept: the two tasks' layer-0 rows differ by exactly one direction, so the right answer "
@@ -101,8 +105,7 @@ def build_demo(folder: str | os.PathLike, *, demos_per_task: int = 3, layers: tu
     demos = inputs / "demos"
     if not demos.is_dir():
         logger.info("writing %d demos per task for 4 tasks into %s", demos_per_task, demos)
-        write_demo_suite(demos, demos_per_task=demos_per_task,
-                         settings=SyntheticSettings(image_size=32, num_steps=DEMO_STEPS, length_jitter=4))
+        write_demo_suite(demos, demos_per_task=demos_per_task, settings=DEMO_SYNTHETIC)
     arch = config.model.arch
     if not config.model.checkpoint.is_dir():
         write_pi05_checkpoint(config.model.checkpoint, arch)
@@ -181,8 +184,17 @@ def planted_config(folder: Path) -> RunConfig:
     )
 
 
-def check_demo_folder(folder: str | os.PathLike) -> None:
-    """Raise before anything is written when `folder` (or its planted run's folder) holds a run.yaml not the demo's."""
+def check_demo_request(folder: str | os.PathLike, demos_per_task: int) -> None:
+    """Raise before anything is written when `folder` (or its planted run's folder) holds a run.yaml not the demo's,
+    or when `demos_per_task` makes more frames than `MAX_DEMO_FRAMES` (estimated from the demo's settings)."""
+    tasks = len(DEMO_PAIRS) * 2
+    frames = demos_per_task * tasks * (DEMO_SYNTHETIC.num_steps + DEMO_SYNTHETIC.length_jitter)
+    if frames > MAX_DEMO_FRAMES:
+        raise ValueError(f"demo --demos-per-task {demos_per_task:,}: an estimated {frames:,} frames = {tasks} tasks x "
+                         f"{demos_per_task:,} demos x up to {DEMO_SYNTHETIC.num_steps + DEMO_SYNTHETIC.length_jitter} "
+                         f"steps, each run through the pipeline on the CPU; expected at most {MAX_DEMO_FRAMES:,} (about "
+                         "an hour and a half): lower --demos-per-task, or make larger inputs with make-demos and "
+                         "`run --config` them")
     folder = Path(folder).resolve()
     claim_config_file(folder / CONFIG_FILE, demo_config(folder))
     claim_config_file(folder / PLANTED_DIR / CONFIG_FILE, planted_config(folder / PLANTED_DIR))

@@ -1,8 +1,10 @@
-"""Devices and dtypes: one definition of how a device or dtype name becomes a torch object."""
+"""Devices, dtypes and cores: one definition of how a device or dtype name becomes a torch object, and of the cores a
+process may use."""
 
 from __future__ import annotations
 
 import functools
+import os
 
 import torch
 
@@ -17,7 +19,8 @@ DTYPES: dict[str, torch.dtype] = {
 SAFETENSORS_DTYPES: dict[str, torch.dtype] = {"F32": torch.float32, "F64": torch.float64, "F16": torch.float16,
                                               "BF16": torch.bfloat16}
 DTYPE_NAMES: dict[torch.dtype, str] = {dtype: name for name, dtype in DTYPES.items()}
-DEVICE_HELP = "auto (CUDA when available), cuda, cuda:1 or cpu."  # what a device setting accepts
+DEVICE_HELP = "auto (CUDA when available), cuda, cuda:1, cpu, or mps or xpu where torch has them."  # what a device setting accepts
+ACCELERATORS = {"cuda": "CUDA", "mps": "MPS", "xpu": "XPU"}  # device types besides cpu, used only where torch finds them
 
 
 def parse_device(device: str | torch.device) -> torch.device:
@@ -26,6 +29,11 @@ def parse_device(device: str | torch.device) -> torch.device:
         return torch.device(device)
     except RuntimeError as error:
         raise ValueError(f"device {device!r} is not a torch device; expected cpu, cuda, cuda:N or auto") from error
+
+
+def usable_cores() -> int:
+    """Return the cores this process may run on (its CPU affinity)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 @functools.cache
@@ -41,7 +49,8 @@ def fix_cpu_threads() -> None:
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
-    """Return `device`; None or "auto" picks CUDA when available, else CPU. CUDA without a GPU is an error.
+    """Return `device`; None or "auto" picks CUDA when available, else CPU. An accelerator (CUDA, MPS, XPU) this
+    machine does not have, or an index beyond its count, is an error, as is any other device type.
 
     Every step that computes resolves its device first, so this also fixes the CPU threads (`fix_cpu_threads`).
     """
@@ -49,8 +58,18 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     resolved = parse_device(device)
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r} requested but CUDA is not available here; use --device cpu or auto")
+    if resolved.type == "cpu":
+        return resolved
+    if resolved.type not in ACCELERATORS:
+        raise ValueError(f"device {device!r}: expected cpu, auto or one of {', '.join(ACCELERATORS)} (with an index)")
+    backend = getattr(torch, resolved.type)
+    if not backend.is_available():
+        raise ValueError(f"device {device!r} requested but {ACCELERATORS[resolved.type]} is not available here (torch "
+                         f"{torch.__version__}); use --device cpu or auto")
+    count = backend.device_count()
+    if resolved.index is not None and resolved.index >= count:
+        raise ValueError(f"device {device!r} requested but this machine has {count} {ACCELERATORS[resolved.type]} device(s) "
+                         f"(0..{count - 1}); use one of them, or --device cpu or auto")
     return resolved
 
 

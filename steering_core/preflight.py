@@ -77,14 +77,25 @@ def run_problems(config: RunConfig, *, capture_device: bool = True) -> list[str]
         *[(lambda layer=layer: _check_sae(config, layer, check_width=layout_ok)) for layer in config.layers
           if config.sae_for(layer) is not None],
         *[(lambda layer=layer: _check_methods(config, layer, check_width=layout_ok)) for layer in config.layers],
-        lambda: resolve_device(config.steering.device),
+        lambda: _check_device("steering.device", config.steering.device),
     ]
-    if capture_device:
-        checks.append(lambda: resolve_device(config.capture_settings().run_device))
-        checks += [(lambda layer=layer: resolve_device(config.train_settings(layer).device))
+    if capture_device:  # the devices of the steps a fleet runs on its gpu and sim workers
+        checks.append(lambda: _check_device("capture.device", config.capture_settings().run_device))
+        checks += [(lambda layer=layer: _check_device(f"sae.{layer}.train.device", config.train_settings(layer).device))
                    for layer in config.trained_layers]
+        if config.evaluate is not None:
+            checks.append(lambda: _check_device("evaluate.device", config.evaluate.device))
     problems = _token_type_problems(config) + _source_problems(config) + _output_problems(config)
-    return list(dict.fromkeys(problems + model + _failures(checks) + rollout_input_problems(config)))
+    rollout = rollout_input_problems(config, check_device=capture_device)
+    return list(dict.fromkeys(problems + model + _failures(checks) + rollout))
+
+
+def _check_device(setting: str, device: str | None) -> None:
+    """Raise naming `setting` unless its device exists on this machine (`resolve_device`)."""
+    try:
+        resolve_device(device)
+    except ValueError as err:
+        raise ValueError(f"{setting}: {err}") from None
 
 
 def _check_checkpoint_finite(config: RunConfig) -> None:
@@ -120,11 +131,12 @@ def _check_methods(config: RunConfig, layer: int, *, check_width: bool) -> None:
         check_methods(settings, [pair.name for pair in config.pairs], config.model.arch.width, True)
 
 
-def rollout_input_problems(config: RunConfig) -> list[str]:
-    """Return the problems of the rollout section: its scene assets, each pair's LIBERO tasks and their initial
-    states, the server key."""
+def rollout_input_problems(config: RunConfig, *, check_device: bool = True) -> list[str]:
+    """Return the problems of the rollout section: its device (unless `check_device` is False: the rollouts run on
+    other machines), its scene assets, each pair's LIBERO tasks and their initial states, the server key."""
     if config.rollout is None:
         return []
+    device = _failures([lambda: _check_device("rollout.device", config.rollout.device)]) if check_device else []
     from steering_core.rollout import libero_env
     from steering_core.rollout.assets import resolve_assets
     from steering_core.rollout.run import initial_states
@@ -132,11 +144,11 @@ def rollout_input_problems(config: RunConfig) -> list[str]:
 
     assets = _failures([lambda: libero_env.prepare_libero(resolve_assets(config.rollout.libero_assets))])
     if assets:
-        return assets
+        return device + assets
     wanted = config.rollout.settings().init_states
     tasks = [(lambda task=task: initial_states(task, wanted)) for pair in config.rollout.pairs.values()
              for task in (pair.positive, pair.negative)]
-    return _failures([*tasks, lambda: read_api_key(config.rollout.api_key_file)])
+    return device + _failures([*tasks, lambda: read_api_key(config.rollout.api_key_file)])
 
 
 def _failures(checks: list[Callable[[], object]]) -> list[str]:

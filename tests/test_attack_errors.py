@@ -210,7 +210,7 @@ ROLLOUT_MAX = {"episodes": 1000, "max_steps": 10_000, "random_directions": 256, 
 WORK_ATTACKS = [
     evaluate_work("evaluate_frames_by_seeds", "--max-frames", "10000", "--noise-seeds", "256"),
     evaluate_work("evaluate_directions_by_alphas", "--random-directions", "4096", "--alphas",
-                  ",".join(str(a) for a in range(-128, 128)), "--noise-seeds", "32", "--max-frames", "64"),
+                  ",".join(str(a / 2) for a in range(-128, 128)), "--noise-seeds", "32", "--max-frames", "64"),
     config_work("config_evaluate_frames_by_seeds", "evaluate", {"max_frames": 10_000, "noise_seeds": 256},
                 f"at most {MAX_EVALUATION_SAMPLES:,}"),
     config_work("config_rollout_episodes_by_steps", "rollout", ROLLOUT_MAX, f"at most {MAX_ROLLOUT_STEPS:,}"),

@@ -103,14 +103,17 @@ def test_order_follows_the_dataset_not_the_manifest(root, rows, manifest_path, t
 
 
 def test_rename_map(root, rows, manifest_path, tmp_path, caplog):
-    rename = {OPEN: "drawer", CLOSE: "drawer", "turn on the stove": "stove"}
+    rename = {OPEN: "drawer", CLOSE: "shut", "turn on the stove": "stove"}
     with caplog.at_level(logging.WARNING, logger="steering_core.data.concept_map"):
-        merged = build_concept_map(manifest_path, root, rename=rename)
+        renamed = build_concept_map(manifest_path, root, rename=rename)
     assert "rename entries for tasks not in the manifest: ['turn on the stove']" in caplog.text
-    assert merged.concept_count == {"drawer": 6}
-    assert merged.model_dump(mode="json")["concepts"] == brute_force_map(manifest_path, rows, rename)
-    starts = [r.start_index for r in merged.concepts["drawer"]]
+    assert set(renamed.concept_count) == {"drawer", "shut"} and sum(renamed.concept_count.values()) == 6
+    assert renamed.model_dump(mode="json")["concepts"] == brute_force_map(manifest_path, rows, rename)
+    starts = [r.start_index for r in renamed.concepts["drawer"]]
     assert starts == sorted(starts)
+    for merging in ({OPEN: "drawer", CLOSE: "drawer"}, {OPEN: CLOSE}, {OPEN: "Drawer", CLOSE: "drawer "}):
+        with pytest.raises(ValueError, match="one concept .* which would merge their rows"):
+            build_concept_map(manifest_path, root, rename=merging)
 
     (tmp_path / "list.json").write_text('["open"]')
     with pytest.raises(ValueError, match="list.json: expected a JSON object of task text -> concept name, found list"):

@@ -340,7 +340,7 @@ def test_prefix_only_checkpoint_is_refused(checkpoint, tmp_path):
         Pi05Policy.from_checkpoint(tmp_path, ARCH, device="cpu")
     without_layer = {name: t for name, t in tensors.items() if ".gemma_expert.model.layers.3." not in name}
     save_file(without_layer, str(tmp_path / MODEL_FILE))
-    with pytest.raises(ValueError, match="action expert does not pair with the language model.*depth 3"):
+    with pytest.raises(ValueError, match="the Pi05Arch asks for depth 4, but it holds 3 action expert layers"):
         Pi05Policy.from_checkpoint(tmp_path, ARCH, device="cpu")
     without_head = {name: t for name, t in tensors.items() if not name.startswith("time_mlp_out")}
     save_file(without_head, str(tmp_path / MODEL_FILE))

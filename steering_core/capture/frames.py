@@ -4,8 +4,8 @@ workers decode the cameras to uint8, then resized into pi0.5's camera slots on t
 from __future__ import annotations
 
 import functools
+import logging
 import multiprocessing
-import os
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -17,7 +17,10 @@ from torch.utils.data import DataLoader, Dataset, default_collate
 from steering_core.data.dataset import NO_VIDEO_BACKEND, DatasetMeta
 from steering_core.data.image_cells import PNG_HEADER_BYTES, check_image_cells, png_problem
 from steering_core.data.v2_frames import V2Frames
+from steering_core.devices import usable_cores
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
+
+logger = logging.getLogger(__name__)
 
 # Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork.
 WORKER_PRELOAD = ("torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
@@ -180,13 +183,20 @@ def _worker_errors(batches: Iterator[dict[str, Any]]) -> Iterator[dict[str, Any]
 
 
 def frame_workers(num_workers: int | None) -> int:
-    """Return how many frame workers to start: `num_workers`, or for None one per core this process may run
-    on (its CPU affinity) less one for the main process, which copies frames to the device and drives the model,
-    at most `MAX_DEFAULT_WORKERS`: 0 (decode in-process) on one core, 1 on two, 8 on a 16-core GPU machine."""
-    if num_workers is not None:
-        return num_workers
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(0, min(cores - 1, MAX_DEFAULT_WORKERS))
+    """Return how many frame workers to start: for None one per core this process may run on (its CPU affinity)
+    less one for the main process, which copies frames to the device and drives the model, at most
+    `MAX_DEFAULT_WORKERS`: 0 (decode in-process) on one core, 1 on two, 8 on a 16-core GPU machine.
+
+    A given `num_workers` is capped by the usable cores, with a warning stating both: each worker is a process
+    holding torch and a batch of decoded frames (a few hundred MB), and workers beyond the cores only add memory.
+    """
+    cores = usable_cores()
+    if num_workers is None:
+        return max(0, min(cores - 1, MAX_DEFAULT_WORKERS))
+    if num_workers > cores:
+        logger.warning("capture.num_workers %d is more than the %d usable cores of this process (CPU affinity); "
+                       "starting %d frame workers", num_workers, cores, cores)
+    return min(num_workers, cores)
 
 
 def worker_start_method(num_workers: int) -> str | None:

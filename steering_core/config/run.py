@@ -65,10 +65,16 @@ class RunConfig(StrictModel):
     @classmethod
     def _unique_pairs(cls, pairs: tuple[PairSection, ...]) -> tuple[PairSection, ...]:
         seen: dict[str, int] = {}
+        tasks: dict[frozenset[str], int] = {}
         for i, pair in enumerate(pairs):
             if pair.name in seen:
                 raise ValueError(f"pairs[{seen[pair.name]}] and pairs[{i}] are both named {pair.name!r}; names must be unique")
             seen[pair.name] = i
+            both = frozenset(text.strip().casefold() for text in (pair.positive, pair.negative))
+            if both in tasks:
+                raise ValueError(f"pairs[{tasks[both]}] and pairs[{i}] ({pair.name!r}) contrast the same two tasks "
+                                 f"{pair.positive!r} and {pair.negative!r}; give each pair of tasks once")
+            tasks[both] = i
         return pairs
 
     @field_validator("sae", mode="before")

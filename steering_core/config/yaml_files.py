@@ -47,20 +47,36 @@ def load_run_config(path: str | os.PathLike) -> RunConfig:
     try:
         return RunConfig.model_validate(data, context={"base_dir": path.resolve().parent})
     except ValidationError as err:
-        raise ValueError("\n".join(f"{path}: {line}" for line in format_errors(err, data))) from None
+        lines = format_errors(err, data)
+        if len(lines) > MAX_ERROR_LINES:
+            lines = [*lines[:MAX_ERROR_LINES], f"... and {len(lines) - MAX_ERROR_LINES:,} more problems"]
+        raise ValueError("\n".join(f"{path}: {line}" for line in lines)) from None
 
 
 MAX_DEPTH = 64  # mappings and lists inside each other; a run config nests 5 deep, Python's recursion stops near 300
+MAX_ERROR_LINES = 20  # problems listed of an invalid config; the count of the others follows
+MAX_VALUES = 100_000  # values a document's aliases add, each counted as what it repeats; a run config holds ~200
 
 
 class UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader, refusing a mapping that names one key twice (YAML would silently keep the last), and
-    values nested more than `MAX_DEPTH` deep (before the recursion that builds them could exhaust Python's stack).
+    """YAML's safe loader, refusing a mapping that names one key twice (YAML would silently keep the last), values
+    nested more than `MAX_DEPTH` deep (before the recursion that builds them could exhaust Python's stack), and a
+    document whose aliases add more than `MAX_VALUES` values to those written (a few hundred bytes of nested aliases
+    repeat a list billions of times: counted on the composed nodes, before anything is built from them).
 
     Keys merged in with `<<: *alias` may be overridden: only keys written in the mapping itself are compared.
     """
 
     depth = 0
+
+    def compose_document(self) -> yaml.Node | None:
+        node = super().compose_document()
+        sizes: dict[int, int] = {}
+        if _expanded_values(node, sizes) - len(sizes) > MAX_VALUES:  # what the aliases add to the values written
+            raise yaml.composer.ComposerError(None, None, f"its aliases expand to more than {MAX_VALUES:,} values "
+                                              "beyond those written (each alias counts as what it repeats); a run "
+                                              "config holds a few hundred: write the values out", node.start_mark)
+        return node
 
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
         self.depth += 1
@@ -85,6 +101,19 @@ class UniqueKeyLoader(yaml.SafeLoader):
                     "in a mapping", node.start_mark, f"key {key!r} appears twice; keep one", key_node.start_mark)
             seen.add(key)
         return super().construct_mapping(node, deep=deep)
+
+
+def _expanded_values(node: yaml.Node, sizes: dict[int, int]) -> int:
+    """Return the values `node` stands for once every alias in it is expanded (`sizes`: by node id, shared across the
+    document, so each node is counted once however often aliases repeat it); an alias inside itself counts as
+    beyond any limit."""
+    if id(node) in sizes:
+        return sizes[id(node)]
+    sizes[id(node)] = 2**62  # while counting: reached again only through an alias to an enclosing node
+    children = node.value if isinstance(node, yaml.CollectionNode) else []
+    items = [part for child in children for part in (child if isinstance(child, tuple) else (child,))]
+    sizes[id(node)] = total = 1 + sum(_expanded_values(item, sizes) for item in items)
+    return total
 
 
 def format_errors(err: ValidationError, data: Any = None) -> list[str]:

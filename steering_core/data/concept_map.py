@@ -111,7 +111,7 @@ def build_concept_map(
 ) -> ConceptMap:
     """Return the concept map of the manifest at `manifest_path` on the dataset at `lerobot_root`.
 
-    `rename` maps task texts to concept names (unlisted tasks keep their text); `repo_id`
+    `rename` maps task texts to concept names (unlisted tasks keep their text; two tasks never share one); `repo_id`
     defaults to the dataset folder's name. Every problem (missing episode, segment outside
     its episode, task or fingerprint of another dataset) is collected, then raised at once.
     """
@@ -137,6 +137,15 @@ def build_concept_map(
     unused = sorted(set(rename) - {seg.task for seg in manifest.segments})
     if unused:
         logger.warning("concept map: rename entries for tasks not in the manifest: %s", unused)
+    tasks_of: dict[str, set[str]] = {}
+    for segment in manifest.segments:
+        concept = rename.get(segment.task, segment.task)
+        tasks_of.setdefault(concept.strip().casefold(), set()).add(segment.task)
+    if merged := {concept: sorted(tasks) for concept, tasks in tasks_of.items() if len(tasks) > 1}:
+        tasks = next(iter(merged.values()))
+        raise ValueError(f"{manifest_path}: the rename gives the tasks {' and '.join(map(repr, tasks))} one concept "
+                         f"{rename.get(tasks[0], tasks[0])!r} (case aside), which would merge their rows; give each "
+                         "task its own concept name")
     concepts: dict[str, list[ConceptRow]] = {}
     for row in sorted(rows, key=lambda r: (r.start_index, r.segment_id)):
         task = manifest.segments[row.segment_id].task

@@ -32,7 +32,7 @@ from steering_core.data.dataset import (
 )
 from steering_core.data.dataset_checks import check_dataset
 from steering_core.storage.fileio import write_json
-from steering_core.storage.schema import StrictModel, read_model
+from steering_core.storage.schema import SHORT, StrictModel, read_model
 
 logger = logging.getLogger(__name__)
 
@@ -41,6 +41,7 @@ DEMO_NAME = "episode_{episode_index:06d}"
 # The seed adds this to the pooled std so that tasks whose demos all move identically
 # still get a finite (very large) effect size instead of a division by zero.
 EFFECT_SIZE_EPS = 1e-9
+MAX_EPISODES = 1_000_000  # episode indices a list may name (ranges counted, not expanded): LIBERO-90 holds 4,500
 # The seed's floor on the progress threshold: below it, float noise would count as progress.
 MIN_PROGRESS_THRESHOLD = 1e-6
 # Fallback window when an axis makes no measurable progress: the steps with the largest
@@ -321,9 +322,10 @@ def _select_episodes(
         foreign = sorted({i for i in explicit if i not in by_index})
         if foreign:
             owner = {e.episode_index: e.task for e in meta.episodes}
-            found = {i: owner.get(i, "not in the dataset") for i in foreign}
+            found = SHORT.repr({i: owner.get(i, "not in the dataset") for i in foreign})
             raise ValueError(
-                f"{flag}: episode(s) {found} are not episodes of {task!r}; its episodes are {sorted(by_index)}"
+                f"{flag}: episode(s) {found}{f' ({len(foreign):,} of them)' if len(foreign) > SHORT.maxdict else ''} "
+                f"are not episodes of {task!r}; its episodes are {sorted(by_index)}"
             )
         if not explicit:
             raise ValueError(f"{flag}: the episode list for {task!r} is empty")

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field
 
 from steering_core.devices import DEVICE_HELP
+from steering_core.pi05.steering import check_alpha_grid
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.methods import MethodNames
 
@@ -28,8 +28,7 @@ def _grid_with_zero(alphas: tuple[float, ...]) -> tuple[float, ...]:
     if len(alphas) > MAX_ALPHAS:
         raise ValueError(f"alphas: {len(alphas)} values; expected at most {MAX_ALPHAS} (each is a policy entry per "
                          "frame, seed and direction)")
-    if not all(math.isfinite(a) for a in alphas):
-        raise ValueError(f"alphas {list(alphas)} must be finite numbers")
+    check_alpha_grid(alphas)
     if 0.0 not in alphas:
         raise ValueError(f"alphas {list(alphas)} must include 0: every shift is measured against the unsteered "
                          "actions at α = 0")

@@ -69,6 +69,37 @@ def check_max_layer(arch: Pi05Arch, max_layer: int | None) -> int:
     return max_layer
 
 
+def header_depths(checkpoint: Checkpoint) -> dict[str, int]:
+    """Return the layers the file's header holds, by stack: `lm` (decoder layers 0..n-1 present), `vision` (SigLIP
+    encoder layers) and `expert` (action expert layers); names only, no tensor read."""
+    stacks = {"lm": LM_PREFIX + "layers.", "vision": VISION_PREFIX + "encoder.layers.", "expert": EXPERT_LAYERS}
+    found: dict[str, set[str]] = {stack: set() for stack in stacks}
+    for name in check_safetensors(checkpoint.model_file):
+        canonical = checkpoint.canonical(name)
+        for stack, prefix in stacks.items():
+            if canonical.startswith(prefix):
+                found[stack].add(canonical[len(prefix):].split(".")[0])
+    return {stack: len(indices) for stack, indices in found.items()}
+
+
+def check_depths(checkpoint: Checkpoint, arch: Pi05Arch, max_layer: int) -> None:
+    """Raise unless the arch's depths agree with the layers in the file's header, before anything is built from
+    them: SigLIP's `vision_depth` is the file's (the whole tower is read), decoder layer `max_layer` is in the file,
+    and `depth` is the action expert's layer count where the file holds one (pi0.5 pairs them layer by layer)."""
+    held = header_depths(checkpoint)
+    problems = []
+    if arch.vision_depth != held["vision"]:
+        problems.append(f"vision_depth {arch.vision_depth}, but it holds {held['vision']} SigLIP encoder layers")
+    if held["expert"] and arch.depth != held["expert"]:
+        problems.append(f"depth {arch.depth}, but it holds {held['expert']} action expert layers (one per "
+                        "language-model layer)")
+    elif max_layer >= held["lm"]:
+        problems.append(f"decoder layers up to {max_layer} (depth {arch.depth}), but it holds {held['lm']}")
+    if problems:
+        raise ValueError(f"{checkpoint.model_file}: the Pi05Arch asks for " + "; ".join(problems) + " (header); "
+                         "pass the Pi05Arch this checkpoint was built with (model.arch, --arch-file)")
+
+
 def vision_tensor_shapes(arch: Pi05Arch) -> dict[str, Shape]:
     """Return checkpoint name -> shape of the SigLIP tower and the projector."""
     w, m, lm = arch.vision_width, arch.vision_mlp_dim, arch.width
@@ -183,6 +214,7 @@ def expert_arch_from_checkpoint(checkpoint: Checkpoint, arch: Pi05Arch) -> Exper
     """
     if arch == Pi05Arch():
         return ExpertArch()
+    check_depths(checkpoint, arch, arch.depth - 1)
     with safe_open(str(checkpoint.model_file), framework="pt", device="cpu") as handle:
         names = {checkpoint.canonical(name) for name in handle.keys()}
         if ACTION_IN_KEY not in names:
@@ -267,6 +299,7 @@ def _prefix_what_hint(arch: Pi05Arch, max_layer: int) -> tuple[str, str]:
 
 def check_prefix_layout(checkpoint: Checkpoint, arch: Pi05Arch, max_layer: int) -> None:
     """Raise unless the file holds every prefix tensor up to `max_layer` with the arch's shapes (header only)."""
+    check_depths(checkpoint, arch, max_layer)
     check_tensors(checkpoint, prefix_tensor_shapes(arch, max_layer), *_prefix_what_hint(arch, max_layer))
 
 
@@ -276,7 +309,7 @@ def read_prefix_tensors(
     max_layer: int,
     placement: Placement,
 ) -> dict[str, torch.Tensor]:
-    """Return canonical name -> tensor for the prefix up to `max_layer` (`read_tensors`)."""
+    """Return canonical name -> tensor for the prefix up to `max_layer` (`read_tensors`; `check_depths` first)."""
     return read_tensors(checkpoint, prefix_tensor_shapes(arch, max_layer), placement, *_prefix_what_hint(arch, max_layer))
 
 

@@ -31,6 +31,7 @@ from steering_core.pi05.checkpoint import (
     LM_PREFIX,
     PROJECTOR_PREFIX,
     VISION_PREFIX,
+    check_depths,
     check_max_layer,
     read_prefix_tensors,
 )
@@ -202,6 +203,7 @@ class Pi05Prefix(nn.Module):
         arch = arch or Pi05Arch()
         checkpoint = path if isinstance(path, Checkpoint) else resolve_checkpoint(path, layout)
         max_layer = check_max_layer(arch, max_layer)
+        check_depths(checkpoint, arch, max_layer)  # the layers built below are the file's
         device = resolve_device(device)
         dtype = resolve_dtype(dtype, device)
         model = cls(arch, max_layer + 1)

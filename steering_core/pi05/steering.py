@@ -27,6 +27,20 @@ LAST_LM_LAYER = ("the last language-model layer's output only feeds the final no
                  "so steering it cannot change the actions")
 STREAMS: tuple[Stream, ...] = ("lm", "expert")
 MODES: tuple[Mode, ...] = ("add", "clamp")
+# |α| in residual_norm units (add) or level fractions (clamp): a shift 100 times the typical residual norm swamps
+# the residual stream (the evaluation's grid stays within a few units); larger values only reach float overflow.
+# The evaluation's and the rollouts' grids stay within it; it is the server's default --max-alpha.
+MAX_ALPHA = 100.0
+
+
+def check_alpha_grid(alphas: Sequence[float]) -> None:
+    """Raise unless every α of a grid is finite and |α| <= `MAX_ALPHA`."""
+    if not all(math.isfinite(alpha) for alpha in alphas):
+        raise ValueError(f"alphas {list(alphas)} must be finite numbers")
+    if (largest := max((abs(alpha) for alpha in alphas), default=0.0)) > MAX_ALPHA:
+        raise ValueError(f"alphas hold |α| = {largest:g}, above {MAX_ALPHA:g} (units of the mean residual norm, or "
+                         f"level fractions for clamp): a larger shift swamps the residual stream; give values within "
+                         f"±{MAX_ALPHA:g}")
 
 
 @dataclass(frozen=True, eq=False)

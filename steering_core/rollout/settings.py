@@ -3,14 +3,13 @@ controls, episodes per cell, and how the policy is reached."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
 from steering_core.pairs import SIDES, Side, same_text
-from steering_core.pi05.steering import Mode
+from steering_core.pi05.steering import Mode, check_alpha_grid
 from steering_core.rollout.workers import MAX_WORKERS
 from steering_core.storage.schema import StrictModel
 from steering_core.vectors.methods import MethodNames
@@ -99,12 +98,13 @@ class RolloutSettings(StrictModel):
     @field_validator("alphas")
     @classmethod
     def _alphas(cls, alphas: tuple[float, ...]) -> tuple[float, ...]:
-        if not all(math.isfinite(a) and a >= 0 for a in alphas):
-            raise ValueError(f"alphas {list(alphas)} must be finite and >= 0: each is a push toward the other task "
-                             "(the mirror side gets the opposite sign)")
         if len(alphas) > MAX_ALPHAS:
             raise ValueError(f"alphas: {len(alphas)} values; expected at most {MAX_ALPHAS} (each is a cell per "
                              "condition and side, every one a set of episodes)")
+        check_alpha_grid(alphas)
+        if not all(a >= 0 for a in alphas):
+            raise ValueError(f"alphas {list(alphas)} must be >= 0: each is a push toward the other task "
+                             "(the mirror side gets the opposite sign)")
         grid = tuple(sorted(set(alphas)))
         if grid[:1] != (0.0,) or len(grid) < 2:
             raise ValueError(f"alphas {list(alphas)} must hold 0 (the unsteered cell) and at least one push")

@@ -31,6 +31,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from steering_core.devices import usable_cores
+
 if TYPE_CHECKING:
     from steering_core.capture import CaptureSettings
     from steering_core.rollout.settings import RolloutSettings
@@ -62,11 +64,6 @@ class WorkersStopped(RuntimeError):
 
 class PolicyStartError(RuntimeError):
     """The policy the workers share could not be loaded or served."""
-
-
-def usable_cores() -> int:
-    """Return the cores this process may run on (its CPU affinity)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def available_memory() -> int | None:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from steering_core.pi05.observation import IMAGE_KEY, PROMPT_KEY, STATE_KEY, WRIST_IMAGE_KEY
-from steering_core.pi05.steering import LAST_LM_LAYER, MODES
+from steering_core.pi05.steering import LAST_LM_LAYER, MAX_ALPHA, MODES
 from steering_core.serve.catalog import DEFAULT_DIRECTIONS, RANDOM_CONTROLS, SteeringVector, VectorCatalog
 
 STEERING_KEY = "steering"
@@ -32,9 +32,6 @@ ENTRY_KEYS = ("pair", "layer", "alpha", "direction", "alpha_units", "mode")
 ALPHA_UNITS = ("residual_norm", "vector")
 DEFAULT_ALPHA_UNITS = "residual_norm"
 DEFAULT_MODE = "add"
-# |α| in residual_norm units (add) or level fractions (clamp): a shift 100 times the typical residual norm swamps
-# the residual stream (the evaluation's grid stays within a few units); larger values only reach float overflow
-DEFAULT_MAX_ALPHA = 100.0
 # the policy resizes each image to a square (224 for pi0.5) keeping its aspect: a side shorter than 1/224 of the
 # other vanishes; LIBERO's cameras are square, and no camera is 16 times wider than high
 MAX_IMAGE_ASPECT = 16
@@ -146,7 +143,7 @@ class SteeringLimits:
     fractions), and language-model layers below `lm_depth - 1` (the last layer's output only feeds the final norm,
     which no action reads)."""
 
-    max_alpha: float = DEFAULT_MAX_ALPHA
+    max_alpha: float = MAX_ALPHA
     lm_depth: int | None = None  # None: the model's depth is unknown, every catalog layer passes
 
 

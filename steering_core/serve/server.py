@@ -62,8 +62,8 @@ from steering_core.serve.policy import ServedPolicy
 from steering_core.serve.request import (
     ALPHA_UNITS,
     DEFAULT_ALPHA_UNITS,
-    DEFAULT_MAX_ALPHA,
     DEFAULT_MODE,
+    MAX_ALPHA,
     MODES,
     STEERING_KEY,
     AppliedSteering,
@@ -173,7 +173,7 @@ class PolicyServer:
         host: str = "127.0.0.1",
         port: int = 8000,
         max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
-        max_alpha: float = DEFAULT_MAX_ALPHA,
+        max_alpha: float = MAX_ALPHA,
         api_key: str | None = None,
         episode_log: EpisodeLog | None = None,
         inference_timeout_s: float = DEFAULT_INFERENCE_TIMEOUT_S,

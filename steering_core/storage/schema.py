@@ -4,6 +4,7 @@ JSON reader."""
 from __future__ import annotations
 
 import os
+import reprlib
 from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
@@ -17,14 +18,18 @@ from steering_core.storage.mirrors import portable
 # float). Containers, paths and literals keep pydantic's conversions: YAML and JSON give lists for tuples, strings
 # for paths, and strings for mapping keys (a dict[int, ...] written as JSON comes back keyed by "12").
 STRICT_SCALARS = ("int", "bool", "float", "str")
+SHORT = reprlib.Repr(maxstring=80, maxother=80, maxlist=4, maxtuple=4, maxdict=4, maxlevel=2)  # a found value in a line
 _TYPE_ERRORS = ("int_type", "bool_type", "float_type", "string_type")  # a scalar of another type
 
 
 def _strict_scalars(schema: Any) -> None:
-    """Mark every int, bool, float and str of a pydantic core schema strict, except mapping keys (in place)."""
+    """Mark every int, bool, float and str of a pydantic core schema strict, except mapping keys, and every float
+    finite (NaN and ±inf refused: a setting or a record holds real numbers), in place."""
     if isinstance(schema, dict):
         if schema.get("type") in STRICT_SCALARS:
             schema["strict"] = True
+        if schema.get("type") == "float":
+            schema["allow_inf_nan"] = False
         for key, value in schema.items():
             if key != "keys_schema":
                 _strict_scalars(value)
@@ -34,7 +39,8 @@ def _strict_scalars(schema: Any) -> None:
 
 
 class StrictModel(BaseModel):
-    """A pydantic model that forbids unknown keys, takes scalars only of their own type, and round-trips through JSON."""
+    """A pydantic model that forbids unknown keys, takes scalars only of their own type and numbers only finite, and
+    round-trips through JSON."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -58,7 +64,7 @@ def error_message(error: Mapping[str, Any], *, value: bool = True) -> str:
     if error["type"] not in _TYPE_ERRORS:
         return error["msg"]
     kind = type(error["input"]).__name__
-    return f"{error['msg']}, found {error['input']!r} ({kind})" if value else f"{error['msg']}, found a {kind}"
+    return f"{error['msg']}, found {SHORT.repr(error['input'])} ({kind})" if value else f"{error['msg']}, found a {kind}"
 
 
 def validation_problems(err: ValidationError) -> str:

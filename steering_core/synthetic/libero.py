@@ -215,6 +215,24 @@ def write_libero_file(
     return SyntheticFile(path=path, instruction=task.instruction, demos=tuple(truth for _, truth in made))
 
 
+MAX_FILE_BYTES = 2 << 30  # one task file's demos, built in memory before the file is written
+CAMERAS = 2               # agentview and eye-in-hand, uint8 RGB
+STEP_FLOATS = 36          # float64 values per step besides the MuJoCo state: actions, ee pose, grippers, joints, ...
+
+
+def check_demo_request(demos_per_task: int, settings: SyntheticSettings, where: str = "make-demos") -> None:
+    """Raise before anything is made when one task file's demos (built in memory before they are written) would
+    exceed `MAX_FILE_BYTES`, stating the estimate, the product it came from and the counts to lower."""
+    steps = settings.num_steps + settings.length_jitter
+    step_bytes = CAMERAS * settings.image_size**2 * 3 + (settings.state_dim + STEP_FLOATS) * 8
+    estimate = demos_per_task * steps * step_bytes
+    if estimate > MAX_FILE_BYTES:
+        raise ValueError(f"{where}: an estimated {estimate / 2**30:,.1f} GiB per task file = demos_per_task "
+                         f"{demos_per_task:,} x up to {steps} steps x {step_bytes:,} bytes ({CAMERAS} cameras of "
+                         f"{settings.image_size}x{settings.image_size} RGB and the state); expected at most "
+                         f"{MAX_FILE_BYTES >> 30} GiB: lower --demos-per-task, --num-steps or --image-size")
+
+
 def write_demo_suite(
     folder: str | Path,
     *,
@@ -222,7 +240,9 @@ def write_demo_suite(
     settings: SyntheticSettings = SyntheticSettings(),
     tasks: Sequence[SyntheticTask] = DEMO_SUITE_TASKS,
 ) -> list[SyntheticFile]:
-    """Write the two-pair demo suite (drawer open/close, stove on/off) into `folder`; return the files."""
+    """Write the two-pair demo suite (drawer open/close, stove on/off) into `folder`; return the files
+    (`check_demo_request` first)."""
+    check_demo_request(demos_per_task, settings)
     Path(folder).mkdir(parents=True, exist_ok=True)
     return [write_libero_file(folder, task, num_demos=demos_per_task, settings=settings) for task in tasks]
 
