@@ -99,7 +99,6 @@ def demo_command(
     """
     output_dir = output_dir.resolve()
     with input_errors():
-        demo.check_demo_folder(output_dir)
         demo.check_demo_request(output_dir, demos_per_task)
         prefect_environment(home=output_dir / PREFECT_HOME_DIR)
     planted_path = demo.build_planted(output_dir / demo.PLANTED_DIR)
