@@ -19,8 +19,9 @@ from steering_core.data.image_cells import check_image_cells
 from steering_core.data.v2_frames import V2Frames
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
 
-# Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork.
-WORKER_PRELOAD = ("torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
+# Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork; the first one
+# makes them ignore Ctrl-C from the start.
+WORKER_PRELOAD = ("steering_core.processes.ctrl_c_ignored", "torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
 FRAME_KEYS = (*LIBERO_IMAGE_KEYS, "task", "index", "episode_index", "frame_index")  # what capture reads per frame
 # Default worker cap: a worker decodes 70-220 frames/s of two 256 px PNG cameras on a shared core, so 8 keep
 # ahead of pi0.5 on one GPU (~240 frames/s at layer 12 on an H200; BENCHMARKS.md §15) while each worker's copy

@@ -22,7 +22,6 @@ import os
 import queue
 import secrets
 import signal
-import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
@@ -30,6 +29,8 @@ from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
+
+from steering_core.processes import die_with_parent, ignore_ctrl_c
 
 if TYPE_CHECKING:
     from steering_core.capture import CaptureSettings
@@ -49,7 +50,6 @@ CHUNK_RETRIES = 2  # attempts after the first of a chunk whose worker died (the 
 # connection quiet for minutes, and whose batched calls of the real model on the CPU can take that long too.
 SHARED_TIMEOUT_S = 3600.0
 ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "LP_NUM_THREADS": "1"}
-PR_SET_PDEATHSIG = 1
 
 
 class WorkerDied(RuntimeError):
@@ -97,17 +97,14 @@ def worker_count(requested: int | None, chunks: int) -> int:
 def _start_worker(level: int) -> None:
     """Set up a worker process: Ctrl-C is the parent's to handle, die with the parent, one thread per library, and
     steering_core's log lines at the parent's `level` on the shared stderr, marked with the worker's process id."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_ctrl_c()
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d | %(levelname)-7s | worker %(process)d | "
                                            "%(name)s - %(message)s", datefmt="%H:%M:%S"))
     root = logging.getLogger("steering_core")
     root.addHandler(handler)
     root.setLevel(level)
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    die_with_parent()
     os.environ.update(ONE_THREAD)
 
 
