@@ -15,6 +15,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -93,7 +94,8 @@ def interruptible(command: Callable[[], str]) -> Iterator[None]:
         held.hold(signum)
         raise Interrupted(signum)
 
-    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM)}
+    main = threading.current_thread() is threading.main_thread()  # signal handlers are the main thread's only
+    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGINT, signal.SIGTERM) if main}
     try:
         yield
     except KeyboardInterrupt as err:

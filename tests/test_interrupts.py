@@ -137,7 +137,8 @@ def tree_bytes(root: Path) -> dict[str, bytes]:
 def test_ctrl_c_and_sigterm_stop_the_run_at_once_and_the_rerun_writes_a_clean_runs_bytes(tmp_path):
     config = yaml.safe_load(build_demo(tmp_path / "demo", demos_per_task=2).read_text())
     # capture and one layer's steering vectors, with a frame worker: what is interrupted, and what a rerun resumes
-    del config["rollout"], config["evaluate"]
+    del config["rollout"]
+    config["evaluate"] = None
     config["layers"], config["sae"] = [2], {"2": config["sae"]["2"]}
     config["capture"]["num_workers"] = 1
     config_path = tmp_path / "demo" / "interrupted.yaml"
