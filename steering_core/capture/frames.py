@@ -18,9 +18,10 @@ from steering_core.data.dataset import NO_VIDEO_BACKEND, DatasetMeta
 from steering_core.data.image_cells import check_image_cells
 from steering_core.data.v2_frames import V2Frames
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
+from steering_core.processes import children_ignore_ctrl_c
 
 # Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork; the first one
-# makes them ignore Ctrl-C from the start.
+# makes them ignore Ctrl-C when a thread other than the main one starts them (`children_ignore_ctrl_c`).
 WORKER_PRELOAD = ("steering_core.processes.ctrl_c_ignored", "torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
 FRAME_KEYS = (*LIBERO_IMAGE_KEYS, "task", "index", "episode_index", "frame_index")  # what capture reads per frame
 # Default worker cap: a worker decodes 70-220 frames/s of two 256 px PNG cameras on a shared core, so 8 keep
@@ -139,7 +140,9 @@ def frame_batches(
     A frame refused in a worker (`FrameDataset`) is raised here as the worker's one-line ValueError.
     """
     loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", shapes, cameras)
-    return (slots_on_device(batch, image_size, device, cameras) for batch in _worker_errors(iter(loader)))
+    with children_ignore_ctrl_c():  # Ctrl-C is this process's: it shuts the workers down
+        batches = iter(loader)
+    return (slots_on_device(batch, image_size, device, cameras) for batch in _worker_errors(batches))
 
 
 def _worker_errors(batches: Iterator[dict[str, Any]]) -> Iterator[dict[str, Any]]:

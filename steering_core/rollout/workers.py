@@ -30,7 +30,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from steering_core.processes import die_with_parent, ignore_ctrl_c
+from steering_core.processes import children_ignore_ctrl_c, die_with_parent, ignore_ctrl_c
 
 if TYPE_CHECKING:
     from steering_core.capture import CaptureSettings
@@ -136,7 +136,9 @@ class SimulationWorkers:
         executor = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_start_worker,
                                        initargs=(logging.getLogger("steering_core").getEffectiveLevel(),))
         try:
-            pid = executor.submit(os.getpid).result()
+            with children_ignore_ctrl_c():  # the process starts here
+                started = executor.submit(os.getpid)
+            pid = started.result()
         except BrokenProcessPool:
             executor.shutdown(wait=True, cancel_futures=True)
             raise WorkerDied("a simulation worker process ended while starting") from None
