@@ -96,12 +96,14 @@ def interrupt_capture(config: Path, log: Path, signum: int, group: bool) -> str:
     process = start_run(config, log)
     deadline = time.monotonic() + 900  # the embedded server's start and the steps before capture, on a busy machine
     tree: list[int] = []
+    seen: set[str] = set()
     while time.monotonic() < deadline and process.poll() is None:
         tree = descendants(process.pid)
+        seen.update(command_line(pid)[:80] for pid in tree)
         if "capturing" in log.read_text() and any("forkserver" in command_line(pid) for pid in tree):
             break
         time.sleep(0.05)
-    assert process.poll() is None, f"the run ended before its capture started:\n{log.read_text()[-3000:]}"
+    assert process.poll() is None, f"the run ended before its capture started ({seen}):\n{log.read_text()[-3000:]}"
     (os.killpg if group else os.kill)(process.pid, signum)
     sent = time.monotonic()
     try:

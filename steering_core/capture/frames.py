@@ -21,8 +21,10 @@ from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
 from steering_core.processes import children_ignore_ctrl_c
 
 # Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork; the first one
-# makes them ignore Ctrl-C when a thread other than the main one starts them (`children_ignore_ctrl_c`).
-WORKER_PRELOAD = ("steering_core.processes.ctrl_c_ignored", "torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
+# makes the forkserver die with this process and ignore Ctrl-C (from exec on already, `children_ignore_ctrl_c`,
+# when the main thread starts it).
+WORKER_PRELOAD = ("steering_core.processes.child_start", "torch", "lerobot.datasets.lerobot_dataset",
+                  "steering_core.capture.frames")
 FRAME_KEYS = (*LIBERO_IMAGE_KEYS, "task", "index", "episode_index", "frame_index")  # what capture reads per frame
 # Default worker cap: a worker decodes 70-220 frames/s of two 256 px PNG cameras on a shared core, so 8 keep
 # ahead of pi0.5 on one GPU (~240 frames/s at layer 12 on an H200; BENCHMARKS.md §15) while each worker's copy
