@@ -7,6 +7,7 @@ import functools
 import multiprocessing
 import os
 from collections.abc import Iterator, Mapping, Sequence
+from multiprocessing import forkserver
 from typing import Any
 
 import numpy as np
@@ -142,9 +143,7 @@ def frame_batches(
     A frame refused in a worker (`FrameDataset`) is raised here as the worker's one-line ValueError.
     """
     loader = frame_loader(frames, plan, keys, frame_workers(num_workers), device.type == "cuda", shapes, cameras)
-    with children_ignore_ctrl_c():  # Ctrl-C is this process's: it shuts the workers down
-        batches = iter(loader)
-    return (slots_on_device(batch, image_size, device, cameras) for batch in _worker_errors(batches))
+    return (slots_on_device(batch, image_size, device, cameras) for batch in _worker_errors(iter(loader)))
 
 
 def _worker_errors(batches: Iterator[dict[str, Any]]) -> Iterator[dict[str, Any]]:
@@ -173,9 +172,12 @@ def worker_start_method(num_workers: int) -> str | None:
 
     Forking the capturing process itself copies every lock but only the forking thread: inside a Prefect
     flow (API and log threads) workers then died at shutdown. A forkserver is a fresh single-threaded
-    process; preloading the heavy imports there keeps each worker's start as cheap as a plain fork.
+    process; preloading the heavy imports there keeps each worker's start as cheap as a plain fork. It is
+    started here, ignoring Ctrl-C from its first instruction on (`processes.children_ignore_ctrl_c`).
     """
     if num_workers == 0:
         return None
     multiprocessing.set_forkserver_preload(list(WORKER_PRELOAD))
+    with children_ignore_ctrl_c():  # started now (its imports run after): Ctrl-C is this process's, which stops it
+        forkserver.ensure_running()
     return "forkserver"
