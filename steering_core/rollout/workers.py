@@ -24,7 +24,7 @@ import secrets
 import signal
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
@@ -117,12 +117,28 @@ class SimulationWorkers:
         self.count = count
         self._idle: queue.SimpleQueue[ProcessPoolExecutor | None] = queue.SimpleQueue()
         for _ in range(count):
-            self._idle.put(None)  # started on first use
+            self._idle.put(None)  # started on entry (`with`), else on first use
         self._started: dict[ProcessPoolExecutor, int] = {}  # executor -> its process id
         self._lock = threading.Lock()
         self._closed = False
 
     def __enter__(self) -> SimulationWorkers:
+        """Start every worker now, from this thread: from the main one, they ignore Ctrl-C from exec on
+        (`processes.children_ignore_ctrl_c`), not only once their start-up imports are done (`_start_worker`); a
+        worker that dies while starting is started again on first use."""
+        spawned = [self._spawn() for _ in range(self.count)]
+        try:
+            for executor, started in spawned:
+                self._idle.get()  # its slot's placeholder
+                try:
+                    self._idle.put(self._ready(executor, started))
+                except WorkerDied:
+                    self._idle.put(None)
+        except BaseException:
+            self.close()
+            for executor, _ in spawned:
+                executor.shutdown(wait=False, cancel_futures=True)
+            raise
         return self
 
     def __exit__(self, *_: Any) -> None:
@@ -132,12 +148,16 @@ class SimulationWorkers:
     def closed(self) -> bool:
         return self._closed
 
-    def _new_worker(self) -> ProcessPoolExecutor:
+    def _spawn(self) -> tuple[ProcessPoolExecutor, Future[int]]:
+        """Start a worker process; return its executor and the future of its process id."""
         executor = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_start_worker,
                                        initargs=(logging.getLogger("steering_core").getEffectiveLevel(),))
+        with children_ignore_ctrl_c():  # the process starts here; its imports run after
+            return executor, executor.submit(os.getpid)
+
+    def _ready(self, executor: ProcessPoolExecutor, started: Future[int]) -> ProcessPoolExecutor:
+        """Return the executor of a spawned worker once it runs (WorkerDied if it ended while starting)."""
         try:
-            with children_ignore_ctrl_c():  # the process starts here
-                started = executor.submit(os.getpid)
             pid = started.result()
         except BrokenProcessPool:
             executor.shutdown(wait=True, cancel_futures=True)
@@ -157,7 +177,7 @@ class SimulationWorkers:
         try:
             if self._closed:
                 raise WorkersStopped("simulation workers stopped")
-            executor = executor or self._new_worker()
+            executor = executor or self._ready(*self._spawn())
             try:
                 return executor.submit(fn, *args).result()
             except BrokenProcessPool:
