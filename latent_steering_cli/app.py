@@ -14,6 +14,7 @@ import typer
 from pydantic import ValidationError
 from typer.core import TyperGroup
 
+from latent_steering_cli.interrupts import held_back, interruptible
 from latent_steering_cli.lazy import LazyCommands, current_options
 from steering_core.storage.mirrors import is_url, portable
 from steering_core.storage.os_limits import machine_error_line
@@ -95,7 +96,7 @@ class SeedSpellingGroup(TyperGroup):
         return name, command, rest
 
     def invoke(self, ctx: Any) -> Any:
-        with machine_errors():
+        with interruptible(lambda: f"latent-steering {ctx.invoked_subcommand}"), machine_errors():
             result = super().invoke(ctx)
         if ctx.meta.get(_MOUNTED):
             from latent_steering_cli.storage import publish_changed
@@ -152,6 +153,7 @@ def configure_logging(verbose: bool) -> None:
     """Log to stderr with times and run names; library chatter only when `verbose`."""
     handler = logging.StreamHandler()
     handler.setFormatter(RunNameFormatter("%(asctime)s %(levelname)s %(name)s%(run)s: %(message)s", datefmt="%H:%M:%S"))
+    handler.addFilter(held_back)  # quiet once interrupted (`interrupts`)
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, handlers=[handler])  # no-op under pytest
     for name in NOISY_LOGGERS:
         logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.WARNING)

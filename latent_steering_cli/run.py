@@ -7,7 +7,12 @@ and `demo` alike: `.prefect/` beside the run config, unless PREFECT_HOME is set.
 
 from __future__ import annotations
 
+import functools
 import os
+import signal
+import subprocess
+import types
+import unittest.mock
 from pathlib import Path
 
 import typer
@@ -17,6 +22,7 @@ from latent_steering_cli.numbers import number_option
 from steering_core import demo
 from steering_core.config import RunConfig, load_run_config
 from steering_core.preflight import check_run
+from steering_core.processes import die_with_parent
 from steering_core.storage.os_limits import check_writable_folder
 
 # Prefect's embedded server needs more than its default 20 s to start on a busy 2-core machine.
@@ -51,6 +57,7 @@ def run_pipeline(config_path: Path, run_config: RunConfig) -> None:
     from latent_steering_cli.summary import format_task_rows, task_rows, task_runs_of
     from tasks.run_configs import sharing
 
+    start_embedded_server()
     with sharing(run_config, config_path):  # the flow reads this parse, not the file again
         state = latent_steering(str(config_path), return_state=True)
     typer.echo("")
@@ -59,6 +66,25 @@ def run_pipeline(config_path: Path, run_config: RunConfig) -> None:
     if not state.is_completed():
         typer.secho(f"error: the run ended {state.name}: {state.message}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
+
+
+def start_embedded_server() -> None:
+    """Start Prefect's embedded server now, unless PREFECT_API_URL names a server: in a session of its own, so a
+    terminal's Ctrl-C (sent to its process group) stops only this process, which records its runs Crashed there
+    before stopping the server (at exit, Prefect's own stop); the server dies with this process too (kill -9).
+
+    Prefect starts it on first use, as a child in this process group (`SubprocessASGIServer`, one per process):
+    started here with the same command, only detached."""
+    import prefect.server.api.server as embedded
+    from prefect.client.orchestration import get_client
+    from prefect.settings import PREFECT_API_URL
+
+    if PREFECT_API_URL.value():
+        return
+    detached = types.SimpleNamespace(**{**vars(subprocess), "Popen": functools.partial(
+        subprocess.Popen, start_new_session=True, preexec_fn=functools.partial(die_with_parent, signal.SIGTERM))})
+    with unittest.mock.patch.object(embedded, "subprocess", detached):
+        get_client(sync_client=True)  # starts the server (`get_client` does without PREFECT_API_URL)
 
 
 @app.command("run")

@@ -49,7 +49,7 @@ def test_library_imports_without_prefect_or_flows():
 
 
 # steering_core's rooms, lowest first: each imports only rooms before it (type-checking imports aside)
-ROOMS = ["storage", "pairs", "devices", "reporting", "remote", "layout", "identity", "tensor_files", "pi05", "data",
+ROOMS = ["storage", "processes", "pairs", "devices", "reporting", "remote", "layout", "identity", "tensor_files", "pi05", "data",
          "capture", "sae", "vectors", "serve", "evaluate", "rollout", "sae_quality", "synthetic", "workload", "config",
          "refresh", "preflight", "demo"]
 LIBRARY = Path(__file__).resolve().parents[1] / "steering_core"

@@ -7,6 +7,7 @@ import functools
 import logging
 import multiprocessing
 from collections.abc import Iterator, Sequence
+from multiprocessing import forkserver
 from typing import Any
 
 import numpy as np
@@ -19,11 +20,15 @@ from steering_core.data.image_cells import PNG_HEADER_BYTES, check_image_cells, 
 from steering_core.data.v2_frames import V2Frames
 from steering_core.devices import usable_cores
 from steering_core.pi05.preprocess import LIBERO_IMAGE_KEYS, Cameras
+from steering_core.processes import children_ignore_ctrl_c
 
 logger = logging.getLogger(__name__)
 
-# Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork.
-WORKER_PRELOAD = ("torch", "lerobot.datasets.lerobot_dataset", "steering_core.capture.frames")
+# Modules the frame workers' forkserver imports once, so that each worker starts as fast as a fork; the first one
+# makes the forkserver die with this process and ignore Ctrl-C (from exec on already, `children_ignore_ctrl_c`,
+# when the main thread starts it).
+WORKER_PRELOAD = ("steering_core.processes.child_start", "torch", "lerobot.datasets.lerobot_dataset",
+                  "steering_core.capture.frames")
 FRAME_KEYS = (*LIBERO_IMAGE_KEYS, "task", "index", "episode_index", "frame_index")  # what capture reads per frame
 # Default worker cap: a worker decodes 70-220 frames/s of two 256 px PNG cameras on a shared core, so 8 keep
 # ahead of pi0.5 on one GPU (~240 frames/s at layer 12 on an H200; BENCHMARKS.md §15) while each worker's copy
@@ -204,9 +209,12 @@ def worker_start_method(num_workers: int) -> str | None:
 
     Forking the capturing process itself copies every lock but only the forking thread: inside a Prefect
     flow (API and log threads) workers then died at shutdown. A forkserver is a fresh single-threaded
-    process; preloading the heavy imports there keeps each worker's start as cheap as a plain fork.
+    process; preloading the heavy imports there keeps each worker's start as cheap as a plain fork. It is
+    started here, ignoring Ctrl-C from its first instruction on (`processes.children_ignore_ctrl_c`).
     """
     if num_workers == 0:
         return None
     multiprocessing.set_forkserver_preload(list(WORKER_PRELOAD))
+    with children_ignore_ctrl_c():  # started now (its imports run after): Ctrl-C is this process's, which stops it
+        forkserver.ensure_running()
     return "forkserver"

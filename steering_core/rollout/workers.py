@@ -22,16 +22,16 @@ import os
 import queue
 import secrets
 import signal
-import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from steering_core.devices import usable_cores
+from steering_core.processes import children_ignore_ctrl_c, die_with_parent, ignore_ctrl_c
 
 if TYPE_CHECKING:
     from steering_core.capture import CaptureSettings
@@ -51,7 +51,6 @@ CHUNK_RETRIES = 2  # attempts after the first of a chunk whose worker died (the 
 # connection quiet for minutes, and whose batched calls of the real model on the CPU can take that long too.
 SHARED_TIMEOUT_S = 3600.0
 ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "LP_NUM_THREADS": "1"}
-PR_SET_PDEATHSIG = 1
 
 
 class WorkerDied(RuntimeError):
@@ -94,17 +93,14 @@ def worker_count(requested: int | None, chunks: int) -> int:
 def _start_worker(level: int) -> None:
     """Set up a worker process: Ctrl-C is the parent's to handle, die with the parent, one thread per library, and
     steering_core's log lines at the parent's `level` on the shared stderr, marked with the worker's process id."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_ctrl_c()
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter("%(asctime)s.%(msecs)03d | %(levelname)-7s | worker %(process)d | "
                                            "%(name)s - %(message)s", datefmt="%H:%M:%S"))
     root = logging.getLogger("steering_core")
     root.addHandler(handler)
     root.setLevel(level)
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    die_with_parent()
     os.environ.update(ONE_THREAD)
 
 
@@ -117,12 +113,28 @@ class SimulationWorkers:
         self.count = count
         self._idle: queue.SimpleQueue[ProcessPoolExecutor | None] = queue.SimpleQueue()
         for _ in range(count):
-            self._idle.put(None)  # started on first use
+            self._idle.put(None)  # started on entry (`with`), else on first use
         self._started: dict[ProcessPoolExecutor, int] = {}  # executor -> its process id
         self._lock = threading.Lock()
         self._closed = False
 
     def __enter__(self) -> SimulationWorkers:
+        """Start every worker now, from this thread: from the main one, they ignore Ctrl-C from exec on
+        (`processes.children_ignore_ctrl_c`), not only once their start-up imports are done (`_start_worker`); a
+        worker that dies while starting is started again on first use."""
+        spawned = [self._spawn() for _ in range(self.count)]
+        try:
+            for executor, started in spawned:
+                self._idle.get()  # its slot's placeholder
+                try:
+                    self._idle.put(self._ready(executor, started))
+                except WorkerDied:
+                    self._idle.put(None)
+        except BaseException:
+            self.close()
+            for executor, _ in spawned:
+                executor.shutdown(wait=False, cancel_futures=True)
+            raise
         return self
 
     def __exit__(self, *_: Any) -> None:
@@ -132,11 +144,17 @@ class SimulationWorkers:
     def closed(self) -> bool:
         return self._closed
 
-    def _new_worker(self) -> ProcessPoolExecutor:
+    def _spawn(self) -> tuple[ProcessPoolExecutor, Future[int]]:
+        """Start a worker process; return its executor and the future of its process id."""
         executor = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_start_worker,
                                        initargs=(logging.getLogger("steering_core").getEffectiveLevel(),))
+        with children_ignore_ctrl_c():  # the process starts here; its imports run after
+            return executor, executor.submit(os.getpid)
+
+    def _ready(self, executor: ProcessPoolExecutor, started: Future[int]) -> ProcessPoolExecutor:
+        """Return the executor of a spawned worker once it runs (WorkerDied if it ended while starting)."""
         try:
-            pid = executor.submit(os.getpid).result()
+            pid = started.result()
         except BrokenProcessPool:
             executor.shutdown(wait=True, cancel_futures=True)
             raise WorkerDied("a simulation worker process ended while starting") from None
@@ -155,7 +173,7 @@ class SimulationWorkers:
         try:
             if self._closed:
                 raise WorkersStopped("simulation workers stopped")
-            executor = executor or self._new_worker()
+            executor = executor or self._ready(*self._spawn())
             try:
                 return executor.submit(fn, *args).result()
             except BrokenProcessPool:
