@@ -85,8 +85,8 @@ def test_refused(attack_world, tmp_path, monkeypatch, attack):
 
 def test_steer_refuses_an_sae_decoding_the_difference_to_zero(attack_world, tmp_path, monkeypatch):
     """A decoder tiny but not zero, on one latent only, which never fires: the decoded difference is exactly 0, and
-    no pair folder is written. The SAE pass's concept statistics (a cache the next run reuses) are computed first:
-    they may stay, and nothing else does."""
+    nothing is kept: not the pair folder, nor the SAE pass's concept statistics computed first (steer leaves its
+    layer folder as it found it)."""
     def change(weights: dict[str, torch.Tensor]) -> None:
         weights["W_enc"][:, 0] = 0.0
         weights["b_enc"][0] = -1.0  # ReLU(-1) = 0: latent 0 is dead, its mean difference is 0
@@ -100,5 +100,4 @@ def test_steer_refuses_an_sae_decoding_the_difference_to_zero(attack_world, tmp_
     assert result.exit_code == 1 and len(lines) == 1 and "Traceback" not in result.output, result.output
     for name in ("error: pair 'open_vs_close', layer 1, residual_direction", str(path.parent), "length is 0"):
         assert name in lines[0], (name, lines[0])
-    layer = tmp_path / "steering" / "layer01"
-    assert {p.relative_to(layer).parts[0] for p in layer.iterdir()} == {"concepts"}
+    assert not (tmp_path / "steering" / "layer01").exists()
