@@ -42,10 +42,10 @@ logger = logging.getLogger(__name__)
 T = TypeVar("T")
 
 MAX_WORKERS = 256
-# Peak resident memory of one simulation worker running a chunk of 8 lockstep envs (bench.rollout_throughput
-# measures it): LIBERO, MuJoCo, robosuite, torch's import and the scenes. The default worker count leaves room
-# for this much per worker in the memory the machine has available.
-WORKER_MEMORY_BYTES = 3 * 2**30
+# Peak resident memory of one simulation worker: 5.4 GB (RSS, shared pages included) running the default chunk of 5
+# lockstep envs (bench.rollout_throughput, BENCHMARKS.md §12): LIBERO, MuJoCo, robosuite, torch's import and the
+# scenes. The default worker count leaves room for this much per worker in the memory the machine has available.
+WORKER_MEMORY_BYTES = 6 * 2**30
 CHUNK_RETRIES = 2  # attempts after the first of a chunk whose worker died (the flow's task retries, the same)
 # The shared server's own limits: its clients are this phase's workers, whose env resets and scene builds leave a
 # connection quiet for minutes, and whose batched calls of the real model on the CPU can take that long too.
