@@ -125,7 +125,7 @@ class SimulationWorkers:
         spawned = [self._spawn() for _ in range(self.count)]
         try:
             for executor, started in spawned:
-                self._idle.get()  # its slot's placeholder
+                self._idle.get()  # a slot with no process yet (None): it gets this one
                 try:
                     self._idle.put(self._ready(executor, started))
                 except WorkerDied:
